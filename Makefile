@@ -1,0 +1,39 @@
+# Two commands on a fresh machine: `make test` and `make demo` (see README.md).
+PYTHON ?= python3
+VENV ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+PYTEST_ARGS ?=
+VPY := $(VENV)/bin/python
+# The install stamp changes with the dependency list and the torch spec, so a second run skips pip.
+STAMP := $(VENV)/.ditgaze-installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)-$(shell echo '$(TORCH_SPEC)' | cksum | cut -d' ' -f1)
+
+.PHONY: test demo setup sysdeps lint bench clean
+
+test: setup
+	$(VPY) -m pytest $(PYTEST_ARGS)
+
+demo: setup
+	$(VPY) -m apps.demo --out out/demo
+
+setup: sysdeps $(STAMP)
+
+sysdeps:
+	@bash scripts/sysdeps.sh
+
+$(STAMP):
+	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
+	$(VPY) -m pip install -q --upgrade pip setuptools wheel
+	# torch first, from the pinned spec, so nothing below can pull a CUDA build.
+	$(VPY) -m pip install -q "$(TORCH_SPEC)"
+	$(VPY) -m pip install -q -e ".[dev]"
+	@rm -f $(VENV)/.ditgaze-installed-*
+	@touch $@
+
+lint: setup
+	$(VPY) -m ruff check toolkit render geometry train apps tests benchmarks
+
+bench: setup
+	$(VPY) benchmarks/splat.py
+
+clean:
+	rm -rf out .pytest_cache

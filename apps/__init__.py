@@ -1,0 +1,4 @@
+"""apps: the programs a person runs: the demo, live gaze preview and dataset redirection.
+
+May import: anything (toolkit, render, geometry, train).
+"""

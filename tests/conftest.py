@@ -1,0 +1,42 @@
+"""Shared pytest fixtures: deterministic seeds and small synthetic scenes made by the project itself."""
+
+from __future__ import annotations
+
+import random
+
+import numpy as np
+import pytest
+import torch
+
+
+@pytest.fixture(autouse=True)
+def _seed_everything():
+    random.seed(0)
+    np.random.seed(0)
+    torch.manual_seed(0)
+    yield
+
+
+def random_scene(n: int = 50, d: int = 3, sh_degree: int | None = None, seed: int = 0):
+    """A small random GaussianScene (all fields filled, mixed part labels)."""
+    from toolkit.scene import GaussianScene
+
+    g = torch.Generator().manual_seed(seed)
+    sh = None
+    if sh_degree is not None:
+        sh = torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g)
+    return GaussianScene(
+        means=torch.randn(n, 3, generator=g),
+        quats=torch.randn(n, 4, generator=g),
+        log_scales=torch.randn(n, 3, generator=g) - 3,
+        opacity_logits=torch.randn(n, generator=g),
+        features=torch.rand(n, d, generator=g),
+        part=torch.randint(0, 3, (n,), generator=g).to(torch.int8),
+        sh=sh,
+        metadata={"units": "m", "feature_kind": "rgb" if d == 3 else "neural", "note": "test"},
+    )
+
+
+@pytest.fixture
+def scene_factory():
+    return random_scene

@@ -1,0 +1,27 @@
+"""The project's one exception type and the CLI wrapper that turns it into a one-line error."""
+
+from __future__ import annotations
+
+import sys
+from typing import Callable, Sequence
+
+
+class ToolkitError(Exception):
+    """A problem with the user's input or environment, worded so the user can act on it.
+
+    The message names the file or field and what was expected; CLIs print it as one line
+    (``error: ...``) and exit with status 2.
+    """
+
+
+def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[str] | None = None) -> int:
+    """Run a CLI entry point; ``ToolkitError`` (and Ctrl-C) become one line on stderr, never a traceback."""
+    try:
+        code = main(argv)
+    except ToolkitError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)

@@ -1,0 +1,99 @@
+"""Eyeballs: sphere fits, gaze rotations and rigid eye redirection of a GaussianScene.
+
+Conventions:
+- Part 1 "left eye" is the eye on the *image's* left in a frontal view (iBUG landmarks 36–41, the
+  subject's right eye); part 2 "right eye" is landmarks 42–47. This matches GazeGaussian's naming.
+- The head frame is OpenCV-like: x towards the image right of a frontal view, y down, z from the face
+  into the head, so a frontal gaze is (0, 0, -1) = pitch 0, yaw 0 (ETH-XGaze, see ``toolkit.rotations``).
+- Each eye rotates rigidly about **its own** eyeball centre, stored in ``scene.metadata["eyes"]`` as
+  ``{"left": {"center": [x, y, z], "radius": r}, "right": {...}}`` (fitted from the Gaussians when absent).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from toolkit.errors import ToolkitError
+from toolkit.rotations import matrix_to_quat, quat_multiply
+
+EYE_PARTS = {"left": 1, "right": 2}
+
+
+def fit_sphere(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares sphere through [M, 3] points -> (centre [3], radius []).
+
+    Solves the linear form |p|^2 = 2 c·p + (r^2 - |c|^2) in float64. Needs >= 4 non-coplanar points.
+    """
+    if points.shape[0] < 4:
+        raise ToolkitError(f"fit_sphere: need at least 4 points, got {points.shape[0]}")
+    p = points.detach().to(torch.float64)
+    mu = p.mean(0)
+    q = p - mu  # centring keeps the normal equations well conditioned far from the origin
+    A = torch.cat([2 * q, torch.ones(q.shape[0], 1, dtype=q.dtype)], 1)
+    b = (q * q).sum(1, keepdim=True)
+    sol = torch.linalg.lstsq(A, b).solution.squeeze(1)
+    c = sol[:3]
+    r2 = sol[3] + (c * c).sum()
+    if not torch.isfinite(sol).all() or r2 <= 0:
+        raise ToolkitError("fit_sphere: the points do not determine a sphere (coplanar or degenerate)")
+    return (c + mu).to(points.dtype), torch.sqrt(r2).to(points.dtype)
+
+
+def eyeball_info(scene) -> dict[str, dict[str, torch.Tensor]]:
+    """Per-eye {"center": [3], "radius": []} from metadata, else fitted to that eye's Gaussian means.
+
+    Eyes without Gaussians are left out; the result is empty for a scene with no eye Gaussians.
+    """
+    meta = scene.metadata.get("eyes", {}) or {}
+    out = {}
+    for name, part in EYE_PARTS.items():
+        mask = scene.part == part
+        if not bool(mask.any()):
+            continue
+        if name in meta and "center" in meta[name]:
+            c = torch.tensor(meta[name]["center"], dtype=scene.means.dtype, device=scene.device)
+            r = torch.tensor(float(meta[name].get("radius", 0.0)), dtype=scene.means.dtype, device=scene.device)
+        else:
+            c, r = fit_sphere(scene.means[mask])
+        out[name] = {"center": c, "radius": r}
+    return out
+
+
+def gaze_rotation(pitchyaw: torch.Tensor) -> torch.Tensor:
+    """[..., 2] head-frame gaze (pitch, yaw) -> [..., 3, 3] rotation taking the frontal gaze (0, 0, -1) to it.
+
+    R = R_y(yaw) · R_x(-pitch): pitch first about the eye's horizontal axis, then yaw about vertical,
+    which keeps the eye's horizontal axis level (no torsion), as Listing-like eye models do.
+    """
+    p, y = pitchyaw[..., 0], pitchyaw[..., 1]
+    cp, sp, cy, sy = torch.cos(-p), torch.sin(-p), torch.cos(y), torch.sin(y)
+    o, i = torch.zeros_like(p), torch.ones_like(p)
+    Rx = torch.stack([i, o, o, o, cp, -sp, o, sp, cp], -1).reshape(p.shape + (3, 3))
+    Ry = torch.stack([cy, o, sy, o, i, o, -sy, o, cy], -1).reshape(p.shape + (3, 3))
+    return Ry @ Rx
+
+
+def rotate_about(means: torch.Tensor, quats: torch.Tensor, R: torch.Tensor, center: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rigidly rotate Gaussians ([M, 3] means, [M, 4] wxyz quats) by R [3, 3] about ``center`` [3]."""
+    new_means = (means - center) @ R.T + center
+    q = matrix_to_quat(R)
+    new_quats = quat_multiply(q.expand_as(quats), quats)
+    return new_means, new_quats
+
+
+def redirect_eyes(scene, pitchyaw: torch.Tensor | tuple[float, float], info=None):
+    """A copy of ``scene`` with both eyes rigidly turned to head-frame gaze ``pitchyaw`` (radians).
+
+    The canonical scene is assumed to look frontally (gaze (0, 0)). Returns the new scene; raises
+    ``ToolkitError`` when the scene has no eye Gaussians.
+    """
+    info = eyeball_info(scene) if info is None else info
+    if not info:
+        raise ToolkitError("scene has no eye Gaussians (part 1 or 2); gaze cannot be changed")
+    py = torch.as_tensor(pitchyaw, dtype=scene.means.dtype, device=scene.device)
+    R = gaze_rotation(py)
+    out = scene.clone()
+    for name, eye in info.items():
+        m = scene.part == EYE_PARTS[name]
+        out.means[m], out.quats[m] = rotate_about(scene.means[m], scene.quats[m], R, eye["center"])
+    return out

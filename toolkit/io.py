@@ -1,0 +1,118 @@
+"""Atomic file writes and safetensors checkpoints.
+
+Every artefact the project writes goes through :func:`atomic_write` (or a helper built on it): data go
+to a temporary file in the destination's folder, are flushed and fsynced, then renamed over the target,
+so a crash or Ctrl-C never leaves a half-written file behind. Weights are safetensors; foreign torch
+checkpoints are read only with ``weights_only=True``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import IO, Any, Iterator
+
+import torch
+
+from toolkit.errors import ToolkitError
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path``; on clean exit rename it onto ``path``, else delete it."""
+    path = Path(path)
+    if path.is_dir():
+        raise ToolkitError(f"{path}: is a directory, expected a file path to write")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    with atomic_write(path, "wb") as f:
+        f.write(data)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    with atomic_write(path, "w") as f:
+        f.write(text)
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+
+
+def check_readable_file(path: str | os.PathLike, what: str = "file") -> Path:
+    """Return ``Path(path)`` or raise a ToolkitError saying why it cannot be read as a ``what``."""
+    path = Path(path)
+    if not path.exists():
+        raise ToolkitError(f"{path}: no such {what}")
+    if path.is_dir():
+        raise ToolkitError(f"{path}: is a directory, expected a {what}")
+    if not os.access(path, os.R_OK):
+        raise ToolkitError(f"{path}: not readable")
+    return path
+
+
+def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata: dict[str, Any] | None = None) -> None:
+    """Write tensors as safetensors with JSON-encodable ``metadata`` stored under the key ``"json"``."""
+    from safetensors.torch import save as st_save
+
+    clean = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
+    meta = {"json": json.dumps(metadata or {}, sort_keys=True)}
+    atomic_write_bytes(path, st_save(clean, metadata=meta))
+
+
+def load_tensors(path: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Read a safetensors file written by :func:`save_tensors` -> (tensors, metadata)."""
+    from safetensors import safe_open
+
+    path = check_readable_file(path, "safetensors file")
+    try:
+        with safe_open(str(path), framework="pt", device=str(device)) as f:
+            raw_meta = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as e:  # safetensors raises its own types for garbage, truncation, bad headers
+        raise ToolkitError(f"{path}: not a valid safetensors file ({type(e).__name__}: {str(e)[:120]})") from None
+    try:
+        meta = json.loads(raw_meta.get("json", "{}"))
+    except json.JSONDecodeError as e:
+        raise ToolkitError(f"{path}: metadata is not valid JSON ({e})") from None
+    return tensors, meta
+
+
+def save_checkpoint(path: str | os.PathLike, state_dict: dict[str, torch.Tensor], info: dict[str, Any] | None = None) -> None:
+    """Atomically write a model ``state_dict`` (safetensors) with JSON ``info`` (config, step, ...).
+
+    Tied weights are stored once per name (cloned), so safetensors' shared-memory check never trips.
+    """
+    tensors = {k: v.detach().clone() for k, v in state_dict.items() if isinstance(v, torch.Tensor)}
+    save_tensors(path, tensors, info)
+
+
+def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Read a checkpoint written by :func:`save_checkpoint` -> (state_dict, info)."""
+    return load_tensors(path, device)
+
+
+def load_foreign_torch_checkpoint(path: str | os.PathLike) -> Any:
+    """Read a third-party ``.pt``/``.pth`` file safely (``weights_only=True``: no arbitrary pickles)."""
+    path = check_readable_file(path, "torch checkpoint")
+    try:
+        return torch.load(str(path), map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise ToolkitError(
+            f"{path}: could not be read as a weights-only torch checkpoint ({type(e).__name__}: {str(e)[:160]})"
+        ) from None
