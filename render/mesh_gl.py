@@ -177,12 +177,42 @@ class MeshRasterizer:
         self.release_framebuffer()
         self.prog.release()
 
-    def render(
+    def render(self, verts, faces, viewmat, K, **kw) -> dict[str, np.ndarray]:
+        """Render one mesh from one camera.
+
+        Args:
+            verts: [V, 3] world positions. faces: [F, 3] vertex indices (any winding; nothing is culled).
+            viewmat: [4, 4] world-to-camera (OpenCV). K: [3, 3] intrinsics in pixels of this image size.
+            colors: [V, 3] albedo in [0, 1] (default light grey), or
+            uvs: [V, 2] with texture [h, w, 3] (uint8 or float in [0, 1]); uv (0, 0) is the texture's
+                top-left corner, v grows downwards (row i has its centre at v = (i + 0.5) / h).
+            light_dir: [3] camera-space direction from the surface towards the light; default (0, 0, -1),
+                a headlight at the camera.
+            ambient: shade = ambient + (1 - ambient) · max(0, n·l), n the (unflipped) outward normal.
+            background: RGB where nothing is drawn.
+            near, far: clip distances along the camera z.
+            smooth: interpolate area-weighted vertex normals (for curved meshes) instead of face normals.
+
+        Returns:
+            dict of numpy arrays: ``rgb`` [H, W, 3] float32, ``mask`` [H, W] bool, ``depth`` [H, W] float32
+            camera z (0 where empty), ``normals`` [H, W, 3] float32 camera-space unit normals (0 where
+            empty), ``tri_id`` [H, W] int32 face index (-1 where empty).
+        """
+        view = _as_array(viewmat, "viewmat", np.float32)
+        _check_shape(view, "viewmat", (4, 4))
+        Kn = _as_array(K, "K", np.float32)
+        _check_shape(Kn, "K", (3, 3))
+        light = kw.pop("light_dir", None)
+        if light is not None:
+            light = _as_array(light, "light_dir", np.float32).reshape(1, -1)
+        return self.render_views(verts, faces, view[None], Kn[None], light_dir=light, **kw)[0]
+
+    def render_views(
         self,
         verts,
         faces,
-        viewmat,
-        K,
+        viewmats,
+        Ks,
         *,
         colors=None,
         uvs=None,
@@ -193,26 +223,12 @@ class MeshRasterizer:
         near: float = 0.01,
         far: float = 100.0,
         smooth: bool = False,
-    ) -> dict[str, np.ndarray]:
-        """Render one mesh.
+    ) -> list[dict[str, np.ndarray]]:
+        """Render one mesh from C cameras, uploading it once: viewmats [C, 4, 4], Ks [C, 3, 3].
 
-        Args:
-            verts: [V, 3] world positions. faces: [F, 3] vertex indices (any winding; nothing is culled).
-            viewmat: [4, 4] world-to-camera (OpenCV). K: [3, 3] intrinsics in pixels of this image size.
-            colors: [V, 3] albedo in [0, 1] (default light grey), or
-            uvs: [V, 2] with texture [h, w, 3] (uint8 or float in [0, 1]); uv (0, 0) is the texture's
-                top-left corner, v grows downwards (row i has its centre at v = (i + 0.5) / h).
-            light_dir: [3] camera-space direction from the surface towards the light; default (0, 0, -1),
-                a headlight at the camera.
-            ambient: shade = ambient + (1 - ambient) · max(0, n·l).
-            background: RGB where nothing is drawn.
-            near, far: clip distances along the camera z.
-            smooth: interpolate area-weighted vertex normals (for curved meshes) instead of face normals.
-
-        Returns:
-            dict of numpy arrays: ``rgb`` [H, W, 3] float32, ``mask`` [H, W] bool, ``depth`` [H, W] float32
-            camera z (0 where empty), ``normals`` [H, W, 3] float32 camera-space unit normals (0 where
-            empty), ``tri_id`` [H, W] int32 face index (-1 where empty).
+        ``light_dir`` is None (headlight), [3] (the same camera-space direction for every view) or
+        [C, 3] (one per view, e.g. a world-fixed light turned into each camera). Other arguments and the
+        per-view result dicts as in :meth:`render`.
         """
         v = _as_array(verts, "verts", np.float32)
         f_raw = faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
@@ -227,10 +243,11 @@ class MeshRasterizer:
             raise ToolkitError(f"faces: at most {MAX_FACES - 1} faces supported, got {f.shape[0]}")
         if f.min() < 0 or f.max() >= v.shape[0]:
             raise ToolkitError(f"faces: indices must be in [0, {v.shape[0] - 1}], got [{f.min()}, {f.max()}]")
-        view = _as_array(viewmat, "viewmat", np.float32)
-        _check_shape(view, "viewmat", (4, 4))
-        Kn = _as_array(K, "K", np.float32)
-        _check_shape(Kn, "K", (3, 3))
+        views = _as_array(viewmats, "viewmats", np.float32)
+        _check_shape(views, "viewmats", (None, 4, 4))
+        C = views.shape[0]
+        Kn = _as_array(Ks, "Ks", np.float32)
+        _check_shape(Kn, "Ks", (C, 3, 3))
         if not (0 < near < far) or not np.isfinite(far):
             raise ToolkitError(f"near/far: expected 0 < near < far < inf, got near={near}, far={far}")
         if not 0.0 <= float(ambient) <= 1.0:
@@ -261,12 +278,14 @@ class MeshRasterizer:
             uv = np.zeros((V, 2), np.float32)
 
         if light_dir is None:
-            light = np.array([0.0, 0.0, -1.0], np.float32)
+            lights = np.tile(np.array([[0.0, 0.0, -1.0]], np.float32), (C, 1))
         else:
-            light = _as_array(light_dir, "light_dir", np.float32).reshape(-1)
-            if light.shape != (3,) or not np.isfinite(light).all() or np.linalg.norm(light) < 1e-12:
-                raise ToolkitError("light_dir: expected a finite non-zero 3-vector")
-            light = light / np.linalg.norm(light)
+            lights = _as_array(light_dir, "light_dir", np.float32)
+            lights = np.tile(lights.reshape(1, -1), (C, 1)) if lights.size == 3 else lights
+            norms = np.linalg.norm(lights, axis=-1) if lights.ndim == 2 and lights.shape[-1] == 3 else None
+            if lights.shape != (C, 3) or not np.isfinite(lights).all() or (norms < 1e-12).any():
+                raise ToolkitError(f"light_dir: expected finite non-zero 3-vectors, [3] or [{C}, 3]")
+            lights = lights / norms[:, None]
 
         nrm = vertex_normals(v, f)[f] if smooth else np.repeat(face_normals(v, f)[:, None], 3, 1)
         corners = np.concatenate(
@@ -277,11 +296,8 @@ class MeshRasterizer:
         vbo = ctx.buffer(corners.tobytes())
         vao = ctx.vertex_array(self.prog, [(vbo, "3f 3f 3f 2f", "in_pos", "in_nrm", "in_col", "in_uv")])
         gl_tex = None
+        results = []
         try:
-            self.prog["u_view"].write(np.ascontiguousarray(view.T).tobytes())  # GL is column-major
-            P = opengl_projection(torch.from_numpy(Kn), self.width, self.height, near, far).numpy()
-            self.prog["u_proj"].write(np.ascontiguousarray(P.T, dtype=np.float32).tobytes())
-            self.prog["u_light"].value = tuple(float(x) for x in light)
             self.prog["u_ambient"].value = float(ambient)
             self.prog["u_use_tex"].value = use_tex
             if use_tex:
@@ -294,18 +310,28 @@ class MeshRasterizer:
             ctx.viewport = (0, 0, self.width, self.height)
             ctx.disable(ctx.CULL_FACE | ctx.BLEND)
             ctx.enable(ctx.DEPTH_TEST)
-            self._fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-            vao.render(ctx.TRIANGLES)
-            H, W = self.height, self.width
-            rgba = np.frombuffer(self._fbo.read(components=4, attachment=0, dtype="f4"), np.float32).reshape(H, W, 4)
-            nd = np.frombuffer(self._fbo.read(components=4, attachment=1, dtype="f4"), np.float32).reshape(H, W, 4)
-            ids = np.frombuffer(self._fbo.read(components=4, attachment=2, dtype="f4"), np.float32).reshape(H, W, 4)
+            for c in range(C):
+                self.prog["u_view"].write(np.ascontiguousarray(views[c].T).tobytes())  # GL is column-major
+                P = opengl_projection(torch.from_numpy(Kn[c]), self.width, self.height, near, far).numpy()
+                self.prog["u_proj"].write(np.ascontiguousarray(P.T, dtype=np.float32).tobytes())
+                self.prog["u_light"].value = tuple(float(x) for x in lights[c])
+                self._fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+                vao.render(ctx.TRIANGLES)
+                results.append(self._read_back(bg))
         finally:
             vao.release()
             vbo.release()
             if gl_tex is not None:
                 gl_tex.release()
+        return results
 
+    def _read_back(self, bg: np.ndarray) -> dict[str, np.ndarray]:
+        H, W = self.height, self.width
+
+        def read(i):
+            return np.frombuffer(self._fbo.read(components=4, attachment=i, dtype="f4"), np.float32).reshape(H, W, 4)
+
+        rgba, nd, ids = read(0), read(1), read(2)
         mask = rgba[..., 3] > 0.5
         rgb = np.where(mask[..., None], rgba[..., :3], bg[None, None, :]).astype(np.float32)
         normals = np.where(mask[..., None], nd[..., :3], 0.0).astype(np.float32)

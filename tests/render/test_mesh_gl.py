@@ -270,3 +270,24 @@ def test_missing_egl_names_the_library(monkeypatch):
     monkeypatch.setattr(moderngl, "create_context", fail)
     with pytest.raises(ToolkitError, match="EGL.*libEGL"):
         mesh_gl.create_context()
+
+
+def test_render_views_equals_single_renders():
+    v, f = cube(0.4)
+    r = mesh_gl.MeshRasterizer(48, 40)
+    K = intrinsics(60.0, 60.0, 24.0, 20.0).numpy()
+    eyes = [torch.tensor(e) for e in ([1.5, -0.5, -2.0], [-1.0, 0.8, -2.5], [0.0, 0.0, -3.0])]
+    views = np.stack([look_at(e, torch.zeros(3)).numpy() for e in eyes])
+    lights = np.array([[0, 0, -1], [1, 0, -1], [0, 1, -1]], np.float32)
+    cols = np.random.default_rng(0).random((8, 3)).astype(np.float32)
+    many = r.render_views(v, f, views, np.stack([K] * 3), light_dir=lights, colors=cols)
+    for c in range(3):
+        one = r.render(v, f, views[c], K, light_dir=lights[c], colors=cols)
+        np.testing.assert_array_equal(one["tri_id"], many[c]["tri_id"])
+        np.testing.assert_array_equal(one["rgb"], many[c]["rgb"])
+        np.testing.assert_array_equal(one["depth"], many[c]["depth"])
+    with pytest.raises(ToolkitError, match="light_dir"):
+        r.render_views(v, f, views, np.stack([K] * 3), light_dir=np.ones((2, 3)))
+    with pytest.raises(ToolkitError, match="Ks"):
+        r.render_views(v, f, views, np.stack([K] * 2))
+    r.release()
