@@ -103,7 +103,7 @@ def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor | None = N
     if forward.norm() < 1e-9:
         raise ToolkitError("look_at: eye and target coincide; the view direction is undefined")
     z = forward / forward.norm()
-    # Right-handed OpenCV axes: x = y × z with camera y ("image down") along -up, then y = z × x.
+    # Right-handed OpenCV basis: y (image down) = -up projected, x = y × z.
     x = torch.linalg.cross(-up, z)
     if x.norm() < 1e-6:
         raise ToolkitError("look_at: view direction is parallel to 'up'; pass another up vector")
