@@ -287,14 +287,20 @@ class MeshRasterizer:
                 raise ToolkitError(f"light_dir: expected finite non-zero 3-vectors, [3] or [{C}, 3]")
             lights = lights / norms[:, None]
 
-        nrm = vertex_normals(v, f)[f] if smooth else np.repeat(face_normals(v, f)[:, None], 3, 1)
-        corners = np.concatenate(
-            [v[f], nrm.astype(np.float32), col[f], uv[f]], axis=-1
-        ).astype(np.float32).reshape(-1, 11)
-
         ctx = self.ctx
-        vbo = ctx.buffer(corners.tobytes())
-        vao = ctx.vertex_array(self.prog, [(vbo, "3f 3f 3f 2f", "in_pos", "in_nrm", "in_col", "in_uv")])
+        ibo = None
+        if smooth:
+            # Shared vertices + an index buffer: the vertex shader runs once per vertex, not per corner.
+            attrs = np.concatenate([v, vertex_normals(v, f).astype(np.float32), col, uv], axis=-1)
+            vbo = ctx.buffer(np.ascontiguousarray(attrs, dtype=np.float32).tobytes())
+            ibo = ctx.buffer(f.astype(np.int32).tobytes())
+        else:
+            # De-indexed corners keep face normals exact (flat shading).
+            nrm = np.repeat(face_normals(v, f)[:, None], 3, 1).astype(np.float32)
+            corners = np.concatenate([v[f], nrm, col[f], uv[f]], axis=-1).astype(np.float32).reshape(-1, 11)
+            vbo = ctx.buffer(corners.tobytes())
+        vao = ctx.vertex_array(self.prog, [(vbo, "3f 3f 3f 2f", "in_pos", "in_nrm", "in_col", "in_uv")],
+                               index_buffer=ibo, index_element_size=4)
         gl_tex = None
         results = []
         try:
@@ -321,6 +327,8 @@ class MeshRasterizer:
         finally:
             vao.release()
             vbo.release()
+            if ibo is not None:
+                ibo.release()
             if gl_tex is not None:
                 gl_tex.release()
         return results
