@@ -43,6 +43,7 @@ class DemoHeadShape:
     # Identity (direction-space widths as in the demo formula; metres otherwise).
     nose_width: float = 0.09
     brow_height: float = 0.006
+    brow_y: float = -0.12  # direction-space height of the brow ridge (subjects: higher, above the eyes)
     chin_height: float = 0.008
     eye_opening: tuple[float, float] = (0.0, 0.0)
     mouth_width: float = 0.024
@@ -122,7 +123,7 @@ class DemoHeadShape:
         x, y, z = dirs.unbind(-1)
         front = torch.sigmoid(-z * 20)
         nose = self.nose_height * torch.exp(-(x / self.nose_width) ** 2 - ((y - 0.22) / 0.16) ** 2) * front
-        by = y + 0.12 + 0.05 * self.brow_raise
+        by = y - self.brow_y + 0.05 * self.brow_raise
         brow = self.brow_height * torch.exp(-(by / 0.06) ** 2) * torch.exp(-(x / 0.45) ** 2) * front
         jaw = 0.72 + 0.12 * self.mouth_open
         chin = self.chin_height * torch.exp(-(x / 0.2) ** 2 - ((y - jaw) / 0.12) ** 2) * front
