@@ -1,0 +1,690 @@
+"""The moderngl preview splatter: the fast picture a person looks at, equal to ``render.splat.rasterize``.
+
+Conventions (identical to the torch splatter, see ``render.splat``): OpenCV camera axes, ``viewmat``
+world-to-camera [4, 4], ``K`` [3, 3] in pixels, pixel (i, j) sampled at (j + 0.5, i + 0.5); quaternions
+wxyz normalized here (zero -> identity); Sigma = R S S^T R^T; EWA Jacobian with gsplat's tangent clamp
+(x/z in [-(cx/fx + 0.3 tan_x), (W - cx)/fx + 0.3 tan_x], tan_x = W / (2 fx), same for y); cov2d + 0.3 I;
+conic from the dilated covariance; cull z <= near or z >= far; alpha = min(0.99, o exp(-sigma)), skipped
+below 1/255; premultiplied back-to-front "over" blending (sorted by camera depth of the means) into an
+RGBA32F target; C = sum c_i a_i T_i + T bg, alpha = 1 - T. The only difference is that GL blends every
+Gaussian, while the torch splatter stops a pixel once T <= 1e-4 (a difference below 1e-2 at a few pixels).
+
+GL 3.3 core (no SSBOs): per-Gaussian data in a float texture, one instanced quad per visible Gaussian
+in sorted order through a per-instance index buffer (``render.preview_shaders``). Each quad is oriented
+along the screen-space ellipse's axes and cut where alpha reaches 1/255 for that Gaussian's opacity
+(sqrt(2 ln(255 o)) standard deviations, <= 3.33 as in the torch splatter's boxes).
+
+What a frame skips (``PreviewSplatter.stats`` records what happened):
+- the depth sort, when the previous order is still exactly sorted for the new view and Gaussians
+  (an O(N) check), or when the view moved less than ``resort_tolerance`` (approximate, for orbiting);
+- uploads of Gaussians that did not change (rows of the data texture that hold a changed Gaussian);
+- when only ``dynamic`` Gaussians (the eyes) changed under the same camera: everything outside the
+  screen rectangle covering their footprints before and after the change. Inside it, a per-camera
+  depth-layer cache is composited: the Gaussians behind the dynamic depth range (back layer), the
+  Gaussians in that range (sorted each frame), and those in front (front layer). "Over" is associative,
+  so this equals a full redraw to float rounding (tests/render/test_preview.py checks it).
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from render import preview_shaders as sh
+from toolkit.errors import ToolkitError
+
+ALPHA_THRESHOLD = 1.0 / 255.0
+MAX_ALPHA = 0.99
+
+
+# ---------------------------------------------------------------------------------------------- context
+def create_headless_context():
+    """A standalone OpenGL 3.3 core context through EGL; a clear ToolkitError when none can be made."""
+    try:
+        import moderngl
+    except ImportError as e:
+        raise ToolkitError(f"the preview needs the Python package 'moderngl' ({e}); pip install moderngl") from None
+    try:
+        return moderngl.create_context(standalone=True, backend="egl", require=330)
+    except Exception as e:  # moderngl/glcontext raise plain Exceptions for missing libraries or drivers
+        missing = [lib for lib in ("EGL", "GL") if ctypes.util.find_library(lib) is None]
+        hint = (f"missing system librar{'y' if len(missing) == 1 else 'ies'} "
+                + ", ".join(f"lib{m}.so" for m in missing)
+                + " (Debian: apt-get install libegl1 libgl1 libgl1-mesa-dri)") if missing else \
+            "EGL is present but gave no OpenGL 3.3 core context (Debian: apt-get install libgl1-mesa-dri)"
+        raise ToolkitError(f"could not create a headless OpenGL context through EGL: {hint}; "
+                           f"moderngl said: {str(e).strip()[:160]}") from None
+
+
+# ---------------------------------------------------------------------------------------------- CPU side
+def _np32(x: Any, name: str, shape: tuple) -> np.ndarray:
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    a = np.ascontiguousarray(np.asarray(x, dtype=np.float32))
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=False)):
+        raise ToolkitError(f"render_preview: {name} must have shape {list(shape)}, got {list(a.shape)}".replace("None", "N"))
+    return a
+
+
+def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """[N, 4] wxyz (any norm, zero -> identity), [N, 3] scales -> [N, 6] covariance xx, xy, xz, yy, yz, zz."""
+    q = quats.astype(np.float32)
+    n = np.linalg.norm(q, axis=1, keepdims=True)
+    ident = np.array([1, 0, 0, 0], np.float32)
+    q = np.where(n > 1e-12, q / np.maximum(n, 1e-12), ident)
+    w, x, y, z = q.T
+    R = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
+    M = R * scales[:, None, :]
+    S = M @ M.transpose(0, 2, 1)
+    return np.stack([S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]], 1)
+
+
+def pack_gaussians(means, quats, scales, opacities, colors) -> np.ndarray:
+    """Activated Gaussians -> [N, 16] float32 rows in the data-texture layout of ``render.preview_shaders``."""
+    n = means.shape[0]
+    out = np.zeros((n, 16), np.float32)
+    out[:, 0:3] = means
+    out[:, 3] = opacities
+    out[:, 4:10] = covariances(quats, scales)
+    o = np.clip(opacities.astype(np.float64), 0.0, 1.0)
+    # alpha = o exp(-sigma) >= 1/255  <=>  sigma <= ln(255 o): the quad's Mahalanobis half-size.
+    out[:, 10] = np.sqrt(2.0 * np.log(np.maximum(255.0 * o, 1.0)))
+    out[:, 12:15] = colors
+    return out
+
+
+def tangent_limits(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """gsplat's clamp of x/z and y/z: (-x, +x, -y, +y) limits, 0.3 tan-half-fov beyond the image edges."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tx, ty = 0.5 * width / fx, 0.5 * height / fy
+    return np.array([cx / fx + 0.3 * tx, (width - cx) / fx + 0.3 * tx,
+                     cy / fy + 0.3 * ty, (height - cy) / fy + 0.3 * ty], np.float32)
+
+
+def project_footprints(rows: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                       near: float = 0.01, far: float = 1e10, eps2d: float = 0.3) -> dict[str, np.ndarray]:
+    """CPU mirror of the vertex shader for [M, 16] packed rows -> depth [M], valid [M], bbox [M, 4]
+    (x0, y0, x1, y1 pixels of the alpha >= 1/255 ellipse) and quad_area [M] (pixels of the cut quad)."""
+    R, t = viewmat[:3, :3].astype(np.float64), viewmat[:3, 3].astype(np.float64)
+    p = rows[:, 0:3].astype(np.float64) @ R.T + t
+    z = p[:, 2]
+    c = rows[:, 4:10].astype(np.float64)
+    S = np.stack([c[:, [0, 1, 2]], c[:, [1, 3, 4]], c[:, [2, 4, 5]]], 1)
+    C = R @ S @ R.T
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    lim = tangent_limits(K, width, height)
+    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    tx = zs * np.clip(p[:, 0] / zs, -lim[0], lim[1])
+    ty = zs * np.clip(p[:, 1] / zs, -lim[2], lim[3])
+    J = np.zeros((len(z), 2, 3))
+    J[:, 0, 0], J[:, 0, 2] = fx / zs, -fx * tx / zs**2
+    J[:, 1, 1], J[:, 1, 2] = fy / zs, -fy * ty / zs**2
+    cov2 = J @ C @ J.transpose(0, 2, 1)
+    a, b, cc = cov2[:, 0, 0] + eps2d, cov2[:, 0, 1], cov2[:, 1, 1] + eps2d
+    det = a * cc - b * b
+    mean = np.stack([fx * p[:, 0] / zs + K[0, 2], fy * p[:, 1] / zs + K[1, 2]], 1)
+    r = rows[:, 10].astype(np.float64)
+    valid = (z > near) & (z < far) & (r > 0) & (det > 0)
+    hx, hy = r * np.sqrt(np.maximum(a, 0)), r * np.sqrt(np.maximum(cc, 0))
+    bbox = np.stack([mean[:, 0] - hx, mean[:, 1] - hy, mean[:, 0] + hx, mean[:, 1] + hy], 1)
+    on = valid & (bbox[:, 2] > 0) & (bbox[:, 0] < width) & (bbox[:, 3] > 0) & (bbox[:, 1] < height)
+    # Cut quad area 4 r^2 sqrt(det), scaled by the on-screen share of the ellipse's bounding box.
+    w_in = np.clip(np.minimum(bbox[:, 2], width) - np.maximum(bbox[:, 0], 0), 0, None)
+    h_in = np.clip(np.minimum(bbox[:, 3], height) - np.maximum(bbox[:, 1], 0), 0, None)
+    share = w_in * h_in / np.maximum(4 * hx * hy, 1e-12)
+    area = np.where(on, 4 * r * r * np.sqrt(np.maximum(det, 0)) * np.minimum(share, 1.0), 0.0)
+    return {"depth": z, "valid": valid, "on_screen": on, "bbox": bbox, "quad_area": area}
+
+
+def _union_rect(bbox: np.ndarray, width: int, height: int) -> tuple[int, int, int, int] | None:
+    """Integer pixel rectangle (x, y, w, h) covering [M, 4] boxes (+1 pixel), clipped; None when empty."""
+    if bbox.shape[0] == 0:
+        return None
+    x0 = max(0, int(math.floor(bbox[:, 0].min())) - 1)
+    y0 = max(0, int(math.floor(bbox[:, 1].min())) - 1)
+    x1 = min(width, int(math.ceil(bbox[:, 2].max())) + 1)
+    y1 = min(height, int(math.ceil(bbox[:, 3].max())) + 1)
+    return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else None
+
+
+def _merge_rects(a, b):
+    if a is None or b is None:
+        return a or b
+    x0, y0 = min(a[0], b[0]), min(a[1], b[1])
+    x1, y1 = max(a[0] + a[2], b[0] + b[2]), max(a[1] + a[3], b[1] + b[3])
+    return (x0, y0, x1 - x0, y1 - y0)
+
+
+def _sort_back_to_front(ids: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """ids sorted by decreasing depth; ties keep id order (so any subset sorts like the whole)."""
+    return ids[np.argsort(-depth[ids], kind="stable")]
+
+
+# ---------------------------------------------------------------------------------------------- GL side
+class _IdList:
+    """A per-instance int32 index buffer (grown on demand) and the VAO that draws one quad per entry."""
+
+    def __init__(self, ctx, prog):
+        self.ctx, self.prog, self.count = ctx, prog, 0
+        self.buffer = ctx.buffer(reserve=4 * 1024, dynamic=True)
+        self.vao = ctx.vertex_array(prog, [(self.buffer, "i/i", "a_id")])
+
+    def set(self, ids: np.ndarray) -> None:
+        data = np.ascontiguousarray(ids, dtype=np.int32)
+        if data.nbytes > self.buffer.size:
+            self.vao.release()
+            self.buffer.release()
+            self.buffer = self.ctx.buffer(reserve=max(2 * data.nbytes, 4096), dynamic=True)
+            self.vao = self.ctx.vertex_array(self.prog, [(self.buffer, "i/i", "a_id")])
+        if data.nbytes:
+            self.buffer.write(data.tobytes())
+        self.count = int(data.shape[0])
+
+    def draw(self) -> None:
+        import moderngl
+
+        if self.count:
+            self.vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=self.count)
+
+    def release(self) -> None:
+        self.vao.release()
+        self.buffer.release()
+
+
+class PreviewSplatter:
+    """Headless (EGL) or windowed OpenGL splatter with the conventions of ``render.splat.rasterize``.
+
+    Args:
+        width, height: image size in pixels.
+        ctx: an existing moderngl context (e.g. a glfw window's); default: a standalone EGL context.
+        near_plane, far_plane, eps2d: as in ``render.splat.rasterize``.
+        resort_tolerance: keep the last depth order while the view direction turned less than this many
+            radians and the camera centre moved less than this fraction of its distance to the scene
+            centre (approximate, for smooth orbiting). 0 (default) re-sorts whenever the order changed.
+    """
+
+    def __init__(self, width: int, height: int, *, ctx=None, near_plane: float = 0.01, far_plane: float = 1e10,
+                 eps2d: float = 0.3, resort_tolerance: float = 0.0):
+        if int(width) < 1 or int(height) < 1:
+            raise ToolkitError(f"PreviewSplatter: width and height must be >= 1, got {width}x{height}")
+        self.width, self.height = int(width), int(height)
+        self.near, self.far, self.eps2d = float(near_plane), float(far_plane), float(eps2d)
+        self.resort_tolerance = float(resort_tolerance)
+        self.ctx = ctx if ctx is not None else create_headless_context()
+        c = self.ctx
+        self._splat = c.program(vertex_shader=sh.SPLAT_VERTEX, fragment_shader=sh.SPLAT_FRAGMENT)
+        self._layer = c.program(vertex_shader=sh.FULLSCREEN_VERTEX, fragment_shader=sh.LAYER_FRAGMENT)
+        self._present = c.program(vertex_shader=sh.FULLSCREEN_VERTEX, fragment_shader=sh.PRESENT_FRAGMENT)
+        self._layer_vao = c.vertex_array(self._layer, [])
+        self._present_vao = c.vertex_array(self._present, [])
+        self._target, self._fbo = self._float_target()
+        self._lists = {k: _IdList(c, self._splat) for k in ("all", "back", "mid", "front")}
+        self._data_tex = None
+        self._rows = np.zeros((0, 16), np.float32)  # packed copy of what the texture holds
+        self._inputs: tuple | None = None
+        self._order: np.ndarray | None = None       # visible ids, back to front, for _order_view
+        self._order_view: np.ndarray | None = None
+        self._camera: tuple | None = None            # (viewmat, K) of the frame in the target
+        self._layers: dict | None = None
+        self._frame: np.ndarray | None = None        # premultiplied RGBA [H, W, 4] read back
+        self._frame_stale = True
+        self.last_rect: tuple[int, int, int, int] | None = None
+        self.stats: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------ resources
+    def _float_target(self):
+        tex = self.ctx.texture((self.width, self.height), 4, dtype="f4")
+        return tex, self.ctx.framebuffer(color_attachments=[tex])
+
+    def release(self) -> None:
+        """Free the GL objects (the context too when this splatter created it)."""
+        for lst in self._lists.values():
+            lst.release()
+        for obj in (self._data_tex, self._target, self._fbo):
+            if obj is not None:
+                obj.release()
+        if self._layers is not None:
+            for k in ("back_tex", "back_fbo", "front_tex", "front_fbo"):
+                self._layers[k].release()
+
+    # ------------------------------------------------------------------ uploads
+    def _upload(self, means, quats, scales, opacities, colors) -> tuple[np.ndarray | None, np.ndarray]:
+        """Upload what changed -> (changed ids or None for a full reload, old packed rows of those ids)."""
+        new = (means, quats, scales, opacities, colors)
+        n = means.shape[0]
+        if self._inputs is None or self._inputs[0].shape[0] != n:
+            self._rows = pack_gaussians(*new)
+            self._inputs = tuple(a.copy() for a in new)
+            rows_tex = max(1, -(-n // sh.GAUSSIANS_PER_ROW))
+            if self._data_tex is not None:
+                self._data_tex.release()
+            self._data_tex = self.ctx.texture((sh.TEXTURE_WIDTH, rows_tex), 4, dtype="f4")
+            self._write_rows(0, rows_tex)
+            self.stats["uploaded"] = n
+            return None, self._rows[:0]
+        diff = np.zeros(n, bool)
+        for old, cur in zip(self._inputs, new, strict=False):
+            d = old != cur
+            diff |= d.any(1) if d.ndim == 2 else d
+        ids = np.flatnonzero(diff)
+        old_rows = self._rows[ids].copy()
+        if ids.size:
+            self._rows[ids] = pack_gaussians(*(a[ids] for a in new))
+            for old, cur in zip(self._inputs, new, strict=False):
+                old[ids] = cur[ids]
+            # Rewrite only the texture rows holding a changed Gaussian, one write per run of rows.
+            trows = np.unique(ids // sh.GAUSSIANS_PER_ROW)
+            breaks = np.flatnonzero(np.diff(trows) > 1)
+            for s, e in zip(np.r_[0, breaks + 1], np.r_[breaks, trows.size - 1], strict=False):
+                self._write_rows(int(trows[s]), int(trows[e] - trows[s] + 1))
+        self.stats["uploaded"] = int(ids.size)
+        return ids, old_rows
+
+    def _write_rows(self, row0: int, nrows: int) -> None:
+        g = sh.GAUSSIANS_PER_ROW
+        block = np.zeros((nrows * g, 16), np.float32)
+        src = self._rows[row0 * g:(row0 + nrows) * g]
+        block[:src.shape[0]] = src
+        self._data_tex.write(block.tobytes(), viewport=(0, row0, sh.TEXTURE_WIDTH, nrows))
+
+    # ------------------------------------------------------------------ sorting
+    def _view_close(self, viewmat: np.ndarray) -> bool:
+        if self._order_view is None or self.resort_tolerance <= 0:
+            return False
+        R0, R1 = self._order_view[:3, :3], viewmat[:3, :3]
+        cos = np.clip((np.trace(R0.T @ R1) - 1) / 2, -1, 1)
+        c0, c1 = -R0.T @ self._order_view[:3, 3], -R1.T @ viewmat[:3, 3]
+        centre = self._rows[:, :3].mean(0)
+        dist = max(float(np.linalg.norm(c0 - centre)), 1e-9)
+        return math.acos(cos) < self.resort_tolerance and float(np.linalg.norm(c1 - c0)) < self.resort_tolerance * dist
+
+    def _sorted_ids(self, viewmat: np.ndarray, structure_changed: bool) -> tuple[np.ndarray, np.ndarray, bool]:
+        """-> (visible ids back to front, depth [N], whether a new order was uploaded)."""
+        depth = self._rows[:, :3] @ viewmat[2, :3] + viewmat[2, 3]
+        visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
+        if self._order is not None and not structure_changed:
+            if self._view_close(viewmat):
+                return self._order, depth, False
+            d = depth[self._order]
+            # The old order is still exact when it is sorted and holds exactly the visible set.
+            if (d.size == 0 or bool(np.all(d[:-1] >= d[1:]))) and self._order.size == int(visible.sum()) \
+                    and bool(visible[self._order].all()):
+                return self._order, depth, False
+        order = _sort_back_to_front(np.flatnonzero(visible), depth)
+        self._order, self._order_view = order, viewmat.copy()
+        self._lists["all"].set(order)
+        return order, depth, True
+
+    # ------------------------------------------------------------------ drawing
+    def _set_camera_uniforms(self, viewmat: np.ndarray, K: np.ndarray) -> None:
+        p = self._splat
+        for i in range(3):
+            p[f"u_rot{i}"].value = tuple(float(v) for v in viewmat[i, :3])
+        p["u_trans"].value = tuple(float(v) for v in viewmat[:3, 3])
+        p["u_intr"].value = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+        p["u_size"].value = (float(self.width), float(self.height))
+        p["u_clip"].value = (self.near, self.far)
+        p["u_lim"].value = tuple(float(v) for v in tangent_limits(K, self.width, self.height))
+        p["u_eps2d"].value = self.eps2d
+
+    def _splat_into(self, fbo, lst: _IdList, rect=None, clear=True) -> None:
+        import moderngl
+
+        fbo.use()
+        self.ctx.viewport = (0, 0, self.width, self.height)
+        self.ctx.scissor = rect
+        if clear:
+            fbo.clear(0.0, 0.0, 0.0, 0.0, viewport=rect)
+        self._data_tex.use(0)
+        self._splat["u_data"].value = 0
+        self.ctx.enable(moderngl.BLEND)
+        self.ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
+        lst.draw()
+
+    def _composite_layer(self, tex, rect, blend: bool) -> None:
+        import moderngl
+
+        self._fbo.use()
+        self.ctx.scissor = rect
+        (self.ctx.enable if blend else self.ctx.disable)(moderngl.BLEND)
+        tex.use(1)
+        self._layer["u_layer"].value = 1
+        self._layer_vao.render(moderngl.TRIANGLES, vertices=3)
+
+    # ------------------------------------------------------------------ depth layers (gaze-only frames)
+    def _ensure_layers(self, dynamic: np.ndarray, spheres, depth: np.ndarray, viewmat, K, cam, need_full_zone=False):
+        visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
+        dyn_vis = np.flatnonzero(dynamic & visible)
+        L = self._layers
+        if L is not None and L["camera"] == cam and np.array_equal(L["dynamic"], dynamic) \
+                and not (need_full_zone and L["zone"] is not None):
+            dz = depth[dyn_vis]
+            if dz.size == 0 or (dz.min() >= L["zlo"] and dz.max() <= L["zhi"]):
+                return L
+        t0 = time.perf_counter()
+        dz = depth[dyn_vis]
+        lo, hi = (float(dz.min()), float(dz.max())) if dz.size else (0.0, 0.0)
+        zone = None
+        if spheres:
+            # Every gaze keeps each eye Gaussian's mean on its sphere: the range and zone hold for all gazes.
+            R, t = viewmat[:3, :3], viewmat[:3, 3]
+            cz = [float(R[2] @ c + t[2]) for c, _ in spheres]
+            s_lo = min(z - r for z, (_, r) in zip(cz, spheres, strict=False))
+            s_hi = max(z + r for z, (_, r) in zip(cz, spheres, strict=False))
+            lo, hi = (min(lo, s_lo), max(hi, s_hi)) if dz.size else (s_lo, s_hi)
+            if not need_full_zone:
+                zone = self._sphere_zone(spheres, dynamic, viewmat, K)
+        else:
+            pad = 0.25 * (hi - lo) + 1e-6 * max(abs(lo), abs(hi)) + 1e-9
+            lo, hi = lo - pad, hi + pad
+        static = visible & ~dynamic
+        back = _sort_back_to_front(np.flatnonzero(static & (depth > hi)), depth)
+        front = _sort_back_to_front(np.flatnonzero(static & (depth < lo)), depth)
+        mid_static = np.flatnonzero(static & (depth >= lo) & (depth <= hi))
+        if zone is not None and mid_static.size:
+            b = project_footprints(self._rows[mid_static], viewmat, K, self.width, self.height,
+                                   self.near, self.far, self.eps2d)["bbox"]
+            x0, y0, w, h = zone
+            hit = (b[:, 2] >= x0) & (b[:, 0] <= x0 + w) & (b[:, 3] >= y0) & (b[:, 1] <= y0 + h)
+            mid_static = mid_static[hit]
+        if L is None:
+            L = {}
+            L["back_tex"], L["back_fbo"] = self._float_target()
+            L["front_tex"], L["front_fbo"] = self._float_target()
+        L.update(camera=cam, dynamic=dynamic.copy(), zlo=lo, zhi=hi, zone=zone, mid_static=mid_static,
+                 n_back=int(back.size), n_front=int(front.size))
+        self._lists["back"].set(back)
+        self._lists["front"].set(front)
+        self._set_camera_uniforms(viewmat, K)
+        zone_rect = zone  # the layers are only ever read inside the zone
+        self._splat_into(L["back_fbo"], self._lists["back"], rect=zone_rect)
+        self._splat_into(L["front_fbo"], self._lists["front"], rect=zone_rect)
+        self._layers = L
+        self.stats["layers_built"] = True
+        self.stats["layers_s"] = time.perf_counter() - t0
+        return L
+
+    def _sphere_zone(self, spheres, dynamic, viewmat, K):
+        """Pixel rectangle that holds every footprint of the dynamic Gaussians for any rotation, or None."""
+        rows = self._rows[dynamic]
+        cov = rows[:, 4:10]
+        # r_cut * sqrt(trace) bounds the alpha ellipse of any 3D covariance along any direction.
+        margin3d = float((rows[:, 10] * np.sqrt(np.maximum(cov[:, 0] + cov[:, 3] + cov[:, 5], 0))).max())
+        R, t = viewmat[:3, :3].astype(np.float64), viewmat[:3, 3].astype(np.float64)
+        fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+        xs, ys = [], []
+        for c, r in spheres:
+            p = R @ np.asarray(c, np.float64) + t
+            rr = r + margin3d
+            if p[2] - rr <= self.near:
+                return None
+            for zz in (p[2] - rr, p[2] + rr):
+                for s in (-rr, rr):
+                    xs.append(fx * (p[0] + s) / zz + cx)
+                    ys.append(fy * (p[1] + s) / zz + cy)
+        pad = 3.33 * math.sqrt(self.eps2d) + 3.0  # the 2D dilation and rounding
+        x0, x1 = max(0, int(min(xs) - pad)), min(self.width, int(max(xs) + pad) + 1)
+        y0, y1 = max(0, int(min(ys) - pad)), min(self.height, int(max(ys) + pad) + 1)
+        return (x0, y0, max(x1 - x0, 1), max(y1 - y0, 1))
+
+    # ------------------------------------------------------------------ frames
+    def draw(self, means, quats, scales, opacities, colors, viewmat, K, *, dynamic=None,
+             dynamic_spheres=None) -> tuple[int, int, int, int] | None:
+        """Draw a frame into the GL target (no read-back) -> the pixel rectangle (x, y, w, h) redrawn.
+
+        ``dynamic`` [N] bool marks the Gaussians that may change between frames of one camera (the eyes);
+        ``dynamic_spheres`` [(centre [3], radius)] optionally bounds where their means can ever be (each
+        eye's sphere), so the depth-layer cache holds for every gaze. Shapes as in :meth:`render`.
+        """
+        t0 = time.perf_counter()
+        means = _np32(means, "means", (None, 3))
+        n = means.shape[0]
+        quats = _np32(quats, "quats", (n, 4))
+        scales = _np32(scales, "scales", (n, 3))
+        opacities = _np32(opacities, "opacities", (n,))
+        colors = _np32(colors, "colors", (n, 3))
+        viewmat = _np32(viewmat, "viewmat", (4, 4))
+        K = _np32(K, "K", (3, 3))
+        for name, a in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                        ("colors", colors), ("viewmat", viewmat), ("K", K)):
+            if not np.isfinite(a).all():
+                raise ToolkitError(f"render_preview: {name} contains NaN or inf")
+        dyn = None
+        if dynamic is not None:
+            dyn = np.asarray(dynamic.detach().cpu() if hasattr(dynamic, "detach") else dynamic).astype(bool)
+            if dyn.shape != (n,):
+                raise ToolkitError(f"render_preview: dynamic must be a bool mask of shape [{n}], got {list(dyn.shape)}")
+            if not dyn.any():
+                dyn = None
+        self.stats = st = {"n": n, "sort_s": 0.0, "upload_s": 0.0, "draw_s": 0.0, "read_s": 0.0,
+                           "resorted": False, "layers_built": False, "layers_s": 0.0}
+        if n == 0:
+            self._inputs, self._order, self._layers = None, None, None
+            self._fbo.clear(0.0, 0.0, 0.0, 0.0)
+            self._camera = None
+            st["path"] = "empty"
+            return self._mark((0, 0, self.width, self.height))
+        changed, old_rows = self._upload(means, quats, scales, opacities, colors)
+        t1 = time.perf_counter()
+        st["upload_s"] = t1 - t0
+        cam = (viewmat.tobytes(), K.tobytes())
+        same_cam = self._camera == cam
+        if self._layers is not None and (changed is None or (changed.size and (dyn is None or not dyn[changed].all()))):
+            self._layers["camera"] = None  # static Gaussians moved: the cached layers are stale
+        if changed is None:
+            self._order = None
+        if same_cam and changed is not None and changed.size == 0:
+            st["path"] = "unchanged"
+            return None
+        if same_cam and changed is not None and dyn is not None and dyn[changed].all():
+            st["path"] = "incremental"
+            rect = self._draw_incremental(changed, old_rows, dyn, dynamic_spheres, viewmat, K, cam)
+        else:
+            st["path"] = "full"
+            _, _, st["resorted"] = self._sorted_ids(viewmat, structure_changed=changed is None)
+            t2 = time.perf_counter()
+            st["sort_s"] = t2 - t1
+            self._set_camera_uniforms(viewmat, K)
+            self._splat_into(self._fbo, self._lists["all"], rect=None)
+            self.ctx.finish()
+            st["draw_s"] = time.perf_counter() - t2
+            rect = (0, 0, self.width, self.height)
+        self._camera = cam
+        self.last_rect = rect
+        return self._mark(rect)
+
+    def _draw_incremental(self, changed, old_rows, dyn, spheres, viewmat, K, cam):
+        st = self.stats
+        t1 = time.perf_counter()
+        depth = self._rows[:, :3] @ viewmat[2, :3] + viewmat[2, 3]
+        args = (viewmat, K, self.width, self.height, self.near, self.far, self.eps2d)
+        fp_old, fp_new = project_footprints(old_rows, *args), project_footprints(self._rows[changed], *args)
+        rect = _merge_rects(_union_rect(fp_old["bbox"][fp_old["valid"]], self.width, self.height),
+                            _union_rect(fp_new["bbox"][fp_new["valid"]], self.width, self.height))
+        L = self._ensure_layers(dyn, spheres, depth, viewmat, K, cam)
+        if rect is not None and L["zone"] is not None:
+            x0, y0, w, h = L["zone"]
+            if rect[0] < x0 or rect[1] < y0 or rect[0] + rect[2] > x0 + w or rect[1] + rect[3] > y0 + h:
+                L = self._ensure_layers(dyn, spheres, depth, viewmat, K, cam, need_full_zone=True)
+        t2 = time.perf_counter()
+        visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
+        mid_ids = np.union1d(L["mid_static"], np.flatnonzero(dyn & visible))
+        self._lists["mid"].set(_sort_back_to_front(mid_ids, depth))
+        t3 = time.perf_counter()
+        st["sort_s"] = (t3 - t2) + (t2 - t1 - st["layers_s"])
+        st["n_mid"] = int(mid_ids.size)
+        if rect is not None:
+            self._set_camera_uniforms(viewmat, K)
+            self._composite_layer(L["back_tex"], rect, blend=False)
+            self._splat_into(self._fbo, self._lists["mid"], rect=rect, clear=False)
+            self._composite_layer(L["front_tex"], rect, blend=True)
+            self.ctx.scissor = None
+            self.ctx.finish()
+        st["draw_s"] = time.perf_counter() - t3 + st["layers_s"]
+        return rect
+
+    def _mark(self, rect):
+        if rect is not None:
+            self._dirty = _merge_rects(getattr(self, "_dirty", None), rect)
+        return rect
+
+    def read(self) -> np.ndarray:
+        """The premultiplied RGBA frame [H, W, 4] float32, reading back only what changed since the last read."""
+        t0 = time.perf_counter()
+        rect = getattr(self, "_dirty", None)
+        if self._frame is None:
+            self._frame = np.zeros((self.height, self.width, 4), np.float32)
+            rect = (0, 0, self.width, self.height)
+        if rect is not None:
+            x, y, w, h = rect
+            raw = self._fbo.read(viewport=rect, components=4, dtype="f4")
+            # GL window row r is image row r (see toolkit.cameras.opengl_projection): no flip.
+            self._frame[y:y + h, x:x + w] = np.frombuffer(raw, np.float32).reshape(h, w, 4)
+            self._dirty = None
+        self.stats["read_s"] = time.perf_counter() - t0
+        return self._frame
+
+    def render(self, means, quats, scales, opacities, colors, viewmat, K, background=None, *,
+               return_alpha: bool = False, dynamic=None, dynamic_spheres=None):
+        """Splat N Gaussians -> image [H, W, 3] float32 (and alpha [H, W, 1] with ``return_alpha``).
+
+        Args: means [N, 3], quats [N, 4] wxyz, scales [N, 3] (activated), opacities [N] in (0, 1),
+        colors [N, 3], viewmat [4, 4] world-to-camera, K [3, 3] pixels, background [3] (default black);
+        numpy arrays or CPU/CUDA tensors. ``dynamic`` / ``dynamic_spheres``: see :meth:`draw`.
+        """
+        self.draw(means, quats, scales, opacities, colors, viewmat, K, dynamic=dynamic, dynamic_spheres=dynamic_spheres)
+        rgba = self.read()
+        bg = np.zeros(3, np.float32) if background is None else _np32(background, "background", (3,))
+        rgb = rgba[..., :3] + (1.0 - rgba[..., 3:4]) * bg
+        return (rgb, rgba[..., 3:4].copy()) if return_alpha else rgb
+
+    def render_scene(self, scene, camera, background=None, *, feature_map=None, return_alpha: bool = False):
+        """Render a ``GaussianScene`` through a ``Camera`` of this splatter's size.
+
+        Features with D != 3 go through ``feature_map`` (default: a :class:`FeatureColors` of this scene).
+        The eye Gaussians (part 1, 2) are the dynamic set, bounded by their eyeball spheres.
+        """
+        if (camera.width, camera.height) != (self.width, self.height):
+            raise ToolkitError(f"render_scene: camera is {camera.width}x{camera.height}, the splatter "
+                               f"{self.width}x{self.height}")
+        colors = scene_colors(scene, feature_map)
+        dynamic, spheres = eye_dynamics(scene)
+        return self.render(scene.means, scene.quats, scene.scales, scene.opacities, colors, camera.viewmat,
+                           camera.K, background, return_alpha=return_alpha, dynamic=dynamic,
+                           dynamic_spheres=spheres)
+
+    def present(self, viewport: tuple[int, int, int, int], background=(0.0, 0.0, 0.0), overlay=None) -> None:
+        """Show the current frame in the bound window framebuffer (``ctx.screen``), optionally outlining
+        the image rectangle ``overlay`` (x, y, w, h)."""
+        import moderngl
+
+        self.ctx.screen.use()
+        self.ctx.viewport = viewport
+        self.ctx.scissor = None
+        self.ctx.disable(moderngl.BLEND)
+        self._target.use(2)
+        p = self._present
+        p["u_frame"].value = 2
+        p["u_background"].value = tuple(float(b) for b in background)
+        p["u_scale"].value = (self.width / viewport[2], self.height / viewport[3])
+        p["u_win_height"].value = float(viewport[3])
+        x, y, w, h = overlay if overlay is not None else (1, 1, -2, -2)
+        p["u_rect"].value = (float(x), float(y), float(x + w - 1), float(y + h - 1))
+        self._present_vao.render(moderngl.TRIANGLES, vertices=3)
+
+
+# ---------------------------------------------------------------------------------------------- scenes
+class FeatureColors:
+    """A fixed per-scene map from features [N, D] to RGB [N, 3]: identity for D = 3, else a PCA to RGB.
+
+    The PCA (and its 1st–99th percentile normalization to [0, 1]) is fitted once, on the scene it is built
+    from, so colours stay put while the Gaussians move. D = 1 is shown as grey, D = 2 as (red, green).
+    """
+
+    def __init__(self, features):
+        f = _np32(features, "features", (None, None)).astype(np.float64)
+        self.dim = f.shape[1]
+        self.mean = f.mean(0) if f.shape[0] else np.zeros(self.dim)
+        if self.dim == 3:
+            self.basis = None
+            return
+        if self.dim < 3:
+            self.basis = np.eye(self.dim, 3) if self.dim == 2 else np.ones((1, 3))
+        else:
+            sub = f[np.random.default_rng(0).permutation(f.shape[0])[:20000]] - self.mean
+            _, _, vt = np.linalg.svd(sub, full_matrices=False)
+            basis = vt[:3].T
+            basis *= np.sign(basis[np.abs(basis).argmax(0), range(3)])  # a deterministic sign per axis
+            self.basis = basis
+        proj = (f - self.mean) @ self.basis if f.shape[0] else np.zeros((1, 3))
+        self.lo, self.hi = np.percentile(proj, 1, axis=0), np.percentile(proj, 99, axis=0)
+
+    def __call__(self, features) -> np.ndarray:
+        f = _np32(features, "features", (None, self.dim))
+        if self.basis is None:
+            return f
+        proj = (f.astype(np.float64) - self.mean) @ self.basis
+        return np.clip((proj - self.lo) / np.maximum(self.hi - self.lo, 1e-12), 0, 1).astype(np.float32)
+
+
+def scene_colors(scene, feature_map=None) -> np.ndarray:
+    """[N, 3] display colours of a scene's features (see :class:`FeatureColors`)."""
+    fmap = feature_map if feature_map is not None else FeatureColors(scene.features)
+    return fmap(scene.features)
+
+
+def eye_dynamics(scene):
+    """(dynamic [N] bool of the eye Gaussians or None, [(centre [3], radius)] of each eye's sphere of means)."""
+    from toolkit.eyes import EYE_PARTS, eyeball_info
+
+    part = scene.part.detach().cpu().numpy()
+    dynamic = (part == 1) | (part == 2)
+    if not dynamic.any():
+        return None, None
+    try:
+        info = eyeball_info(scene)
+    except ToolkitError:
+        return dynamic, None  # too few eye Gaussians for a sphere: layers fall back to the depth range
+    means = scene.means.detach().cpu().numpy()
+    spheres = []
+    for name, eye in info.items():
+        c = eye["center"].detach().cpu().numpy().astype(np.float64)
+        m = means[part == EYE_PARTS[name]]
+        spheres.append((c, float(np.linalg.norm(m - c, axis=1).max()) * (1 + 1e-5) + 1e-9))
+    return dynamic, spheres
+
+
+_SHARED_CTX = None
+
+
+def _shared_context():
+    """One headless context per process for the one-shot functions (EGL contexts are slow to make)."""
+    global _SHARED_CTX
+    if _SHARED_CTX is None:
+        _SHARED_CTX = create_headless_context()
+    return _SHARED_CTX
+
+
+def render_preview(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
+                   background=None) -> np.ndarray:
+    """One-shot headless preview render -> [H, W, 3] float32 (shapes as :meth:`PreviewSplatter.render`)."""
+    s = PreviewSplatter(width, height, ctx=_shared_context())
+    try:
+        return s.render(means, quats, scales, opacities, colors, viewmat, K, background).copy()
+    finally:
+        s.release()
+
+
+def render_scene(scene, camera, background=None, *, feature_map=None) -> np.ndarray:
+    """One-shot headless render of a ``GaussianScene`` through a ``Camera`` -> [H, W, 3] float32."""
+    s = PreviewSplatter(camera.width, camera.height, ctx=_shared_context())
+    try:
+        return s.render_scene(scene, camera, background, feature_map=feature_map).copy()
+    finally:
+        s.release()
