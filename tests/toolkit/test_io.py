@@ -2,7 +2,13 @@ import pytest
 import torch
 
 from toolkit import ToolkitError
-from toolkit.io import atomic_write, atomic_write_json, load_checkpoint, load_foreign_torch_checkpoint, save_checkpoint
+from toolkit.io import (
+    atomic_write,
+    atomic_write_json,
+    load_checkpoint,
+    load_foreign_torch_checkpoint,
+    save_checkpoint,
+)
 
 
 def test_atomic_write_cleans_up_on_error(tmp_path):
