@@ -435,7 +435,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--headless", action="store_true", help="no window: render --sweep through EGL")
     ap.add_argument("--sweep", help="headless output: .mp4 video or .png contact sheet of the gaze grid")
     ap.add_argument("--pitch", default="20:-20:3", help="pitch grid in degrees, MIN:MAX:N or a,b,c; the first is the top row (default 20:-20:3)")
-    ap.add_argument("--yaw", default="-30:30:5", help="yaw grid in degrees, MIN:MAX:N or a,b,c (default -30:30:5)")
+    ap.add_argument("--yaw", default="-30:30:5", help="yaw grid in degrees, MIN:MAX:N or a,b,c; write --yaw=-30:30:5 for a leading minus (default -30:30:5)")
     ap.add_argument("--size", type=int, nargs=2, default=(512, 512), metavar=("W", "H"), help="image size")
     ap.add_argument("--background", default="1,1,1", help="background colour R,G,B in [0, 1]")
     ap.add_argument("--fps", type=float, default=8.0, help="video frame rate")
