@@ -92,18 +92,22 @@ def orbit_camera(base, target, yaw: float, pitch: float):
 
 @dataclass
 class GazeScene:
-    """A scene prepared for gaze changes: display colours, the eye set and each eye's rotation sphere."""
+    """A scene prepared for live gaze changes: activated numpy arrays, display colours, the eye set and
+    each eye's rotation sphere. A gaze frame rotates only the eye rows (rigidly about each eyeball's
+    centre, as ``toolkit.eyes.redirect_eyes`` does) and hands the splatter arrays that differ there only."""
 
     scene: object
     colors: np.ndarray
     dynamic: np.ndarray | None
     spheres: list | None
     eye_info: dict = field(default_factory=dict)
+    arrays: tuple = ()
+    eye_index: dict = field(default_factory=dict)
 
     @classmethod
     def prepare(cls, scene) -> "GazeScene":
         from render.preview import FeatureColors, eye_dynamics
-        from toolkit.eyes import eyeball_info
+        from toolkit.eyes import EYE_PARTS, eyeball_info
 
         scene.validate()
         colors = FeatureColors(scene.features)(scene.features)
@@ -112,23 +116,46 @@ class GazeScene:
         except ToolkitError:
             info = {}
         dynamic, spheres = eye_dynamics(scene) if info else (None, None)
-        return cls(scene, colors, dynamic, spheres, info)
+        arrays = tuple(t.detach().cpu().float().numpy().copy() for t in
+                       (scene.means, scene.quats, scene.scales, scene.opacities))
+        part = scene.part.cpu().numpy()
+        index = {name: np.flatnonzero(part == EYE_PARTS[name]) for name in info}
+        return cls(scene, colors, dynamic, spheres, info, arrays, index)
 
     @property
     def can_scrub(self) -> bool:
         return bool(self.eye_info)
 
-    def at(self, pitch: float, yaw: float):
-        """The scene with both eyes turned to head-frame gaze (pitch, yaw) radians."""
+    def arrays_at(self, pitch: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+        """(means [N, 3], quats [N, 4]) with both eyes turned to head-frame gaze (pitch, yaw) radians."""
+        from toolkit.eyes import gaze_rotation, rotate_about
+
+        means, quats = self.arrays[0], self.arrays[1]
+        if not self.can_scrub:
+            return means, quats
+        means, quats = means.copy(), quats.copy()
+        R = gaze_rotation(torch.tensor([pitch, yaw], dtype=torch.float32))
+        for name, eye in self.eye_info.items():
+            idx = self.eye_index[name]
+            m, q = rotate_about(torch.from_numpy(means[idx]), torch.from_numpy(quats[idx]), R, eye["center"].float().cpu())
+            means[idx], quats[idx] = m.numpy(), q.numpy()
+        return means, quats
+
+    def scene_at(self, pitch: float, yaw: float):
+        """The scene itself with the eyes turned (``toolkit.eyes.redirect_eyes``), e.g. for the torch splatter."""
         from toolkit.eyes import redirect_eyes
 
-        if not self.can_scrub:
-            return self.scene
-        return redirect_eyes(self.scene, (pitch, yaw), info=self.eye_info)
+        return redirect_eyes(self.scene, (pitch, yaw), info=self.eye_info) if self.can_scrub else self.scene
 
-    def draw(self, splatter, scene, camera):
-        return splatter.draw(scene.means, scene.quats, scene.scales, scene.opacities, self.colors,
-                             camera.viewmat, camera.K, dynamic=self.dynamic, dynamic_spheres=self.spheres)
+    def draw(self, splatter, camera, pitch: float = 0.0, yaw: float = 0.0):
+        means, quats = self.arrays_at(pitch, yaw)
+        return splatter.draw(means, quats, self.arrays[2], self.arrays[3], self.colors, camera.viewmat,
+                             camera.K, dynamic=self.dynamic, dynamic_spheres=self.spheres, may_change=self.eye_ids)
+
+    @property
+    def eye_ids(self) -> np.ndarray:
+        """Rows a gaze change can touch (all other arrays are passed unchanged, frame after frame)."""
+        return np.concatenate([*self.eye_index.values(), np.zeros(0, np.int64)])
 
 
 NO_EYES = "scene has no eye Gaussians (part 1 or 2): gaze scrubbing is disabled"
@@ -180,7 +207,7 @@ def render_gaze_sweep(scene, out_path, pitches: Sequence[float], yaws: Sequence[
             row = []
             for y in yaws:
                 g = (float(p) * scale, float(y) * scale)
-                gs.draw(splatter, gs.at(*g), camera)
+                gs.draw(splatter, camera, *g)
                 rgba = splatter.read()
                 rgb = rgba[..., :3] + (1 - rgba[..., 3:]) * bg
                 row.append(((np.clip(rgb, 0, 1) * 255) + 0.5).astype(np.uint8))
@@ -372,7 +399,7 @@ def run_window(scene, width: int = 512, height: int = 512, *, background=(1.0, 1
                     getattr(controls, name)(win, *args)
                 t0 = time.perf_counter()
                 cam = orbit_camera(base, target, state.orbit_yaw, state.orbit_pitch)
-                gs.draw(splatter, gs.at(state.pitch, state.yaw), cam)
+                gs.draw(splatter, cam, state.pitch, state.yaw)
                 path = splatter.stats.get("path", "full")
                 paths[path] = paths.get(path, 0) + 1
                 if path == "incremental":

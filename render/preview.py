@@ -80,9 +80,10 @@ def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
     R = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
                   2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
                   2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
-    M = R * scales[:, None, :]
-    S = M @ M.transpose(0, 2, 1)
-    return np.stack([S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]], 1)
+    M = R * scales[:, None, :]  # columns scaled: Sigma = M M^T, six unique entries as row dot products
+    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
+    dot = lambda a, b: (a * b).sum(1)  # noqa: E731
+    return np.stack([dot(r0, r0), dot(r0, r1), dot(r0, r2), dot(r1, r1), dot(r1, r2), dot(r2, r2)], 1)
 
 
 def pack_gaussians(means, quats, scales, opacities, colors) -> np.ndarray:
@@ -114,19 +115,22 @@ def project_footprints(rows: np.ndarray, viewmat: np.ndarray, K: np.ndarray, wid
     R, t = viewmat[:3, :3].astype(np.float64), viewmat[:3, 3].astype(np.float64)
     p = rows[:, 0:3].astype(np.float64) @ R.T + t
     z = p[:, 2]
+    m = rows.shape[0]
     c = rows[:, 4:10].astype(np.float64)
-    S = np.stack([c[:, [0, 1, 2]], c[:, [1, 3, 4]], c[:, [2, 4, 5]]], 1)
-    C = R @ S @ R.T
+    S = c[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(m, 3, 3)
+    A = (S.reshape(m * 3, 3) @ R.T).reshape(m, 3, 3)                          # S R^T
+    C = (A.transpose(0, 2, 1).reshape(m * 3, 3) @ R.T).reshape(m, 3, 3)      # (R S R^T)^T = R S R^T
     fx, fy = float(K[0, 0]), float(K[1, 1])
     lim = tangent_limits(K, width, height)
     zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
     tx = zs * np.clip(p[:, 0] / zs, -lim[0], lim[1])
     ty = zs * np.clip(p[:, 1] / zs, -lim[2], lim[3])
-    J = np.zeros((len(z), 2, 3))
-    J[:, 0, 0], J[:, 0, 2] = fx / zs, -fx * tx / zs**2
-    J[:, 1, 1], J[:, 1, 2] = fy / zs, -fy * ty / zs**2
-    cov2 = J @ C @ J.transpose(0, 2, 1)
-    a, b, cc = cov2[:, 0, 0] + eps2d, cov2[:, 0, 1], cov2[:, 1, 1] + eps2d
+    j00, j02, j11, j12 = fx / zs, -fx * tx / zs**2, fy / zs, -fy * ty / zs**2
+    c00, c01, c02, c11, c12, c22 = C[:, 0, 0], C[:, 0, 1], C[:, 0, 2], C[:, 1, 1], C[:, 1, 2], C[:, 2, 2]
+    cov_a = j00 * j00 * c00 + 2 * j00 * j02 * c02 + j02 * j02 * c22
+    cov_b = j00 * j11 * c01 + j00 * j12 * c02 + j02 * j11 * c12 + j02 * j12 * c22
+    cov_c = j11 * j11 * c11 + 2 * j11 * j12 * c12 + j12 * j12 * c22
+    a, b, cc = cov_a + eps2d, cov_b, cov_c + eps2d
     det = a * cc - b * b
     mean = np.stack([fx * p[:, 0] / zs + K[0, 2], fy * p[:, 1] / zs + K[1, 2]], 1)
     r = rows[:, 10].astype(np.float64)
@@ -235,6 +239,7 @@ class PreviewSplatter:
         self._frame: np.ndarray | None = None        # premultiplied RGBA [H, W, 4] read back
         self._frame_stale = True
         self.last_rect: tuple[int, int, int, int] | None = None
+        self._fp_cache = None
         self.stats: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ resources
@@ -254,8 +259,12 @@ class PreviewSplatter:
                 self._layers[k].release()
 
     # ------------------------------------------------------------------ uploads
-    def _upload(self, means, quats, scales, opacities, colors) -> tuple[np.ndarray | None, np.ndarray]:
-        """Upload what changed -> (changed ids or None for a full reload, old packed rows of those ids)."""
+    def _upload(self, means, quats, scales, opacities, colors, may_change=None) -> tuple[np.ndarray | None, np.ndarray]:
+        """Upload what changed -> (changed ids or None for a full reload, old packed rows of those ids).
+
+        ``may_change`` (ids): the caller promises every other row equals what it passed last time, so
+        only these rows are compared (a gaze frame compares the eye rows, not the whole scene).
+        """
         new = (means, quats, scales, opacities, colors)
         n = means.shape[0]
         if self._inputs is None or self._inputs[0].shape[0] != n:
@@ -268,20 +277,23 @@ class PreviewSplatter:
             self._write_rows(0, rows_tex)
             self.stats["uploaded"] = n
             return None, self._rows[:0]
-        diff = np.zeros(n, bool)
-        for old, cur in zip(self._inputs, new, strict=False):
-            d = old != cur
+        cand = None if may_change is None else np.unique(np.asarray(may_change, np.int64))
+        if cand is not None and cand.size and (cand[0] < 0 or cand[-1] >= n):
+            raise ToolkitError(f"render_preview: may_change holds ids outside [0, {n})")
+        diff = np.zeros(n if cand is None else cand.size, bool)
+        for old, cur in zip(self._inputs, new, strict=True):
+            d = (old != cur) if cand is None else (old[cand] != cur[cand])
             diff |= d.any(1) if d.ndim == 2 else d
-        ids = np.flatnonzero(diff)
+        ids = np.flatnonzero(diff) if cand is None else cand[diff]
         old_rows = self._rows[ids].copy()
         if ids.size:
             self._rows[ids] = pack_gaussians(*(a[ids] for a in new))
-            for old, cur in zip(self._inputs, new, strict=False):
+            for old, cur in zip(self._inputs, new, strict=True):
                 old[ids] = cur[ids]
             # Rewrite only the texture rows holding a changed Gaussian, one write per run of rows.
             trows = np.unique(ids // sh.GAUSSIANS_PER_ROW)
             breaks = np.flatnonzero(np.diff(trows) > 1)
-            for s, e in zip(np.r_[0, breaks + 1], np.r_[breaks, trows.size - 1], strict=False):
+            for s, e in zip(np.r_[0, breaks + 1], np.r_[breaks, trows.size - 1], strict=True):
                 self._write_rows(int(trows[s]), int(trows[e] - trows[s] + 1))
         self.stats["uploaded"] = int(ids.size)
         return ids, old_rows
@@ -358,25 +370,32 @@ class PreviewSplatter:
         self._layer_vao.render(moderngl.TRIANGLES, vertices=3)
 
     # ------------------------------------------------------------------ depth layers (gaze-only frames)
-    def _ensure_layers(self, dynamic: np.ndarray, spheres, depth: np.ndarray, viewmat, K, cam, need_full_zone=False):
-        visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
-        dyn_vis = np.flatnonzero(dynamic & visible)
+    def _depth(self, viewmat: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
+        rows = self._rows if ids is None else self._rows[ids]
+        return rows[:, :3] @ viewmat[2, :3] + viewmat[2, 3]
+
+    def _ensure_layers(self, dynamic: np.ndarray, spheres, viewmat, K, cam, need_full_zone=False):
+        """The per-camera depth layers for a dynamic set: valid while the camera, the static Gaussians and
+        the dynamic set stay, and every visible dynamic mean stays inside the cached depth range."""
         L = self._layers
         if L is not None and L["camera"] == cam and np.array_equal(L["dynamic"], dynamic) \
                 and not (need_full_zone and L["zone"] is not None):
-            dz = depth[dyn_vis]
-            if dz.size == 0 or (dz.min() >= L["zlo"] and dz.max() <= L["zhi"]):
+            dz = self._depth(viewmat, L["dyn_ids"])
+            vis = (dz > self.near) & (dz < self.far)
+            if not vis.any() or (dz[vis].min() >= L["zlo"] and dz[vis].max() <= L["zhi"]):
                 return L
         t0 = time.perf_counter()
-        dz = depth[dyn_vis]
+        depth = self._depth(viewmat)
+        visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
+        dz = depth[dynamic & visible]
         lo, hi = (float(dz.min()), float(dz.max())) if dz.size else (0.0, 0.0)
         zone = None
         if spheres:
             # Every gaze keeps each eye Gaussian's mean on its sphere: the range and zone hold for all gazes.
             R, t = viewmat[:3, :3], viewmat[:3, 3]
             cz = [float(R[2] @ c + t[2]) for c, _ in spheres]
-            s_lo = min(z - r for z, (_, r) in zip(cz, spheres, strict=False))
-            s_hi = max(z + r for z, (_, r) in zip(cz, spheres, strict=False))
+            s_lo = min(z - r for z, (_, r) in zip(cz, spheres, strict=True))
+            s_hi = max(z + r for z, (_, r) in zip(cz, spheres, strict=True))
             lo, hi = (min(lo, s_lo), max(hi, s_hi)) if dz.size else (s_lo, s_hi)
             if not need_full_zone:
                 zone = self._sphere_zone(spheres, dynamic, viewmat, K)
@@ -387,24 +406,23 @@ class PreviewSplatter:
         back = _sort_back_to_front(np.flatnonzero(static & (depth > hi)), depth)
         front = _sort_back_to_front(np.flatnonzero(static & (depth < lo)), depth)
         mid_static = np.flatnonzero(static & (depth >= lo) & (depth <= hi))
-        if zone is not None and mid_static.size:
-            b = project_footprints(self._rows[mid_static], viewmat, K, self.width, self.height,
-                                   self.near, self.far, self.eps2d)["bbox"]
+        mid_bbox = project_footprints(self._rows[mid_static], viewmat, K, self.width, self.height,
+                                      self.near, self.far, self.eps2d)["bbox"]
+        if zone is not None:
             x0, y0, w, h = zone
-            hit = (b[:, 2] >= x0) & (b[:, 0] <= x0 + w) & (b[:, 3] >= y0) & (b[:, 1] <= y0 + h)
-            mid_static = mid_static[hit]
+            hit = (mid_bbox[:, 2] >= x0) & (mid_bbox[:, 0] <= x0 + w) & (mid_bbox[:, 3] >= y0) & (mid_bbox[:, 1] <= y0 + h)
+            mid_static, mid_bbox = mid_static[hit], mid_bbox[hit]
         if L is None:
             L = {}
             L["back_tex"], L["back_fbo"] = self._float_target()
             L["front_tex"], L["front_fbo"] = self._float_target()
-        L.update(camera=cam, dynamic=dynamic.copy(), zlo=lo, zhi=hi, zone=zone, mid_static=mid_static,
-                 n_back=int(back.size), n_front=int(front.size))
+        L.update(camera=cam, dynamic=dynamic.copy(), dyn_ids=np.flatnonzero(dynamic), zlo=lo, zhi=hi, zone=zone,
+                 mid_static=mid_static, mid_bbox=mid_bbox, n_back=int(back.size), n_front=int(front.size))
         self._lists["back"].set(back)
         self._lists["front"].set(front)
         self._set_camera_uniforms(viewmat, K)
-        zone_rect = zone  # the layers are only ever read inside the zone
-        self._splat_into(L["back_fbo"], self._lists["back"], rect=zone_rect)
-        self._splat_into(L["front_fbo"], self._lists["front"], rect=zone_rect)
+        self._splat_into(L["back_fbo"], self._lists["back"], rect=zone)  # only ever read inside the zone
+        self._splat_into(L["front_fbo"], self._lists["front"], rect=zone)
         self._layers = L
         self.stats["layers_built"] = True
         self.stats["layers_s"] = time.perf_counter() - t0
@@ -435,12 +453,13 @@ class PreviewSplatter:
 
     # ------------------------------------------------------------------ frames
     def draw(self, means, quats, scales, opacities, colors, viewmat, K, *, dynamic=None,
-             dynamic_spheres=None) -> tuple[int, int, int, int] | None:
+             dynamic_spheres=None, may_change=None) -> tuple[int, int, int, int] | None:
         """Draw a frame into the GL target (no read-back) -> the pixel rectangle (x, y, w, h) redrawn.
 
         ``dynamic`` [N] bool marks the Gaussians that may change between frames of one camera (the eyes);
         ``dynamic_spheres`` [(centre [3], radius)] optionally bounds where their means can ever be (each
-        eye's sphere), so the depth-layer cache holds for every gaze. Shapes as in :meth:`render`.
+        eye's sphere), so the depth-layer cache holds for every gaze. ``may_change`` (ids): only these
+        rows can differ from the previous call's inputs (skips comparing the rest). Shapes as in :meth:`render`.
         """
         t0 = time.perf_counter()
         means = _np32(means, "means", (None, 3))
@@ -451,9 +470,15 @@ class PreviewSplatter:
         colors = _np32(colors, "colors", (n, 3))
         viewmat = _np32(viewmat, "viewmat", (4, 4))
         K = _np32(K, "K", (3, 3))
+        # Rows promised unchanged were checked when they came in; only the candidates need a look.
+        rows = None if may_change is None or self._inputs is None or self._inputs[0].shape[0] != n \
+            else np.asarray(may_change, np.int64).reshape(-1)
+        if rows is not None and rows.size and (rows.min() < 0 or rows.max() >= n):
+            raise ToolkitError(f"render_preview: may_change holds ids outside [0, {n})")
         for name, a in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
                         ("colors", colors), ("viewmat", viewmat), ("K", K)):
-            if not np.isfinite(a).all():
+            part = a if rows is None or a.shape[0] != n or name in ("viewmat", "K") else a[rows]
+            if not np.isfinite(part).all():
                 raise ToolkitError(f"render_preview: {name} contains NaN or inf")
         dyn = None
         if dynamic is not None:
@@ -470,7 +495,7 @@ class PreviewSplatter:
             self._camera = None
             st["path"] = "empty"
             return self._mark((0, 0, self.width, self.height))
-        changed, old_rows = self._upload(means, quats, scales, opacities, colors)
+        changed, old_rows = self._upload(means, quats, scales, opacities, colors, may_change)
         t1 = time.perf_counter()
         st["upload_s"] = t1 - t0
         cam = (viewmat.tobytes(), K.tobytes())
@@ -499,26 +524,43 @@ class PreviewSplatter:
         self.last_rect = rect
         return self._mark(rect)
 
+    def _footprint_rect(self, ids, rows, viewmat, K):
+        """Pixel rectangle of the footprints of ``rows`` (of Gaussians ``ids``), reusing the last frame's."""
+        c = self._fp_cache
+        if c is not None and c[0] == (viewmat.tobytes(), K.tobytes()) and np.array_equal(c[1], ids) \
+                and np.array_equal(c[2], rows):
+            return c[3]
+        fp = project_footprints(rows, viewmat, K, self.width, self.height, self.near, self.far, self.eps2d)
+        return _union_rect(fp["bbox"][fp["valid"]], self.width, self.height)
+
     def _draw_incremental(self, changed, old_rows, dyn, spheres, viewmat, K, cam):
         st = self.stats
         t1 = time.perf_counter()
-        depth = self._rows[:, :3] @ viewmat[2, :3] + viewmat[2, 3]
-        args = (viewmat, K, self.width, self.height, self.near, self.far, self.eps2d)
-        fp_old, fp_new = project_footprints(old_rows, *args), project_footprints(self._rows[changed], *args)
-        rect = _merge_rects(_union_rect(fp_old["bbox"][fp_old["valid"]], self.width, self.height),
-                            _union_rect(fp_new["bbox"][fp_new["valid"]], self.width, self.height))
-        L = self._ensure_layers(dyn, spheres, depth, viewmat, K, cam)
+        rect_old = self._footprint_rect(changed, old_rows, viewmat, K)
+        new_rows = self._rows[changed]
+        rect_new = self._footprint_rect(changed, new_rows, viewmat, K)
+        self._fp_cache = (cam, changed, new_rows, rect_new)
+        rect = _merge_rects(rect_old, rect_new)
+        L = self._ensure_layers(dyn, spheres, viewmat, K, cam)
         if rect is not None and L["zone"] is not None:
             x0, y0, w, h = L["zone"]
             if rect[0] < x0 or rect[1] < y0 or rect[0] + rect[2] > x0 + w or rect[1] + rect[3] > y0 + h:
-                L = self._ensure_layers(dyn, spheres, depth, viewmat, K, cam, need_full_zone=True)
+                L = self._ensure_layers(dyn, spheres, viewmat, K, cam, need_full_zone=True)
         t2 = time.perf_counter()
-        visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
-        mid_ids = np.union1d(L["mid_static"], np.flatnonzero(dyn & visible))
-        self._lists["mid"].set(_sort_back_to_front(mid_ids, depth))
+        mids = np.zeros(0, np.int64)
+        if rect is not None:
+            # Static mid-range Gaussians touching this frame's rectangle, plus every visible dynamic one.
+            x, y, w, h = rect
+            b = L["mid_bbox"]
+            hit = (b[:, 2] >= x) & (b[:, 0] <= x + w) & (b[:, 3] >= y) & (b[:, 1] <= y + h)
+            dyn_ids = L["dyn_ids"]
+            dz = self._depth(viewmat, dyn_ids)
+            dyn_vis = dyn_ids[(dz > self.near) & (dz < self.far) & (self._rows[dyn_ids, 10] > 0)]
+            mids = np.sort(np.concatenate([L["mid_static"][hit], dyn_vis]))
+            self._lists["mid"].set(mids[np.argsort(-self._depth(viewmat, mids), kind="stable")])
         t3 = time.perf_counter()
         st["sort_s"] = (t3 - t2) + (t2 - t1 - st["layers_s"])
-        st["n_mid"] = int(mid_ids.size)
+        st["n_mid"] = int(mids.size)
         if rect is not None:
             self._set_camera_uniforms(viewmat, K)
             self._composite_layer(L["back_tex"], rect, blend=False)
@@ -551,14 +593,15 @@ class PreviewSplatter:
         return self._frame
 
     def render(self, means, quats, scales, opacities, colors, viewmat, K, background=None, *,
-               return_alpha: bool = False, dynamic=None, dynamic_spheres=None):
+               return_alpha: bool = False, dynamic=None, dynamic_spheres=None, may_change=None):
         """Splat N Gaussians -> image [H, W, 3] float32 (and alpha [H, W, 1] with ``return_alpha``).
 
         Args: means [N, 3], quats [N, 4] wxyz, scales [N, 3] (activated), opacities [N] in (0, 1),
         colors [N, 3], viewmat [4, 4] world-to-camera, K [3, 3] pixels, background [3] (default black);
-        numpy arrays or CPU/CUDA tensors. ``dynamic`` / ``dynamic_spheres``: see :meth:`draw`.
+        numpy arrays or CPU/CUDA tensors. ``dynamic``, ``dynamic_spheres``, ``may_change``: see :meth:`draw`.
         """
-        self.draw(means, quats, scales, opacities, colors, viewmat, K, dynamic=dynamic, dynamic_spheres=dynamic_spheres)
+        self.draw(means, quats, scales, opacities, colors, viewmat, K, dynamic=dynamic, dynamic_spheres=dynamic_spheres,
+                  may_change=may_change)
         rgba = self.read()
         bg = np.zeros(3, np.float32) if background is None else _np32(background, "background", (3,))
         rgb = rgba[..., :3] + (1.0 - rgba[..., 3:4]) * bg

@@ -35,10 +35,11 @@ flat out vec2 v_mean;
 flat out vec3 v_conic;
 flat out float v_opacity;
 flat out vec3 v_color;
+flat out float v_cut;
 
 void cull() {
     gl_Position = vec4(2.0, 2.0, 2.0, 1.0);  // all four corners equal: a zero-area strip
-    v_mean = vec2(0.0); v_conic = vec3(0.0); v_opacity = 0.0; v_color = vec3(0.0);
+    v_mean = vec2(0.0); v_conic = vec3(0.0); v_opacity = 0.0; v_color = vec3(0.0); v_cut = -1.0;
 }
 
 void main() {
@@ -88,6 +89,7 @@ void main() {
     v_conic = vec3(c, -b, a) / det;
     v_opacity = t0.w;
     v_color = t3.xyz;
+    v_cut = 0.5 * r_cut * r_cut * 1.0001 + 1e-6;  // ln(255 o), with a hair of slack for rounding
 }
 """.replace("GPR", str(GAUSSIANS_PER_ROW))
 
@@ -97,11 +99,12 @@ flat in vec2 v_mean;
 flat in vec3 v_conic;
 flat in float v_opacity;
 flat in vec3 v_color;
+flat in float v_cut;
 out vec4 frag;
 void main() {
     vec2 d = v_mean - gl_FragCoord.xy;  // pixel centres sit at (j + 0.5, i + 0.5)
     float sigma = 0.5 * (v_conic.x * d.x * d.x + v_conic.z * d.y * d.y) + v_conic.y * d.x * d.y;
-    if (sigma < 0.0) discard;
+    if (sigma < 0.0 || sigma > v_cut) discard;  // outside the alpha = 1/255 ellipse: skip the exp
     float alpha = min(0.99, v_opacity * exp(-sigma));
     if (alpha < 1.0 / 255.0) discard;
     frag = vec4(v_color * alpha, alpha);  // premultiplied; blended with (ONE, ONE_MINUS_SRC_ALPHA)

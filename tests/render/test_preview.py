@@ -308,3 +308,25 @@ def test_missing_egl_names_the_library(monkeypatch):
     monkeypatch.setattr(ctypes.util, "find_library", lambda name: None if name == "EGL" else f"lib{name}.so")
     with pytest.raises(ToolkitError, match=r"EGL.*libEGL\.so.*apt-get install libegl1"):
         preview.create_headless_context()
+
+
+def test_may_change_hint_limits_the_comparison(ctx):
+    from render.preview import PreviewSplatter
+
+    gs = random_gaussians(300, 9)
+    V, K = camera()
+    dyn = np.zeros(300, bool)
+    dyn[100:130] = True
+    s = PreviewSplatter(64, 48, ctx=ctx)
+    s.render(*gs, V, K, dynamic=dyn, may_change=np.arange(100, 130))
+    gs[0] = gs[0].copy()
+    gs[0][100:105, 0] += 0.1
+    img = s.render(*gs, V, K, dynamic=dyn, may_change=np.arange(100, 130)).copy()
+    assert s.stats["uploaded"] == 5 and s.stats["path"] == "incremental"
+    np.testing.assert_allclose(img, PreviewSplatter(64, 48, ctx=ctx).render(*gs, V, K), atol=2e-6, rtol=0)
+    with pytest.raises(ToolkitError, match="may_change holds ids outside"):
+        s.render(*gs, V, K, may_change=[400])
+    bad = gs[0].copy()
+    bad[101, 1] = np.inf
+    with pytest.raises(ToolkitError, match="means contains NaN"):
+        s.render(bad, *gs[1:], V, K, may_change=np.arange(100, 130))
