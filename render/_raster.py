@@ -14,9 +14,11 @@ chunk, pixels] instead of [..., D].
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from render._tiles import TileBins
 
@@ -68,6 +70,10 @@ class _Sweep:
         self.inside = ((col < width) & (row < height)).view(nt, P)
         self.done = ~self.inside
         self.slice_tiles = max(1, cfg.max_elements // (cfg.chunk * P))
+        self.log_amax = math.log(cfg.alpha_max)
+        # threshold() keeps x > thr: the largest value below alpha_min (in this dtype) keeps alpha >= alpha_min.
+        amin = torch.tensor(cfg.alpha_min, dtype=dtype)
+        self.alpha_thr = float(torch.nextafter(amin, torch.zeros_like(amin)))
         self.rounds_run = 0
         self.tiles_terminated = 0
 
@@ -86,8 +92,9 @@ class _Sweep:
             active = more[left]
         self.rounds_run = k
 
-    def alphas(self, table: torch.Tensor, A: torch.Tensor, k: int, check_sigma: bool):
-        """Alphas [nA, B, P] of chunk k for tiles A, with the gathered Gaussian ids and pixel offsets."""
+    def alphas(self, table: torch.Tensor, A: torch.Tensor, k: int, check_sigma: bool, want_unclamped: bool = False):
+        """Alphas [nA, B, P] of chunk k for tiles A, with the gathered Gaussian ids and pixel offsets (and,
+        when asked, the mask of alphas below the alpha_max clamp, where dalpha/dt = alpha)."""
         bins, B, ts = self.bins, self.cfg.chunk, self.bins.tile_size
         nA = A.numel()
         start = bins.starts.index_select(0, A)
@@ -107,11 +114,12 @@ class _Sweep:
         t.addcmul_(dy[..., :, None], (prm[..., 3, None] * dx)[..., None, :])
         t = t.view(nA, B, ts * ts)
         neg_sigma = t > prm[..., 5, None] if check_sigma else None
-        alpha = t.clamp_min_(EXP_FLOOR).exp_().clamp_max_(self.cfg.alpha_max)
-        alpha.masked_fill_(alpha < self.cfg.alpha_min, 0.0)
+        unclamped = t < self.log_amax if want_unclamped else None
+        # min(alpha_max, o exp(-sigma)) as exp(min(log alpha_max, t)): one pass fewer; equal to rounding.
+        alpha = F.threshold_(t.clamp_(EXP_FLOOR, self.log_amax).exp_(), self.alpha_thr, 0.0)
         if neg_sigma is not None:
             alpha.masked_fill_(neg_sigma, 0.0)
-        return g, prm, dx, dy, alpha
+        return g, prm, dx, dy, alpha, unclamped
 
     def transmit(self, A: torch.Tensor, alpha: torch.Tensor):
         """Front-to-back compositing of one chunk: weights w [nA, B, P], T before each Gaussian, inclusion
@@ -125,12 +133,12 @@ class _Sweep:
         torch.mul(torch.cumprod(1.0 - alpha, 1), T_in[:, None], out=TB[:, 1:])
         T_before = TB[:, :-1]
         incl = TB[:, 1:] > self.cfg.t_min  # a prefix along B: T only decreases
-        w = alpha * T_before * incl
+        w = torch.mul(alpha, T_before).mul_(incl)
         n_incl = incl.sum(1, keepdim=True)
         T_new = torch.where(done_old, T_old, TB.gather(1, n_incl).squeeze(1))
         self.T.index_copy_(0, A, T_new)
         self.done.index_copy_(0, A, done_old | ~incl[:, -1])
-        return w, T_before, incl
+        return w, TB, incl
 
 
 def to_tiles(img: torch.Tensor, bins: TileBins) -> torch.Tensor:
@@ -163,7 +171,7 @@ class RasterizeTiles(torch.autograd.Function):
         acc = torch.zeros(bins.num_tiles, bins.tile_size ** 2, D, dtype=dtype, device=device)
         B = cfg.chunk
         for k, A in sweep.rounds():
-            g, _, _, _, alpha = sweep.alphas(table, A, k, check_sigma)
+            g, _, _, _, alpha, _ = sweep.alphas(table, A, k, check_sigma)
             w, _, _ = sweep.transmit(A, alpha)
             cols = col_tab.index_select(0, g).view(A.numel(), B, D)
             acc.index_add_(0, A, torch.bmm(w.transpose(1, 2), cols))
@@ -199,27 +207,34 @@ class RasterizeTiles(torch.autograd.Function):
         prefix = torch.zeros_like(Q)  # sum_{j processed} w_j (c_j . g) per pixel
         sweep = _Sweep(bins, width, height, cfg, dtype, device)
         ts = bins.tile_size
+        # alpha can only hit the alpha_max clamp (where dalpha/dt = 0) if some opacity reaches it.
+        clamp_possible = bool(opacities.numel()) and float(opacities.max()) >= cfg.alpha_max
+        base = Q - gaT  # per pixel: C . g minus the alpha-output term (dA/dalpha_i = T_final / (1 - alpha_i))
         for k, A in sweep.rounds():
             nA = A.numel()
-            g, prm, dx, dy, alpha = sweep.alphas(table, A, k, ctx.check_sigma)
-            w, T_before, incl = sweep.transmit(A, alpha)
+            g, prm, dx, dy, alpha, unclamped = sweep.alphas(table, A, k, ctx.check_sigma, clamp_possible)
+            w, TB, incl = sweep.transmit(A, alpha)
             gA = g_t.index_select(0, A)  # [nA, P, D]
             cols = col_tab.index_select(0, g).view(nA, B, D)
             cg = torch.bmm(cols, gA.transpose(1, 2))  # [nA, B, P] c_i . g
             grad_cols = torch.bmm(w, gA)  # [nA, B, D]
-            cs = torch.cumsum(w * cg, 1)
-            behind = (Q.index_select(0, A) - prefix.index_select(0, A))[:, None, :] - cs
+            wcg = w * cg
+            cs = torch.cumsum(wcg, 1)
+            # X_i = (colour behind Gaussian i) . g - T_final g_alpha; prefix carries earlier rounds.
+            X = (base.index_select(0, A) - prefix.index_select(0, A))[:, None, :] - cs
             prefix.index_add_(0, A, cs[:, -1])
-            dl_dalpha = T_before * cg - (behind - gaT.index_select(0, A)[:, None, :]) / (1.0 - alpha)
-            # dalpha/dt = alpha where alpha = exp(t) was neither clamped to alpha_max nor thresholded to 0.
-            G = dl_dalpha * alpha * (incl & (alpha < cfg.alpha_max))
-            Gv = G.view(nA, B, ts, ts)
-            g_col = Gv.sum(2)  # [nA, B, ts] summed over rows
-            g_row = Gv.sum(3)
-            s0 = g_row.sum(-1)
-            sx, sxx = (g_col * dx).sum(-1), (g_col * dx * dx).sum(-1)
-            sy, syy = (g_row * dy).sum(-1), (g_row * dy * dy).sum(-1)
-            sxy = (torch.matmul(Gv, dx[..., None]).squeeze(-1) * dy).sum(-1)
+            # dL/dt_i = alpha_i dL/dalpha_i = w_i (c_i . g) - X_i alpha_i / (1 - alpha_i) on included pixels, and
+            # alpha_i / (1 - alpha_i) = w_i / T_after_i there (w = 0 elsewhere; the clamp only guards 0 / 0).
+            G = wcg.sub_(X.mul_(w).div_(TB[:, 1:].clamp_min(max(0.5 * cfg.t_min, 1e-30))))
+            if unclamped is not None:
+                G.mul_(unclamped)
+            # All six moments sum_p G dx^i dy^j with two small batched matmuls over the row/column split.
+            bx = torch.stack([torch.ones_like(dx), dx, dx * dx], -1).view(nA * B, ts, 3)
+            by = torch.stack([torch.ones_like(dy), dy, dy * dy], -1).view(nA * B, ts, 3)
+            rows = torch.bmm(G.view(nA * B, ts, ts), bx)  # [nA B, ts rows, 3]: sum_c G dx^i per row
+            mom = torch.bmm(by.transpose(1, 2), rows).view(nA, B, 3, 3)  # [.., j, i] = sum G dy^j dx^i
+            s0, sx, sxx = mom[..., 0, 0], mom[..., 0, 1], mom[..., 0, 2]
+            sy, sxy, syy = mom[..., 1, 0], mom[..., 1, 1], mom[..., 2, 0]
             a, b, c = prm[..., 6], prm[..., 7], prm[..., 8]
             per_pair = torch.cat([torch.stack([a * sx + b * sy, b * sx + c * sy, -0.5 * sxx, -sxy, -0.5 * syy, s0],
                                               -1), grad_cols], -1)
