@@ -142,19 +142,32 @@ class _Sweep:
 
 
 def to_tiles(img: torch.Tensor, bins: TileBins) -> torch.Tensor:
-    """[H, W, D] -> [tiles, ts*ts, D] (zero padded)."""
+    """[H, W, D] -> [tiles, D, ts*ts] (zero padded). Channels before pixels so the colour products are
+    plain [D, B] x [B, P] matmuls without transposed operands."""
     H, W, D = img.shape
     ts = bins.tile_size
     pad = img.new_zeros(bins.tiles_y * ts, bins.tiles_x * ts, D)
     pad[:H, :W] = img
-    return pad.view(bins.tiles_y, ts, bins.tiles_x, ts, D).permute(0, 2, 1, 3, 4).reshape(bins.num_tiles, ts * ts, D)
+    return pad.view(bins.tiles_y, ts, bins.tiles_x, ts, D).permute(0, 2, 4, 1, 3).reshape(bins.num_tiles, D, ts * ts)
 
 
 def from_tiles(t: torch.Tensor, bins: TileBins, width: int, height: int) -> torch.Tensor:
-    """[tiles, ts*ts, D] -> [H, W, D]."""
-    ts, D = bins.tile_size, t.shape[-1]
-    img = t.view(bins.tiles_y, bins.tiles_x, ts, ts, D).permute(0, 2, 1, 3, 4)
+    """[tiles, D, ts*ts] -> [H, W, D]."""
+    ts, D = bins.tile_size, t.shape[1]
+    img = t.view(bins.tiles_y, bins.tiles_x, D, ts, ts).permute(0, 3, 1, 4, 2)
     return img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, D)[:height, :width]
+
+
+_BASIS: dict = {}
+
+
+def self_basis(ts: int, dtype, device) -> torch.Tensor:
+    """[ts, 3] columns (1, u, u^2) at the tile-local pixel centres u = 0.5 .. ts - 0.5 (cached)."""
+    key = (ts, dtype, str(device))
+    if key not in _BASIS:
+        u = torch.arange(ts, dtype=dtype, device=device) + 0.5
+        _BASIS[key] = torch.stack([torch.ones_like(u), u, u * u], -1)
+    return _BASIS[key]
 
 
 class RasterizeTiles(torch.autograd.Function):
@@ -168,16 +181,16 @@ class RasterizeTiles(torch.autograd.Function):
         table = _gaussian_table(means2d, conics, opacities, dtype)
         col_tab = torch.cat([colors, colors.new_zeros(1, D)], 0)
         sweep = _Sweep(bins, width, height, cfg, dtype, device)
-        acc = torch.zeros(bins.num_tiles, bins.tile_size ** 2, D, dtype=dtype, device=device)
+        acc = torch.zeros(bins.num_tiles, D, bins.tile_size ** 2, dtype=dtype, device=device)
         B = cfg.chunk
         for k, A in sweep.rounds():
             g, _, _, _, alpha, _ = sweep.alphas(table, A, k, check_sigma)
             w, _, _ = sweep.transmit(A, alpha)
-            cols = col_tab.index_select(0, g).view(A.numel(), B, D)
-            acc.index_add_(0, A, torch.bmm(w.transpose(1, 2), cols))
-        C_t = acc + sweep.T[..., None] * background
+            cols_t = col_tab.index_select(0, g).view(A.numel(), B, D).transpose(1, 2).contiguous()
+            acc.index_add_(0, A, torch.bmm(cols_t, w))
+        C_t = torch.addcmul(acc, sweep.T[:, None, :], background[None, :, None])
         image = from_tiles(C_t, bins, width, height)
-        alpha_img = 1.0 - from_tiles(sweep.T[..., None], bins, width, height)
+        alpha_img = 1.0 - from_tiles(sweep.T[:, None, :], bins, width, height)
         stats.update(rounds=sweep.rounds_run, tiles_terminated=sweep.tiles_terminated,
                      pixels_terminated=int((sweep.done & sweep.inside).sum()))
         ctx.save_for_backward(means2d, conics, opacities, colors, background, C_t, sweep.T)
@@ -195,11 +208,11 @@ class RasterizeTiles(torch.autograd.Function):
             grad_image = torch.zeros(height, width, D, dtype=dtype, device=device)
         if grad_alpha is None:
             grad_alpha = torch.zeros(height, width, 1, dtype=dtype, device=device)
-        g_t = to_tiles(grad_image.to(dtype), bins)  # [nt, P, D]
-        ga_t = to_tiles(grad_alpha.to(dtype), bins)[..., 0]  # [nt, P]
-        Q = (C_t * g_t).sum(-1)  # C . dL/dC per pixel: the colour behind the first Gaussian, projected
+        g_t = to_tiles(grad_image.to(dtype), bins)  # [nt, D, P]
+        ga_t = to_tiles(grad_alpha.to(dtype), bins)[:, 0]  # [nt, P]
+        Q = (C_t * g_t).sum(1)  # C . dL/dC per pixel: the colour behind the first Gaussian, projected
         gaT = ga_t * T_final  # alpha = 1 - T_final contributes dA/dalpha_i = T_final / (1 - alpha_i)
-        grad_bg = (g_t * T_final[..., None]).sum((0, 1))
+        grad_bg = torch.einsum("tdp,tp->d", g_t, T_final)
 
         table = _gaussian_table(means2d, conics, opacities, dtype)
         col_tab = torch.cat([colors, colors.new_zeros(1, D)], 0)
@@ -214,10 +227,10 @@ class RasterizeTiles(torch.autograd.Function):
             nA = A.numel()
             g, prm, dx, dy, alpha, unclamped = sweep.alphas(table, A, k, ctx.check_sigma, clamp_possible)
             w, TB, incl = sweep.transmit(A, alpha)
-            gA = g_t.index_select(0, A)  # [nA, P, D]
+            gA = g_t.index_select(0, A)  # [nA, D, P]
             cols = col_tab.index_select(0, g).view(nA, B, D)
-            cg = torch.bmm(cols, gA.transpose(1, 2))  # [nA, B, P] c_i . g
-            grad_cols = torch.bmm(w, gA)  # [nA, B, D]
+            cg = torch.bmm(cols, gA)  # [nA, B, P] c_i . g
+            grad_cols = torch.bmm(w, gA.transpose(1, 2))  # [nA, B, D]
             wcg = w * cg
             cs = torch.cumsum(wcg, 1)
             # X_i = (colour behind Gaussian i) . g - T_final g_alpha; prefix carries earlier rounds.
@@ -228,13 +241,21 @@ class RasterizeTiles(torch.autograd.Function):
             G = wcg.sub_(X.mul_(w).div_(TB[:, 1:].clamp_min(max(0.5 * cfg.t_min, 1e-30))))
             if unclamped is not None:
                 G.mul_(unclamped)
-            # All six moments sum_p G dx^i dy^j with two small batched matmuls over the row/column split.
-            bx = torch.stack([torch.ones_like(dx), dx, dx * dx], -1).view(nA * B, ts, 3)
-            by = torch.stack([torch.ones_like(dy), dy, dy * dy], -1).view(nA * B, ts, 3)
-            rows = torch.bmm(G.view(nA * B, ts, ts), bx)  # [nA B, ts rows, 3]: sum_c G dx^i per row
-            mom = torch.bmm(by.transpose(1, 2), rows).view(nA, B, 3, 3)  # [.., j, i] = sum G dy^j dx^i
-            s0, sx, sxx = mom[..., 0, 0], mom[..., 0, 1], mom[..., 0, 2]
-            sy, sxy, syy = mom[..., 1, 0], mom[..., 1, 1], mom[..., 2, 0]
+            # Moments sum_p G u^i v^j in tile-local pixel coordinates (u, v) = (c + 0.5, r + 0.5), which are the
+            # same for every tile: one skinny GEMM over all rows, one over the 3 x ts results. Then centre them
+            # on the mean, dx = u - mu (exact algebra; u is in [0.5, ts), so no harmful cancellation).
+            mom = (G.view(-1, ts) @ self_basis(ts, dtype, device)).view(nA * B, ts, 3)  # [q, r, i]
+            mom = (mom.transpose(1, 2).reshape(-1, ts) @ self_basis(ts, dtype, device)).view(nA, B, 3, 3)
+            mu = dx[..., :1].neg().add_(0.5).squeeze(-1)  # tile-local mean: u_0 - dx_0 with u_0 = 0.5
+            mv = dy[..., :1].neg().add_(0.5).squeeze(-1)
+            m00, m01, m02 = mom[..., 0, 0], mom[..., 0, 1], mom[..., 0, 2]  # [.., i (u power), j (v power)]
+            m10, m11, m20 = mom[..., 1, 0], mom[..., 1, 1], mom[..., 2, 0]
+            s0 = m00
+            sx = m10 - mu * m00
+            sy = m01 - mv * m00
+            sxx = m20 - 2 * mu * m10 + mu * mu * m00
+            syy = m02 - 2 * mv * m01 + mv * mv * m00
+            sxy = m11 - mu * m01 - mv * m10 + mu * mv * m00
             a, b, c = prm[..., 6], prm[..., 7], prm[..., 8]
             per_pair = torch.cat([torch.stack([a * sx + b * sy, b * sx + c * sy, -0.5 * sxx, -sxy, -0.5 * syy, s0],
                                               -1), grad_cols], -1)
