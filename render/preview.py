@@ -132,7 +132,7 @@ def project_footprints(rows: np.ndarray, viewmat: np.ndarray, K: np.ndarray, wid
     cov_c = j11 * j11 * c11 + 2 * j11 * j12 * c12 + j12 * j12 * c22
     a, b, cc = cov_a + eps2d, cov_b, cov_c + eps2d
     det = a * cc - b * b
-    mean = np.stack([fx * p[:, 0] / zs + K[0, 2], fy * p[:, 1] / zs + K[1, 2]], 1)
+    mean = np.stack([fx * p[:, 0] / zs + float(K[0, 1]) * p[:, 1] / zs + K[0, 2], fy * p[:, 1] / zs + K[1, 2]], 1)
     r = rows[:, 10].astype(np.float64)
     valid = (z > near) & (z < far) & (r > 0) & (det > 0)
     hx, hy = r * np.sqrt(np.maximum(a, 0)), r * np.sqrt(np.maximum(cc, 0))
@@ -340,6 +340,7 @@ class PreviewSplatter:
             p[f"u_rot{i}"].value = tuple(float(v) for v in viewmat[i, :3])
         p["u_trans"].value = tuple(float(v) for v in viewmat[:3, 3])
         p["u_intr"].value = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+        p["u_skew"].value = float(K[0, 1])
         p["u_size"].value = (float(self.width), float(self.height))
         p["u_clip"].value = (self.near, self.far)
         p["u_lim"].value = tuple(float(v) for v in tangent_limits(K, self.width, self.height))
@@ -442,10 +443,12 @@ class PreviewSplatter:
             rr = r + margin3d
             if p[2] - rr <= self.near:
                 return None
-            for zz in (p[2] - rr, p[2] + rr):
-                for s in (-rr, rr):
-                    xs.append(fx * (p[0] + s) / zz + cx)
-                    ys.append(fy * (p[1] + s) / zz + cy)
+            skew = float(K[0, 1])
+            for zz in (p[2] - rr, p[2] + rr):  # x/z and y/z over the sphere's box peak at its corners
+                for sx in (-rr, rr):
+                    for sy in (-rr, rr):
+                        xs.append(fx * (p[0] + sx) / zz + skew * (p[1] + sy) / zz + cx)
+                        ys.append(fy * (p[1] + sy) / zz + cy)
         pad = 3.33 * math.sqrt(self.eps2d) + 3.0  # the 2D dilation and rounding
         x0, x1 = max(0, int(min(xs) - pad)), min(self.width, int(max(xs) + pad) + 1)
         y0, y1 = max(0, int(min(ys) - pad)), min(self.height, int(max(ys) + pad) + 1)

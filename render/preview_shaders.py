@@ -26,6 +26,7 @@ uniform vec3 u_rot1;
 uniform vec3 u_rot2;
 uniform vec3 u_trans;
 uniform vec4 u_intr;      // fx, fy, cx, cy (pixels)
+uniform float u_skew;     // K[0, 1]: in the mean, not in the Jacobian (as gsplat)
 uniform vec2 u_size;      // width, height
 uniform vec2 u_clip;      // near, far
 uniform vec4 u_lim;       // tangent clamp: -x, +x, -y, +y limits of x/z and y/z
@@ -68,7 +69,7 @@ void main() {
     float c = dot(j1, C * j1) + u_eps2d;
     float det = a * c - b * b;
     if (!(det > 0.0)) { cull(); return; }
-    vec2 mean = vec2(fx * p.x / z + u_intr.z, fy * p.y / z + u_intr.w);
+    vec2 mean = vec2(fx * p.x / z + u_skew * p.y / z + u_intr.z, fy * p.y / z + u_intr.w);
     // Principal axes of the 2D covariance; the quad is the ellipse's bounding rectangle.
     float mid = 0.5 * (a + c);
     float l1 = mid + sqrt(max(mid * mid - det, 0.0));
