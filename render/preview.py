@@ -35,6 +35,17 @@ from typing import Any
 import numpy as np
 
 from render import preview_shaders as sh
+from render.preview_footprints import (  # noqa: F401 (re-exported: part of the preview API)
+    as_float32,
+    covariances,
+    merge_rects,
+    pack_gaussians,
+    project_footprints,
+    sort_back_to_front,
+    tangent_limits,
+    union_rect,
+)
+from render.preview_scene import FeatureColors, eye_dynamics, scene_colors  # noqa: F401
 from toolkit.errors import ToolkitError
 
 ALPHA_THRESHOLD = 1.0 / 255.0
@@ -58,116 +69,6 @@ def create_headless_context():
             "EGL is present but gave no OpenGL 3.3 core context (Debian: apt-get install libgl1-mesa-dri)"
         raise ToolkitError(f"could not create a headless OpenGL context through EGL: {hint}; "
                            f"moderngl said: {str(e).strip()[:160]}") from None
-
-
-# ---------------------------------------------------------------------------------------------- CPU side
-def _np32(x: Any, name: str, shape: tuple) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    a = np.ascontiguousarray(np.asarray(x, dtype=np.float32))
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=False)):
-        raise ToolkitError(f"render_preview: {name} must have shape {list(shape)}, got {list(a.shape)}".replace("None", "N"))
-    return a
-
-
-def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
-    """[N, 4] wxyz (any norm, zero -> identity), [N, 3] scales -> [N, 6] covariance xx, xy, xz, yy, yz, zz."""
-    q = quats.astype(np.float32)
-    n = np.linalg.norm(q, axis=1, keepdims=True)
-    ident = np.array([1, 0, 0, 0], np.float32)
-    q = np.where(n > 1e-12, q / np.maximum(n, 1e-12), ident)
-    w, x, y, z = q.T
-    R = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
-    M = R * scales[:, None, :]  # columns scaled: Sigma = M M^T, six unique entries as row dot products
-    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
-    dot = lambda a, b: (a * b).sum(1)  # noqa: E731
-    return np.stack([dot(r0, r0), dot(r0, r1), dot(r0, r2), dot(r1, r1), dot(r1, r2), dot(r2, r2)], 1)
-
-
-def pack_gaussians(means, quats, scales, opacities, colors) -> np.ndarray:
-    """Activated Gaussians -> [N, 16] float32 rows in the data-texture layout of ``render.preview_shaders``."""
-    n = means.shape[0]
-    out = np.zeros((n, 16), np.float32)
-    out[:, 0:3] = means
-    out[:, 3] = opacities
-    out[:, 4:10] = covariances(quats, scales)
-    o = np.clip(opacities.astype(np.float64), 0.0, 1.0)
-    # alpha = o exp(-sigma) >= 1/255  <=>  sigma <= ln(255 o): the quad's Mahalanobis half-size.
-    out[:, 10] = np.sqrt(2.0 * np.log(np.maximum(255.0 * o, 1.0)))
-    out[:, 12:15] = colors
-    return out
-
-
-def tangent_limits(K: np.ndarray, width: int, height: int) -> np.ndarray:
-    """gsplat's clamp of x/z and y/z: (-x, +x, -y, +y) limits, 0.3 tan-half-fov beyond the image edges."""
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    tx, ty = 0.5 * width / fx, 0.5 * height / fy
-    return np.array([cx / fx + 0.3 * tx, (width - cx) / fx + 0.3 * tx,
-                     cy / fy + 0.3 * ty, (height - cy) / fy + 0.3 * ty], np.float32)
-
-
-def project_footprints(rows: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
-                       near: float = 0.01, far: float = 1e10, eps2d: float = 0.3) -> dict[str, np.ndarray]:
-    """CPU mirror of the vertex shader for [M, 16] packed rows -> depth [M], valid [M], bbox [M, 4]
-    (x0, y0, x1, y1 pixels of the alpha >= 1/255 ellipse) and quad_area [M] (pixels of the cut quad)."""
-    R, t = viewmat[:3, :3].astype(np.float64), viewmat[:3, 3].astype(np.float64)
-    p = rows[:, 0:3].astype(np.float64) @ R.T + t
-    z = p[:, 2]
-    m = rows.shape[0]
-    c = rows[:, 4:10].astype(np.float64)
-    S = c[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(m, 3, 3)
-    A = (S.reshape(m * 3, 3) @ R.T).reshape(m, 3, 3)                          # S R^T
-    C = (A.transpose(0, 2, 1).reshape(m * 3, 3) @ R.T).reshape(m, 3, 3)      # (R S R^T)^T = R S R^T
-    fx, fy = float(K[0, 0]), float(K[1, 1])
-    lim = tangent_limits(K, width, height)
-    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
-    tx = zs * np.clip(p[:, 0] / zs, -lim[0], lim[1])
-    ty = zs * np.clip(p[:, 1] / zs, -lim[2], lim[3])
-    j00, j02, j11, j12 = fx / zs, -fx * tx / zs**2, fy / zs, -fy * ty / zs**2
-    c00, c01, c02, c11, c12, c22 = C[:, 0, 0], C[:, 0, 1], C[:, 0, 2], C[:, 1, 1], C[:, 1, 2], C[:, 2, 2]
-    cov_a = j00 * j00 * c00 + 2 * j00 * j02 * c02 + j02 * j02 * c22
-    cov_b = j00 * j11 * c01 + j00 * j12 * c02 + j02 * j11 * c12 + j02 * j12 * c22
-    cov_c = j11 * j11 * c11 + 2 * j11 * j12 * c12 + j12 * j12 * c22
-    a, b, cc = cov_a + eps2d, cov_b, cov_c + eps2d
-    det = a * cc - b * b
-    mean = np.stack([fx * p[:, 0] / zs + float(K[0, 1]) * p[:, 1] / zs + K[0, 2], fy * p[:, 1] / zs + K[1, 2]], 1)
-    r = rows[:, 10].astype(np.float64)
-    valid = (z > near) & (z < far) & (r > 0) & (det > 0)
-    hx, hy = r * np.sqrt(np.maximum(a, 0)), r * np.sqrt(np.maximum(cc, 0))
-    bbox = np.stack([mean[:, 0] - hx, mean[:, 1] - hy, mean[:, 0] + hx, mean[:, 1] + hy], 1)
-    on = valid & (bbox[:, 2] > 0) & (bbox[:, 0] < width) & (bbox[:, 3] > 0) & (bbox[:, 1] < height)
-    # Cut quad area 4 r^2 sqrt(det), scaled by the on-screen share of the ellipse's bounding box.
-    w_in = np.clip(np.minimum(bbox[:, 2], width) - np.maximum(bbox[:, 0], 0), 0, None)
-    h_in = np.clip(np.minimum(bbox[:, 3], height) - np.maximum(bbox[:, 1], 0), 0, None)
-    share = w_in * h_in / np.maximum(4 * hx * hy, 1e-12)
-    area = np.where(on, 4 * r * r * np.sqrt(np.maximum(det, 0)) * np.minimum(share, 1.0), 0.0)
-    return {"depth": z, "valid": valid, "on_screen": on, "bbox": bbox, "quad_area": area}
-
-
-def _union_rect(bbox: np.ndarray, width: int, height: int) -> tuple[int, int, int, int] | None:
-    """Integer pixel rectangle (x, y, w, h) covering [M, 4] boxes (+1 pixel), clipped; None when empty."""
-    if bbox.shape[0] == 0:
-        return None
-    x0 = max(0, int(math.floor(bbox[:, 0].min())) - 1)
-    y0 = max(0, int(math.floor(bbox[:, 1].min())) - 1)
-    x1 = min(width, int(math.ceil(bbox[:, 2].max())) + 1)
-    y1 = min(height, int(math.ceil(bbox[:, 3].max())) + 1)
-    return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else None
-
-
-def _merge_rects(a, b):
-    if a is None or b is None:
-        return a or b
-    x0, y0 = min(a[0], b[0]), min(a[1], b[1])
-    x1, y1 = max(a[0] + a[2], b[0] + b[2]), max(a[1] + a[3], b[1] + b[3])
-    return (x0, y0, x1 - x0, y1 - y0)
-
-
-def _sort_back_to_front(ids: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """ids sorted by decreasing depth; ties keep id order (so any subset sorts like the whole)."""
-    return ids[np.argsort(-depth[ids], kind="stable")]
 
 
 # ---------------------------------------------------------------------------------------------- GL side
@@ -328,7 +229,7 @@ class PreviewSplatter:
             if (d.size == 0 or bool(np.all(d[:-1] >= d[1:]))) and self._order.size == int(visible.sum()) \
                     and bool(visible[self._order].all()):
                 return self._order, depth, False
-        order = _sort_back_to_front(np.flatnonzero(visible), depth)
+        order = sort_back_to_front(np.flatnonzero(visible), depth)
         self._order, self._order_view = order, viewmat.copy()
         self._lists["all"].set(order)
         return order, depth, True
@@ -404,8 +305,8 @@ class PreviewSplatter:
             pad = 0.25 * (hi - lo) + 1e-6 * max(abs(lo), abs(hi)) + 1e-9
             lo, hi = lo - pad, hi + pad
         static = visible & ~dynamic
-        back = _sort_back_to_front(np.flatnonzero(static & (depth > hi)), depth)
-        front = _sort_back_to_front(np.flatnonzero(static & (depth < lo)), depth)
+        back = sort_back_to_front(np.flatnonzero(static & (depth > hi)), depth)
+        front = sort_back_to_front(np.flatnonzero(static & (depth < lo)), depth)
         mid_static = np.flatnonzero(static & (depth >= lo) & (depth <= hi))
         mid_bbox = project_footprints(self._rows[mid_static], viewmat, K, self.width, self.height,
                                       self.near, self.far, self.eps2d)["bbox"]
@@ -465,14 +366,14 @@ class PreviewSplatter:
         rows can differ from the previous call's inputs (skips comparing the rest). Shapes as in :meth:`render`.
         """
         t0 = time.perf_counter()
-        means = _np32(means, "means", (None, 3))
+        means = as_float32(means, "means", (None, 3))
         n = means.shape[0]
-        quats = _np32(quats, "quats", (n, 4))
-        scales = _np32(scales, "scales", (n, 3))
-        opacities = _np32(opacities, "opacities", (n,))
-        colors = _np32(colors, "colors", (n, 3))
-        viewmat = _np32(viewmat, "viewmat", (4, 4))
-        K = _np32(K, "K", (3, 3))
+        quats = as_float32(quats, "quats", (n, 4))
+        scales = as_float32(scales, "scales", (n, 3))
+        opacities = as_float32(opacities, "opacities", (n,))
+        colors = as_float32(colors, "colors", (n, 3))
+        viewmat = as_float32(viewmat, "viewmat", (4, 4))
+        K = as_float32(K, "K", (3, 3))
         # Rows promised unchanged were checked when they came in; only the candidates need a look.
         rows = None if may_change is None or self._inputs is None or self._inputs[0].shape[0] != n \
             else np.asarray(may_change, np.int64).reshape(-1)
@@ -534,7 +435,7 @@ class PreviewSplatter:
                 and np.array_equal(c[2], rows):
             return c[3]
         fp = project_footprints(rows, viewmat, K, self.width, self.height, self.near, self.far, self.eps2d)
-        return _union_rect(fp["bbox"][fp["valid"]], self.width, self.height)
+        return union_rect(fp["bbox"][fp["valid"]], self.width, self.height)
 
     def _draw_incremental(self, changed, old_rows, dyn, spheres, viewmat, K, cam):
         st = self.stats
@@ -543,7 +444,7 @@ class PreviewSplatter:
         new_rows = self._rows[changed]
         rect_new = self._footprint_rect(changed, new_rows, viewmat, K)
         self._fp_cache = (cam, changed, new_rows, rect_new)
-        rect = _merge_rects(rect_old, rect_new)
+        rect = merge_rects(rect_old, rect_new)
         L = self._ensure_layers(dyn, spheres, viewmat, K, cam)
         if rect is not None and L["zone"] is not None:
             x0, y0, w, h = L["zone"]
@@ -576,7 +477,7 @@ class PreviewSplatter:
 
     def _mark(self, rect):
         if rect is not None:
-            self._dirty = _merge_rects(getattr(self, "_dirty", None), rect)
+            self._dirty = merge_rects(getattr(self, "_dirty", None), rect)
         return rect
 
     def read(self) -> np.ndarray:
@@ -606,7 +507,7 @@ class PreviewSplatter:
         self.draw(means, quats, scales, opacities, colors, viewmat, K, dynamic=dynamic, dynamic_spheres=dynamic_spheres,
                   may_change=may_change)
         rgba = self.read()
-        bg = np.zeros(3, np.float32) if background is None else _np32(background, "background", (3,))
+        bg = np.zeros(3, np.float32) if background is None else as_float32(background, "background", (3,))
         rgb = rgba[..., :3] + (1.0 - rgba[..., 3:4]) * bg
         return (rgb, rgba[..., 3:4].copy()) if return_alpha else rgb
 
@@ -646,64 +547,6 @@ class PreviewSplatter:
 
 
 # ---------------------------------------------------------------------------------------------- scenes
-class FeatureColors:
-    """A fixed per-scene map from features [N, D] to RGB [N, 3]: identity for D = 3, else a PCA to RGB.
-
-    The PCA (and its 1st–99th percentile normalization to [0, 1]) is fitted once, on the scene it is built
-    from, so colours stay put while the Gaussians move. D = 1 is shown as grey, D = 2 as (red, green).
-    """
-
-    def __init__(self, features):
-        f = _np32(features, "features", (None, None)).astype(np.float64)
-        self.dim = f.shape[1]
-        self.mean = f.mean(0) if f.shape[0] else np.zeros(self.dim)
-        if self.dim == 3:
-            self.basis = None
-            return
-        if self.dim < 3:
-            self.basis = np.eye(self.dim, 3) if self.dim == 2 else np.ones((1, 3))
-        else:
-            sub = f[np.random.default_rng(0).permutation(f.shape[0])[:20000]] - self.mean
-            _, _, vt = np.linalg.svd(sub, full_matrices=False)
-            basis = vt[:3].T
-            basis *= np.sign(basis[np.abs(basis).argmax(0), range(3)])  # a deterministic sign per axis
-            self.basis = basis
-        proj = (f - self.mean) @ self.basis if f.shape[0] else np.zeros((1, 3))
-        self.lo, self.hi = np.percentile(proj, 1, axis=0), np.percentile(proj, 99, axis=0)
-
-    def __call__(self, features) -> np.ndarray:
-        f = _np32(features, "features", (None, self.dim))
-        if self.basis is None:
-            return f
-        proj = (f.astype(np.float64) - self.mean) @ self.basis
-        return np.clip((proj - self.lo) / np.maximum(self.hi - self.lo, 1e-12), 0, 1).astype(np.float32)
-
-
-def scene_colors(scene, feature_map=None) -> np.ndarray:
-    """[N, 3] display colours of a scene's features (see :class:`FeatureColors`)."""
-    fmap = feature_map if feature_map is not None else FeatureColors(scene.features)
-    return fmap(scene.features)
-
-
-def eye_dynamics(scene):
-    """(dynamic [N] bool of the eye Gaussians or None, [(centre [3], radius)] of each eye's sphere of means)."""
-    from toolkit.eyes import EYE_PARTS, eyeball_info
-
-    part = scene.part.detach().cpu().numpy()
-    dynamic = (part == 1) | (part == 2)
-    if not dynamic.any():
-        return None, None
-    try:
-        info = eyeball_info(scene)
-    except ToolkitError:
-        return dynamic, None  # too few eye Gaussians for a sphere: layers fall back to the depth range
-    means = scene.means.detach().cpu().numpy()
-    spheres = []
-    for name, eye in info.items():
-        c = eye["center"].detach().cpu().numpy().astype(np.float64)
-        m = means[part == EYE_PARTS[name]]
-        spheres.append((c, float(np.linalg.norm(m - c, axis=1).max()) * (1 + 1e-5) + 1e-9))
-    return dynamic, spheres
 
 
 _SHARED_CTX = None
