@@ -121,6 +121,7 @@ class PreviewSplatter:
         self.width, self.height = int(width), int(height)
         self.near, self.far, self.eps2d = float(near_plane), float(far_plane), float(eps2d)
         self.resort_tolerance = float(resort_tolerance)
+        self._own_ctx = ctx is None
         self.ctx = ctx if ctx is not None else create_headless_context()
         c = self.ctx
         self._splat = c.program(vertex_shader=sh.SPLAT_VERTEX, fragment_shader=sh.SPLAT_FRAGMENT)
@@ -152,12 +153,17 @@ class PreviewSplatter:
         """Free the GL objects (the context too when this splatter created it)."""
         for lst in self._lists.values():
             lst.release()
-        for obj in (self._data_tex, self._target, self._fbo):
+        for obj in (self._data_tex, self._fbo, self._target, self._layer_vao, self._present_vao, self._splat,
+                    self._layer, self._present):
             if obj is not None:
                 obj.release()
+        self._data_tex = None
         if self._layers is not None:
-            for k in ("back_tex", "back_fbo", "front_tex", "front_fbo"):
+            for k in ("back_fbo", "back_tex", "front_fbo", "front_tex"):
                 self._layers[k].release()
+            self._layers = None
+        if self._own_ctx:
+            self.ctx.release()
 
     # ------------------------------------------------------------------ uploads
     def _upload(self, means, quats, scales, opacities, colors, may_change=None) -> tuple[np.ndarray | None, np.ndarray]:
