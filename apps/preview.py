@@ -364,8 +364,11 @@ def run_window(scene, width: int = 512, height: int = 512, *, background=(1.0, 1
     gs = GazeScene.prepare(scene)
     if not gs.can_scrub:
         print(f"warning: {NO_EYES}; orbiting still works", file=sys.stderr)
+    glfw.ERROR_REPORTING = "ignore"  # failures become one ToolkitError below, not Python warnings
     if not glfw.init():
-        raise ToolkitError("could not open a window: glfw found no display (is DISPLAY set?); "
+        _, why = glfw.get_error()
+        why = why.decode(errors="replace") if isinstance(why, bytes) else str(why or "")
+        raise ToolkitError(f"could not open a window: glfw found no display ({why or 'is DISPLAY set?'}); "
                            "use --headless --sweep OUT for a headless gaze sweep")
     try:
         glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
@@ -375,7 +378,9 @@ def run_window(scene, width: int = 512, height: int = 512, *, background=(1.0, 1
         glfw.window_hint(glfw.VISIBLE, visible)
         win = glfw.create_window(width, height, "DiT-Gaze preview", None, None)
         if not win:
-            raise ToolkitError("could not open a window with an OpenGL 3.3 core context; "
+            _, why = glfw.get_error()
+            why = why.decode(errors="replace") if isinstance(why, bytes) else str(why or "")
+            raise ToolkitError(f"could not open a window with an OpenGL 3.3 core context ({why}); "
                                "use --headless --sweep OUT instead")
         glfw.make_context_current(win)
         glfw.swap_interval(0)

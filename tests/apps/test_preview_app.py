@@ -189,6 +189,11 @@ def test_script_entry_point_prints_no_traceback(tmp_path):
     h = subprocess.run([sys.executable, str(ROOT / "apps" / "preview.py"), "--help"], capture_output=True,
                        text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert h.returncode == 0 and "checkpoint is not supported yet" in " ".join(h.stdout.split())
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    w = subprocess.run([sys.executable, str(ROOT / "apps" / "preview.py"), "demo:200"], capture_output=True,
+                       text=True, timeout=120, env={**env, "PYTHONPATH": str(ROOT)})
+    assert w.returncode == 2 and w.stderr.startswith("error: could not open a window")
+    assert "--headless" in w.stderr and len(w.stderr.strip().splitlines()) == 1
 
 
 # ------------------------------------------------------------------ window under Xvfb
