@@ -139,7 +139,7 @@ class PreviewSplatter:
         self._camera: tuple | None = None            # (viewmat, K) of the frame in the target
         self._layers: dict | None = None
         self._frame: np.ndarray | None = None        # premultiplied RGBA [H, W, 4] read back
-        self._frame_stale = True
+        self._dirty: tuple[int, int, int, int] | None = None  # drawn since the last read-back
         self.last_rect: tuple[int, int, int, int] | None = None
         self._fp_cache = None
         self.stats: dict[str, Any] = {}
@@ -483,13 +483,15 @@ class PreviewSplatter:
 
     def _mark(self, rect):
         if rect is not None:
-            self._dirty = merge_rects(getattr(self, "_dirty", None), rect)
+            self._dirty = merge_rects(self._dirty, rect)
         return rect
 
     def read(self) -> np.ndarray:
-        """The premultiplied RGBA frame [H, W, 4] float32, reading back only what changed since the last read."""
+        """The premultiplied RGBA frame [H, W, 4] float32, reading back only what changed since the last read.
+
+        The array is the splatter's own buffer, updated in place by later reads: copy it to keep it."""
         t0 = time.perf_counter()
-        rect = getattr(self, "_dirty", None)
+        rect = self._dirty
         if self._frame is None:
             self._frame = np.zeros((self.height, self.width, 4), np.float32)
             rect = (0, 0, self.width, self.height)
