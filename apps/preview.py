@@ -128,17 +128,25 @@ class GazeScene:
 
     def arrays_at(self, pitch: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
         """(means [N, 3], quats [N, 4]) with both eyes turned to head-frame gaze (pitch, yaw) radians."""
-        from toolkit.eyes import gaze_rotation, rotate_about
+        from render.preview_footprints import affine_rows
+        from toolkit.eyes import gaze_rotation
+        from toolkit.rotations import matrix_to_quat
 
         means, quats = self.arrays[0], self.arrays[1]
         if not self.can_scrub:
             return means, quats
         means, quats = means.copy(), quats.copy()
         R = gaze_rotation(torch.tensor([pitch, yaw], dtype=torch.float32))
+        # toolkit.eyes.rotate_about in numpy (elementwise; no threaded kernels for a few thousand rows).
+        aw, ax, ay, az = matrix_to_quat(R).numpy().astype(np.float32)
+        R = R.numpy().astype(np.float32)
         for name, eye in self.eye_info.items():
             idx = self.eye_index[name]
-            m, q = rotate_about(torch.from_numpy(means[idx]), torch.from_numpy(quats[idx]), R, eye["center"].float().cpu())
-            means[idx], quats[idx] = m.numpy(), q.numpy()
+            c = eye["center"].detach().cpu().numpy().astype(np.float32)
+            means[idx] = affine_rows(means[idx] - c, R, c)
+            bw, bx, by, bz = quats[idx].T
+            quats[idx] = np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                                   aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], 1)
         return means, quats
 
     def scene_at(self, pitch: float, yaw: float):

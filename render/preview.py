@@ -225,7 +225,7 @@ class PreviewSplatter:
 
     def _sorted_ids(self, viewmat: np.ndarray, structure_changed: bool) -> tuple[np.ndarray, np.ndarray, bool]:
         """-> (visible ids back to front, depth [N], whether a new order was uploaded)."""
-        depth = self._rows[:, :3] @ viewmat[2, :3] + viewmat[2, 3]
+        depth = self._depth(viewmat)
         visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
         if self._order is not None and not structure_changed:
             if self._view_close(viewmat):
@@ -280,7 +280,8 @@ class PreviewSplatter:
     # ------------------------------------------------------------------ depth layers (gaze-only frames)
     def _depth(self, viewmat: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         rows = self._rows if ids is None else self._rows[ids]
-        return rows[:, :3] @ viewmat[2, :3] + viewmat[2, 3]
+        r = viewmat[2]  # elementwise rather than a BLAS matvec (see preview_footprints.affine_rows)
+        return rows[:, 0] * r[0] + rows[:, 1] * r[1] + rows[:, 2] * r[2] + r[3]
 
     def _ensure_layers(self, dynamic: np.ndarray, spheres, viewmat, K, cam, need_full_zone=False):
         """The per-camera depth layers for a dynamic set: valid while the camera, the static Gaussians and

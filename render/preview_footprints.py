@@ -59,18 +59,24 @@ def tangent_limits(K: np.ndarray, width: int, height: int) -> np.ndarray:
                      cy / fy + 0.3 * ty, (height - cy) / fy + 0.3 * ty], np.float32)
 
 
+def affine_rows(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """[M, 3] points -> [M, 3] R p + t, elementwise (no BLAS call)."""
+    return points[:, 0:1] * R[:, 0] + points[:, 1:2] * R[:, 1] + points[:, 2:3] * R[:, 2] + t
+
+
 def project_footprints(rows: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
                        near: float = 0.01, far: float = 1e10, eps2d: float = 0.3) -> dict[str, np.ndarray]:
     """CPU mirror of the vertex shader for [M, 16] packed rows -> depth [M], valid [M], bbox [M, 4]
     (x0, y0, x1, y1 pixels of the alpha >= 1/255 ellipse) and quad_area [M] (pixels of the cut quad)."""
+    # Elementwise products instead of (M x 3) @ (3 x 3) matmuls: tiny matmuls over many rows start BLAS
+    # threads, which stall badly on a shared machine.
     R, t = viewmat[:3, :3].astype(np.float64), viewmat[:3, 3].astype(np.float64)
-    p = rows[:, 0:3].astype(np.float64) @ R.T + t
+    p = affine_rows(rows[:, 0:3].astype(np.float64), R, t)
     z = p[:, 2]
-    m = rows.shape[0]
     c = rows[:, 4:10].astype(np.float64)
-    S = c[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(m, 3, 3)
-    A = (S.reshape(m * 3, 3) @ R.T).reshape(m, 3, 3)                          # S R^T
-    C = (A.transpose(0, 2, 1).reshape(m * 3, 3) @ R.T).reshape(m, 3, 3)      # (R S R^T)^T = R S R^T
+    S = c[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    A = (S[:, :, None, :] * R[None, None, :, :]).sum(-1)   # A[m, k, j] = (S R^T)[k, j]
+    C = (R[None, :, :, None] * A[:, None, :, :]).sum(2)    # C[m, i, j] = (R S R^T)[i, j]
     fx, fy = float(K[0, 0]), float(K[1, 1])
     lim = tangent_limits(K, width, height)
     zs = np.where(np.abs(z) > 1e-12, z, 1e-12)

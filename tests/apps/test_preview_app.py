@@ -267,3 +267,16 @@ def test_window_scrubs_gaze_with_synthetic_events(xdisplay, tmp_path):
     (shot,) = res["shots"]
     img = cv2.imread(shot)
     assert img.shape == (80, 96, 3) and img.std() > 10
+
+
+def test_gaze_scene_matches_redirect_eyes(head):
+    from apps.preview import GazeScene
+    from toolkit.eyes import redirect_eyes
+
+    gs = GazeScene.prepare(head)
+    for g in [(0.3, -0.2), (-0.5, 0.6)]:
+        means, quats = gs.arrays_at(*g)
+        ref = redirect_eyes(head, g)
+        np.testing.assert_allclose(means, ref.means.numpy(), atol=1e-6)
+        np.testing.assert_allclose(quats, ref.quats.numpy(), atol=1e-6)
+        assert not np.array_equal(means, head.means.numpy())
