@@ -184,7 +184,9 @@ class PreviewSplatter:
             self._write_rows(0, rows_tex)
             self.stats["uploaded"] = n
             return None, self._rows[:0]
-        cand = None if may_change is None else np.unique(np.asarray(may_change, np.int64))
+        cand = None if may_change is None else np.asarray(may_change, np.int64).reshape(-1)
+        if cand is not None and cand.size > 1 and not bool(np.all(cand[1:] > cand[:-1])):
+            cand = np.unique(cand)  # sorted and unique (the app's eye ids already are)
         if cand is not None and cand.size and (cand[0] < 0 or cand[-1] >= n):
             raise ToolkitError(f"render_preview: may_change holds ids outside [0, {n})")
         diff = np.zeros(n if cand is None else cand.size, bool)
