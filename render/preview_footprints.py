@@ -1,0 +1,127 @@
+"""CPU side of the preview splatter: packing Gaussians into the data-texture layout and a numpy mirror of
+the vertex shader's projection (footprint boxes, depths, quad areas), used to find the screen rectangle a
+gaze change touches, to build the depth layers and to count fragment work. Conventions as ``render.preview``."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from toolkit.errors import ToolkitError
+
+
+def as_float32(x: Any, name: str, shape: tuple) -> np.ndarray:
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    a = np.ascontiguousarray(np.asarray(x, dtype=np.float32))
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=False)):
+        raise ToolkitError(f"render_preview: {name} must have shape {list(shape)}, got {list(a.shape)}".replace("None", "N"))
+    return a
+
+
+def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """[N, 4] wxyz (any norm, zero -> identity), [N, 3] scales -> [N, 6] covariance xx, xy, xz, yy, yz, zz."""
+    q = quats.astype(np.float32)
+    n = np.linalg.norm(q, axis=1, keepdims=True)
+    ident = np.array([1, 0, 0, 0], np.float32)
+    q = np.where(n > 1e-12, q / np.maximum(n, 1e-12), ident)
+    w, x, y, z = q.T
+    R = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
+    M = R * scales[:, None, :]  # columns scaled: Sigma = M M^T, six unique entries as row dot products
+    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
+    dot = lambda a, b: (a * b).sum(1)  # noqa: E731
+    return np.stack([dot(r0, r0), dot(r0, r1), dot(r0, r2), dot(r1, r1), dot(r1, r2), dot(r2, r2)], 1)
+
+
+def pack_gaussians(means, quats, scales, opacities, colors) -> np.ndarray:
+    """Activated Gaussians -> [N, 16] float32 rows in the data-texture layout of ``render.preview_shaders``."""
+    n = means.shape[0]
+    out = np.zeros((n, 16), np.float32)
+    out[:, 0:3] = means
+    out[:, 3] = opacities
+    out[:, 4:10] = covariances(quats, scales)
+    o = np.clip(opacities.astype(np.float64), 0.0, 1.0)
+    # alpha = o exp(-sigma) >= 1/255  <=>  sigma <= ln(255 o): the quad's Mahalanobis half-size.
+    out[:, 10] = np.sqrt(2.0 * np.log(np.maximum(255.0 * o, 1.0)))
+    out[:, 12:15] = colors
+    return out
+
+
+def tangent_limits(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """gsplat's clamp of x/z and y/z: (-x, +x, -y, +y) limits, 0.3 tan-half-fov beyond the image edges."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tx, ty = 0.5 * width / fx, 0.5 * height / fy
+    return np.array([cx / fx + 0.3 * tx, (width - cx) / fx + 0.3 * tx,
+                     cy / fy + 0.3 * ty, (height - cy) / fy + 0.3 * ty], np.float32)
+
+
+def affine_rows(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """[M, 3] points -> [M, 3] R p + t, elementwise (no BLAS call)."""
+    return points[:, 0:1] * R[:, 0] + points[:, 1:2] * R[:, 1] + points[:, 2:3] * R[:, 2] + t
+
+
+def project_footprints(rows: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                       near: float = 0.01, far: float = 1e10, eps2d: float = 0.3) -> dict[str, np.ndarray]:
+    """CPU mirror of the vertex shader for [M, 16] packed rows -> depth [M], valid [M], bbox [M, 4]
+    (x0, y0, x1, y1 pixels of the alpha >= 1/255 ellipse) and quad_area [M] (pixels of the cut quad)."""
+    # Elementwise products instead of (M x 3) @ (3 x 3) matmuls: tiny matmuls over many rows start BLAS
+    # threads, which stall badly on a shared machine.
+    R, t = viewmat[:3, :3].astype(np.float64), viewmat[:3, 3].astype(np.float64)
+    p = affine_rows(rows[:, 0:3].astype(np.float64), R, t)
+    z = p[:, 2]
+    c = rows[:, 4:10].astype(np.float64)
+    S = c[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    A = (S[:, :, None, :] * R[None, None, :, :]).sum(-1)   # A[m, k, j] = (S R^T)[k, j]
+    C = (R[None, :, :, None] * A[:, None, :, :]).sum(2)    # C[m, i, j] = (R S R^T)[i, j]
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    lim = tangent_limits(K, width, height)
+    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    tx = zs * np.clip(p[:, 0] / zs, -lim[0], lim[1])
+    ty = zs * np.clip(p[:, 1] / zs, -lim[2], lim[3])
+    j00, j02, j11, j12 = fx / zs, -fx * tx / zs**2, fy / zs, -fy * ty / zs**2
+    c00, c01, c02, c11, c12, c22 = C[:, 0, 0], C[:, 0, 1], C[:, 0, 2], C[:, 1, 1], C[:, 1, 2], C[:, 2, 2]
+    cov_a = j00 * j00 * c00 + 2 * j00 * j02 * c02 + j02 * j02 * c22
+    cov_b = j00 * j11 * c01 + j00 * j12 * c02 + j02 * j11 * c12 + j02 * j12 * c22
+    cov_c = j11 * j11 * c11 + 2 * j11 * j12 * c12 + j12 * j12 * c22
+    a, b, cc = cov_a + eps2d, cov_b, cov_c + eps2d
+    det = a * cc - b * b
+    mean = np.stack([fx * p[:, 0] / zs + float(K[0, 1]) * p[:, 1] / zs + K[0, 2], fy * p[:, 1] / zs + K[1, 2]], 1)
+    r = rows[:, 10].astype(np.float64)
+    valid = (z > near) & (z < far) & (r > 0) & (det > 0)
+    hx, hy = r * np.sqrt(np.maximum(a, 0)), r * np.sqrt(np.maximum(cc, 0))
+    bbox = np.stack([mean[:, 0] - hx, mean[:, 1] - hy, mean[:, 0] + hx, mean[:, 1] + hy], 1)
+    on = valid & (bbox[:, 2] > 0) & (bbox[:, 0] < width) & (bbox[:, 3] > 0) & (bbox[:, 1] < height)
+    # Cut quad area 4 r^2 sqrt(det), scaled by the on-screen share of the ellipse's bounding box.
+    w_in = np.clip(np.minimum(bbox[:, 2], width) - np.maximum(bbox[:, 0], 0), 0, None)
+    h_in = np.clip(np.minimum(bbox[:, 3], height) - np.maximum(bbox[:, 1], 0), 0, None)
+    share = w_in * h_in / np.maximum(4 * hx * hy, 1e-12)
+    area = np.where(on, 4 * r * r * np.sqrt(np.maximum(det, 0)) * np.minimum(share, 1.0), 0.0)
+    return {"depth": z, "valid": valid, "on_screen": on, "bbox": bbox, "quad_area": area}
+
+
+def union_rect(bbox: np.ndarray, width: int, height: int) -> tuple[int, int, int, int] | None:
+    """Integer pixel rectangle (x, y, w, h) covering [M, 4] boxes (+1 pixel), clipped; None when empty."""
+    if bbox.shape[0] == 0:
+        return None
+    x0 = max(0, int(math.floor(bbox[:, 0].min())) - 1)
+    y0 = max(0, int(math.floor(bbox[:, 1].min())) - 1)
+    x1 = min(width, int(math.ceil(bbox[:, 2].max())) + 1)
+    y1 = min(height, int(math.ceil(bbox[:, 3].max())) + 1)
+    return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else None
+
+
+def merge_rects(a, b):
+    if a is None or b is None:
+        return a or b
+    x0, y0 = min(a[0], b[0]), min(a[1], b[1])
+    x1, y1 = max(a[0] + a[2], b[0] + b[2]), max(a[1] + a[3], b[1] + b[3])
+    return (x0, y0, x1 - x0, y1 - y0)
+
+
+def sort_back_to_front(ids: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """ids sorted by decreasing depth; ties keep id order (so any subset sorts like the whole)."""
+    return ids[np.argsort(-depth[ids], kind="stable")]

@@ -1,0 +1,366 @@
+"""The moderngl preview splatter: exactness against a dense reference, the skip-what-a-frame-does-not-need
+paths (incremental gaze frames equal full redraws), stress inputs and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from toolkit.errors import ToolkitError
+
+moderngl = pytest.importorskip("moderngl")
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    from render import preview
+
+    try:
+        return preview._shared_context()
+    except ToolkitError as e:  # no EGL on this machine: the message itself is tested below
+        pytest.skip(f"no headless OpenGL: {e}")
+
+
+# ------------------------------------------------------------------ an independent dense reference
+def dense_reference(means, quats, scales, opacities, colors, viewmat, K, W, H, bg=None):
+    """Every pixel x every Gaussian in float64; same conventions, no tiles, no early stop."""
+    m, q, s = (np.asarray(a, np.float64) for a in (means, quats, scales))
+    o, c = np.asarray(opacities, np.float64), np.asarray(colors, np.float64)
+    V, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
+    qn = np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.where(qn > 1e-12, q / np.maximum(qn, 1e-12), [1, 0, 0, 0])
+    w, x, y, z = q.T
+    Rq = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]).transpose(2, 0, 1)
+    cov = Rq @ (s[:, :, None] ** 2 * Rq.transpose(0, 2, 1))
+    R, t = V[:3, :3], V[:3, 3]
+    p = m @ R.T + t
+    covc = R @ cov @ R.T
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tanx, tany = W / (2 * fx), H / (2 * fy)
+    out_rgb = np.zeros((H, W, 3))
+    T = np.ones((H, W))
+    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    order = np.argsort(p[:, 2], kind="stable")  # front to back
+    for g in order:
+        zc = p[g, 2]
+        if zc <= 0.01 or zc >= 1e10:
+            continue
+        u = min(max(p[g, 0] / zc, -(cx / fx + 0.3 * tanx)), (W - cx) / fx + 0.3 * tanx) * zc
+        v = min(max(p[g, 1] / zc, -(cy / fy + 0.3 * tany)), (H - cy) / fy + 0.3 * tany) * zc
+        J = np.array([[fx / zc, 0, -fx * u / zc**2], [0, fy / zc, -fy * v / zc**2]])
+        c2 = J @ covc[g] @ J.T + 0.3 * np.eye(2)
+        det = np.linalg.det(c2)
+        if det <= 0:
+            continue
+        conic = np.linalg.inv(c2)
+        dx = fx * p[g, 0] / zc + K[0, 1] * p[g, 1] / zc + cx - jj
+        dy = fy * p[g, 1] / zc + cy - ii
+        sig = 0.5 * (conic[0, 0] * dx**2 + conic[1, 1] * dy**2) + conic[0, 1] * dx * dy
+        a = np.minimum(0.99, o[g] * np.exp(-sig))
+        a = np.where((sig >= 0) & (a >= 1 / 255), a, 0.0)
+        out_rgb += (a * T)[..., None] * c[g]
+        T = T * (1 - a)
+    if bg is not None:
+        out_rgb += T[..., None] * np.asarray(bg)
+    return out_rgb.astype(np.float32), (1 - T).astype(np.float32)[..., None]
+
+
+def random_gaussians(n, seed=0, spread=1.0):
+    g = np.random.default_rng(seed)
+    means = g.normal(size=(n, 3)) * [0.5 * spread, 0.5 * spread, 0.3] + [0, 0, 3.0]
+    quats = g.normal(size=(n, 4))
+    scales = np.exp(g.uniform(-4.0, -1.5, size=(n, 3)))
+    opacities = g.uniform(0.05, 1.0, size=n)
+    colors = g.uniform(0, 1, size=(n, 3))
+    return [a.astype(np.float32) for a in (means, quats, scales, opacities, colors)]
+
+
+def camera(W=64, H=48, yaw=0.0):
+    c, s = math.cos(yaw), math.sin(yaw)
+    V = np.eye(4, dtype=np.float32)
+    V[:3, :3] = [[c, 0, -s], [0, 1, 0], [s, 0, c]]
+    V[:3, 3] = -(V[:3, :3] @ np.array([0, 0, 3.0])) + [0, 0, 3.0]
+    K = np.array([[60.0, 0.8, W / 2 + 1.3], [0, 62.0, H / 2 - 0.7], [0, 0, 1]], np.float32)  # a little skew
+    return V, K
+
+
+def _agree(img, ref, tol=1e-4, frac=0.999, worst=1e-2):
+    err = np.abs(img - ref).max(-1)
+    assert (err <= tol).mean() >= frac, f"only {(err <= tol).mean():.4%} of pixels within {tol}"
+    assert err.max() <= worst, f"max error {err.max()}"
+
+
+# ------------------------------------------------------------------ exactness
+@pytest.mark.parametrize("seed", [0, 1])
+def test_matches_dense_reference(ctx, seed):
+    from render.preview import PreviewSplatter
+
+    W, H = 64, 48
+    gs = random_gaussians(300, seed, spread=1.6)  # some Gaussians off-screen: the tangent clamp matters
+    V, K = camera(W, H, yaw=0.2 * seed)
+    bg = np.array([0.2, 0.3, 0.9], np.float32)
+    s = PreviewSplatter(W, H, ctx=ctx)
+    img, alpha = s.render(*gs, V, K, bg, return_alpha=True)
+    ref, ref_alpha = dense_reference(*gs, V, K, W, H, bg)
+    assert img.shape == (H, W, 3) and img.dtype == np.float32 and alpha.shape == (H, W, 1)
+    _agree(img, ref)
+    _agree(alpha, ref_alpha)
+    assert alpha.max() > 0.9 and alpha.min() < 0.1  # the scene is neither empty nor full
+
+
+def test_one_shot_and_torch_inputs(ctx):
+    from render.preview import render_preview
+
+    gs = random_gaussians(100, 3)
+    V, K = camera()
+    a = render_preview(*gs, V, K, 64, 48)
+    b = render_preview(*(torch.from_numpy(x) for x in gs), torch.from_numpy(V), torch.from_numpy(K), 64, 48)
+    np.testing.assert_array_equal(a, b)
+    _agree(a, dense_reference(*gs, V, K, 64, 48)[0])
+
+
+def test_quads_are_cut_at_the_opacity_ellipse(ctx):
+    """A faint Gaussian's footprint ends where o exp(-sigma) = 1/255, well inside 3.33 sigma."""
+    from render.preview import PreviewSplatter
+
+    W = H = 96
+    V, K = np.eye(4, dtype=np.float32), np.array([[100.0, 0, 48], [0, 100.0, 48], [0, 0, 1]], np.float32)
+    for o in (0.02, 0.5, 0.99):
+        gs = [np.array([[0, 0, 2.0]], np.float32), np.array([[1, 0, 0, 0]], np.float32),
+              np.array([[0.2, 0.1, 0.1]], np.float32), np.array([o], np.float32), np.ones((1, 3), np.float32)]
+        img, alpha = PreviewSplatter(W, H, ctx=ctx).render(*gs, V, K, return_alpha=True)
+        ref_alpha = dense_reference(*gs, V, K, W, H)[1]
+        _agree(alpha, ref_alpha, tol=1e-5, frac=0.998)
+        assert (alpha > 0).sum() == pytest.approx((ref_alpha > 0).sum(), abs=4)
+
+
+# ------------------------------------------------------------------ skipping work, exactly
+def _demo(n=3000, size=128):
+    from toolkit.procedural import demo_camera, demo_head_scene
+
+    return demo_head_scene(n, seed=1), demo_camera(size, size, distance=0.45)
+
+
+def test_gaze_only_frames_equal_full_redraws(ctx):
+    from render.preview import PreviewSplatter
+    from toolkit.eyes import redirect_eyes
+
+    scene, cam = _demo()
+    live = PreviewSplatter(cam.width, cam.height, ctx=ctx)
+    prev = live.render_scene(scene, cam, background=(0.1, 0.2, 0.3)).copy()
+    assert live.stats["path"] == "full"
+    n_eye = int((scene.part > 0).sum())
+    for k, gaze in enumerate([(0.3, 0.4), (-0.4, -0.5), (0.1, -0.6), (0.0, 0.0)]):
+        moved = redirect_eyes(scene, gaze)
+        img = live.render_scene(moved, cam, background=(0.1, 0.2, 0.3)).copy()
+        st = live.stats
+        assert st["path"] == "incremental" and st["uploaded"] == n_eye
+        assert st["layers_built"] == (k == 0)  # the depth layers are built once per camera
+        full = PreviewSplatter(cam.width, cam.height, ctx=ctx).render_scene(moved, cam, background=(0.1, 0.2, 0.3))
+        np.testing.assert_allclose(img, full, atol=2e-6, rtol=0)
+        # Outside the redrawn rectangle nothing changed; inside, the eyes did.
+        x, y, w, h = live.last_rect
+        assert w * h < 0.25 * cam.width * cam.height
+        outside = np.ones(img.shape[:2], bool)
+        outside[y:y + h, x:x + w] = False
+        np.testing.assert_array_equal(img[outside], prev[outside])
+        assert np.abs(img - prev).max() > 0.05
+        prev = img
+    live.render_scene(moved, cam)
+    assert live.stats["path"] == "unchanged"
+
+
+def test_generic_dynamic_set_without_spheres_rebuilds_layers(ctx):
+    """Without eyeball spheres the cached depth range is a guess; moving past it must rebuild, not lie."""
+    from render.preview import PreviewSplatter
+
+    gs = random_gaussians(200, 5)
+    V, K = camera()
+    dyn = np.zeros(200, bool)
+    dyn[:10] = True
+    live = PreviewSplatter(64, 48, ctx=ctx)
+    live.render(*gs, V, K, dynamic=dyn)
+    for dz in (0.01, 0.6, -0.9):
+        gs[0] = gs[0].copy()
+        gs[0][:10, 2] += dz
+        gs[0][:10, 0] += 0.05
+        img = live.render(*gs, V, K, dynamic=dyn).copy()
+        assert live.stats["path"] == "incremental"
+        np.testing.assert_allclose(img, PreviewSplatter(64, 48, ctx=ctx).render(*gs, V, K), atol=2e-6, rtol=0)
+
+
+def test_resort_and_upload_only_when_needed(ctx):
+    from render.preview import PreviewSplatter
+
+    gs = random_gaussians(400, 7)
+    V, K = camera()
+    s = PreviewSplatter(64, 48, ctx=ctx)
+    s.render(*gs, V, K)
+    assert s.stats["resorted"] and s.stats["uploaded"] == 400
+    V2 = V.copy()
+    V2[2, 3] += 0.05  # moving along the view axis keeps every depth order
+    img = s.render(*gs, V2, K).copy()
+    assert s.stats["path"] == "full" and not s.stats["resorted"] and s.stats["uploaded"] == 0
+    np.testing.assert_array_equal(img, PreviewSplatter(64, 48, ctx=ctx).render(*gs, V2, K))
+    V3, _ = camera(yaw=0.3)
+    s.render(*gs, V3, K)
+    assert s.stats["resorted"]
+    gs[3] = gs[3].copy()
+    gs[3][[5, 50, 399]] = 0.9  # three Gaussians changed: three uploaded, the picture still exact
+    img = s.render(*gs, V3, K).copy()
+    assert s.stats["uploaded"] == 3
+    np.testing.assert_allclose(img, PreviewSplatter(64, 48, ctx=ctx).render(*gs, V3, K), atol=1e-6)
+
+
+def test_resort_tolerance_keeps_order_for_small_orbits(ctx):
+    from render.preview import PreviewSplatter
+
+    gs = random_gaussians(300, 8)
+    K = camera()[1]
+    s = PreviewSplatter(64, 48, ctx=ctx, resort_tolerance=math.radians(1.0))
+    s.render(*gs, camera(yaw=0.0)[0], K)
+    s.render(*gs, camera(yaw=math.radians(0.5))[0], K)
+    assert not s.stats["resorted"]
+    s.render(*gs, camera(yaw=math.radians(5))[0], K)
+    assert s.stats["resorted"]
+
+
+def test_feature_maps_for_any_width(ctx):
+    from render.preview import FeatureColors, render_scene
+    from tests.conftest import random_scene
+
+    for d in (1, 2, 3, 32):
+        scene = random_scene(200, d=d, seed=d)
+        cols = FeatureColors(scene.features)(scene.features)
+        assert cols.shape == (200, 3) and np.isfinite(cols).all()
+        if d != 3:
+            assert cols.min() >= 0 and cols.max() <= 1 and cols.std(0)[:min(d, 3)].min() > 0.05
+        # Fixed per scene: moving Gaussians never changes their colours.
+        fmap = FeatureColors(scene.features)
+        np.testing.assert_array_equal(fmap(scene.features[:50]), cols[:50])
+    scene = random_scene(300, d=32)
+    from toolkit.cameras import Camera, intrinsics_from_fov, look_at
+
+    cam = Camera(intrinsics_from_fov(60, 48, 40), look_at(torch.tensor([0.0, 0, -6]), torch.zeros(3)), 48, 40)
+    img = render_scene(scene, cam)
+    assert img.shape == (40, 48, 3) and np.isfinite(img).all() and img.max() > 0.1
+
+
+# ------------------------------------------------------------------ stress and bad input
+def test_stress_degenerate_and_extreme_inputs(ctx):
+    from render.preview import PreviewSplatter
+
+    V, K = camera()
+    means = np.array([[0, 0, 3], [0.1, 0, 3], [0, 0.1, 3], [0, 0, -1], [0, 0, 3.01 - 3.0], [0, 0, 1e8],
+                      [0.2, 0.2, 3], [0, 0, 3.5], [5, 5, 3]], np.float32)
+    n = len(means)
+    scales = np.array([[1e-7] * 3, [1e3] * 3, [1e-7, 1, 1e-7], [0.1] * 3, [0.1] * 3, [1e3] * 3,
+                       [1e-3, 1e3, 1e-3], [0.05] * 3, [10.0] * 3], np.float32)
+    quats = np.zeros((n, 4), np.float32)
+    quats[1:, 0] = 1e-12  # zero and near-zero norms: identity / normalized
+    opac = np.array([1 - 1e-7, 0.5, 1.0, 0.5, 0.5, 0.5, 0.0, 1e-4, 0.7], np.float32)
+    cols = np.random.default_rng(0).uniform(size=(n, 3)).astype(np.float32)
+    for W, H in ((64, 48), (1, 1)):
+        Kw = K.copy()
+        Kw[0, 2], Kw[1, 2] = W / 2, H / 2
+        img, alpha = PreviewSplatter(W, H, ctx=ctx).render(means, quats, scales, opac, cols, V, Kw, return_alpha=True)
+        assert np.isfinite(img).all() and np.isfinite(alpha).all()
+        assert alpha.min() >= 0 and alpha.max() <= 1
+    empty = PreviewSplatter(8, 8, ctx=ctx)
+    img = empty.render(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), V, K, (1, 0, 0))
+    np.testing.assert_array_equal(img, np.tile(np.float32([1, 0, 0]), (8, 8, 1)))
+    behind = empty.render(means[3:4], quats[3:4], scales[3:4], opac[3:4], cols[3:4], V, K)
+    assert behind.max() == 0
+
+
+def test_bad_input_is_a_clear_error(ctx):
+    from render.preview import PreviewSplatter
+
+    gs = random_gaussians(10)
+    V, K = camera()
+    s = PreviewSplatter(64, 48, ctx=ctx)
+    bad = [a.copy() for a in gs]
+    bad[0][3, 1] = np.nan
+    with pytest.raises(ToolkitError, match="means contains NaN"):
+        s.render(*bad, V, K)
+    with pytest.raises(ToolkitError, match="quats must have shape"):
+        s.render(gs[0], gs[1][:, :3], *gs[2:], V, K)
+    with pytest.raises(ToolkitError, match="dynamic must be"):
+        s.render(*gs, V, K, dynamic=np.ones(3, bool))
+    with pytest.raises(ToolkitError, match="width and height"):
+        PreviewSplatter(0, 10, ctx=ctx)
+
+
+def test_missing_egl_names_the_library(monkeypatch):
+    import ctypes.util
+
+    from render import preview
+
+    def no_egl(*a, **k):
+        raise Exception("libEGL.so.1: cannot open shared object file")
+
+    monkeypatch.setattr(moderngl, "create_context", no_egl)
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None if name == "EGL" else f"lib{name}.so")
+    with pytest.raises(ToolkitError, match=r"EGL.*libEGL\.so.*apt-get install libegl1"):
+        preview.create_headless_context()
+
+
+def test_may_change_hint_limits_the_comparison(ctx):
+    from render.preview import PreviewSplatter
+
+    gs = random_gaussians(300, 9)
+    V, K = camera()
+    dyn = np.zeros(300, bool)
+    dyn[100:130] = True
+    s = PreviewSplatter(64, 48, ctx=ctx)
+    s.render(*gs, V, K, dynamic=dyn, may_change=np.arange(100, 130))
+    gs[0] = gs[0].copy()
+    gs[0][100:105, 0] += 0.1
+    img = s.render(*gs, V, K, dynamic=dyn, may_change=np.arange(100, 130)).copy()
+    assert s.stats["uploaded"] == 5 and s.stats["path"] == "incremental"
+    np.testing.assert_allclose(img, PreviewSplatter(64, 48, ctx=ctx).render(*gs, V, K), atol=2e-6, rtol=0)
+    with pytest.raises(ToolkitError, match="may_change holds ids outside"):
+        s.render(*gs, V, K, may_change=[400])
+    bad = gs[0].copy()
+    bad[101, 1] = np.inf
+    with pytest.raises(ToolkitError, match="means contains NaN"):
+        s.render(bad, *gs[1:], V, K, may_change=np.arange(100, 130))
+
+
+# ------------------------------------------------------------------ parity with the torch splatter
+def _psnr(a, b):
+    return 10 * math.log10(1.0 / max(float(np.mean((a.astype(np.float64) - b) ** 2)), 1e-20))
+
+
+def test_parity_with_torch_splatter_random_scenes(ctx):
+    splat = pytest.importorskip("render.splat")
+    from render.preview import PreviewSplatter
+
+    for seed in range(3):
+        gs = random_gaussians(400, 20 + seed, spread=1.5)
+        V, K = camera(80, 64, yaw=0.3 * seed)
+        bg = np.array([0.1, 0.5, 0.2], np.float32)
+        img = PreviewSplatter(80, 64, ctx=ctx).render(*gs, V, K, bg)
+        t = [torch.from_numpy(a) for a in gs]
+        ref, _, _ = splat.rasterize(*t, torch.from_numpy(V)[None], torch.from_numpy(K)[None], 80, 64,
+                                    backgrounds=torch.from_numpy(bg)[None])
+        assert _psnr(img, ref[0].numpy()) >= 45
+
+
+def test_parity_with_torch_splatter_demo_head(ctx):
+    splat = pytest.importorskip("render.splat")
+    from render.preview import PreviewSplatter
+    from toolkit.eyes import redirect_eyes
+
+    scene, cam = _demo(4000, 128)
+    live = PreviewSplatter(cam.width, cam.height, ctx=ctx)
+    for gaze in [(0.0, 0.0), (0.3, -0.4)]:
+        moved = redirect_eyes(scene, gaze)
+        img = live.render_scene(moved, cam, background=(1.0, 1.0, 1.0))  # the second frame is incremental
+        ref, _, _ = splat.render_scene(moved, [cam], backgrounds=torch.ones(1, 3))
+        assert _psnr(img, ref[0].numpy()) >= 45
