@@ -1,9 +1,10 @@
 """``make demo``: the project's main job on its embedded default data (no downloads).
 
-Currently: builds the procedural Gaussian demo head (face Gaussians on an analytic head surface plus two
+Step 1: builds the procedural Gaussian demo head (face Gaussians on an analytic head surface plus two
 eyeballs, with part labels and RGB features), saves it as ``.safetensors`` and as a graphdeco 3DGS
-``.ply`` under ``--out``, reloads both to check them, and prints a summary. Later stages of the
-pipeline (gaze sweep, training, evaluation, redirection) extend this program.
+``.ply`` under ``--out``, reloads both to check them, and prints a summary.
+Step 2: renders a gaze sweep of the demo head through the headless preview splatter (each eye turned
+rigidly about its own eyeball centre) as an .mp4 and a .png contact sheet.
 """
 
 from __future__ import annotations
@@ -45,6 +46,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(scene.summary())
     print(f"wrote {st_path} ({st_path.stat().st_size / 1e6:.1f} MB)")
     print(f"wrote {ply_path} ({ply_path.stat().st_size / 1e6:.1f} MB)")
+
+    from apps.preview import render_gaze_sweep
+
+    print("== gaze sweep of the demo head (preview splatter) ==")
+    pitches, yaws = [20, 0, -20], [-30, -15, 0, 15, 30]
+    for name in ("gaze_sweep.mp4", "gaze_sweep.png"):
+        info = render_gaze_sweep(scene, out / name, pitches, yaws, 256, 256)
+        print(f"wrote {info['path']} ({len(info['gazes'])} gazes: pitch {pitches} x yaw {yaws} degrees)")
     print(f"done in {time.perf_counter() - t0:.1f} s")
     return 0
 

@@ -150,6 +150,11 @@ class DemoHeadShape:
         return torch.tensor(self.center, dtype=dirs.dtype) + self.radius(dirs)[:, None] * dirs
 
 
+# Almond-shaped lid openings (half-width, half-height in metres) for the demo head: without them the face
+# surface covers most of each eyeball and the iris hides behind the lids beyond ~20° of gaze.
+DEMO_EYE_OPENING = (0.0135, 0.0062)
+
+
 def _fibonacci_sphere(m: int) -> torch.Tensor:
     i = torch.arange(m, dtype=torch.float64) + 0.5
     phi = torch.acos(1 - 2 * i / m)
@@ -211,7 +216,7 @@ def demo_head_scene(
     """
     if n_gaussians < 64:
         raise ToolkitError(f"demo_head_scene: n_gaussians must be >= 64, got {n_gaussians}")
-    shape = shape or DemoHeadShape()
+    shape = shape or DemoHeadShape(eye_opening=DEMO_EYE_OPENING)
     g = torch.Generator().manual_seed(seed)
     n_eye_each = max(8, int(n_gaussians * eye_fraction / 2))
     n_face = n_gaussians - 2 * n_eye_each
