@@ -103,7 +103,8 @@ def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor | None = N
     if forward.norm() < 1e-9:
         raise ToolkitError("look_at: eye and target coincide; the view direction is undefined")
     z = forward / forward.norm()
-    x = torch.linalg.cross(z, -up)  # camera x = right; image "down" is -up
+    # Right-handed OpenCV basis: y (image down) = -up projected, x = y × z.
+    x = torch.linalg.cross(-up, z)
     if x.norm() < 1e-6:
         raise ToolkitError("look_at: view direction is parallel to 'up'; pass another up vector")
     x = x / x.norm()

@@ -1,0 +1,78 @@
+"""Package hygiene: light imports, layering rules, docstrings, CLIs and the demo."""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ["toolkit", "render", "geometry", "train", "apps"]
+ALLOWED = {
+    "toolkit": set(),
+    "render": {"toolkit"},
+    "geometry": {"toolkit", "render"},
+    "train": {"toolkit", "render", "geometry"},
+    "apps": {"toolkit", "render", "geometry", "train"},
+}
+
+
+def test_import_render_and_toolkit_stays_light():
+    code = (
+        "import sys, render, toolkit, toolkit.scene, toolkit.ply, toolkit.cameras, toolkit.rotations, toolkit.io;"
+        "heavy = [m for m in ('open3d', 'pymeshlab', 'moderngl') if m in sys.modules];"
+        "print(heavy); sys.exit(1 if heavy else 0)"
+    )
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def _imports_of(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text())
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+@pytest.mark.parametrize("pkg", PACKAGES)
+def test_layering(pkg):
+    for path in (ROOT / pkg).rglob("*.py"):
+        ours = _imports_of(path) & set(PACKAGES)
+        bad = ours - ALLOWED[pkg] - {pkg}
+        assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}; {pkg} may import {sorted(ALLOWED[pkg])}"
+
+
+@pytest.mark.parametrize("pkg", PACKAGES)
+def test_package_docstring_states_ownership_and_imports(pkg):
+    doc = ast.get_docstring(ast.parse((ROOT / pkg / "__init__.py").read_text()))
+    assert doc and "May import" in doc
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True)
+
+
+def test_toolkit_cli_errors_are_one_line(tmp_path):
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"not a ply")
+    for args in (["info", str(tmp_path / "missing.ply")], ["info", str(bad)], ["info", str(tmp_path)],
+                 ["convert", str(bad), str(tmp_path / "o.ply")]):
+        r = _run("-m", "toolkit", *args)
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, r.stderr
+        assert "Traceback" not in r.stderr
+
+
+def test_demo_writes_scene_files(tmp_path):
+    r = _run("-m", "apps.demo", "--out", str(tmp_path), "--gaussians", "2000")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "demo_head.safetensors").exists() and (tmp_path / "demo_head.ply").exists()
+    r = _run("-m", "toolkit", "convert", str(tmp_path / "demo_head.ply"), str(tmp_path / "again.safetensors"))
+    assert r.returncode == 0 and (tmp_path / "again.safetensors").exists()
+    r = _run("-m", "apps.demo", "--out", str(tmp_path), "--gaussians", "3")
+    assert r.returncode == 2 and r.stderr.startswith("error: --gaussians")

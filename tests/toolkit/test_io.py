@@ -1,0 +1,48 @@
+import pytest
+import torch
+
+from toolkit import ToolkitError
+from toolkit.io import (
+    atomic_write,
+    atomic_write_json,
+    load_checkpoint,
+    load_foreign_torch_checkpoint,
+    save_checkpoint,
+)
+
+
+def test_atomic_write_cleans_up_on_error(tmp_path):
+    target = tmp_path / "out.bin"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError):
+        with atomic_write(target) as f:
+            f.write(b"new partial")
+            raise RuntimeError("crash mid-write")
+    assert target.read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.bin"]
+
+
+def test_checkpoint_round_trip_with_tied_weights(tmp_path):
+    lin = torch.nn.Linear(3, 3)
+    sd = {"a": lin.weight, "b": lin.weight, "c": torch.arange(4)}
+    save_checkpoint(tmp_path / "c.safetensors", sd, {"step": 3, "config": {"w": 1}})
+    sd2, info = load_checkpoint(tmp_path / "c.safetensors")
+    assert info == {"step": 3, "config": {"w": 1}}
+    assert torch.equal(sd2["a"], lin.weight.detach()) and torch.equal(sd2["c"], torch.arange(4))
+    atomic_write_json(tmp_path / "x.json", {"b": 1})
+    assert (tmp_path / "x.json").read_text().startswith("{")
+
+
+def test_foreign_checkpoint_weights_only(tmp_path):
+    torch.save({"w": torch.ones(2)}, tmp_path / "ok.pt")
+    assert torch.equal(load_foreign_torch_checkpoint(tmp_path / "ok.pt")["w"], torch.ones(2))
+
+    class Evil:
+        def __reduce__(self):
+            return (print, ("pwned",))
+
+    torch.save({"x": Evil()}, tmp_path / "evil.pt")
+    with pytest.raises(ToolkitError, match="weights-only"):
+        load_foreign_torch_checkpoint(tmp_path / "evil.pt")
+    with pytest.raises(ToolkitError, match="no such"):
+        load_foreign_torch_checkpoint(tmp_path / "missing.pt")
