@@ -31,7 +31,8 @@ from toolkit.errors import ToolkitError
 from toolkit.io import load_checkpoint, save_checkpoint
 
 SD_VAE_SCALING = 0.18215  # Stable Diffusion v1's latent scale (Rombach et al., 2022)
-LOGVAR_RANGE = (-30.0, 20.0)  # the posterior log-variance clamp of latent-diffusion's KL autoencoder
+LOGVAR_RANGE = (-30.0, 20.0)
+INIT_LOGVAR = -6.0  # the posterior log-variance clamp of latent-diffusion's KL autoencoder
 
 
 class LatentCodec(nn.Module):
@@ -120,7 +121,12 @@ class AutoencoderConfig:
 
 
 def _norm(ch: int) -> nn.GroupNorm:
-    return nn.GroupNorm(8 if ch % 8 == 0 else 1, ch, eps=1e-6)
+    """GroupNorm with at least 4 channels per group (1-channel groups would be instance norm, which erases
+    each image's per-channel brightness -- ruinous at the small widths used here), at most 32 groups."""
+    groups = min(32, max(1, ch // 4))
+    while ch % groups:
+        groups -= 1
+    return nn.GroupNorm(groups, ch, eps=1e-6)
 
 
 class ResBlock(nn.Module):
@@ -149,6 +155,10 @@ class Encoder(nn.Module):
         self.mid = ResBlock(ch[-1])
         self.norm_out = _norm(ch[-1])
         self.conv_out = nn.Conv2d(ch[-1], 2 * cfg.latent_channels, 3, padding=1)
+        # Start with a narrow posterior (std ~0.05): unit-variance sampling noise would drown the untrained
+        # means and stall reconstruction; the KL term widens it again where the decoder tolerates it.
+        with torch.no_grad():
+            self.conv_out.bias[cfg.latent_channels:].fill_(INIT_LOGVAR)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = self.conv_in(x)
@@ -248,9 +258,9 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        history.append(float(rec))
+        history.append(rec.item())
         if log is not None:
-            log(step, {"recon_l1": float(rec), "loss": float(loss)})
+            log(step, {"recon_l1": rec.item(), "loss": loss.item()})
     with torch.no_grad():
         model.eval()
         sample = images[:256].to(device)
