@@ -229,7 +229,7 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
     """Train a :class:`KLAutoencoder` on ``images [N, 3, H, W]`` in [0, 1]; return it frozen and the losses.
 
     Loss: L1 reconstruction + ``kl_weight`` * KL, Adam. Afterwards ``scale_factor`` is set to 1 / std of the
-    posterior means over (up to 256 of) the images, so encoded latents have unit variance for the diffusion.
+    posterior means over (up to 256 of) the images (std floored at 1e-3), so encoded latents have unit variance for the diffusion.
     Pass ``model`` to continue training an existing one. Deterministic given ``seed`` (on CPU).
     """
     if images.dim() != 4 or images.shape[1] != 3 or images.shape[0] == 0:
@@ -265,7 +265,7 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
         model.eval()
         sample = images[:256].to(device)
         std = torch.cat([model.moments(sample[i:i + 32])[0] for i in range(0, sample.shape[0], 32)]).std()
-        model.scale_factor.fill_(float(1.0 / std.clamp(min=1e-4)) if torch.isfinite(std) else 1.0)
+        model.scale_factor.fill_(float(1.0 / std.clamp(min=1e-3)) if torch.isfinite(std) else 1.0)
     return model.freeze(), history
 
 
