@@ -302,15 +302,26 @@ class DiT(nn.Module):
         """The adaLN vector ``c [B, D]`` = timestep embedding + code embedding."""
         return self.t_embedder(t) + self.code_embedder(shape_code, gaze, pose)
 
+    def encode_features(self, feats: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        """``[B, F, h, w]`` -> ``[B, E, H, W]``; samplers compute it once and pass it to every step."""
+        return self.feature_encoder(feats, size)
+
     def forward(self, x: torch.Tensor, t: torch.Tensor, feats: torch.Tensor, shape_code: torch.Tensor,
-                gaze: torch.Tensor | None = None, pose: torch.Tensor | None = None) -> torch.Tensor:
+                gaze: torch.Tensor | None = None, pose: torch.Tensor | None = None, *,
+                feature_embedding: torch.Tensor | None = None) -> torch.Tensor:
+        """``feature_embedding`` (from :meth:`encode_features`) skips the feature encoder when given."""
         self._check_inputs(x, t, feats, shape_code)
         B, _, H, W = x.shape
         p = self.config.patch_size
         gh, gw = H // p, W // p
         grid = self.config.input_size // p
         pos = self.pos_embed if gh == gw == grid else get_2d_sincos_pos_embed(self.config.hidden_size, gh, gw, x.device)
-        h = torch.cat([x, self.feature_encoder(feats, (H, W)).to(x.dtype)], dim=1)
+        if feature_embedding is None:
+            feature_embedding = self.encode_features(feats, (H, W))
+        elif feature_embedding.shape != (B, self.config.feature_embed_channels, H, W):
+            raise ToolkitError(f"DiT feature_embedding: expected [{B}, {self.config.feature_embed_channels}, {H}, {W}], "
+                               f"got {list(feature_embedding.shape)}")
+        h = torch.cat([x, feature_embedding.to(x.dtype)], dim=1)
         tokens = self.x_embedder(h) + pos.to(h.dtype)
         c = self.conditioning(t.expand(B) if t.dim() == 0 else t, shape_code, gaze, pose)
         for block in self.blocks:

@@ -87,8 +87,10 @@ class DiTRenderer(nn.Module):
         h, w = self.codec.latent_size(H, W)
         return feats.shape[0], self.codec.latent_channels, h, w
 
-    def _model_fn(self, feats, shape_code, gaze, pose):
-        return lambda x, t: self.dit(x, t, feats, shape_code, gaze, pose)
+    def _model_fn(self, feats, shape_code, gaze, pose, latent_hw: tuple[int, int]):
+        # The feature map is the same at every sampling step: encode it once.
+        emb = self.dit.encode_features(feats, latent_hw)
+        return lambda x, t: self.dit(x, t, feats, shape_code, gaze, pose, feature_embedding=emb)
 
     def training_forward(self, feats: torch.Tensor, shape_code: torch.Tensor, target: torch.Tensor, *,
                          gaze: torch.Tensor | None = None, pose: torch.Tensor | None = None,
@@ -100,7 +102,8 @@ class DiTRenderer(nn.Module):
                                f"{w * self.codec.downsample}] (features x {self.upscale}), got {list(target.shape)}")
         with torch.no_grad():
             x0 = self.codec.encode(target).float()
-        out = self.diffusion.training_step(self._model_fn(feats, shape_code, gaze, pose), x0, t=t, generator=generator)
+        out = self.diffusion.training_step(self._model_fn(feats, shape_code, gaze, pose, (h, w)), x0, t=t,
+                                          generator=generator)
         image = self.codec.decode(out["x0_pred"])
         return RenderOutput(image=image, aux_loss=out["loss"],
                             extras={"t": out["t"], "latent_pred": out["x0_pred"], "latent_target": x0})
@@ -116,8 +119,9 @@ class DiTRenderer(nn.Module):
             noise = torch.randn(shape, generator=g)
         elif tuple(noise.shape) != shape:
             raise ToolkitError(f"DiTRenderer noise: expected {list(shape)}, got {list(noise.shape)}")
-        latent = self.diffusion.ddim_sample(self._model_fn(feats, shape_code, gaze, pose), noise.to(feats.device),
-                                            steps or self.default_steps, eta=eta, generator=g)
+        model_fn = self._model_fn(feats, shape_code, gaze, pose, shape[2:])
+        latent = self.diffusion.ddim_sample(model_fn, noise.to(feats.device), steps or self.default_steps, eta=eta,
+                                            generator=g)
         return self.codec.decode(latent).clamp(0, 1)
 
     def forward(self, feats: torch.Tensor, shape_code: torch.Tensor, gaze: torch.Tensor | None = None,

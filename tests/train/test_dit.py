@@ -133,3 +133,15 @@ def test_bad_inputs():
         model(x, t, f, s[:, :100])
     with pytest.raises(ToolkitError, match="t:"):
         model(x, t[:1], f, s)
+
+
+def test_precomputed_feature_embedding_matches_and_is_checked():
+    model = tiny()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    x, t, f, s = inputs()
+    emb = model.encode_features(f, (8, 8))
+    assert torch.equal(model(x, t, f, s, feature_embedding=emb), model(x, t, f, s))
+    with pytest.raises(ToolkitError, match="feature_embedding"):
+        model(x, t, f, s, feature_embedding=emb[:, :, :4])
