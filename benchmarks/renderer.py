@@ -39,7 +39,6 @@ from train.dit import make_dit  # noqa: E402
 from train.renderer import DiTRenderer  # noqa: E402
 
 STEPS = (1, 2, 4, 8, 25, 50)
-AE_CONFIG = AutoencoderConfig(downsample=8, base_channels=16, max_channels=64)
 
 
 # ----------------------------------------------------------------------------- procedural data
@@ -108,10 +107,17 @@ def fit_renderers(args, device):
     test = {k: v.to(device) for k, v in test.items()}
     print(f"training the KL autoencoder ({args.ae_steps} steps, {args.train_size}^2) ...", flush=True)
     torch.manual_seed(0)
-    codec, _ = train_autoencoder(train["images"], AE_CONFIG, steps=args.ae_steps, batch_size=16, lr=2e-3,
-                                 model=KLAutoencoder(AE_CONFIG).to(device))
+    ae_config = AutoencoderConfig(downsample=8, base_channels=args.speed_codec_channels[0], max_channels=64)
+    every = max(1, args.ae_steps // 5)
+
+    def log(i, metrics):
+        if (i + 1) % every == 0:
+            print(f"  autoencoder: step {i + 1}/{args.ae_steps} L1 {metrics['recon_l1']:.4f}", flush=True)
+
+    codec, _ = train_autoencoder(train["images"], ae_config, steps=args.ae_steps, batch_size=16, lr=2e-3,
+                                 model=KLAutoencoder(ae_config).to(device), log=log)
     torch.manual_seed(0)
-    grid = args.train_size // AE_CONFIG.downsample
+    grid = args.train_size // ae_config.downsample
     dit = DiTRenderer(make_dit(args.model, input_size=grid).to(device), codec, GaussianDiffusion())
     base = BaselineRenderer(BaselineConfig()).to(device)
 
@@ -165,7 +171,8 @@ def speed_table(args, device):
     measured network call and a measured 1-step render (each DDIM step is one identical network call)."""
     rows = []
     sync = device.type == "cuda"
-    codec = KLAutoencoder(AE_CONFIG).to(device).freeze()
+    codecs = {ch: KLAutoencoder(AutoencoderConfig(downsample=8, base_channels=ch, max_channels=64)).to(device).freeze()
+              for ch in args.speed_codec_channels}
     precisions = ["fp32", "bf16"] if args.bf16 else ["fp32"]
 
     def run(fn, precision, repeats):
@@ -181,12 +188,13 @@ def speed_table(args, device):
         base = BaselineRenderer().to(device).eval()
         for prec in precisions:
             sec = run(lambda: base.render(f, c), prec, args.repeats) / B  # noqa: B023
-            rows.append({"renderer": "baseline", "size": size, "prec": prec, "steps": 1, "ms/img": 1e3 * sec,
+            rows.append({"renderer": "baseline", "codec": "-", "size": size, "prec": prec, "steps": 1, "ms/img": 1e3 * sec,
                          "img/s": 1 / sec, "params M": sum(p.numel() for p in base.parameters()) / 1e6,
                          "how": "measured"})
-        for name in args.speed_models:
+        for name, ch in [(m, ch) for m in args.speed_models for ch in args.speed_codec_channels
+                         if "tiny" in m or ch == args.speed_codec_channels[0]]:
             torch.manual_seed(0)
-            r = DiTRenderer(make_dit(name, input_size=size // 8).to(device), codec).eval()
+            r = DiTRenderer(make_dit(name, input_size=size // 8).to(device), codecs[ch]).eval()
             params = sum(p.numel() for p in r.dit.parameters()) / 1e6
             heavy = size == 512 or "tiny" not in name
             reps = 1 if size == 512 and "tiny" not in name else args.repeats
@@ -203,7 +211,7 @@ def speed_table(args, device):
                         sec, how = run(lambda k=k: r.render(f, c, steps=k), prec, max(1, args.repeats // 2)) / B, "measured"  # noqa: B023
                     else:
                         sec, how = t1 + (k - 1) * t_call, "t1 + (K-1) t_call"
-                    rows.append({"renderer": name, "size": size, "prec": prec, "steps": k, "ms/img": 1e3 * sec,
+                    rows.append({"renderer": name, "codec": f"AE c{ch}", "size": size, "prec": prec, "steps": k, "ms/img": 1e3 * sec,
                                  "img/s": 1 / sec, "params M": params, "how": how})
     return rows
 
@@ -231,6 +239,8 @@ def main(argv=None) -> int:
     ap.add_argument("--speed-batch", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--speed-models", nargs="+", default=["DiT-Gaze-tiny", "DiT-Gaze-paper", "DiT-Gaze-paper/4"])
+    ap.add_argument("--speed-codec-channels", type=int, nargs="+", default=[16, 8],
+                    help="full-resolution channels of the KL autoencoders timed (the first is the one trained)")
     ap.add_argument("--skip-training", action="store_true", help="speed table only")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false", help="skip the bf16 autocast timings")
     args = ap.parse_args(argv)
@@ -245,8 +255,8 @@ def main(argv=None) -> int:
 
     speed = speed_table(args, device)
     print(f"\n## Per-image time, {device}, batch {args.speed_batch} at 128^2 ({max(1, args.speed_batch // 4)} at 512^2), "
-          "KL autoencoder codec (8x down)\n")
-    print(format_table(speed, ["renderer", "size", "prec", "steps", "ms/img", "img/s", "params M", "how"]), flush=True)
+          "KL autoencoder codecs (8x down; cN = N channels at full resolution)\n")
+    print(format_table(speed, ["renderer", "codec", "size", "prec", "steps", "ms/img", "img/s", "params M", "how"]), flush=True)
 
     result = {"machine": machine_info(), "speed": speed, "args": vars(args)}
     if not args.skip_training:
