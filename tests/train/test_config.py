@@ -1,0 +1,67 @@
+from dataclasses import dataclass, field
+from typing import Literal, Optional
+
+import pytest
+
+from toolkit import ToolkitError
+from train.config import apply_overrides, config_hash, from_dict, load_yaml_config, save_yaml_config, to_dict
+
+
+@dataclass
+class Inner:
+    lr: float = 1e-3
+    steps: int = 10
+    mode: Literal["dit", "unet"] = "dit"
+
+
+@dataclass
+class Outer:
+    name: str = "x"
+    inner: Inner = field(default_factory=Inner)
+    sizes: tuple[int, int] = (1, 2)
+    path: Optional[str] = None
+    flag: bool = False
+
+
+def test_yaml_round_trip(tmp_path):
+    cfg = apply_overrides(Outer(), ["inner.lr=0.5", "sizes=[3, 4]", "path=/x", "flag=true", "inner.mode=unet"])
+    assert cfg.inner.lr == 0.5 and cfg.sizes == (3, 4) and cfg.flag is True and cfg.inner.mode == "unet"
+    save_yaml_config(cfg, tmp_path / "c.yaml")
+    assert load_yaml_config(Outer, tmp_path / "c.yaml") == cfg
+    assert config_hash(cfg) == config_hash(load_yaml_config(Outer, tmp_path / "c.yaml"))
+    assert config_hash(cfg) != config_hash(Outer())
+    assert to_dict(cfg)["inner"]["steps"] == 10
+
+
+@pytest.mark.parametrize(
+    "override,msg",
+    [
+        ("inner.lrr=1", "unknown config key 'inner.lrr'; did you mean 'lr'"),
+        ("nope=1", "unknown config key 'nope'"),
+        ("inner.steps=1.5", "'inner.steps': expected an integer"),
+        ("inner.steps=abc", "'inner.steps': expected an integer"),
+        ("inner.mode=gan", r"'inner.mode': expected one of \['dit', 'unet'\]"),
+        ("flag=3", "'flag': expected true/false"),
+        ("sizes=[1]", "'sizes': expected 2 values"),
+        ("name.x=1", "'name' is not a section"),
+        ("justakey", "expected KEY=VALUE"),
+    ],
+)
+def test_bad_overrides_name_the_key(override, msg):
+    with pytest.raises(ToolkitError, match=msg):
+        apply_overrides(Outer(), [override])
+
+
+def test_bad_yaml_files(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("inner:\n  lr: [unclosed\n")
+    with pytest.raises(ToolkitError, match="not valid YAML"):
+        load_yaml_config(Outer, p)
+    p.write_text("inner:\n  stepz: 3\n")
+    with pytest.raises(ToolkitError, match="c.yaml: unknown config key 'inner.stepz'"):
+        load_yaml_config(Outer, p)
+    p.write_text("- a\n- b\n")
+    with pytest.raises(ToolkitError, match="mapping"):
+        load_yaml_config(Outer, p)
+    with pytest.raises(ToolkitError, match="expected a mapping"):
+        from_dict(Outer, {"inner": 3})

@@ -1,0 +1,154 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from toolkit import ToolkitError
+from train.checkpoint import CheckpointManager, load_training_checkpoint, save_training_checkpoint
+from train.loop import MetricsLogger, TrainingDiverged, train_loop
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _problem(seed=0):
+    torch.manual_seed(seed)
+    model = torch.nn.Sequential(torch.nn.Linear(4, 16), torch.nn.Tanh(), torch.nn.Dropout(0.1), torch.nn.Linear(16, 1))
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    w = torch.tensor([1.0, -2.0, 0.5, 3.0])
+
+    def step_fn(step, g):
+        x = torch.randn(32, 4, generator=g)
+        loss = ((model(x).squeeze(-1) - x @ w) ** 2).mean()
+        return {"total": loss, "mse": loss}
+
+    return model, opt, step_fn
+
+
+def test_resume_reproduces_uninterrupted_run(tmp_path):
+    m1, o1, f1 = _problem()
+    train_loop("t", f1, modules={"m": m1}, optimizers={"o": o1}, steps=30, run_dir=tmp_path / "a",
+               ckpt_every=10, progress=False)
+    m2, o2, f2 = _problem()
+    train_loop("t", f2, modules={"m": m2}, optimizers={"o": o2}, steps=20, run_dir=tmp_path / "b",
+               ckpt_every=10, progress=False)
+    # A fresh process state (different RNG, fresh model) resumes from the step-20 checkpoint.
+    torch.manual_seed(123)
+    m3, o3, f3 = _problem(seed=99)
+    out = train_loop("t", f3, modules={"m": m3}, optimizers={"o": o3}, steps=30, run_dir=tmp_path / "b",
+                     ckpt_every=10, resume=True, progress=False)
+    assert out["step"] == 30
+    for p, q in zip(m1.parameters(), m3.parameters()):
+        assert torch.equal(p, q)
+
+
+def test_nan_loss_stops_with_step_terms_and_checkpoint(tmp_path):
+    model, opt, f = _problem()
+
+    def step_fn(step, g):
+        terms = f(step, g)
+        if step == 12:
+            terms = {"total": terms["total"] * float("nan"), "mse": terms["mse"]}
+        return terms
+
+    with pytest.raises(TrainingDiverged, match=r"non-finite loss at step 12: total=nan.*last good checkpoint: .*ckpt_00000010"):
+        train_loop("t", step_fn, modules={"m": model}, optimizers={"o": opt}, steps=20, run_dir=tmp_path,
+                   ckpt_every=5, progress=False)
+
+
+def test_metrics_jsonl(tmp_path):
+    model, opt, f = _problem()
+    ml = MetricsLogger(tmp_path, tensorboard=False)
+    train_loop("t", f, modules={"m": model}, optimizers={"o": opt}, steps=10, run_dir=tmp_path, log_every=5,
+               metrics=ml, progress=False)
+    recs = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in recs] == [5, 10] and all("mse" in r and "grad_norm" in r for r in recs)
+
+
+def test_incompatible_and_corrupt_checkpoints(tmp_path):
+    model, opt, _ = _problem()
+    save_training_checkpoint(tmp_path / "c.safetensors", step=3, modules={"m": model}, optimizers={"o": opt})
+    other = torch.nn.Sequential(torch.nn.Linear(4, 8), torch.nn.Tanh(), torch.nn.Dropout(0.1), torch.nn.Linear(8, 1))
+    with pytest.raises(ToolkitError, match="incompatible checkpoint for 'm'.*shape"):
+        load_training_checkpoint(tmp_path / "c.safetensors", modules={"m": other})
+    with pytest.raises(ToolkitError, match="no weights for module 'x'"):
+        load_training_checkpoint(tmp_path / "c.safetensors", modules={"x": model})
+    raw = (tmp_path / "c.safetensors").read_bytes()
+    (tmp_path / "c.safetensors").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(ToolkitError, match="not a valid safetensors"):
+        load_training_checkpoint(tmp_path / "c.safetensors", modules={"m": model})
+
+
+def test_manager_keeps_newest(tmp_path):
+    model, opt, _ = _problem()
+    mgr = CheckpointManager(tmp_path, keep=2)
+    for s in (1, 2, 3):
+        mgr.save(s, modules={"m": model}, optimizers={"o": opt})
+    assert [p.name for p in mgr.all()] == ["ckpt_00000002.safetensors", "ckpt_00000003.safetensors"]
+
+
+_SCRIPT = textwrap.dedent(
+    """
+    import sys, time, torch
+    sys.path.insert(0, {root!r})
+    from tests.train.test_loop import _problem
+    from train.loop import train_loop
+    model, opt, f = _problem()
+    def slow(step, g):
+        if step >= {slow_from}:
+            time.sleep(0.2)
+        return f(step, g)
+    out = train_loop("t", slow, modules={{"m": model}}, optimizers={{"o": opt}}, steps=40, run_dir={run!r},
+                     ckpt_every=5, resume=True, progress=False)
+    torch.save([p.detach() for p in model.parameters()], {run!r} + "/final.pt")
+    """
+)
+
+
+def _spawn(run, slow_from):
+    code = _SCRIPT.format(root=str(ROOT), run=str(run), slow_from=slow_from)
+    return subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def test_sigkill_then_resume_matches_uninterrupted(tmp_path):
+    ref = _spawn(tmp_path / "ref", slow_from=10**9)
+    assert ref.wait(timeout=120) == 0, ref.stderr.read().decode()
+    proc = _spawn(tmp_path / "run", slow_from=12)
+    mgr = CheckpointManager(tmp_path / "run" / "checkpoints")
+    import time
+
+    deadline = time.time() + 60
+    while time.time() < deadline and not any(p.name.endswith("0015.safetensors") for p in mgr.all()):
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (tmp_path / "run" / "final.pt").exists()
+    done = _spawn(tmp_path / "run", slow_from=10**9)
+    assert done.wait(timeout=120) == 0, done.stderr.read().decode()
+    a = torch.load(tmp_path / "ref" / "final.pt", weights_only=True)
+    b = torch.load(tmp_path / "run" / "final.pt", weights_only=True)
+    assert all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def test_sigint_saves_checkpoint_and_exits_cleanly(tmp_path):
+    proc = _spawn(tmp_path / "run", slow_from=3)
+    mgr = CheckpointManager(tmp_path / "run" / "checkpoints")
+    import time
+
+    deadline = time.time() + 60
+    while time.time() < deadline and not mgr.all():
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode != 0
+    import re
+
+    m = re.search(rb"interrupted at step (\d+); checkpoint saved to (\S+)", err)
+    assert m, err.decode()[-500:]
+    step, path = int(m.group(1)), Path(m.group(2).decode())
+    assert path.exists() and path.name == f"ckpt_{step:08d}.safetensors"

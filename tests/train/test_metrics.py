@@ -1,0 +1,47 @@
+import math
+
+import pytest
+import torch
+
+from toolkit import ToolkitError
+from train.metrics import composite_on_white, psnr, ssim, summarize, table1_markdown
+
+
+def test_psnr_known_value():
+    a = torch.zeros(2, 3, 8, 8)
+    b = torch.full((2, 3, 8, 8), 0.1)
+    assert torch.allclose(psnr(a, b), torch.full((2,), 20.0), atol=1e-4)
+    assert torch.isfinite(psnr(a, a)).all()
+
+
+def test_ssim_identity_and_degradation():
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 3, 32, 32, generator=g)
+    assert torch.allclose(ssim(x, x), torch.ones(2), atol=1e-5)
+    noisy = (x + 0.2 * torch.randn(2, 3, 32, 32, generator=g)).clamp(0, 1)
+    assert (ssim(x, noisy) < 0.9).all()
+    assert torch.isfinite(ssim(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4))).all()
+
+
+def test_composite_on_white_ignores_background():
+    x = torch.rand(1, 3, 8, 8)
+    y = x.clone()
+    y[..., :4] = 0.0  # differ only outside the mask
+    m = torch.zeros(1, 8, 8)
+    m[..., 4:] = 1
+    assert torch.equal(composite_on_white(x, m), composite_on_white(y, m))
+    assert composite_on_white(x, m)[..., :4].eq(1).all()
+
+
+def test_shape_mismatch_is_clear():
+    with pytest.raises(ToolkitError, match="one shape"):
+        psnr(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 5))
+
+
+def test_table1_layout():
+    md = table1_markdown({"DiT-Gaze": {"gaze_error_deg": 3.21, "psnr": 27.5, "ssim": 0.91}, "U-Net": {}})
+    lines = md.splitlines()
+    assert lines[0].startswith("| Method | Gaze") and "PSNR" in lines[0] and "LPIPS" in lines[0]
+    assert "| DiT-Gaze | 3.21 | n/a | 0.910 | 27.50 | n/a |" in lines[2]
+    assert lines[3].count("n/a") == 8
+    assert summarize([1.0, None, 3.0]) == 2.0 and summarize([None]) is None and summarize([math.nan]) is None

@@ -1,0 +1,54 @@
+from dataclasses import dataclass, field
+
+import pytest
+
+from toolkit import ToolkitError
+from train.stages import RunContext, Stage, run_stages
+
+
+@dataclass
+class A:
+    x: int = 1
+
+
+@dataclass
+class Cfg:
+    a: A = field(default_factory=A)
+    b: int = 5
+
+
+def _stages(calls):
+    def mk(name, text):
+        def run(ctx):
+            calls.append(name)
+            (ctx.run_dir / f"{name}.txt").write_text(text(ctx))
+            return {"out": f"{name}.txt"}
+        return run
+
+    return [
+        Stage("first", mk("first", lambda c: str(c.config.a.x)), config=lambda c: c.a),
+        Stage("second", mk("second", lambda c: c.path("first", "out").read_text() + str(c.config.b)),
+              depends=("first",), config=lambda c: c.b),
+    ]
+
+
+def test_skip_when_unchanged_and_rerun_downstream(tmp_path):
+    calls = []
+    ctx = lambda cfg: RunContext(tmp_path, cfg, log=lambda m: None)  # noqa: E731
+    assert run_stages(_stages(calls), ["first", "second"], ctx(Cfg())) == {"first": "ran", "second": "ran"}
+    assert run_stages(_stages(calls), ["first", "second"], ctx(Cfg())) == {"first": "skipped", "second": "skipped"}
+    # Changing only the downstream setting re-runs only the downstream stage.
+    assert run_stages(_stages(calls), ["first", "second"], ctx(Cfg(b=6))) == {"first": "skipped", "second": "ran"}
+    # Changing upstream re-runs both.
+    assert run_stages(_stages(calls), ["first", "second"], ctx(Cfg(a=A(2), b=6))) == {"first": "ran", "second": "ran"}
+    assert (tmp_path / "second.txt").read_text() == "26"
+    # A deleted output makes the stage run again.
+    (tmp_path / "second.txt").unlink()
+    assert run_stages(_stages(calls), ["second"], ctx(Cfg(a=A(2), b=6))) == {"second": "ran"}
+
+
+def test_missing_dependency_and_unknown_stage(tmp_path):
+    with pytest.raises(ToolkitError, match="needs stage 'first'"):
+        run_stages(_stages([]), ["second"], RunContext(tmp_path, Cfg(), log=lambda m: None))
+    with pytest.raises(ToolkitError, match="unknown stage"):
+        run_stages(_stages([]), ["third"], RunContext(tmp_path, Cfg(), log=lambda m: None))

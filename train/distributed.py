@@ -1,0 +1,75 @@
+"""Multi-process training through torchrun (DDP): gloo on CPU, NCCL on CUDA.
+
+Each process takes an equal, contiguous shard of the *global* batch, so with DDP's gradient averaging
+the update equals a single-process step on the whole global batch (the loss is a per-sample mean).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+
+from toolkit.errors import ToolkitError
+
+
+@dataclass
+class DistInfo:
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+    device: str = "cpu"
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+
+def init_distributed(device: str = "auto") -> DistInfo:
+    """Initialise the process group when launched by torchrun (WORLD_SIZE > 1); else a single process."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
+    dev = f"cuda:{local}" if use_cuda else "cpu"
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if use_cuda else "gloo")
+        if use_cuda:
+            torch.cuda.set_device(local)
+    return DistInfo(rank, world, local, dev)
+
+
+def shard(global_batch: int, info: DistInfo) -> slice:
+    """This process's slice of a global batch of ``global_batch`` samples."""
+    if global_batch % info.world_size:
+        raise ToolkitError(
+            f"global batch {global_batch} is not divisible by the {info.world_size} processes; "
+            "choose a multiple so every process gets the same shard size"
+        )
+    per = global_batch // info.world_size
+    return slice(info.rank * per, (info.rank + 1) * per)
+
+
+def wrap(module: torch.nn.Module, info: DistInfo) -> torch.nn.Module:
+    """DDP-wrap ``module`` when running distributed (identity otherwise)."""
+    if not info.enabled:
+        return module
+    from torch.nn.parallel import DistributedDataParallel as DDP
+
+    return DDP(module, device_ids=[info.local_rank] if info.device.startswith("cuda") else None)
+
+
+def barrier(info: DistInfo) -> None:
+    if info.enabled:
+        dist.barrier()
+
+
+def cleanup(info: DistInfo) -> None:
+    if info.enabled and dist.is_initialized():
+        dist.destroy_process_group()

@@ -1,0 +1,188 @@
+"""The one training loop every stage uses: resumable, NaN-guarded, interruptible, logged.
+
+A stage supplies ``step_fn(step, generator) -> {"total": loss, term: value, ...}``; the loop does the
+backward pass, gradient clipping, the optimizer steps, periodic atomic checkpoints, metrics (JSONL and
+optional TensorBoard) and a progress bar with the loss and ETA.
+
+Determinism: the generator handed to ``step_fn`` is seeded from ``(seed, step)``, so the data a step
+sees does not depend on how many steps ran in this process; with the RNG states restored from the
+checkpoint, a resumed CPU run reproduces the uninterrupted one exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import torch
+
+from toolkit.errors import ToolkitError
+from train.checkpoint import CheckpointManager, load_training_checkpoint
+
+StepFn = Callable[[int, torch.Generator], dict[str, torch.Tensor]]
+
+
+class TrainingDiverged(ToolkitError):
+    """A loss or gradient became NaN/inf; the message names the step, the terms and the last good checkpoint."""
+
+
+class TrainingInterrupted(ToolkitError):
+    """Ctrl-C / SIGTERM: a checkpoint was saved and the run stopped cleanly."""
+
+
+def step_generator(seed: int, step: int, device: str | torch.device = "cpu") -> torch.Generator:
+    """A generator whose stream depends only on (seed, step)."""
+    g = torch.Generator(device=device)
+    g.manual_seed((seed * 1_000_003 + step * 7919) % (2**63 - 1))
+    return g
+
+
+class MetricsLogger:
+    """Appends one JSON object per logged step to ``metrics.jsonl``; mirrors scalars to TensorBoard if installed."""
+
+    def __init__(self, run_dir: str | Path, tensorboard: bool = True):
+        self.path = Path(run_dir) / "metrics.jsonl"
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tb = None
+        if tensorboard:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self._tb = SummaryWriter(str(Path(run_dir) / "tb"))
+            except Exception:  # tensorboard is an optional dependency (extra "eval")
+                self._tb = None
+
+    def log(self, stage: str, step: int, values: dict[str, float]) -> None:
+        rec = {"stage": stage, "step": step, "time": time.time(), **values}
+        with open(self.path, "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        if self._tb is not None:
+            for k, v in values.items():
+                self._tb.add_scalar(f"{stage}/{k}", v, step)
+
+    def close(self) -> None:
+        if self._tb is not None:
+            self._tb.flush()
+            self._tb.close()
+
+
+@contextmanager
+def _stop_signals() -> Iterator[dict[str, bool]]:
+    """Turn SIGINT/SIGTERM into a flag checked between steps (so a step is never cut in half)."""
+    flag = {"stop": False}
+    prev = {}
+
+    def handler(signum, frame):  # noqa: ARG001
+        flag["stop"] = True
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            prev[sig] = signal.signal(sig, handler)
+        except ValueError:  # not the main thread: signals stay with their defaults
+            pass
+    try:
+        yield flag
+    finally:
+        for sig, h in prev.items():
+            signal.signal(sig, h)
+
+
+def train_loop(
+    stage: str,
+    step_fn: StepFn,
+    *,
+    modules: dict[str, torch.nn.Module],
+    optimizers: dict[str, torch.optim.Optimizer],
+    steps: int,
+    run_dir: str | Path,
+    seed: int = 0,
+    ckpt_every: int = 100,
+    log_every: int = 10,
+    resume: bool = False,
+    grad_clip: float | None = 1.0,
+    metrics: MetricsLogger | None = None,
+    progress: bool = True,
+    schedulers: list[Any] | None = None,
+    on_log: Callable[[int, dict[str, float]], None] | None = None,
+    is_main: bool = True,
+) -> dict[str, Any]:
+    """Run ``steps`` optimisation steps of ``step_fn``; returns {"step", "last": terms, "checkpoint"}.
+
+    Checkpoints go to ``run_dir/checkpoints``. With ``resume``, training continues from the newest one.
+    """
+    run_dir = Path(run_dir)
+    mgr = CheckpointManager(run_dir / "checkpoints")
+    start = 0
+    if resume and mgr.latest() is not None:
+        start = load_training_checkpoint(mgr.latest(), modules=modules, optimizers=optimizers)["step"]
+    params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
+    last_ckpt = mgr.latest()
+    last: dict[str, float] = {}
+
+    def save(step: int) -> Path | None:
+        if not is_main:
+            return None
+        return mgr.save(step, modules=modules, optimizers=optimizers, extra={"stage": stage})
+
+    bar = None
+    if progress and is_main:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, initial=start, desc=stage, dynamic_ncols=True, leave=True)
+    step = start
+    try:
+        with _stop_signals() as flag:
+            for step in range(start, steps):
+                if flag["stop"]:
+                    last_ckpt = save(step)
+                    raise TrainingInterrupted(
+                        f"{stage}: interrupted at step {step}; checkpoint saved to {last_ckpt} (rerun with --resume)"
+                    )
+                for m in modules.values():
+                    m.train()
+                for opt in optimizers.values():
+                    opt.zero_grad(set_to_none=True)
+                terms = step_fn(step, step_generator(seed, step))
+                total = terms["total"]
+                values = {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in terms.items()}
+                if not all(math.isfinite(v) for v in values.values()):
+                    raise TrainingDiverged(
+                        f"{stage}: non-finite loss at step {step}: "
+                        + ", ".join(f"{k}={v:.4g}" for k, v in values.items())
+                        + f"; last good checkpoint: {last_ckpt or 'none'}"
+                    )
+                total.backward()
+                gnorm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf"))
+                if not torch.isfinite(gnorm):
+                    raise TrainingDiverged(
+                        f"{stage}: non-finite gradient norm at step {step} (loss terms "
+                        + ", ".join(f"{k}={v:.4g}" for k, v in values.items())
+                        + f"); last good checkpoint: {last_ckpt or 'none'}"
+                    )
+                for opt in optimizers.values():
+                    opt.step()
+                for sch in schedulers or []:
+                    sch.step()
+                last = values
+                done = step + 1
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix({k: f"{v:.4g}" for k, v in list(values.items())[:4]})
+                if done % log_every == 0 or done == steps:
+                    values = {**values, "grad_norm": float(gnorm)}
+                    if metrics is not None and is_main:
+                        metrics.log(stage, done, values)
+                    if on_log is not None:
+                        on_log(done, values)
+                if done % ckpt_every == 0 or done == steps:
+                    last_ckpt = save(done) or last_ckpt
+            step = steps
+    finally:
+        if bar is not None:
+            bar.close()
+    return {"step": step, "last": last, "checkpoint": last_ckpt}

@@ -1,0 +1,102 @@
+"""Stages of a run: each writes its outputs into the run directory and is skipped when they exist and
+its inputs are unchanged.
+
+A stage's *fingerprint* hashes its config section plus the fingerprints of the stages it reads from,
+so changing an upstream setting re-runs everything downstream and nothing else. The record
+``run_dir/stages/<name>.json`` (written atomically after the stage finished) holds the fingerprint and
+the output files; a stage is up to date when the record matches and every output file exists.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from toolkit.errors import ToolkitError
+from toolkit.io import atomic_write_json
+from train.config import config_hash
+
+
+@dataclass
+class Stage:
+    """A named step of the pipeline. ``run(ctx) -> {output_name: path relative to run_dir}``."""
+
+    name: str
+    run: Callable[["RunContext"], dict[str, str]]
+    depends: tuple[str, ...] = ()
+    config: Callable[[Any], Any] = lambda cfg: None  # the part of the config this stage reads
+
+
+@dataclass
+class RunContext:
+    run_dir: Path
+    config: Any
+    outputs: dict[str, dict[str, str]] = field(default_factory=dict)  # stage -> {name: relative path}
+    resume: bool = False
+    log: Callable[[str], None] = print
+
+    def path(self, stage: str, name: str) -> Path:
+        try:
+            return self.run_dir / self.outputs[stage][name]
+        except KeyError:
+            raise ToolkitError(f"stage output {stage}.{name} is not available (run stage '{stage}' first)") from None
+
+
+def _record_path(run_dir: Path, name: str) -> Path:
+    return run_dir / "stages" / f"{name}.json"
+
+
+def fingerprint(stage: Stage, cfg: Any, upstream: dict[str, str]) -> str:
+    parts = [stage.name, config_hash(stage.config(cfg))] + [f"{d}:{upstream[d]}" for d in stage.depends]
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
+
+
+def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force: list[str] = ()) -> dict[str, str]:
+    """Run ``selected`` stages in the order of ``stages``; returns {stage: "ran" | "skipped"}.
+
+    Dependencies not selected must already be up to date on disk (their outputs are read from the record).
+    """
+    by_name = {s.name: s for s in stages}
+    unknown = [s for s in selected if s not in by_name]
+    if unknown:
+        raise ToolkitError(f"unknown stage(s) {unknown}; stages are {list(by_name)} or 'all'")
+    prints: dict[str, str] = {}
+    status: dict[str, str] = {}
+    for stage in stages:
+        missing_dep = [d for d in stage.depends if d not in prints]
+        if missing_dep:
+            raise ToolkitError(f"stage '{stage.name}' depends on unknown stage(s) {missing_dep}")
+        fp = fingerprint(stage, ctx.config, prints)
+        prints[stage.name] = fp
+        rec_path = _record_path(ctx.run_dir, stage.name)
+        record = json.loads(rec_path.read_text()) if rec_path.exists() else None
+        up_to_date = (
+            record is not None and record.get("fingerprint") == fp
+            and all((ctx.run_dir / p).exists() for p in record.get("outputs", {}).values())
+        )
+        if stage.name not in selected:
+            if up_to_date:
+                ctx.outputs[stage.name] = record["outputs"]
+            continue
+        if up_to_date and stage.name not in force:
+            ctx.outputs[stage.name] = record["outputs"]
+            ctx.log(f"[{stage.name}] up to date, skipped")
+            status[stage.name] = "skipped"
+            continue
+        for d in stage.depends:
+            if d not in ctx.outputs:
+                raise ToolkitError(f"stage '{stage.name}' needs stage '{d}', which has not run in {ctx.run_dir}")
+        ctx.log(f"[{stage.name}] running")
+        t0 = time.perf_counter()
+        outputs = stage.run(ctx)
+        for k, p in outputs.items():
+            if not (ctx.run_dir / p).exists():
+                raise ToolkitError(f"stage '{stage.name}' did not write its output {k} ({p})")
+        atomic_write_json(rec_path, {"fingerprint": fp, "outputs": outputs, "seconds": time.perf_counter() - t0})
+        ctx.outputs[stage.name] = outputs
+        status[stage.name] = "ran"
+    return status
