@@ -122,23 +122,32 @@ class _Sweep:
         return g, prm, dx, dy, alpha, unclamped
 
     def transmit(self, A: torch.Tensor, alpha: torch.Tensor):
-        """Front-to-back compositing of one chunk: weights w [nA, B, P], T before each Gaussian, inclusion
-        mask; updates T and the terminated flags of tiles A."""
+        """Front-to-back compositing of one chunk: weights w [nA, B, P] (zero past each pixel's stop) and
+        TB [nA, B + 1, P], the transmittance before each Gaussian and after the last; updates T and the
+        terminated flags of tiles A."""
         T_old = self.T.index_select(0, A)
         done_old = self.done.index_select(0, A)
-        T_in = T_old.masked_fill(done_old, 0.0)
+        T_in = T_old.masked_fill(done_old, 0.0)  # terminated pixels composite nothing more (w = 0)
         nA, B, P = alpha.shape
         TB = alpha.new_empty(nA, B + 1, P)
         TB[:, 0] = T_in
         torch.mul(torch.cumprod(1.0 - alpha, 1), T_in[:, None], out=TB[:, 1:])
-        T_before = TB[:, :-1]
-        incl = TB[:, 1:] > self.cfg.t_min  # a prefix along B: T only decreases
-        w = torch.mul(alpha, T_before).mul_(incl)
-        n_incl = incl.sum(1, keepdim=True)
-        T_new = torch.where(done_old, T_old, TB.gather(1, n_incl).squeeze(1))
+        w = torch.mul(alpha, TB[:, :-1])
+        last = TB[:, -1]
+        # T only decreases along the chunk, so a pixel whose T after the whole chunk is still above t_min
+        # keeps every Gaussian of it: the stop mask is only built for the few tiles where some pixel stops.
+        stopping = (last <= self.cfg.t_min) & ~done_old
+        T_new = torch.where(done_old, T_old, last)
+        S = torch.nonzero(stopping.any(1)).flatten()
+        if S.numel():
+            TBs = TB.index_select(0, S)
+            incl = TBs[:, 1:] > self.cfg.t_min  # a prefix along B
+            w.index_copy_(0, S, w.index_select(0, S).mul_(incl))
+            T_stop = TBs.gather(1, incl.sum(1, keepdim=True)).squeeze(1)
+            T_new.index_copy_(0, S, torch.where(stopping.index_select(0, S), T_stop, T_new.index_select(0, S)))
         self.T.index_copy_(0, A, T_new)
-        self.done.index_copy_(0, A, done_old | ~incl[:, -1])
-        return w, TB, incl
+        self.done.index_copy_(0, A, done_old | stopping)
+        return w, TB
 
 
 def to_tiles(img: torch.Tensor, bins: TileBins) -> torch.Tensor:
@@ -185,7 +194,7 @@ class RasterizeTiles(torch.autograd.Function):
         B = cfg.chunk
         for k, A in sweep.rounds():
             g, _, _, _, alpha, _ = sweep.alphas(table, A, k, check_sigma)
-            w, _, _ = sweep.transmit(A, alpha)
+            w, _ = sweep.transmit(A, alpha)
             cols_t = col_tab.index_select(0, g).view(A.numel(), B, D).transpose(1, 2).contiguous()
             acc.index_add_(0, A, torch.bmm(cols_t, w))
         C_t = torch.addcmul(acc, sweep.T[:, None, :], background[None, :, None])
@@ -226,7 +235,7 @@ class RasterizeTiles(torch.autograd.Function):
         for k, A in sweep.rounds():
             nA = A.numel()
             g, prm, dx, dy, alpha, unclamped = sweep.alphas(table, A, k, ctx.check_sigma, clamp_possible)
-            w, TB, incl = sweep.transmit(A, alpha)
+            w, TB = sweep.transmit(A, alpha)
             gA = g_t.index_select(0, A)  # [nA, D, P]
             cols = col_tab.index_select(0, g).view(nA, B, D)
             cg = torch.bmm(cols, gA)  # [nA, B, P] c_i . g
