@@ -59,7 +59,7 @@ class _Sweep:
         self.bins, self.cfg, self.dtype = bins, cfg, dtype
         ts = bins.tile_size
         nt, P = bins.num_tiles, ts * ts
-        self.ar_b = torch.arange(cfg.chunk, device=device)
+        self.device = device
         self.ar_t = torch.arange(ts, device=device)
         self.T = torch.ones(nt, P, dtype=dtype, device=device)
         # Pixels of edge tiles that lie outside the image start terminated, so they never hold a tile back.
@@ -69,7 +69,6 @@ class _Sweep:
         row = (ty.reshape(-1, 1, 1) * ts + self.ar_t.view(1, ts, 1))
         self.inside = ((col < width) & (row < height)).view(nt, P)
         self.done = ~self.inside
-        self.slice_tiles = max(1, cfg.max_elements // (cfg.chunk * P))
         self.log_amax = math.log(cfg.alpha_max)
         # threshold() keeps x > thr: the largest value below alpha_min (in this dtype) keeps alpha >= alpha_min.
         amin = torch.tensor(cfg.alpha_min, dtype=dtype)
@@ -78,28 +77,34 @@ class _Sweep:
         self.tiles_terminated = 0
 
     def rounds(self):
-        """Yield (k, A): round index and a slice of active tile ids; state updates between yields."""
-        bins, B = self.bins, self.cfg.chunk
+        """Yield (pos, B, A): list offset, chunk length and a slice of active tile ids; the state is updated
+        by :meth:`transmit` between yields. As tiles leave the sweep the chunk grows (up to 8x ``chunk``) so
+        a round stays about as large as the first one: long-tailed tile lists then take few rounds."""
+        bins, B0, P = self.bins, self.cfg.chunk, self.bins.tile_size ** 2
         active = torch.nonzero(bins.counts > 0).flatten()
-        k = 0
+        target = active.numel() * B0
+        pos = 0
         while active.numel() > 0:
-            for A in active.split(self.slice_tiles):
-                yield k, A
-            k += 1
-            more = active[bins.counts.index_select(0, active) > k * B]
+            longest = int(bins.counts.index_select(0, active).max()) - pos
+            B = max(1, min(longest, max(B0, min(8 * B0, target // active.numel()))))
+            for A in active.split(max(1, self.cfg.max_elements // (B * P))):
+                yield pos, B, A
+            pos += B
+            self.rounds_run += 1
+            more = active[bins.counts.index_select(0, active) > pos]
             left = ~self.done.index_select(0, more).all(1)
             self.tiles_terminated += int(more.numel() - int(left.sum()))
             active = more[left]
-        self.rounds_run = k
 
-    def alphas(self, table: torch.Tensor, A: torch.Tensor, k: int, check_sigma: bool, want_unclamped: bool = False):
-        """Alphas [nA, B, P] of chunk k for tiles A, with the gathered Gaussian ids and pixel offsets (and,
-        when asked, the mask of alphas below the alpha_max clamp, where dalpha/dt = alpha)."""
-        bins, B, ts = self.bins, self.cfg.chunk, self.bins.tile_size
+    def alphas(self, table: torch.Tensor, A: torch.Tensor, pos: int, B: int, check_sigma: bool,
+               want_unclamped: bool = False):
+        """Alphas [nA, B, P] of list entries pos .. pos + B - 1 of tiles A, with the gathered Gaussian ids and
+        pixel offsets (and, when asked, the mask of alphas below the alpha_max clamp, where dalpha/dt = alpha)."""
+        bins, ts = self.bins, self.bins.tile_size
         nA = A.numel()
         start = bins.starts.index_select(0, A)
         end = start + bins.counts.index_select(0, A)
-        idx = (start + k * B)[:, None] + self.ar_b[None, :]
+        idx = (start + pos)[:, None] + torch.arange(B, device=self.device)[None, :]
         idx = torch.where(idx < end[:, None], idx, torch.full_like(idx, bins.n_pairs))
         g = bins.gids.index_select(0, idx.view(-1))
         prm = table.index_select(0, g).view(nA, B, -1)
@@ -191,9 +196,8 @@ class RasterizeTiles(torch.autograd.Function):
         col_tab = torch.cat([colors, colors.new_zeros(1, D)], 0)
         sweep = _Sweep(bins, width, height, cfg, dtype, device)
         acc = torch.zeros(bins.num_tiles, D, bins.tile_size ** 2, dtype=dtype, device=device)
-        B = cfg.chunk
-        for k, A in sweep.rounds():
-            g, _, _, _, alpha, _ = sweep.alphas(table, A, k, check_sigma)
+        for pos, B, A in sweep.rounds():
+            g, _, _, _, alpha, _ = sweep.alphas(table, A, pos, B, check_sigma)
             w, _ = sweep.transmit(A, alpha)
             cols_t = col_tab.index_select(0, g).view(A.numel(), B, D).transpose(1, 2).contiguous()
             acc.index_add_(0, A, torch.bmm(cols_t, w))
@@ -212,7 +216,6 @@ class RasterizeTiles(torch.autograd.Function):
         bins, (width, height), cfg = ctx.bins, ctx.size, ctx.cfg
         dtype, device = colors.dtype, colors.device
         M, D = colors.shape
-        B = cfg.chunk
         if grad_image is None:
             grad_image = torch.zeros(height, width, D, dtype=dtype, device=device)
         if grad_alpha is None:
@@ -232,9 +235,9 @@ class RasterizeTiles(torch.autograd.Function):
         # alpha can only hit the alpha_max clamp (where dalpha/dt = 0) if some opacity reaches it.
         clamp_possible = bool(opacities.numel()) and float(opacities.max()) >= cfg.alpha_max
         base = Q - gaT  # per pixel: C . g minus the alpha-output term (dA/dalpha_i = T_final / (1 - alpha_i))
-        for k, A in sweep.rounds():
+        for pos, B, A in sweep.rounds():
             nA = A.numel()
-            g, prm, dx, dy, alpha, unclamped = sweep.alphas(table, A, k, ctx.check_sigma, clamp_possible)
+            g, prm, dx, dy, alpha, unclamped = sweep.alphas(table, A, pos, B, ctx.check_sigma, clamp_possible)
             w, TB = sweep.transmit(A, alpha)
             gA = g_t.index_select(0, A)  # [nA, D, P]
             cols = col_tab.index_select(0, g).view(nA, B, D)
