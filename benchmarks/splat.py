@@ -19,6 +19,7 @@ import concurrent.futures as cf
 import multiprocessing as mp
 import os
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -99,10 +100,16 @@ def run_config(cfg: dict) -> dict:
         (img.square().sum() + alpha.sum()).backward()
 
     reps = cfg.get("repeats", 3)
+    c0 = time.process_time()
     t_fwd = timeit(fwd, repeats=reps, warmup=1, sync_cuda=sync)
+    c1 = time.process_time()
     t_fb = timeit(fwd_bwd, repeats=reps, warmup=1, sync_cuda=sync)
+    c2 = time.process_time()
     img, _, meta = fwd()
+    # CPU seconds of this process per call (mean over warm-up + repeats): on a loaded shared machine this is
+    # closer to what an idle machine's wall clock would show than the wall clock itself.
     row = dict(scene=cfg["kind"], N=cfg["n"], res=cfg["res"], D=cfg["d"], fwd_s=t_fwd, fwd_bwd_s=t_fb,
+               fwd_cpu_s=(c1 - c0) / (reps + 1), fwd_bwd_cpu_s=(c2 - c1) / (reps + 1),
                peak_rss_gb=peak_rss_gb(), rss_over_base_gb=peak_rss_gb() - base_rss,
                pairs=meta["counters"]["intersections"], rounds=meta["counters"]["rounds"])
     if sync:
@@ -157,7 +164,7 @@ def main(argv=None) -> int:
     rows = run_all(cfgs)
     for r, c in zip(rows, cfgs):
         r["device"] = c["device"]
-    cols = ["device", "scene", "N", "res", "D", "fwd_s", "fwd_bwd_s", "peak_rss_gb", "rss_over_base_gb", "pairs",
+    cols = ["device", "scene", "N", "res", "D", "fwd_s", "fwd_bwd_s", "fwd_cpu_s", "fwd_bwd_cpu_s", "peak_rss_gb", "rss_over_base_gb", "pairs",
             "rounds", "max_err", "frac_gt_1e5"]
     print(format_table(rows, cols))
     series = {}
@@ -184,7 +191,7 @@ def main(argv=None) -> int:
         krows = run_all(kcfgs)
         for r, k in zip(krows, knobs):
             r["knob"] = ", ".join(f"{kk}={v:.4g}" if isinstance(v, float) else f"{kk}={v}" for kk, v in k.items())
-        print(format_table(krows, ["knob", "fwd_s", "fwd_bwd_s", "peak_rss_gb", "pairs", "rounds", "max_err",
+        print(format_table(krows, ["knob", "fwd_s", "fwd_bwd_s", "fwd_cpu_s", "fwd_bwd_cpu_s", "peak_rss_gb", "pairs", "rounds", "max_err",
                                    "frac_gt_1e5"]))
         ks: dict = {}
         for r, k in zip(krows, knobs):
