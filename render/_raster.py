@@ -1,15 +1,18 @@
 """Tile rasterization of projected Gaussians as one custom autograd Function.
 
-Work is organised in *rounds*: in round k every still-active tile takes the k-th chunk of ``chunk``
-Gaussians from its depth-sorted list, so one round is a handful of large batched tensor ops over
-[tiles, chunk, pixels-per-tile]. A tile leaves the sweep when its list is exhausted or when every one of its
-pixels has terminated (T (1 - alpha) <= T_MIN), so empty tiles and finished pixels cost nothing more.
+Work is organised in *rounds*: in each round every still-active tile takes its next chunk of Gaussians
+from its depth-sorted list (``chunk`` entries, more once few tiles are left), so one round is a handful of
+large batched tensor ops over [tiles, chunk, pixels-per-tile]. A tile leaves the sweep when its list is
+exhausted or when every one of its pixels has terminated (T (1 - alpha) <= T_MIN), so empty tiles and
+finished pixels cost nothing more.
 
-Memory-lean backward: nothing of size [pixels x Gaussians] is saved. The backward re-runs the same rounds
-(bit-identical alphas and transmittances) and gets the colour seen *behind* each Gaussian from the saved
-final colour: R_i = C - sum_{j <= i} w_j c_j (this includes T_final * background), the identity the 3DGS
-back-to-front pass evaluates by accumulation. Projecting on dL/dC first keeps the suffix sums [tiles,
-chunk, pixels] instead of [..., D].
+Memory-lean backward: nothing of size [pixels x Gaussians] is saved (only the final colour and T per pixel).
+The backward re-runs the same rounds (bit-identical alphas and transmittances, hence the same stops) and
+gets the colour seen *behind* each Gaussian from the saved final colour: R_i = C - sum_{j <= i} w_j c_j
+(which includes T_final * background). This is the quantity the 3DGS back-to-front pass accumulates; going
+front to back from T = 1 instead of dividing T_final by (1 - alpha) step after step avoids that recurrence's
+error growth and costs the same memory. Projecting on dL/dC first keeps the running sums [tiles, chunk,
+pixels] instead of [..., D].
 """
 
 from __future__ import annotations
