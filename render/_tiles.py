@@ -45,9 +45,9 @@ class TileBins:
         return self.tiles_x * self.tiles_y
 
 
-def opacity_levels(opacities: torch.Tensor) -> torch.Tensor:
-    """[M] ln(255 o): the sigma below which alpha = o exp(-sigma) reaches 1/255 (<= 0: never visible)."""
-    return torch.log(opacities.clamp_min(1e-30) / ALPHA_MIN)
+def opacity_levels(opacities: torch.Tensor, alpha_min: float = ALPHA_MIN) -> torch.Tensor:
+    """[M] ln(o / alpha_min): the sigma below which alpha = o exp(-sigma) reaches alpha_min (<= 0: never)."""
+    return torch.log(opacities.clamp_min(1e-30) / alpha_min)
 
 
 def _quad(a, b, c, dx, dy):
@@ -98,7 +98,7 @@ def _test_candidates(g0, g1, n_per, tx0, ty0, nx, means2d, conics, level_s, widt
 
 @torch.no_grad()
 def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, cov2d: torch.Tensor, opacities: torch.Tensor,
-                  width: int, height: int, tile_size: int) -> TileBins:
+                  width: int, height: int, tile_size: int, alpha_min: float = ALPHA_MIN) -> TileBins:
     """means2d [M, 2], conics [M, 3], cov2d [M, 3] (dilated xx, xy, yy), opacities [M], all for Gaussians
     already sorted front to back -> TileBins. No Python loop over Gaussians or tiles (only over groups of
     ~2M candidate pairs, to bound memory)."""
@@ -106,7 +106,7 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, cov2d: torch.Tens
     ts = int(tile_size)
     tx_n, ty_n = math.ceil(width / ts), math.ceil(height / ts)
     m = means2d.shape[0]
-    level = opacity_levels(opacities)
+    level = opacity_levels(opacities, alpha_min)
     level_s = level * (1 + _LEVEL_SLACK) + _LEVEL_SLACK
     lvl = level_s.clamp_min(0)
     # Half-extents of the opacity ellipse: max |dx| on {sigma <= L} is sqrt(2 L cov_xx).

@@ -164,7 +164,7 @@ def rasterize(
             bg = torch.cat([bg, bg.new_zeros(1)])
         with torch.no_grad():
             bins = bin_gaussians(m2d.detach(), con.detach(), proj.cov2d[c].index_select(0, ids).detach(), op.detach(),
-                                 width, height, tile_size)
+                                 width, height, tile_size, cfg.alpha_min)
             cd = con.detach()
             thin = bool((cd[:, 1] ** 2 > _THIN_CORRELATION * cd[:, 0] * cd[:, 2]).any()) if ids.numel() else False
         stats: dict[str, int] = {}

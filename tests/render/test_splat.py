@@ -274,3 +274,13 @@ def test_binning_in_candidate_groups_is_identical(monkeypatch):
     b, bb, mb = rasterize(means, quats, scales, opac, feats, V, K, 40, 30)
     assert torch.equal(a, b) and torch.equal(aa, bb)
     assert ma["counters"] == mb["counters"]
+
+
+@pytest.mark.parametrize("alpha_min", [0.5 / 255, 4 / 255])
+def test_alpha_threshold_knob_matches_reference(alpha_min):
+    means, quats, scales, opac, feats = ref.random_cloud(80, 3, seed=15)
+    V, K = ref.camera(40, 30)
+    img, alpha, _ = rasterize(means, quats, scales, opac, feats, V, K, 40, 30, alpha_min=alpha_min, t_min=1e-3)
+    rimg, ralpha = ref.render(means, quats, scales, opac, feats, V, K, 40, 30, alpha_min=alpha_min, t_min=1e-3)
+    _agree(img, rimg)
+    _agree(alpha, ralpha)
