@@ -1,15 +1,18 @@
 """Tile rasterization of projected Gaussians as one custom autograd Function.
 
-Work is organised in *rounds*: in round k every still-active tile takes the k-th chunk of ``chunk``
-Gaussians from its depth-sorted list, so one round is a handful of large batched tensor ops over
-[tiles, chunk, pixels-per-tile]. A tile leaves the sweep when its list is exhausted or when every one of its
-pixels has terminated (T (1 - alpha) <= T_MIN), so empty tiles and finished pixels cost nothing more.
+Work is organised in *rounds*: in each round every still-active tile takes its next chunk of Gaussians
+from its depth-sorted list (``chunk`` entries, more once few tiles are left), so one round is a handful of
+large batched tensor ops over [tiles, chunk, pixels-per-tile]. A tile leaves the sweep when its list is
+exhausted or when every one of its pixels has terminated (T (1 - alpha) <= T_MIN), so empty tiles and
+finished pixels cost nothing more.
 
-Memory-lean backward: nothing of size [pixels x Gaussians] is saved. The backward re-runs the same rounds
-(bit-identical alphas and transmittances) and gets the colour seen *behind* each Gaussian from the saved
-final colour: R_i = C - sum_{j <= i} w_j c_j (this includes T_final * background), the identity the 3DGS
-back-to-front pass evaluates by accumulation. Projecting on dL/dC first keeps the suffix sums [tiles,
-chunk, pixels] instead of [..., D].
+Memory-lean backward: nothing of size [pixels x Gaussians] is saved (only the final colour and T per pixel).
+The backward re-runs the same rounds (bit-identical alphas and transmittances, hence the same stops) and
+gets the colour seen *behind* each Gaussian from the saved final colour: R_i = C - sum_{j <= i} w_j c_j
+(which includes T_final * background). This is the quantity the 3DGS back-to-front pass accumulates; going
+front to back from T = 1 instead of dividing T_final by (1 - alpha) step after step avoids that recurrence's
+error growth and costs the same memory. Projecting on dL/dC first keeps the running sums [tiles, chunk,
+pixels] instead of [..., D].
 """
 
 from __future__ import annotations
@@ -59,7 +62,7 @@ class _Sweep:
         self.bins, self.cfg, self.dtype = bins, cfg, dtype
         ts = bins.tile_size
         nt, P = bins.num_tiles, ts * ts
-        self.ar_b = torch.arange(cfg.chunk, device=device)
+        self.device = device
         self.ar_t = torch.arange(ts, device=device)
         self.T = torch.ones(nt, P, dtype=dtype, device=device)
         # Pixels of edge tiles that lie outside the image start terminated, so they never hold a tile back.
@@ -69,7 +72,6 @@ class _Sweep:
         row = (ty.reshape(-1, 1, 1) * ts + self.ar_t.view(1, ts, 1))
         self.inside = ((col < width) & (row < height)).view(nt, P)
         self.done = ~self.inside
-        self.slice_tiles = max(1, cfg.max_elements // (cfg.chunk * P))
         self.log_amax = math.log(cfg.alpha_max)
         # threshold() keeps x > thr: the largest value below alpha_min (in this dtype) keeps alpha >= alpha_min.
         amin = torch.tensor(cfg.alpha_min, dtype=dtype)
@@ -78,28 +80,34 @@ class _Sweep:
         self.tiles_terminated = 0
 
     def rounds(self):
-        """Yield (k, A): round index and a slice of active tile ids; state updates between yields."""
-        bins, B = self.bins, self.cfg.chunk
+        """Yield (pos, B, A): list offset, chunk length and a slice of active tile ids; the state is updated
+        by :meth:`transmit` between yields. As tiles leave the sweep the chunk grows (up to 8x ``chunk``) so
+        a round stays about as large as the first one: long-tailed tile lists then take few rounds."""
+        bins, B0, P = self.bins, self.cfg.chunk, self.bins.tile_size ** 2
         active = torch.nonzero(bins.counts > 0).flatten()
-        k = 0
+        target = active.numel() * B0
+        pos = 0
         while active.numel() > 0:
-            for A in active.split(self.slice_tiles):
-                yield k, A
-            k += 1
-            more = active[bins.counts.index_select(0, active) > k * B]
+            longest = int(bins.counts.index_select(0, active).max()) - pos
+            B = max(1, min(longest, max(B0, min(8 * B0, target // active.numel()))))
+            for A in active.split(max(1, self.cfg.max_elements // (B * P))):
+                yield pos, B, A
+            pos += B
+            self.rounds_run += 1
+            more = active[bins.counts.index_select(0, active) > pos]
             left = ~self.done.index_select(0, more).all(1)
             self.tiles_terminated += int(more.numel() - int(left.sum()))
             active = more[left]
-        self.rounds_run = k
 
-    def alphas(self, table: torch.Tensor, A: torch.Tensor, k: int, check_sigma: bool, want_unclamped: bool = False):
-        """Alphas [nA, B, P] of chunk k for tiles A, with the gathered Gaussian ids and pixel offsets (and,
-        when asked, the mask of alphas below the alpha_max clamp, where dalpha/dt = alpha)."""
-        bins, B, ts = self.bins, self.cfg.chunk, self.bins.tile_size
+    def alphas(self, table: torch.Tensor, A: torch.Tensor, pos: int, B: int, check_sigma: bool,
+               want_unclamped: bool = False):
+        """Alphas [nA, B, P] of list entries pos .. pos + B - 1 of tiles A, with the gathered Gaussian ids and
+        pixel offsets (and, when asked, the mask of alphas below the alpha_max clamp, where dalpha/dt = alpha)."""
+        bins, ts = self.bins, self.bins.tile_size
         nA = A.numel()
         start = bins.starts.index_select(0, A)
         end = start + bins.counts.index_select(0, A)
-        idx = (start + k * B)[:, None] + self.ar_b[None, :]
+        idx = (start + pos)[:, None] + torch.arange(B, device=self.device)[None, :]
         idx = torch.where(idx < end[:, None], idx, torch.full_like(idx, bins.n_pairs))
         g = bins.gids.index_select(0, idx.view(-1))
         prm = table.index_select(0, g).view(nA, B, -1)
@@ -122,23 +130,32 @@ class _Sweep:
         return g, prm, dx, dy, alpha, unclamped
 
     def transmit(self, A: torch.Tensor, alpha: torch.Tensor):
-        """Front-to-back compositing of one chunk: weights w [nA, B, P], T before each Gaussian, inclusion
-        mask; updates T and the terminated flags of tiles A."""
+        """Front-to-back compositing of one chunk: weights w [nA, B, P] (zero past each pixel's stop) and
+        TB [nA, B + 1, P], the transmittance before each Gaussian and after the last; updates T and the
+        terminated flags of tiles A."""
         T_old = self.T.index_select(0, A)
         done_old = self.done.index_select(0, A)
-        T_in = T_old.masked_fill(done_old, 0.0)
+        T_in = T_old.masked_fill(done_old, 0.0)  # terminated pixels composite nothing more (w = 0)
         nA, B, P = alpha.shape
         TB = alpha.new_empty(nA, B + 1, P)
         TB[:, 0] = T_in
         torch.mul(torch.cumprod(1.0 - alpha, 1), T_in[:, None], out=TB[:, 1:])
-        T_before = TB[:, :-1]
-        incl = TB[:, 1:] > self.cfg.t_min  # a prefix along B: T only decreases
-        w = torch.mul(alpha, T_before).mul_(incl)
-        n_incl = incl.sum(1, keepdim=True)
-        T_new = torch.where(done_old, T_old, TB.gather(1, n_incl).squeeze(1))
+        w = torch.mul(alpha, TB[:, :-1])
+        last = TB[:, -1]
+        # T only decreases along the chunk, so a pixel whose T after the whole chunk is still above t_min
+        # keeps every Gaussian of it: the stop mask is only built for the few tiles where some pixel stops.
+        stopping = (last <= self.cfg.t_min) & ~done_old
+        T_new = torch.where(done_old, T_old, last)
+        S = torch.nonzero(stopping.any(1)).flatten()
+        if S.numel():
+            TBs = TB.index_select(0, S)
+            incl = TBs[:, 1:] > self.cfg.t_min  # a prefix along B
+            w.index_copy_(0, S, w.index_select(0, S).mul_(incl))
+            T_stop = TBs.gather(1, incl.sum(1, keepdim=True)).squeeze(1)
+            T_new.index_copy_(0, S, torch.where(stopping.index_select(0, S), T_stop, T_new.index_select(0, S)))
         self.T.index_copy_(0, A, T_new)
-        self.done.index_copy_(0, A, done_old | ~incl[:, -1])
-        return w, TB, incl
+        self.done.index_copy_(0, A, done_old | stopping)
+        return w, TB
 
 
 def to_tiles(img: torch.Tensor, bins: TileBins) -> torch.Tensor:
@@ -182,10 +199,9 @@ class RasterizeTiles(torch.autograd.Function):
         col_tab = torch.cat([colors, colors.new_zeros(1, D)], 0)
         sweep = _Sweep(bins, width, height, cfg, dtype, device)
         acc = torch.zeros(bins.num_tiles, D, bins.tile_size ** 2, dtype=dtype, device=device)
-        B = cfg.chunk
-        for k, A in sweep.rounds():
-            g, _, _, _, alpha, _ = sweep.alphas(table, A, k, check_sigma)
-            w, _, _ = sweep.transmit(A, alpha)
+        for pos, B, A in sweep.rounds():
+            g, _, _, _, alpha, _ = sweep.alphas(table, A, pos, B, check_sigma)
+            w, _ = sweep.transmit(A, alpha)
             cols_t = col_tab.index_select(0, g).view(A.numel(), B, D).transpose(1, 2).contiguous()
             acc.index_add_(0, A, torch.bmm(cols_t, w))
         C_t = torch.addcmul(acc, sweep.T[:, None, :], background[None, :, None])
@@ -203,7 +219,6 @@ class RasterizeTiles(torch.autograd.Function):
         bins, (width, height), cfg = ctx.bins, ctx.size, ctx.cfg
         dtype, device = colors.dtype, colors.device
         M, D = colors.shape
-        B = cfg.chunk
         if grad_image is None:
             grad_image = torch.zeros(height, width, D, dtype=dtype, device=device)
         if grad_alpha is None:
@@ -223,10 +238,10 @@ class RasterizeTiles(torch.autograd.Function):
         # alpha can only hit the alpha_max clamp (where dalpha/dt = 0) if some opacity reaches it.
         clamp_possible = bool(opacities.numel()) and float(opacities.max()) >= cfg.alpha_max
         base = Q - gaT  # per pixel: C . g minus the alpha-output term (dA/dalpha_i = T_final / (1 - alpha_i))
-        for k, A in sweep.rounds():
+        for pos, B, A in sweep.rounds():
             nA = A.numel()
-            g, prm, dx, dy, alpha, unclamped = sweep.alphas(table, A, k, ctx.check_sigma, clamp_possible)
-            w, TB, incl = sweep.transmit(A, alpha)
+            g, prm, dx, dy, alpha, unclamped = sweep.alphas(table, A, pos, B, ctx.check_sigma, clamp_possible)
+            w, TB = sweep.transmit(A, alpha)
             gA = g_t.index_select(0, A)  # [nA, D, P]
             cols = col_tab.index_select(0, g).view(nA, B, D)
             cg = torch.bmm(cols, gA)  # [nA, B, P] c_i . g

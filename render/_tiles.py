@@ -45,9 +45,9 @@ class TileBins:
         return self.tiles_x * self.tiles_y
 
 
-def opacity_levels(opacities: torch.Tensor) -> torch.Tensor:
-    """[M] ln(255 o): the sigma below which alpha = o exp(-sigma) reaches 1/255 (<= 0: never visible)."""
-    return torch.log(opacities.clamp_min(1e-30) / ALPHA_MIN)
+def opacity_levels(opacities: torch.Tensor, alpha_min: float = ALPHA_MIN) -> torch.Tensor:
+    """[M] ln(o / alpha_min): the sigma below which alpha = o exp(-sigma) reaches alpha_min (<= 0: never)."""
+    return torch.log(opacities.clamp_min(1e-30) / alpha_min)
 
 
 def _quad(a, b, c, dx, dy):
@@ -69,16 +69,44 @@ def _rect_min_sigma(a, b, c, xlo, xhi, ylo, yhi):
     return torch.where(inside, torch.zeros_like(best), best)
 
 
+_CANDIDATE_BUDGET = 1 << 21
+
+
+def _test_candidates(g0, g1, n_per, tx0, ty0, nx, means2d, conics, level_s, width, height, ts, tx_n):
+    """Expand Gaussians g0 .. g1 - 1 into their candidate tiles and keep the pairs whose opacity ellipse
+    reaches the tile's pixel centres -> (gid [K], tile_id [K]) in Gaussian order."""
+    device = means2d.device
+    n_sub = n_per[g0:g1]
+    total = int(n_sub.sum())
+    gid = torch.repeat_interleave(torch.arange(g0, g1, device=device), n_sub, output_size=total)
+    first = torch.cumsum(n_sub, 0) - n_sub
+    local = torch.arange(total, device=device) - first.index_select(0, gid - g0)
+    nxg = nx.index_select(0, gid).clamp_min(1)
+    tile_x = tx0.index_select(0, gid) + local % nxg
+    tile_y = ty0.index_select(0, gid) + torch.div(local, nxg, rounding_mode="floor")
+    dt = means2d.dtype
+    x0 = (tile_x * ts).to(dt) + 0.5
+    x1 = torch.clamp_max((tile_x * ts + ts), width).to(dt) - 0.5
+    y0 = (tile_y * ts).to(dt) + 0.5
+    y1 = torch.clamp_max((tile_y * ts + ts), height).to(dt) - 0.5
+    mxg, myg = means2d[:, 0].index_select(0, gid), means2d[:, 1].index_select(0, gid)
+    cg = conics.index_select(0, gid)
+    smin = _rect_min_sigma(cg[:, 0], cg[:, 1], cg[:, 2], x0 - mxg, x1 - mxg, y0 - myg, y1 - myg)
+    keep = smin <= level_s.index_select(0, gid)
+    return gid[keep], (tile_y * tx_n + tile_x)[keep]
+
+
 @torch.no_grad()
 def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, cov2d: torch.Tensor, opacities: torch.Tensor,
-                  width: int, height: int, tile_size: int) -> TileBins:
+                  width: int, height: int, tile_size: int, alpha_min: float = ALPHA_MIN) -> TileBins:
     """means2d [M, 2], conics [M, 3], cov2d [M, 3] (dilated xx, xy, yy), opacities [M], all for Gaussians
-    already sorted front to back -> TileBins. No Python loop over Gaussians or tiles."""
+    already sorted front to back -> TileBins. No Python loop over Gaussians or tiles (only over groups of
+    ~2M candidate pairs, to bound memory)."""
     device = means2d.device
     ts = int(tile_size)
     tx_n, ty_n = math.ceil(width / ts), math.ceil(height / ts)
     m = means2d.shape[0]
-    level = opacity_levels(opacities)
+    level = opacity_levels(opacities, alpha_min)
     level_s = level * (1 + _LEVEL_SLACK) + _LEVEL_SLACK
     lvl = level_s.clamp_min(0)
     # Half-extents of the opacity ellipse: max |dx| on {sigma <= L} is sqrt(2 L cov_xx).
@@ -101,25 +129,22 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, cov2d: torch.Tens
     n_per = torch.where(ok, nx * ny, torch.zeros_like(nx))
     n_cand = int(n_per.sum())
 
-    gid = torch.repeat_interleave(torch.arange(m, device=device), n_per, output_size=n_cand)
-    first = torch.cumsum(n_per, 0) - n_per
-    local = torch.arange(n_cand, device=device) - first.index_select(0, gid)
-    nxg = nx.index_select(0, gid)
-    tile_x = tx0.index_select(0, gid) + local % nxg.clamp_min(1)
-    tile_y = ty0.index_select(0, gid) + torch.div(local, nxg.clamp_min(1), rounding_mode="floor")
-
-    # Exact test of each pair against the opacity ellipse over the tile's pixel centres.
-    dt = means2d.dtype
-    x0 = (tile_x * ts).to(dt) + 0.5
-    x1 = torch.clamp_max((tile_x * ts + ts), width).to(dt) - 0.5
-    y0 = (tile_y * ts).to(dt) + 0.5
-    y1 = torch.clamp_max((tile_y * ts + ts), height).to(dt) - 0.5
-    mxg, myg = mx.index_select(0, gid), my.index_select(0, gid)
-    cg = conics.index_select(0, gid)
-    smin = _rect_min_sigma(cg[:, 0], cg[:, 1], cg[:, 2], x0 - mxg, x1 - mxg, y0 - myg, y1 - myg)
-    keep = smin <= level_s.index_select(0, gid)
-    gid = gid[keep]
-    tile_id = (tile_y * tx_n + tile_x)[keep]
+    # Candidates are expanded and tested in groups of consecutive Gaussians so the per-candidate temporaries
+    # stay bounded (a few hundred MB at most) however many pairs a scene has.
+    cum = torch.cumsum(n_per, 0)
+    gids_kept, tiles_kept = [], []
+    g0 = 0
+    while g0 < m and n_cand:
+        before = int(cum[g0 - 1]) if g0 else 0
+        g1 = int(torch.searchsorted(cum, torch.tensor(before + _CANDIDATE_BUDGET, device=device), right=True))
+        g1 = max(g1, g0 + 1)
+        gid, tile_id = _test_candidates(g0, g1, n_per, tx0, ty0, nx, means2d, conics, level_s, width, height, ts,
+                                        tx_n)
+        gids_kept.append(gid)
+        tiles_kept.append(tile_id)
+        g0 = g1
+    gid = torch.cat(gids_kept) if gids_kept else torch.zeros(0, dtype=torch.long, device=device)
+    tile_id = torch.cat(tiles_kept) if tiles_kept else torch.zeros(0, dtype=torch.long, device=device)
 
     # Pairs were generated in Gaussian (= depth) order, so a stable sort by tile keeps depth order inside tiles.
     tile_id, order = torch.sort(tile_id, stable=True)

@@ -134,14 +134,14 @@ def rasterize(
             named["backgrounds"] = backgrounds
         _check_finite(named)
 
-    viewmats, Ks = viewmats.to(dtype), Ks.to(dtype)
+    viewmats, Ks = viewmats.to(means.device, dtype), Ks.to(means.device, dtype)
     proj = project_gaussians(means, quats.to(dtype), scales.to(dtype), viewmats, Ks, width, height, eps2d=eps2d,
                              near_plane=near_plane, far_plane=far_plane)
     if sh_degree is not None:
         centers = -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
         colors = sh_to_color(int(sh_degree), features.to(dtype), means, centers)  # [C, N, D]
     else:
-        colors = features.to(dtype)
+        colors = features.to(means.device, dtype)
     opac = opacities.to(dtype)
     cfg = RasterConfig(chunk=int(chunk), max_elements=int(max_elements), alpha_min=float(alpha_min),
                        t_min=float(t_min))
@@ -159,12 +159,12 @@ def rasterize(
         col = (colors[c] if colors.dim() == 3 else colors).index_select(0, ids)
         if return_depth:
             col = torch.cat([col, proj.depths[c].index_select(0, ids)[:, None]], -1)
-        bg = backgrounds[c].to(dtype) if backgrounds is not None else colors.new_zeros(D)
+        bg = backgrounds[c].to(means.device, dtype) if backgrounds is not None else colors.new_zeros(D)
         if return_depth:
             bg = torch.cat([bg, bg.new_zeros(1)])
         with torch.no_grad():
             bins = bin_gaussians(m2d.detach(), con.detach(), proj.cov2d[c].index_select(0, ids).detach(), op.detach(),
-                                 width, height, tile_size)
+                                 width, height, tile_size, cfg.alpha_min)
             cd = con.detach()
             thin = bool((cd[:, 1] ** 2 > _THIN_CORRELATION * cd[:, 0] * cd[:, 2]).any()) if ids.numel() else False
         stats: dict[str, int] = {}

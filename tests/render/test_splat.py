@@ -262,3 +262,25 @@ def test_cuda_matches_cpu():
     gb = torch.autograd.grad(b.sum() + bb.sum(), gpu)
     for x, y in zip(ga, gb):
         assert torch.allclose(x, y.cpu(), rtol=1e-3, atol=1e-4)
+
+
+def test_binning_in_candidate_groups_is_identical(monkeypatch):
+    import render._tiles as tiles
+
+    means, quats, scales, opac, feats = ref.random_cloud(90, 3, seed=14)
+    V, K = ref.camera(40, 30)
+    a, aa, ma = rasterize(means, quats, scales, opac, feats, V, K, 40, 30)
+    monkeypatch.setattr(tiles, "_CANDIDATE_BUDGET", 7)  # many groups, some Gaussians alone in theirs
+    b, bb, mb = rasterize(means, quats, scales, opac, feats, V, K, 40, 30)
+    assert torch.equal(a, b) and torch.equal(aa, bb)
+    assert ma["counters"] == mb["counters"]
+
+
+@pytest.mark.parametrize("alpha_min", [0.5 / 255, 4 / 255])
+def test_alpha_threshold_knob_matches_reference(alpha_min):
+    means, quats, scales, opac, feats = ref.random_cloud(80, 3, seed=15)
+    V, K = ref.camera(40, 30)
+    img, alpha, _ = rasterize(means, quats, scales, opac, feats, V, K, 40, 30, alpha_min=alpha_min, t_min=1e-3)
+    rimg, ralpha = ref.render(means, quats, scales, opac, feats, V, K, 40, 30, alpha_min=alpha_min, t_min=1e-3)
+    _agree(img, rimg)
+    _agree(alpha, ralpha)

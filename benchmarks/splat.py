@@ -1,0 +1,213 @@
+"""Benchmark of render.splat: run time, peak memory and error against a dense reference.
+
+    .venv/bin/python benchmarks/splat.py            # full grid (several minutes on 2 cores)
+    .venv/bin/python benchmarks/splat.py --quick    # small subset (about a minute)
+
+Grid: N in {10k, 50k, 100k, 200k} x resolution {128, 256, 512} x D {3, 32}, on the procedural demo head
+(``toolkit.procedural.demo_head_scene`` framed by ``demo_camera``, the head fills the frame) and on a random
+cloud. Each configuration runs in a fresh subprocess so its peak RSS is its own. Error is the max |difference|
+against a dense (every pixel x every Gaussian, pixel-chunked) reference where that costs at most
+``--ref-budget`` pixel-Gaussian pairs, and the fraction of pixels that differ by more than 1e-5. A second
+table sweeps the knobs (tile size, chunk, alpha and T thresholds) on one scene, with the error against the
+default (reference) settings. Writes out/benchmarks/splat_grid.png and splat_knobs.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import multiprocessing as mp
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import OUT_DIR, format_table, machine_info, peak_rss_gb, save_plot, timeit  # noqa: E402
+
+
+def make_scene(kind: str, n: int, res: int, d: int, device: str):
+    """(args tuple for rasterize) for the demo head or a random cloud filling the same camera."""
+    from toolkit.procedural import demo_camera, demo_head_scene
+
+    cam = demo_camera(res, res)
+    g = torch.Generator().manual_seed(0)
+    if kind == "head":
+        s = demo_head_scene(n, seed=0)
+        means, quats, scales, opac = s.means, s.unit_quats, s.scales, s.opacities
+    else:
+        means = (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([0.2, 0.25, 0.2])
+        quats = torch.randn(n, 4, generator=g)
+        scales = torch.exp(torch.randn(n, 3, generator=g) * 0.5 - 5.5)
+        opac = torch.rand(n, generator=g) * 0.9 + 0.05
+    feats = torch.rand(n, d, generator=g)
+    t = [x.to(device) for x in (means, quats, scales, opac, feats, cam.viewmat[None], cam.K[None])]
+    return (*t, res, res)
+
+
+@torch.no_grad()
+def dense_reference(args):
+    """Every pixel x every visible Gaussian with the same projection and thresholds (front-to-back cumprod)."""
+    from render._raster import ALPHA_MAX, ALPHA_MIN, T_MIN
+    from render.projection import project_gaussians
+
+    means, quats, scales, opac, feats, V, K, w, h = args
+    p = project_gaussians(means, quats, scales, V, K, w, h)
+    vis = (p.radii[0] > 0).all(-1) & (opac > ALPHA_MIN)
+    ids = torch.nonzero(vis).flatten()
+    ids = ids[torch.argsort(p.depths[0, ids], stable=True)]
+    m2d, con, o, f = p.means2d[0, ids].double(), p.conics[0, ids].double(), opac[ids].double(), feats[ids].double()
+    jj, ii = torch.meshgrid(torch.arange(w), torch.arange(h), indexing="xy")
+    pix = torch.stack([jj.reshape(-1) + 0.5, ii.reshape(-1) + 0.5], -1).double()
+    out = torch.zeros(pix.shape[0], f.shape[1], dtype=torch.float64)
+    pixel_chunk = max(1, int(1e7 // max(1, ids.numel())))  # bounds the [pixels x Gaussians] temporaries
+    for s in range(0, pix.shape[0], pixel_chunk):
+        d = pix[s:s + pixel_chunk, None, :] - m2d[None]
+        sig = 0.5 * (con[:, 0] * d[..., 0] ** 2 + con[:, 2] * d[..., 1] ** 2) + con[:, 1] * d[..., 0] * d[..., 1]
+        a = torch.clamp(o * torch.exp(-sig), max=ALPHA_MAX)
+        a = torch.where((sig >= 0) & (a >= ALPHA_MIN), a, torch.zeros_like(a))
+        T_after = torch.cumprod(1 - a, 1)
+        T_before = torch.cat([torch.ones_like(T_after[:, :1]), T_after[:, :-1]], 1)
+        wgt = a * T_before * (T_after > T_MIN)
+        out[s:s + pixel_chunk] = wgt @ f
+    return out.view(h, w, -1).float()
+
+
+def run_config(cfg: dict) -> dict:
+    """One configuration in its own process: timings, peak RSS and error."""
+    torch.set_num_threads(cfg["threads"])
+    from render.splat import rasterize
+
+    dev = cfg.get("device", "cpu")
+    args = make_scene(cfg["kind"], cfg["n"], cfg["res"], cfg["d"], dev)
+    base_rss = peak_rss_gb()
+    kw = cfg.get("kw", {})
+    sync = dev == "cuda"
+
+    def fwd():
+        with torch.no_grad():
+            return rasterize(*args, **kw)
+
+    leaves = [args[0].clone().requires_grad_(True), args[1].clone().requires_grad_(True),
+              args[2].clone().requires_grad_(True), args[3].clone().requires_grad_(True),
+              args[4].clone().requires_grad_(True)]
+
+    def fwd_bwd():
+        img, alpha, _ = rasterize(*leaves, *args[5:], **kw)
+        (img.square().sum() + alpha.sum()).backward()
+
+    reps = cfg.get("repeats", 3)
+    c0 = time.process_time()
+    t_fwd = timeit(fwd, repeats=reps, warmup=1, sync_cuda=sync)
+    c1 = time.process_time()
+    t_fb = timeit(fwd_bwd, repeats=reps, warmup=1, sync_cuda=sync)
+    c2 = time.process_time()
+    img, _, meta = fwd()
+    # CPU seconds of this process per call (mean over warm-up + repeats): on a loaded shared machine this is
+    # closer to what an idle machine's wall clock would show than the wall clock itself.
+    row = dict(scene=cfg["kind"], N=cfg["n"], res=cfg["res"], D=cfg["d"], fwd_s=t_fwd, fwd_bwd_s=t_fb,
+               fwd_cpu_s=(c1 - c0) / (reps + 1), fwd_bwd_cpu_s=(c2 - c1) / (reps + 1),
+               peak_rss_gb=peak_rss_gb(), rss_over_base_gb=peak_rss_gb() - base_rss,
+               pairs=meta["counters"]["intersections"], rounds=meta["counters"]["rounds"])
+    if sync:
+        row["peak_cuda_gb"] = torch.cuda.max_memory_allocated() / 1024**3
+    if cfg.get("ref_default"):
+        with torch.no_grad():
+            ref = rasterize(*args)[0][0]
+        diff = (img[0] - ref).abs().amax(-1)
+        row.update(max_err=float(diff.max()), frac_gt_1e5=float((diff > 1e-5).float().mean()))
+    elif cfg["n"] * cfg["res"] ** 2 <= cfg["ref_budget"]:
+        ref = dense_reference([a.cpu() if isinstance(a, torch.Tensor) else a for a in args])
+        diff = (img[0].cpu() - ref).abs().amax(-1)
+        row.update(max_err=float(diff.max()), frac_gt_1e5=float((diff > 1e-5).float().mean()))
+    return row
+
+
+def run_all(cfgs: list[dict]) -> list[dict]:
+    rows = []
+    ctx = mp.get_context("spawn")
+    for cfg in cfgs:
+        with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) as ex:
+            row = ex.submit(run_config, cfg).result()
+        extra = {k: v for k, v in cfg.get("kw", {}).items()}
+        row.update(extra)
+        rows.append(row)
+        print("  " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
+              flush=True)
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small subset (about a minute)")
+    ap.add_argument("--threads", type=int, default=torch.get_num_threads())
+    ap.add_argument("--ref-budget", type=float, default=4e8, help="max pixel x Gaussian pairs for the dense ref")
+    ap.add_argument("--cuda", action="store_true", help="also time on CUDA where available")
+    ap.add_argument("--no-knobs", action="store_true")
+    a = ap.parse_args(argv)
+    print(machine_info())
+    print(f"load average (1, 5, 15 min): {os.getloadavg()}; benchmark threads: {a.threads}")
+    if a.quick:
+        grid = [(k, n, r, d) for k in ("head",) for n in (10_000, 20_000) for r in (128, 256) for d in (3, 32)]
+        grid += [("head", 100_000, 512, 32), ("cloud", 20_000, 256, 32)]
+    else:
+        grid = [(k, n, r, d) for k in ("head", "cloud") for n in (10_000, 50_000, 100_000, 200_000)
+                for r in (128, 256, 512) for d in (3, 32)]
+        grid.insert(0, ("head", 20_000, 256, 32))
+    devices = ["cpu"] + (["cuda"] if a.cuda and torch.cuda.is_available() else [])
+    cfgs = [dict(kind=k, n=n, res=r, d=d, threads=a.threads, ref_budget=a.ref_budget, device=dev)
+            for dev in devices for (k, n, r, d) in grid]
+    print(f"\n## grid ({len(cfgs)} configurations; error vs dense reference where N x pixels <= {a.ref_budget:g})")
+    rows = run_all(cfgs)
+    for r, c in zip(rows, cfgs):
+        r["device"] = c["device"]
+    cols = ["device", "scene", "N", "res", "D", "fwd_s", "fwd_bwd_s", "fwd_cpu_s", "fwd_bwd_cpu_s", "peak_rss_gb", "rss_over_base_gb", "pairs",
+            "rounds", "max_err", "frac_gt_1e5"]
+    print(format_table(rows, cols))
+    series = {}
+    for r in rows:
+        if r["D"] == 32 and r["device"] == "cpu":
+            key = f"{r['scene']} {r['res']}^2 fwd+bwd"
+            series.setdefault(key, ([], []))
+            series[key][0].append(r["N"])
+            series[key][1].append(r["fwd_bwd_s"])
+    png = save_plot(OUT_DIR / "splat_grid.png", series, xlabel="Gaussians", ylabel="seconds (median)",
+                    title=f"render.splat fwd+bwd, D=32 ({a.threads} threads)\n{machine_info()[:90]}", logx=True,
+                    logy=True)
+    print(f"wrote {png}")
+
+    if not a.no_knobs:
+        base = dict(kind="head", n=20_000, res=256, d=32, threads=a.threads, ref_budget=0, device="cpu")
+        knobs = [dict(tile_size=t) for t in (4, 8, 16)] + [dict(chunk=c) for c in (8, 16, 64)]
+        knobs += [dict(max_elements=1 << m) for m in (16, 19)]
+        knobs += [dict(alpha_min=x) for x in (2 / 255, 8 / 255)] + [dict(t_min=x) for x in (1e-3, 1e-2)]
+        if a.quick:
+            knobs = [dict(tile_size=16), dict(chunk=16), dict(t_min=1e-2)]
+        kcfgs = [dict(base, kw=k, ref_default=True) for k in knobs]
+        print("\n## knobs (head 20k, 256^2, D=32; error vs the default settings)")
+        krows = run_all(kcfgs)
+        for r, k in zip(krows, knobs):
+            r["knob"] = ", ".join(f"{kk}={v:.4g}" if isinstance(v, float) else f"{kk}={v}" for kk, v in k.items())
+        print(format_table(krows, ["knob", "fwd_s", "fwd_bwd_s", "fwd_cpu_s", "fwd_bwd_cpu_s", "peak_rss_gb", "pairs", "rounds", "max_err",
+                                   "frac_gt_1e5"]))
+        ks: dict = {}
+        for r, k in zip(krows, knobs):
+            name = next(iter(k))
+            xs, ys = ks.setdefault(name, ([], []))
+            xs.append(max(r.get("max_err", 0.0), 1e-9))
+            ys.append(r["fwd_bwd_s"])
+        png = save_plot(OUT_DIR / "splat_knobs.png", ks, xlabel="max |error| vs default (1e-9 = exact)",
+                        ylabel="fwd+bwd seconds", title="render.splat knob trade-offs (labels in the table)",
+                        logx=True)
+        print(f"wrote {png}")
+    print(f"load average after: {os.getloadavg()}")
+    return 0
+
+
+if __name__ == "__main__":
+    from toolkit.errors import run_cli
+
+    raise SystemExit(run_cli(main))
