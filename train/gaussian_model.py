@@ -328,8 +328,8 @@ class GaussianModel(nn.Module):
             g["face"] = self._posed(self.face_stream(ce, pose), pose)
         if need_eyes:
             g["eyes"] = self._posed(self.eye_stream(ce, gaze), pose)
-        bg = torch.zeros(1, self.config.feature_dim, device=vm.device)
-        bg[:, :3] = 1.0
+        bg = torch.zeros(self.config.feature_dim, device=vm.device)
+        bg[:3] = 1.0
         out: dict[str, torch.Tensor] = {}
         for r in renders:
             parts = [g["face"], g["eyes"]] if r == "head" else [g[r]]
