@@ -246,7 +246,7 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         opt.step()
         sched.step()
         if step % tc.log_every == 0 or step == tc.steps:
-            rec = {"step": step, "loss": float(loss)}
+            rec = {"step": step, "loss": float(loss.detach())}
             if val is not None:
                 rec.update(evaluate_gaze_estimator(model, *val, device=device))
                 model.train()
