@@ -1,0 +1,248 @@
+"""Tile rasterization of projected Gaussians as one custom autograd Function.
+
+Work is organised in *rounds*: in round k every still-active tile takes the k-th chunk of ``chunk``
+Gaussians from its depth-sorted list, so one round is a handful of large batched tensor ops over
+[tiles, chunk, pixels-per-tile]. A tile leaves the sweep when its list is exhausted or when every one of its
+pixels has terminated (T (1 - alpha) <= T_MIN), so empty tiles and finished pixels cost nothing more.
+
+Memory-lean backward: nothing of size [pixels x Gaussians] is saved. The backward re-runs the same rounds
+(bit-identical alphas and transmittances) and gets the colour seen *behind* each Gaussian from the saved
+final colour: R_i = C - sum_{j <= i} w_j c_j (this includes T_final * background), the identity the 3DGS
+back-to-front pass evaluates by accumulation. Projecting on dL/dC first keeps the suffix sums [tiles,
+chunk, pixels] instead of [..., D].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from render._tiles import TileBins
+
+ALPHA_MAX = 0.99  # 3DGS clamps alpha below 1 so 1 - alpha stays invertible
+ALPHA_MIN = 1.0 / 255.0  # contributions below one 8-bit level are skipped
+T_MIN = 1e-4  # a pixel stops before the Gaussian that would bring T (1 - alpha) to <= T_MIN
+# exp() of arguments below ~-87 produces float32 denormals and runs 10-40x slower on CPU; anything
+# below this floor is far under ALPHA_MIN anyway.
+EXP_FLOOR = -30.0
+_DUMMY_LOGO = -1e4  # log-opacity of the padding Gaussian: alpha = 0 exactly after the floor + threshold
+
+
+@dataclass(frozen=True)
+class RasterConfig:
+    """Knobs of the sweep (defaults are the reference 3DGS thresholds)."""
+
+    chunk: int = 32  # Gaussians per tile per round
+    max_elements: int = 1 << 21  # bound on tiles x chunk x pixels per batched step (peak memory)
+    alpha_min: float = ALPHA_MIN
+    alpha_max: float = ALPHA_MAX
+    t_min: float = T_MIN
+
+
+def _gaussian_table(means2d, conics, opacities, dtype):
+    """[M + 1, 9] per-Gaussian constants of the alpha exponent; the last row is the padding dummy."""
+    a, b, c = conics.unbind(-1)
+    logo = torch.log(opacities)
+    tab = torch.stack([means2d[:, 0], means2d[:, 1], -0.5 * a, -b, -0.5 * c, logo, a, b, c], -1).to(dtype)
+    dummy = torch.zeros(1, 9, dtype=dtype, device=tab.device)
+    dummy[0, 5] = _DUMMY_LOGO
+    return torch.cat([tab, dummy], 0)
+
+
+class _Sweep:
+    """Front-to-back state of every pixel (tile layout [tiles, ts*ts]) and the round schedule."""
+
+    def __init__(self, bins: TileBins, width: int, height: int, cfg: RasterConfig, dtype, device):
+        self.bins, self.cfg, self.dtype = bins, cfg, dtype
+        ts = bins.tile_size
+        nt, P = bins.num_tiles, ts * ts
+        self.ar_b = torch.arange(cfg.chunk, device=device)
+        self.ar_t = torch.arange(ts, device=device)
+        self.T = torch.ones(nt, P, dtype=dtype, device=device)
+        # Pixels of edge tiles that lie outside the image start terminated, so they never hold a tile back.
+        ty, tx = torch.meshgrid(torch.arange(bins.tiles_y, device=device), torch.arange(bins.tiles_x, device=device),
+                                indexing="ij")
+        col = (tx.reshape(-1, 1, 1) * ts + self.ar_t.view(1, 1, ts))
+        row = (ty.reshape(-1, 1, 1) * ts + self.ar_t.view(1, ts, 1))
+        self.inside = ((col < width) & (row < height)).view(nt, P)
+        self.done = ~self.inside
+        self.slice_tiles = max(1, cfg.max_elements // (cfg.chunk * P))
+        self.log_amax = math.log(cfg.alpha_max)
+        # threshold() keeps x > thr: the largest value below alpha_min (in this dtype) keeps alpha >= alpha_min.
+        amin = torch.tensor(cfg.alpha_min, dtype=dtype)
+        self.alpha_thr = float(torch.nextafter(amin, torch.zeros_like(amin)))
+        self.rounds_run = 0
+        self.tiles_terminated = 0
+
+    def rounds(self):
+        """Yield (k, A): round index and a slice of active tile ids; state updates between yields."""
+        bins, B = self.bins, self.cfg.chunk
+        active = torch.nonzero(bins.counts > 0).flatten()
+        k = 0
+        while active.numel() > 0:
+            for A in active.split(self.slice_tiles):
+                yield k, A
+            k += 1
+            more = active[bins.counts.index_select(0, active) > k * B]
+            left = ~self.done.index_select(0, more).all(1)
+            self.tiles_terminated += int(more.numel() - int(left.sum()))
+            active = more[left]
+        self.rounds_run = k
+
+    def alphas(self, table: torch.Tensor, A: torch.Tensor, k: int, check_sigma: bool, want_unclamped: bool = False):
+        """Alphas [nA, B, P] of chunk k for tiles A, with the gathered Gaussian ids and pixel offsets (and,
+        when asked, the mask of alphas below the alpha_max clamp, where dalpha/dt = alpha)."""
+        bins, B, ts = self.bins, self.cfg.chunk, self.bins.tile_size
+        nA = A.numel()
+        start = bins.starts.index_select(0, A)
+        end = start + bins.counts.index_select(0, A)
+        idx = (start + k * B)[:, None] + self.ar_b[None, :]
+        idx = torch.where(idx < end[:, None], idx, torch.full_like(idx, bins.n_pairs))
+        g = bins.gids.index_select(0, idx.view(-1))
+        prm = table.index_select(0, g).view(nA, B, -1)
+        px = ((A % bins.tiles_x) * ts)[:, None] + self.ar_t[None, :]
+        py = (torch.div(A, bins.tiles_x, rounding_mode="floor") * ts)[:, None] + self.ar_t[None, :]
+        dx = (px.to(self.dtype) + 0.5)[:, None, :] - prm[..., 0, None]  # [nA, B, ts] per column
+        dy = (py.to(self.dtype) + 0.5)[:, None, :] - prm[..., 1, None]  # [nA, B, ts] per row
+        # log(o) - sigma split by row and column: two full-size passes before the exp.
+        col_term = prm[..., 2, None] * dx * dx
+        row_term = prm[..., 4, None] * dy * dy + prm[..., 5, None]
+        t = row_term[..., :, None] + col_term[..., None, :]
+        t.addcmul_(dy[..., :, None], (prm[..., 3, None] * dx)[..., None, :])
+        t = t.view(nA, B, ts * ts)
+        neg_sigma = t > prm[..., 5, None] if check_sigma else None
+        unclamped = t < self.log_amax if want_unclamped else None
+        # min(alpha_max, o exp(-sigma)) as exp(min(log alpha_max, t)): one pass fewer; equal to rounding.
+        alpha = F.threshold_(t.clamp_(EXP_FLOOR, self.log_amax).exp_(), self.alpha_thr, 0.0)
+        if neg_sigma is not None:
+            alpha.masked_fill_(neg_sigma, 0.0)
+        return g, prm, dx, dy, alpha, unclamped
+
+    def transmit(self, A: torch.Tensor, alpha: torch.Tensor):
+        """Front-to-back compositing of one chunk: weights w [nA, B, P], T before each Gaussian, inclusion
+        mask; updates T and the terminated flags of tiles A."""
+        T_old = self.T.index_select(0, A)
+        done_old = self.done.index_select(0, A)
+        T_in = T_old.masked_fill(done_old, 0.0)
+        nA, B, P = alpha.shape
+        TB = alpha.new_empty(nA, B + 1, P)
+        TB[:, 0] = T_in
+        torch.mul(torch.cumprod(1.0 - alpha, 1), T_in[:, None], out=TB[:, 1:])
+        T_before = TB[:, :-1]
+        incl = TB[:, 1:] > self.cfg.t_min  # a prefix along B: T only decreases
+        w = torch.mul(alpha, T_before).mul_(incl)
+        n_incl = incl.sum(1, keepdim=True)
+        T_new = torch.where(done_old, T_old, TB.gather(1, n_incl).squeeze(1))
+        self.T.index_copy_(0, A, T_new)
+        self.done.index_copy_(0, A, done_old | ~incl[:, -1])
+        return w, TB, incl
+
+
+def to_tiles(img: torch.Tensor, bins: TileBins) -> torch.Tensor:
+    """[H, W, D] -> [tiles, ts*ts, D] (zero padded)."""
+    H, W, D = img.shape
+    ts = bins.tile_size
+    pad = img.new_zeros(bins.tiles_y * ts, bins.tiles_x * ts, D)
+    pad[:H, :W] = img
+    return pad.view(bins.tiles_y, ts, bins.tiles_x, ts, D).permute(0, 2, 1, 3, 4).reshape(bins.num_tiles, ts * ts, D)
+
+
+def from_tiles(t: torch.Tensor, bins: TileBins, width: int, height: int) -> torch.Tensor:
+    """[tiles, ts*ts, D] -> [H, W, D]."""
+    ts, D = bins.tile_size, t.shape[-1]
+    img = t.view(bins.tiles_y, bins.tiles_x, ts, ts, D).permute(0, 2, 1, 3, 4)
+    return img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, D)[:height, :width]
+
+
+class RasterizeTiles(torch.autograd.Function):
+    """(means2d [M, 2], conics [M, 3], opacities [M], colors [M, D], background [D]) -> (image [H, W, D],
+    alpha [H, W, 1]); Gaussians must be sorted front to back and binned by ``render._tiles.bin_gaussians``."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, background, bins, width, height, cfg, check_sigma, stats):
+        dtype, device = colors.dtype, colors.device
+        D = colors.shape[1]
+        table = _gaussian_table(means2d, conics, opacities, dtype)
+        col_tab = torch.cat([colors, colors.new_zeros(1, D)], 0)
+        sweep = _Sweep(bins, width, height, cfg, dtype, device)
+        acc = torch.zeros(bins.num_tiles, bins.tile_size ** 2, D, dtype=dtype, device=device)
+        B = cfg.chunk
+        for k, A in sweep.rounds():
+            g, _, _, _, alpha, _ = sweep.alphas(table, A, k, check_sigma)
+            w, _, _ = sweep.transmit(A, alpha)
+            cols = col_tab.index_select(0, g).view(A.numel(), B, D)
+            acc.index_add_(0, A, torch.bmm(w.transpose(1, 2), cols))
+        C_t = acc + sweep.T[..., None] * background
+        image = from_tiles(C_t, bins, width, height)
+        alpha_img = 1.0 - from_tiles(sweep.T[..., None], bins, width, height)
+        stats.update(rounds=sweep.rounds_run, tiles_terminated=sweep.tiles_terminated,
+                     pixels_terminated=int((sweep.done & sweep.inside).sum()))
+        ctx.save_for_backward(means2d, conics, opacities, colors, background, C_t, sweep.T)
+        ctx.bins, ctx.size, ctx.cfg, ctx.check_sigma = bins, (width, height), cfg, check_sigma
+        return image, alpha_img
+
+    @staticmethod
+    def backward(ctx, grad_image, grad_alpha):
+        means2d, conics, opacities, colors, background, C_t, T_final = ctx.saved_tensors
+        bins, (width, height), cfg = ctx.bins, ctx.size, ctx.cfg
+        dtype, device = colors.dtype, colors.device
+        M, D = colors.shape
+        B = cfg.chunk
+        if grad_image is None:
+            grad_image = torch.zeros(height, width, D, dtype=dtype, device=device)
+        if grad_alpha is None:
+            grad_alpha = torch.zeros(height, width, 1, dtype=dtype, device=device)
+        g_t = to_tiles(grad_image.to(dtype), bins)  # [nt, P, D]
+        ga_t = to_tiles(grad_alpha.to(dtype), bins)[..., 0]  # [nt, P]
+        Q = (C_t * g_t).sum(-1)  # C . dL/dC per pixel: the colour behind the first Gaussian, projected
+        gaT = ga_t * T_final  # alpha = 1 - T_final contributes dA/dalpha_i = T_final / (1 - alpha_i)
+        grad_bg = (g_t * T_final[..., None]).sum((0, 1))
+
+        table = _gaussian_table(means2d, conics, opacities, dtype)
+        col_tab = torch.cat([colors, colors.new_zeros(1, D)], 0)
+        grads = torch.zeros(M + 1, 6 + D, dtype=dtype, device=device)
+        prefix = torch.zeros_like(Q)  # sum_{j processed} w_j (c_j . g) per pixel
+        sweep = _Sweep(bins, width, height, cfg, dtype, device)
+        ts = bins.tile_size
+        # alpha can only hit the alpha_max clamp (where dalpha/dt = 0) if some opacity reaches it.
+        clamp_possible = bool(opacities.numel()) and float(opacities.max()) >= cfg.alpha_max
+        base = Q - gaT  # per pixel: C . g minus the alpha-output term (dA/dalpha_i = T_final / (1 - alpha_i))
+        for k, A in sweep.rounds():
+            nA = A.numel()
+            g, prm, dx, dy, alpha, unclamped = sweep.alphas(table, A, k, ctx.check_sigma, clamp_possible)
+            w, TB, incl = sweep.transmit(A, alpha)
+            gA = g_t.index_select(0, A)  # [nA, P, D]
+            cols = col_tab.index_select(0, g).view(nA, B, D)
+            cg = torch.bmm(cols, gA.transpose(1, 2))  # [nA, B, P] c_i . g
+            grad_cols = torch.bmm(w, gA)  # [nA, B, D]
+            wcg = w * cg
+            cs = torch.cumsum(wcg, 1)
+            # X_i = (colour behind Gaussian i) . g - T_final g_alpha; prefix carries earlier rounds.
+            X = (base.index_select(0, A) - prefix.index_select(0, A))[:, None, :] - cs
+            prefix.index_add_(0, A, cs[:, -1])
+            # dL/dt_i = alpha_i dL/dalpha_i = w_i (c_i . g) - X_i alpha_i / (1 - alpha_i) on included pixels, and
+            # alpha_i / (1 - alpha_i) = w_i / T_after_i there (w = 0 elsewhere; the clamp only guards 0 / 0).
+            G = wcg.sub_(X.mul_(w).div_(TB[:, 1:].clamp_min(max(0.5 * cfg.t_min, 1e-30))))
+            if unclamped is not None:
+                G.mul_(unclamped)
+            # All six moments sum_p G dx^i dy^j with two small batched matmuls over the row/column split.
+            bx = torch.stack([torch.ones_like(dx), dx, dx * dx], -1).view(nA * B, ts, 3)
+            by = torch.stack([torch.ones_like(dy), dy, dy * dy], -1).view(nA * B, ts, 3)
+            rows = torch.bmm(G.view(nA * B, ts, ts), bx)  # [nA B, ts rows, 3]: sum_c G dx^i per row
+            mom = torch.bmm(by.transpose(1, 2), rows).view(nA, B, 3, 3)  # [.., j, i] = sum G dy^j dx^i
+            s0, sx, sxx = mom[..., 0, 0], mom[..., 0, 1], mom[..., 0, 2]
+            sy, sxy, syy = mom[..., 1, 0], mom[..., 1, 1], mom[..., 2, 0]
+            a, b, c = prm[..., 6], prm[..., 7], prm[..., 8]
+            per_pair = torch.cat([torch.stack([a * sx + b * sy, b * sx + c * sy, -0.5 * sxx, -sxy, -0.5 * syy, s0],
+                                              -1), grad_cols], -1)
+            grads.index_add_(0, g, per_pair.view(nA * B, 6 + D))
+        grads = grads[:M]
+        g_means2d = grads[:, 0:2]
+        g_conics = grads[:, 2:5]
+        g_opac = grads[:, 5] / opacities.clamp_min(1e-30)
+        g_colors = grads[:, 6:]
+        return (g_means2d, g_conics, g_opac, g_colors, grad_bg.to(background.dtype), None, None, None, None, None,
+                None)

@@ -1,0 +1,210 @@
+"""Differentiable pure-PyTorch 3D Gaussian splatting (CPU and CUDA from the same code).
+
+Public API (gsplat-style, plain tensors): :func:`rasterize` and :func:`render_scene`.
+
+Conventions (gsplat >= 1.6 / the original 3DGS rasterizer):
+
+- OpenCV camera axes, ``viewmats`` world-to-camera; pixel (row i, column j) is sampled at (j + 0.5, i + 0.5).
+- Quaternions wxyz, normalized internally (zero -> identity); Sigma = R S S^T R^T with activated scales.
+- EWA projection with the Jacobian taken at the mean's tangent clamped to +-(c/f + 0.3 tan(half fov)) around
+  the principal point; cov2d + eps2d I (dilation); conic = inverse of the dilated cov2d; per-axis radius
+  ceil(3.33 sqrt(cov2d_ii)); culled (radius 0) when z <= near or z >= far, det <= 0 or the box is off-image.
+- alpha = min(0.99, o exp(-sigma)), sigma = 0.5 (a dx^2 + c dy^2) + b dx dy, dx = pixel - mean; a Gaussian is
+  skipped for a pixel when sigma < 0 or alpha < 1/255; Gaussians are composited front to back by camera
+  depth; a pixel stops before the Gaussian that would bring T (1 - alpha) <= 1e-4 (that one excluded).
+- render C = sum_i c_i alpha_i T_i + T_final bg; alpha = 1 - T_final; optional depth = sum_i z_i alpha_i T_i.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import torch
+
+from render._raster import ALPHA_MAX, ALPHA_MIN, T_MIN, RasterConfig, RasterizeTiles
+from render._tiles import bin_gaussians
+from render.projection import project_gaussians
+from render.sh import sh_to_color
+from toolkit.errors import ToolkitError
+
+__all__ = ["rasterize", "render_scene", "ALPHA_MIN", "ALPHA_MAX", "T_MIN"]
+
+# Conics whose correlation b^2 / (a c) exceeds this are so thin that float rounding can make sigma < 0;
+# only then is the per-pixel sigma < 0 test (one extra pass) switched on.
+_THIN_CORRELATION = 1.0 - 1e-3
+
+
+def _check_shape(name: str, t: Any, shape: Sequence[int | None]) -> None:
+    ok = isinstance(t, torch.Tensor) and t.dim() == len(shape) and all(
+        s is None or t.shape[i] == s for i, s in enumerate(shape))
+    if not ok:
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        got = list(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+        raise ToolkitError(f"rasterize: {name} expected shape {want}, got {got}")
+    if not t.is_floating_point():
+        raise ToolkitError(f"rasterize: {name} expected a floating-point tensor, got {t.dtype}")
+
+
+def _check_finite(named: dict[str, torch.Tensor]) -> None:
+    # One device sync for all inputs; the per-field scan only runs once something is wrong.
+    flags = torch.stack([torch.isfinite(t).all() for t in named.values() if t.numel()] or
+                        [torch.tensor(True)])
+    if bool(flags.all()):
+        return
+    for name, t in named.items():
+        if t.numel() and not bool(torch.isfinite(t).all()):
+            raise ToolkitError(f"rasterize: {name} contains NaN or inf values (pass check_finite=False to skip)")
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    features: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    backgrounds: torch.Tensor | None = None,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    tile_size: int = 8,
+    sh_degree: int | None = None,
+    return_depth: bool = False,
+    check_finite: bool = True,
+    chunk: int = 32,
+    max_elements: int = 1 << 21,
+    alpha_min: float = ALPHA_MIN,
+    t_min: float = T_MIN,
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+    """Render N Gaussians into C cameras (conventions in the module docstring).
+
+    Args:
+        means [N, 3], quats [N, 4] wxyz (any norm), scales [N, 3] activated, opacities [N] in [0, 1].
+        features [N, D] or per camera [C, N, D]; with ``sh_degree`` SH coefficients [N, K, D] evaluated toward
+            each camera as max(SH + 0.5, 0).
+        viewmats [C, 4, 4] world-to-camera, Ks [C, 3, 3] pixels, width / height in pixels.
+        backgrounds [C, D] (or [D]), default zeros.
+        tile_size: square tile edge in pixels; chunk: Gaussians per tile per round; max_elements bounds
+            tiles x chunk x pixels per batched step (peak memory); alpha_min / t_min: the 1/255 and 1e-4
+            thresholds (knobs for benchmarking; the defaults are the reference).
+        check_finite: raise ToolkitError on NaN/inf inputs (one check per call).
+
+    Returns:
+        render [C, H, W, D], alpha [C, H, W, 1], meta with radii [C, N, 2] int32 (0 = culled), means2d [C, N, 2],
+        depths [C, N], conics [C, N, 3], ``depth`` [C, H, W, 1] when ``return_depth`` (sum z_i w_i; divide by
+        alpha for the expected depth) and ``counters`` (ints summed over cameras: visible, intersections,
+        candidate_intersections, tiles_skipped, tiles_terminated, pixels_terminated, rounds).
+    """
+    _check_shape("means", means, (None, 3))
+    n = means.shape[0]
+    _check_shape("quats", quats, (n, 4))
+    _check_shape("scales", scales, (n, 3))
+    _check_shape("opacities", opacities, (n,))
+    _check_shape("viewmats", viewmats, (None, 4, 4))
+    C = viewmats.shape[0]
+    _check_shape("Ks", Ks, (C, 3, 3))
+    if sh_degree is not None:
+        _check_shape("features (SH coefficients)", features, (n, None, None))
+    elif features.dim() == 3:
+        _check_shape("features", features, (C, n, None))
+    else:
+        _check_shape("features", features, (n, None))
+    D = features.shape[-1]
+    if backgrounds is not None:
+        if backgrounds.dim() == 1:
+            _check_shape("backgrounds", backgrounds, (D,))
+            backgrounds = backgrounds.expand(C, D)
+        _check_shape("backgrounds", backgrounds, (C, D))
+    if int(width) < 1 or int(height) < 1:
+        raise ToolkitError(f"rasterize: width and height must be >= 1, got {width}x{height}")
+    if int(tile_size) < 1 or int(chunk) < 1:
+        raise ToolkitError(f"rasterize: tile_size and chunk must be >= 1, got {tile_size}, {chunk}")
+    if not 0 < alpha_min < ALPHA_MAX or not 0 <= t_min < 1:
+        raise ToolkitError(f"rasterize: need 0 < alpha_min < {ALPHA_MAX} and 0 <= t_min < 1")
+    width, height = int(width), int(height)
+    dtype = means.dtype
+    if check_finite:
+        named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
+                 "viewmats": viewmats, "Ks": Ks}
+        if backgrounds is not None:
+            named["backgrounds"] = backgrounds
+        _check_finite(named)
+
+    viewmats, Ks = viewmats.to(dtype), Ks.to(dtype)
+    proj = project_gaussians(means, quats.to(dtype), scales.to(dtype), viewmats, Ks, width, height, eps2d=eps2d,
+                             near_plane=near_plane, far_plane=far_plane)
+    if sh_degree is not None:
+        centers = -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
+        colors = sh_to_color(int(sh_degree), features.to(dtype), means, centers)  # [C, N, D]
+    else:
+        colors = features.to(dtype)
+    opac = opacities.to(dtype)
+    cfg = RasterConfig(chunk=int(chunk), max_elements=int(max_elements), alpha_min=float(alpha_min),
+                       t_min=float(t_min))
+    counters = dict(visible=0, intersections=0, candidate_intersections=0, tiles_skipped=0, tiles_terminated=0,
+                    pixels_terminated=0, rounds=0)
+    renders, alphas, depth_maps = [], [], []
+    for c in range(C):
+        with torch.no_grad():
+            vis = (proj.radii[c] > 0).all(-1) & (opac > cfg.alpha_min)
+            ids = torch.nonzero(vis).flatten()
+            ids = ids.index_select(0, torch.argsort(proj.depths[c].index_select(0, ids), stable=True))
+        m2d = proj.means2d[c].index_select(0, ids)
+        con = proj.conics[c].index_select(0, ids)
+        op = opac.index_select(0, ids)
+        col = (colors[c] if colors.dim() == 3 else colors).index_select(0, ids)
+        if return_depth:
+            col = torch.cat([col, proj.depths[c].index_select(0, ids)[:, None]], -1)
+        bg = backgrounds[c].to(dtype) if backgrounds is not None else colors.new_zeros(D)
+        if return_depth:
+            bg = torch.cat([bg, bg.new_zeros(1)])
+        with torch.no_grad():
+            bins = bin_gaussians(m2d.detach(), con.detach(), proj.cov2d[c].index_select(0, ids).detach(), op.detach(),
+                                 width, height, tile_size)
+            cd = con.detach()
+            thin = bool((cd[:, 1] ** 2 > _THIN_CORRELATION * cd[:, 0] * cd[:, 2]).any()) if ids.numel() else False
+        stats: dict[str, int] = {}
+        img, alpha = RasterizeTiles.apply(m2d, con, op, col, bg, bins, width, height, cfg, thin, stats)
+        renders.append(img[..., :D])
+        alphas.append(alpha)
+        if return_depth:
+            depth_maps.append(img[..., D:])
+        counters["visible"] += int(ids.numel())
+        counters["intersections"] += bins.n_pairs
+        counters["candidate_intersections"] += bins.n_candidates
+        counters["tiles_skipped"] += int((bins.counts == 0).sum())
+        for key in ("tiles_terminated", "pixels_terminated", "rounds"):
+            counters[key] += stats.get(key, 0)
+    meta: dict[str, Any] = dict(radii=proj.radii, means2d=proj.means2d, depths=proj.depths, conics=proj.conics,
+                                counters=counters, tile_size=int(tile_size))
+    if return_depth:
+        meta["depth"] = torch.stack(depth_maps)
+    return torch.stack(renders), torch.stack(alphas), meta
+
+
+def render_scene(scene, cameras, *, use_sh: bool | None = None, **kw) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """Render a ``toolkit.scene.GaussianScene`` into one ``toolkit.cameras.Camera`` or a list of them
+    (all the same size). Uses the activated scene fields; SH colours when the scene has ``sh`` (unless
+    ``use_sh=False``), else ``features``. ``kw`` goes to :func:`rasterize`. Returns (render, alpha, meta)."""
+    from toolkit.cameras import Camera
+
+    cams = [cameras] if isinstance(cameras, Camera) else list(cameras)
+    if not cams or not all(isinstance(c, Camera) for c in cams):
+        raise ToolkitError("render_scene: cameras must be a Camera or a non-empty list of Camera")
+    sizes = {(c.width, c.height) for c in cams}
+    if len(sizes) != 1:
+        raise ToolkitError(f"render_scene: all cameras must share one image size, got {sorted(sizes)}")
+    (w, h), = sizes
+    dev, dtype = scene.means.device, scene.means.dtype
+    viewmats = torch.stack([c.viewmat for c in cams]).to(dev, dtype)
+    Ks = torch.stack([c.K for c in cams]).to(dev, dtype)
+    sh = scene.sh is not None and use_sh is not False
+    if use_sh and scene.sh is None:
+        raise ToolkitError("render_scene: use_sh=True but the scene has no 'sh' field")
+    feats = scene.sh if sh else scene.features
+    return rasterize(scene.means, scene.unit_quats, scene.scales, scene.opacities, feats, viewmats, Ks, w, h,
+                     sh_degree=scene.sh_degree if sh else None, **kw)
