@@ -335,9 +335,12 @@ class GaussianModel(nn.Module):
             parts = [g["face"], g["eyes"]] if r == "head" else [g[r]]
             maps, alphas = [], []
             for b in range(B):
-                cat = {k: torch.cat([p[k][b] for p in parts]) for k in ("means", "quats", "scales", "opacities", "features")}
-                img, alpha, _ = self._rasterize()(cat["means"], cat["quats"], cat["scales"], cat["opacities"],
-                                                  cat["features"], vm[b:b + 1], Ks_r[b:b + 1], w, h, backgrounds=bg)
+                cat = {k: torch.cat([p[k][b].float() for p in parts]) for k in ("means", "quats", "scales", "opacities", "features")}
+                # Splatting runs in float32 even under autocast: depth sorting, conics and transmittance
+                # products lose too much in bf16, and the splatter's kernels expect one dtype.
+                with torch.autocast(device_type=vm.device.type, enabled=False):
+                    img, alpha, _ = self._rasterize()(cat["means"], cat["quats"], cat["scales"], cat["opacities"],
+                                                      cat["features"], vm[b:b + 1], Ks_r[b:b + 1], w, h, backgrounds=bg)
                 maps.append(img[0].permute(2, 0, 1))
                 alphas.append(alpha[0].permute(2, 0, 1))
             out[r] = torch.stack(maps)

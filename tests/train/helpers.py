@@ -9,35 +9,10 @@ from train.gaussian_model import GaussianModel, GaussianModelConfig
 
 
 def rasterizer_for_tests():
-    """``render.splat.rasterize`` (the project's torch splatter); TEMPORARY stand-in until branch splat lands."""
-    try:
-        from render.splat import rasterize
+    """``render.splat.rasterize`` (the project's torch splatter)."""
+    from render.splat import rasterize
 
-        return rasterize
-    except ImportError:
-        return _standin
-
-
-def _standin(means, quats, scales, opacities, features, viewmats, Ks, width, height, *, backgrounds=None):
-    renders, alphas = [], []
-    ii, jj = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
-    px = torch.stack([jj.flatten(), ii.flatten()], -1)
-    for c in range(viewmats.shape[0]):
-        p = means @ viewmats[c, :3, :3].T + viewmats[c, :3, 3]
-        z = p[:, 2].clamp_min(1e-4)
-        uv = torch.stack([Ks[c, 0, 0] * p[:, 0] / z + Ks[c, 0, 2], Ks[c, 1, 1] * p[:, 1] / z + Ks[c, 1, 2]], -1)
-        sigma = (Ks[c, 0, 0] * scales.mean(-1) / z).clamp_min(0.3)
-        order = torch.argsort(z.detach())
-        d2 = ((px[:, None] - uv[None]) ** 2).sum(-1)
-        a = (opacities[None] * torch.exp(-0.5 * d2 / sigma[None] ** 2)).clamp(max=0.99)[:, order]
-        T = torch.cumprod(torch.cat([torch.ones_like(a[:, :1]), 1 - a[:, :-1]], 1), 1)
-        w = a * T
-        bg = backgrounds.reshape(-1)[-features.shape[1]:] if backgrounds is not None else features.new_zeros(features.shape[1])
-        alpha = w.sum(1, keepdim=True)
-        img = w @ features[order] + (1 - alpha) * bg.reshape(1, -1)
-        renders.append(img.reshape(height, width, -1))
-        alphas.append(alpha.reshape(height, width, 1))
-    return torch.stack(renders), torch.stack(alphas), {}
+    return rasterize
 
 
 def small_model(scene, **overrides) -> GaussianModel:
