@@ -63,6 +63,25 @@ def test_eyes_rotate_rigidly_about_their_own_centres():
         assert torch.equal(scene.means[scene.part == part], canon)
 
 
+def test_eye_centres_are_fixed_points_and_each_eye_uses_its_own():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    torch.nn.init.normal_(model.eye_field.mlp.last.weight, std=1.0)
+    with torch.no_grad():  # put one Gaussian of each eye exactly on its eyeball centre
+        for side in (0, 1):
+            first = int(torch.nonzero(model.eye_side == side)[0])
+            model.eye_means[first] = model.eye_centers[side]
+    code, pose, _, _, _ = model_inputs(1)
+    g = model.gaussians(code, pose, torch.tensor([[0.7, -1.2]]))["eyes"]["means"][0].detach()
+    for side in (0, 1):
+        first = int(torch.nonzero(model.eye_side == side)[0])
+        assert torch.allclose(g[first], model.eye_centers[side], atol=1e-6)
+    # Swapping which Gaussians belong to which eye changes the result (no shared landmarks or centre).
+    model.eye_side = 1 - model.eye_side
+    g2 = model.gaussians(code, pose, torch.tensor([[0.7, -1.2]]))["eyes"]["means"][0].detach()
+    assert float((g2 - g).abs().max()) > 0.01
+
+
 def test_learned_residual_keeps_each_eye_rigid_about_its_own_centre():
     scene = demo_head_scene(600)
     model = small_model(scene)
