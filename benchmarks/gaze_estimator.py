@@ -85,8 +85,12 @@ def main(argv=None) -> int:
         tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every, seed=k)
         start = time.perf_counter()
         stamps = []
-        model, hist = train_gaze_estimator(*train, cfg, tc, val=test,
-                                           callback=lambda step, rec, st=stamps, t0=start: st.append(time.perf_counter() - t0))
+        def progress(step, rec, st=stamps, t0=start, name=name):
+            st.append(time.perf_counter() - t0)
+            print(f"  {name} step {step}: {st[-1]:.0f} s, loss {rec['loss']:.4f}, held-out gaze "
+                  f"{rec['val_gaze_deg']:.2f} deg, head {rec['val_head_deg']:.2f} deg", flush=True)
+
+        model, hist = train_gaze_estimator(*train, cfg, tc, val=test, callback=progress)
         for rec, t in zip(hist, stamps):
             rows.append({"instance": name, "step": rec["step"], "train_s": t, "loss": rec["loss"],
                          "heldout_gaze_deg": rec["val_gaze_deg"], "heldout_head_deg": rec["val_head_deg"]})
