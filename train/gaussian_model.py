@@ -41,6 +41,7 @@ from train.fields import EyeRotationField, FaceDeformationField
 
 UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
 RENDERS = ("head", "face", "eyes")
+CHECKPOINT_KIND = "ditgaze.gaussian_model"
 
 
 @dataclass
@@ -355,6 +356,43 @@ class GaussianModel(nn.Module):
         out["means"] = torch.einsum("bij,bnj->bni", Rh, s["means"]) + pose[:, None, 3:].float()
         out["quats"] = quat_multiply(matrix_to_quat(Rh)[:, None].expand_as(s["quats"]), s["quats"])
         return out
+
+    # ------------------------------------------------------------------ storage
+    def save(self, path, info: dict | None = None) -> None:
+        """Write all parameters and buffers (safetensors) with the config as JSON metadata (atomic)."""
+        from toolkit.io import save_checkpoint
+
+        meta = {"kind": CHECKPOINT_KIND, "version": 1, "config": asdict(self.config),
+                "units_per_metre": self.units_per_metre}
+        meta.update(info or {})
+        save_checkpoint(path, self.state_dict(), meta)
+
+    @classmethod
+    def load(cls, path, device: str | torch.device = "cpu", rasterizer: Callable | None = None) -> "GaussianModel":
+        """Rebuild a model written by :meth:`save`; foreign or incompatible files raise ``ToolkitError``."""
+        from toolkit.io import load_checkpoint
+
+        state, info = load_checkpoint(path)
+        if info.get("kind") != CHECKPOINT_KIND:
+            raise ToolkitError(f"{path}: not a Gaussian model checkpoint (kind={info.get('kind')!r})")
+        raw = info.get("config")
+        if not isinstance(raw, dict) or set(raw) - set(GaussianModelConfig.__dataclass_fields__):
+            raise ToolkitError(f"{path}: missing or unknown Gaussian model config fields")
+        need = ["face_means", "face_quats", "face_log_scales", "face_opacity_logits", "face_features", "eye_means",
+                "eye_log_scales", "eye_opacity_logits", "eye_features", "eye_side", "eye_centers", "landmarks"]
+        missing = [k for k in need if k not in state]
+        if missing:
+            raise ToolkitError(f"{path}: missing tensor(s) {missing}")
+        face = {k[5:]: state[k] for k in need[:5]}
+        eyes = {k[4:]: state[k] for k in need[5:9]}
+        eyes["side"] = state["eye_side"]
+        model = cls(GaussianModelConfig(**raw), face, eyes, state["eye_centers"], state["landmarks"],
+                    float(info.get("units_per_metre", 1.0)), rasterizer)
+        try:
+            model.load_state_dict(state)
+        except RuntimeError as e:
+            raise ToolkitError(f"{path}: tensors do not match the stored config ({str(e).splitlines()[0][:160]})") from None
+        return model.to(device)
 
     # ------------------------------------------------------------------ export
     def export_scene(self, code: torch.Tensor, pose: torch.Tensor, gaze: torch.Tensor, index: int = 0) -> GaussianScene:

@@ -292,3 +292,28 @@ def test_export_scene_round_trips_through_the_scene_format(tmp_path):
     back = GaussianScene.load(tmp_path / "s.safetensors")
     assert back.num_gaussians == scene.num_gaussians and back.features.shape[1] == 32
     assert torch.equal(back.part.sort().values, scene.part.sort().values)
+
+
+def test_checkpoint_round_trip(tmp_path):
+    scene = demo_head_scene(600)
+    model = small_model(scene, num_images=3)
+    torch.nn.init.normal_(model.face_field.expr_mlp.last.weight, std=0.1)
+    with torch.no_grad():
+        model.image_codes.weight.normal_()
+    path = tmp_path / "gm.safetensors"
+    model.save(path, {"step": 7})
+    back = GaussianModel.load(path, rasterizer=model._rasterizer)
+    code, pose, gaze, _, _ = model_inputs(2)
+    idx = torch.tensor([0, 2])
+    a = model.gaussians(code, pose, gaze, idx)
+    b = back.gaussians(code, pose, gaze, idx)
+    for s in ("face", "eyes"):
+        for k in a[s]:
+            assert torch.equal(a[s][k], b[s][k]), (s, k)
+    from toolkit.io import save_checkpoint
+
+    save_checkpoint(tmp_path / "other.safetensors", {"x": torch.zeros(1)}, {"kind": "nope"})
+    with pytest.raises(ToolkitError, match="not a Gaussian model"):
+        GaussianModel.load(tmp_path / "other.safetensors")
+    with pytest.raises(ToolkitError, match="no such"):
+        GaussianModel.load(tmp_path / "missing.safetensors")
