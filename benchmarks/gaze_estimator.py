@@ -48,6 +48,27 @@ def load_split(data: str, split: str, res: int) -> tuple[torch.Tensor, torch.Ten
     return torch.stack(imgs), torch.stack(labels)
 
 
+def error_by_view(model, images: torch.Tensor, labels: torch.Tensor, edges=(20, 40, 60, 90, 180)) -> list[dict]:
+    """Held-out gaze error binned by the gaze's angle from the camera axis (eyes turn invisible far off-axis)."""
+    from toolkit.rotations import angular_error_deg
+
+    with torch.no_grad():
+        pred = torch.cat([model(images[i:i + 256].float() / (255 if images.dtype == torch.uint8 else 1))
+                          for i in range(0, len(images), 256)])
+    err = angular_error_deg(pred[:, :2], labels[:, :2].float())
+    off = angular_error_deg(labels[:, :2].float(), torch.zeros_like(labels[:, :2]).float())
+    rows, lo = [], 0.0
+    for hi in edges:
+        m = (off >= lo) & (off < hi)
+        if bool(m.any()):
+            rows.append({"gaze_off_axis_deg": f"[{lo:g}, {hi:g})", "images": int(m.sum()),
+                         "mean_err_deg": float(err[m].mean()), "median_err_deg": float(err[m].median())})
+        lo = hi
+    rows.append({"gaze_off_axis_deg": "all", "images": len(err), "mean_err_deg": float(err.mean()),
+                 "median_err_deg": float(err.median())})
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", help="synthetic dataset folder (python -m train.data synth); default: drawn faces")
@@ -61,6 +82,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for loss.safetensors / eval.safetensors")
     ap.add_argument("--drawn-train", type=int, default=6000)
+    ap.add_argument("--eval-only", nargs="+", metavar="CKPT", help="only evaluate saved estimator checkpoint(s)")
     a = ap.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
@@ -78,6 +100,13 @@ def main(argv=None) -> int:
         source = "drawn faces (18 train / 6 held-out subjects)"
     print(f"data: {source}: {len(train[0])} train / {len(test[0])} held-out images at {a.input_size}px "
           f"(loaded in {time.perf_counter() - t0:.1f} s)")
+    if a.eval_only:
+        from train.gaze_estimator import GazeEstimator
+
+        for path in a.eval_only:
+            print(f"{path}:")
+            print(format_table(error_by_view(GazeEstimator.load(path), *test)))
+        return 0
     cfg = GazeEstimatorConfig(input_size=a.input_size, channels=tuple(int(c) for c in a.channels.split(",")))
     names = ["loss", "eval"][: a.instances] if a.instances <= 2 else [f"est{i}" for i in range(a.instances)]
     rows, series = [], {}
@@ -99,6 +128,7 @@ def main(argv=None) -> int:
             model.save(Path(a.save) / f"{name}.safetensors",
                        {"seed": k, "steps": a.steps, "data": source, "heldout_gaze_deg": hist[-1]["val_gaze_deg"]})
         final = evaluate_gaze_estimator(model, *test)
+        print(format_table(error_by_view(model, *test)))
         x = test[0][: a.batch].float() / 255
         with torch.no_grad():
             sec = timeit(lambda m=model, x=x: m(x), repeats=5)
