@@ -89,7 +89,7 @@ def main(argv=None) -> int:
     print(machine_info())
     t0 = time.perf_counter()
     if a.data:
-        train = load_split(a.data, "train", a.input_size)
+        train = (torch.zeros(0, 3, 1, 1), torch.zeros(0, 4)) if a.eval_only else load_split(a.data, "train", a.input_size)
         test = load_split(a.data, "test", a.input_size)
         source = f"synthetic dataset {a.data}"
     else:
