@@ -222,6 +222,17 @@ class GazeLoss(nn.Module):
         return err.mean()
 
 
+def gaze_to_camera(pitchyaw: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """Head-frame gaze [B, 2] -> camera-frame gaze [B, 2] for head-to-camera rotations R [B, 3, 3].
+
+    The sampled intermediate gaze φ lives in the head frame, while an estimator trained on camera-frame labels
+    (``pitchyaw_cam``) predicts camera-frame gaze: convert φ with this before ``GazeLoss(target_gaze=...)``.
+    """
+    from toolkit.rotations import pitchyaw_to_vector, vector_to_pitchyaw
+
+    return vector_to_pitchyaw(torch.einsum("bij,bj->bi", R, pitchyaw_to_vector(pitchyaw)))
+
+
 # ----------------------------------------------------------------------------- orthogonality loss
 class OrthogonalityLoss:
     """Disentangling regularizer on the first linear layers of the gaze, pose and expression MLPs.

@@ -10,7 +10,14 @@ import torch.nn as nn
 
 import train.losses as losses_mod
 from toolkit.errors import ToolkitError
-from train.losses import GazeLoss, ImageLoss, ImageLossConfig, OrthogonalityLoss, composite_on_white
+from train.losses import (
+    GazeLoss,
+    ImageLoss,
+    ImageLossConfig,
+    OrthogonalityLoss,
+    composite_on_white,
+    gaze_to_camera,
+)
 from train.vgg import PERCEPTUAL_LAYERS, VGG16Features, load_vgg16
 
 
@@ -225,6 +232,17 @@ def test_gaze_loss_with_target_gaze_and_zero_error_gradient_is_finite():
         gl(render)
     with pytest.raises(ToolkitError, match="target_gaze"):
         gl(render, target_gaze=torch.zeros(2, 3))
+
+
+def test_gaze_to_camera_frame():
+    from toolkit.eyes import gaze_rotation
+
+    phi = torch.tensor([[0.2, -0.3], [0.0, 0.0]])
+    assert torch.allclose(gaze_to_camera(phi, torch.eye(3).expand(2, 3, 3)), phi, atol=1e-6)
+    # A head turned by yaw 0.4 (a rotation about the vertical axis) adds 0.4 to a level gaze's yaw.
+    R = gaze_rotation(torch.tensor([[0.0, 0.4]])).expand(2, 3, 3)
+    out = gaze_to_camera(torch.tensor([[0.0, 0.1], [0.0, -0.2]]), R)
+    assert torch.allclose(out, torch.tensor([[0.0, 0.5], [0.0, 0.2]]), atol=1e-6)
 
 
 # ----------------------------------------------------------------------------- orthogonality loss
