@@ -16,7 +16,6 @@ All losses compute in float32 even under autocast (SSIM and cosines lose too muc
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass, field
 
 import torch
@@ -311,8 +310,3 @@ def _cos(a: torch.Tensor, b: torch.Tensor, eps: float) -> torch.Tensor:
     nb = torch.sqrt((b * b).sum(-1) + eps)
     return (a * b).sum(-1) / (na * nb)
 
-
-def default_perceptual_path() -> str | None:
-    """``$DITGAZE_VGG16`` when set (a local VGG16 state dict), else None."""
-    p = os.environ.get("DITGAZE_VGG16")
-    return p or None
