@@ -21,7 +21,15 @@ from toolkit.scene import PART_FACE, PART_LEFT_EYE, PART_RIGHT_EYE, GaussianScen
 
 @dataclass(frozen=True)
 class DemoHeadShape:
-    """Analytic head: a star-shaped surface around ``center`` plus two spherical eyeballs (metres)."""
+    """Analytic head: a star-shaped surface around ``center`` plus two spherical eyeballs (metres).
+
+    The defaults are the demo head. Identity fields (head size, nose, brow, chin, eyes, mouth) and
+    expression fields (``mouth_open``, ``smile``, ``brow_raise``, ``eyelid``) let ``train.data.synthetic``
+    build many subjects from the same surface. Features are placed by *base* coordinates: the (x, y) of
+    the ellipsoid point in each direction (:meth:`base_xy`), so they stay put when expressions recess or
+    bulge the surface. ``eye_opening`` = (half-width, half-height) of an almond-shaped socket through
+    which the eyeball shows; (0, 0), the demo default, means no socket (the surface covers the eyes).
+    """
 
     center: tuple[float, float, float] = (0.0, 0.01, 0.0)
     semi_axes: tuple[float, float, float] = (0.075, 0.10, 0.09)
@@ -32,24 +40,114 @@ class DemoHeadShape:
     nose_height: float = 0.024
     skin: tuple[float, float, float] = (0.86, 0.66, 0.55)
     iris: tuple[float, float, float] = (0.30, 0.20, 0.10)
+    # Identity (direction-space widths as in the demo formula; metres otherwise).
+    nose_width: float = 0.09
+    brow_height: float = 0.006
+    brow_y: float = -0.12  # direction-space height of the brow ridge (subjects: higher, above the eyes)
+    chin_height: float = 0.008
+    eye_opening: tuple[float, float] = (0.0, 0.0)
+    mouth_width: float = 0.024
+    mouth_y: float = 0.062
+    # Expression: mouth_open, eyelid in [0, 1]; smile, brow_raise in [-1, 1]. Zero is neutral.
+    mouth_open: float = 0.0
+    smile: float = 0.0
+    brow_raise: float = 0.0
+    eyelid: float = 0.0
+
+    SOCKET_SHARPNESS = 1.0 / 0.0004  # 1/m: the lid rim spans about a millimetre
+    SOCKET_BEHIND_CENTER = 0.001  # the socket floor lies this far behind the eyeball centres (m)
+    MOUTH_DEPTH = 0.015  # recess of a fully open mouth (m)
 
     def eye_centers(self) -> torch.Tensor:
         """[2, 3] centres of the left (image-left, x < 0) and right eyeballs."""
         return torch.tensor([[-self.eye_offset_x, self.eye_y, self.eye_z], [self.eye_offset_x, self.eye_y, self.eye_z]])
 
+    def ellipsoid_radius(self, dirs: torch.Tensor) -> torch.Tensor:
+        a = torch.tensor(self.semi_axes, dtype=dirs.dtype)
+        return 1.0 / torch.sqrt(((dirs / a) ** 2).sum(-1))
+
+    def base_xy(self, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """[M, 3] unit directions -> metric (x, y) of the ellipsoid point in each direction."""
+        p = torch.tensor(self.center, dtype=dirs.dtype) + self.ellipsoid_radius(dirs)[:, None] * dirs
+        return p[:, 0], p[:, 1]
+
+    def dirs_from_base_xy(self, xy: torch.Tensor) -> torch.Tensor:
+        """[M, 2] metric (x, y) on the front of the ellipsoid -> [M, 3] unit directions (inverse of base_xy)."""
+        a = torch.tensor(self.semi_axes, dtype=xy.dtype)
+        c = torch.tensor(self.center, dtype=xy.dtype)
+        rho = ((xy[:, 0] - c[0]) / a[0]) ** 2 + ((xy[:, 1] - c[1]) / a[1]) ** 2
+        z = c[2] - a[2] * torch.sqrt((1 - rho).clamp_min(1e-4))
+        p = torch.stack([xy[:, 0], xy[:, 1], z], -1)
+        return torch.nn.functional.normalize(p - c, dim=-1)
+
+    def opening_half_height(self, dx: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+        """Almond lid profile: half-height of the eye opening at horizontal offset dx (upper lid closes)."""
+        aw, ah = self.eye_opening
+        # Signed profile: negative beyond the corners, so the opening closes there instead of thinning to 0.
+        q = 1 - (dx / max(aw, 1e-9)) ** 2
+        prof = torch.sign(q) * q.abs() ** 0.8
+        h_up = ah * (1 - 0.9 * self.eyelid) * prof
+        return torch.where(upper, h_up, ah * (1 - 0.3 * self.eyelid) * prof)
+
+    def mouth_centerline(self, x: torch.Tensor) -> torch.Tensor:
+        """y of the line between the lips at x (corners rise with ``smile``)."""
+        return self.mouth_y - self.smile * 0.008 * (x / self.mouth_width) ** 2
+
+    def mouth_half_opening(self, x: torch.Tensor) -> torch.Tensor:
+        q = 1 - (x / self.mouth_width) ** 2
+        return 0.010 * self.mouth_open * torch.sign(q) * q.abs() ** 0.5
+
+    def socket_weight(self, dirs: torch.Tensor) -> torch.Tensor:
+        """[M] in [0, 1]: how far each direction lies inside an eye opening (0 with no sockets)."""
+        if self.eye_opening[0] <= 0 or self.eye_opening[1] <= 0:
+            return torch.zeros(dirs.shape[0], dtype=dirs.dtype)
+        x, y = self.base_xy(dirs)
+        w = torch.zeros_like(x)
+        for ex in (-self.eye_offset_x, self.eye_offset_x):
+            dx, dy = x - ex, y - self.eye_y
+            h = self.opening_half_height(dx, dy < 0)
+            w = torch.maximum(w, torch.sigmoid(self.SOCKET_SHARPNESS * (h - dy.abs())) * (dirs[:, 2] < 0))
+        return w
+
+    def mouth_weight(self, dirs: torch.Tensor) -> torch.Tensor:
+        """[M] in [0, 1]: how far each direction lies inside the open mouth."""
+        x, y = self.base_xy(dirs)
+        q = 1 - (x / self.mouth_width) ** 2
+        h = self.mouth_half_opening(x) + 0.0015 * q.clamp(max=0)  # the corners close within ~1 mm
+        inside = torch.sigmoid(self.SOCKET_SHARPNESS * (h - (y - self.mouth_centerline(x)).abs()))
+        return inside * (dirs[:, 2] < 0) * (self.mouth_open > 0)
+
     def radius(self, dirs: torch.Tensor) -> torch.Tensor:
         """[M, 3] unit directions from ``center`` -> [M] surface distance (ellipsoid + nose, brow, chin)."""
-        a = torch.tensor(self.semi_axes)
-        r = 1.0 / torch.sqrt(((dirs / a) ** 2).sum(-1))
+        r = self.ellipsoid_radius(dirs)
         x, y, z = dirs.unbind(-1)
         front = torch.sigmoid(-z * 20)
-        nose = self.nose_height * torch.exp(-(x / 0.09) ** 2 - ((y - 0.22) / 0.16) ** 2) * front
-        brow = 0.006 * torch.exp(-((y + 0.12) / 0.06) ** 2) * torch.exp(-(x / 0.45) ** 2) * front
-        chin = 0.008 * torch.exp(-(x / 0.2) ** 2 - ((y - 0.72) / 0.12) ** 2) * front
-        return r + nose + brow + chin
+        nose = self.nose_height * torch.exp(-(x / self.nose_width) ** 2 - ((y - 0.22) / 0.16) ** 2) * front
+        by = y - self.brow_y + 0.05 * self.brow_raise
+        brow = self.brow_height * torch.exp(-(by / 0.06) ** 2) * torch.exp(-(x / 0.45) ** 2) * front
+        jaw = 0.72 + 0.12 * self.mouth_open
+        chin = self.chin_height * torch.exp(-(x / 0.2) ** 2 - ((y - jaw) / 0.12) ** 2) * front
+        r = r + nose + brow + chin
+        if self.mouth_open > 0:
+            # The jaw drops: the surface below the mouth moves out along its directions.
+            bx, bl = self.base_xy(dirs)
+            below = torch.sigmoid((bl - self.mouth_y) / 0.006) * torch.exp(-(bx / 0.05) ** 2) * front
+            r = r + 0.010 * self.mouth_open * below
+            r = r - self.MOUTH_DEPTH * self.mouth_open * self.mouth_weight(dirs)
+        if self.smile != 0:
+            bx, bl = self.base_xy(dirs)
+            cheeks = torch.exp(-((bx.abs() - 0.040) / 0.012) ** 2 - ((bl - 0.035) / 0.012) ** 2) * front
+            r = r + 0.004 * self.smile * cheeks
+        w = self.socket_weight(dirs)
+        if bool((w > 0).any()):
+            # Socket floor: the plane just behind the eyeball centres, so their front halves show.
+            floor_z = self.eye_z + self.SOCKET_BEHIND_CENTER - self.center[2]
+            t = floor_z / torch.where(z < -1e-3, z, torch.full_like(z, -1e-3))
+            r = r - w * (r - torch.minimum(r, t))
+        return r
 
     def surface_points(self, dirs: torch.Tensor) -> torch.Tensor:
-        return torch.tensor(self.center) + self.radius(dirs)[:, None] * dirs
+        return torch.tensor(self.center, dtype=dirs.dtype) + self.radius(dirs)[:, None] * dirs
 
 
 def _fibonacci_sphere(m: int) -> torch.Tensor:

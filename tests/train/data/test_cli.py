@@ -1,0 +1,44 @@
+"""python -m train.data synth / inspect, and their one-line errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from tests.train.data.conftest import needs_gl
+from toolkit.errors import run_cli
+from train.data.__main__ import main
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+@needs_gl
+def test_synth_then_inspect(tmp_path, capsys):
+    out = tmp_path / "synth"
+    assert run_cli(main, ["synth", "--subjects", "2", "--frames", "1", "--res", "48", "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["split.json", "subject0000.h5", "subject0001.h5"]
+    assert run_cli(main, ["inspect", str(out), "--n", "8", "--tile", "64"]) == 0
+    text = capsys.readouterr().out
+    assert "subject0001.h5" in text and "| images |" in text and "contact sheet" in text
+    import imageio.v3 as iio
+
+    sheet = iio.imread(out / "contact_sheet.png")
+    assert sheet.shape == (128, 384, 3)
+    # Landmarks and mask outlines are drawn: cyan/yellow/green pixels exist.
+    assert (np.abs(sheet.astype(int) - [0, 200, 255]).sum(-1) == 0).any()
+    assert (np.abs(sheet.astype(int) - [0, 200, 0]).sum(-1) == 0).any()
+    assert run_cli(main, ["inspect", str(out / "subject0000.h5"), "--n", "3", "--tile", "32"]) == 0
+    assert (out / "subject0000_sheet.png").exists()
+
+
+def test_cli_errors_are_one_line(tmp_path):
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"garbage")
+    for args in (["inspect", str(tmp_path / "missing.h5")], ["inspect", str(bad)],
+                 ["synth", "--subjects", "0", "--out", str(tmp_path / "o")]):
+        r = subprocess.run([sys.executable, "-m", "train.data", *args], cwd=ROOT, capture_output=True, text=True)
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, r.stderr

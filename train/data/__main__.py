@@ -1,0 +1,145 @@
+"""CLI: ``python -m train.data synth ...`` writes synthetic subjects; ``inspect PATH`` summarizes files.
+
+    python -m train.data synth --subjects 8 --frames 10 --res 128 --out data/synth
+    python -m train.data inspect data/synth            # table + data/synth/contact_sheet.png
+    python -m train.data inspect data/synth/subject0000.h5 --sheet out/sheet.png --n 18
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from toolkit.errors import ToolkitError, run_cli
+
+
+def _table(rows: list[dict], columns: list[str]) -> str:
+    cells = [[str(r.get(c, "")) for c in columns] for r in rows]
+    widths = [max(len(c), *(len(x[i]) for x in cells)) for i, c in enumerate(columns)]
+    line = lambda vals: "| " + " | ".join(v.rjust(w) for v, w in zip(vals, widths, strict=True)) + " |"  # noqa: E731
+    return "\n".join([line(columns), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + [line(x) for x in cells])
+
+
+def summarize(path: Path, info: dict) -> dict:
+    from train.data.format import open_h5
+
+    with open_h5(path) as f:
+        g = np.degrees(f["pitchyaw_head"][()])
+        hp = np.degrees(f["face_head_pose"][()])
+        cams = len(np.unique(f["cam_index"][()]))
+        frames = len(np.unique(f["frame_index"][()]))
+        cov = float(np.mean([f["head_mask"][i].mean() / 255 for i in np.linspace(0, info["n"] - 1, 8).astype(int)]))
+    return {
+        "file": path.name, "images": info["n"], "res": f"{info['width']}x{info['height']}", "cameras": cams,
+        "frames": frames, "vertices": info["n_vertices"],
+        "gaze pitch (deg)": f"{g[:, 0].min():.0f}..{g[:, 0].max():.0f}",
+        "gaze yaw (deg)": f"{g[:, 1].min():.0f}..{g[:, 1].max():.0f}",
+        "head pitch/yaw (deg)": f"{hp[:, 0].min():.0f}..{hp[:, 0].max():.0f} / {hp[:, 1].min():.0f}..{hp[:, 1].max():.0f}",
+        "head mask": f"{cov:.0%}",
+        "extra keys": ",".join(info["optional"] + info["subject_keys"]) or "-",
+    }
+
+
+def draw_tile(sample: dict, size: int) -> np.ndarray:
+    """One annotated tile (RGB uint8): eye masks tinted, head-mask outline, landmarks, gaze arrow."""
+    import cv2
+
+    img = (sample["image"].numpy().transpose(1, 2, 0) * 255).astype(np.uint8).copy()
+    H = img.shape[0]
+    for m, col in (("left_eye_mask", (255, 60, 60)), ("right_eye_mask", (60, 60, 255))):
+        a = (sample[m][0].numpy() > 0.5)[..., None]
+        img = np.where(a, (0.55 * img + 0.45 * np.array(col)).astype(np.uint8), img)
+    img = cv2.resize(img, (size, size), interpolation=cv2.INTER_NEAREST if size > H else cv2.INTER_AREA)
+    head = cv2.resize((sample["head_mask"][0].numpy() > 0.5).astype(np.uint8), (size, size),
+                      interpolation=cv2.INTER_NEAREST)
+    contours, _ = cv2.findContours(head, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(img, contours, -1, (0, 200, 0), 1)
+    s = size / H
+    lm = sample["landmarks"].numpy() * s
+    for k, (x, y) in enumerate(lm):
+        col = (255, 200, 0) if 36 <= k <= 47 else (0, 200, 255)
+        cv2.circle(img, (int(round(x - 0.5)), int(round(y - 0.5))), max(1, size // 160), col, -1)
+    if "pitchyaw_cam" in sample:
+        p, yw = (float(v) for v in sample["pitchyaw_cam"])
+        g = np.array([-math.cos(p) * math.sin(yw), -math.sin(p)])
+        for eye in (lm[36:42].mean(0), lm[42:48].mean(0)):
+            end = eye + g * size * 0.12
+            cv2.arrowedLine(img, tuple(int(v) for v in eye), tuple(int(v) for v in end), (255, 255, 0), 1,
+                            tipLength=0.25)
+    return img
+
+
+def contact_sheet(dataset, indices: Sequence[int], out: Path, *, tile: int = 160, cols: int = 6) -> Path:
+    import cv2
+
+    from toolkit.io import atomic_write_bytes
+
+    tiles = [draw_tile(dataset[int(i)], tile) for i in indices]
+    rows = math.ceil(len(tiles) / cols)
+    sheet = np.full((rows * tile, cols * tile, 3), 255, np.uint8)
+    for k, t in enumerate(tiles):
+        r, c = divmod(k, cols)
+        sheet[r * tile:(r + 1) * tile, c * tile:(c + 1) * tile] = t
+    ok, buf = cv2.imencode(".png", sheet[..., ::-1])
+    if not ok:
+        raise ToolkitError(f"{out}: could not encode the contact sheet")
+    atomic_write_bytes(out, buf.tobytes())
+    return out
+
+
+def cmd_synth(a) -> int:
+    from train.data.generate import synth_dataset
+
+    t0 = time.perf_counter()
+    paths = synth_dataset(a.out, n_subjects=a.subjects, n_frames=a.frames, res=a.res, seed=a.seed)
+    dt = time.perf_counter() - t0
+    n = a.subjects * a.frames * 18
+    print(f"wrote {len(paths)} subjects ({n} images at {a.res}x{a.res}) to {a.out} in {dt:.1f} s "
+          f"({n / dt:.1f} images/s)")
+    return 0
+
+
+def cmd_inspect(a) -> int:
+    from train.data.dataset import GazeDataset
+
+    ds = GazeDataset(a.path, res=None)
+    print(_table([summarize(Path(i["path"]), i) for i in ds.info],
+                 ["file", "images", "res", "cameras", "frames", "vertices", "gaze pitch (deg)", "gaze yaw (deg)",
+                  "head pitch/yaw (deg)", "head mask", "extra keys"]))
+    p = Path(a.path)
+    sheet = Path(a.sheet) if a.sheet else (p / "contact_sheet.png" if p.is_dir() else p.with_name(p.stem + "_sheet.png"))
+    n = min(a.n, len(ds))
+    idx = np.linspace(0, len(ds) - 1, n).round().astype(int) if n > 0 else []
+    contact_sheet(ds, idx, sheet, tile=a.tile)
+    print(f"contact sheet: {sheet} ({n} images: eye masks tinted red/blue, head mask outlined green, "
+          "eye landmarks yellow, others cyan, camera-frame gaze arrows)")
+    ds.close()
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m train.data", description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("synth", help="write synthetic subject files (HDF5) and split.json")
+    s.add_argument("--subjects", type=int, default=8)
+    s.add_argument("--frames", type=int, default=10, help="random gaze/pose/expression frames per subject")
+    s.add_argument("--res", type=int, default=128, help="face-patch resolution (512 matches ETH-XGaze)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", default="data/synth")
+    i = sub.add_parser("inspect", help="summary table and a contact sheet of subject files")
+    i.add_argument("path", help="a subject .h5 file or a folder of them")
+    i.add_argument("--sheet", default=None, help="contact sheet PNG path (default beside PATH)")
+    i.add_argument("--n", type=int, default=18, help="images on the contact sheet")
+    i.add_argument("--tile", type=int, default=160)
+    a = ap.parse_args(argv)
+    return cmd_synth(a) if a.cmd == "synth" else cmd_inspect(a)
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))

@@ -1,0 +1,204 @@
+"""GazeDataset: one loader for real (GazeGaussian-preprocessed ETH-XGaze) and synthetic subject files.
+
+The schema of every file is validated when the dataset is built (a missing key or a wrong shape names
+the file and key); samples are then read lazily, one HDF5 handle per file per worker process (handles
+are reopened after a fork, so DataLoader workers never share one), resized, and composited on white
+outside the head mask.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from toolkit.errors import ToolkitError
+from train.data.format import OPTIONAL, validate_subject_file
+
+SPLITS = ("all", "train", "test")
+
+
+def find_subject_files(paths: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
+    """Files from a list of files and/or folders (a folder contributes its ``*.h5``, sorted)."""
+    if isinstance(paths, (str, os.PathLike)):
+        paths = [paths]
+    files: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            found = sorted(p.glob("*.h5"))
+            if not found:
+                raise ToolkitError(f"{p}: no *.h5 subject files in this folder")
+            files += found
+        elif p.exists():
+            files.append(p)
+        else:
+            raise ToolkitError(f"{p}: no such file or folder")
+    if not files:
+        raise ToolkitError("no subject files given")
+    return files
+
+
+def split_files(files: list[Path], split: str, split_file: str | os.PathLike | None = None,
+                test_fraction: float = 0.25) -> list[Path]:
+    """Select a split. ``split.json`` ({"train": [names], "test": [names]}) beside the files (or
+    ``split_file``) decides; without one, the last ``test_fraction`` of the sorted files (at least one
+    when there are two or more) are the test subjects."""
+    if split not in SPLITS:
+        raise ToolkitError(f"split: expected one of {SPLITS}, got {split!r}")
+    if split == "all":
+        return files
+    sf = Path(split_file) if split_file else files[0].parent / "split.json"
+    if sf.exists():
+        try:
+            spec = json.loads(sf.read_text())
+            names = set(spec[split])
+        except (ValueError, KeyError, TypeError) as e:
+            raise ToolkitError(f"{sf}: expected JSON {{\"train\": [...], \"test\": [...]}} ({e})") from e
+        chosen = [f for f in files if f.name in names or f.stem in names]
+        if not chosen:
+            raise ToolkitError(f"{sf}: split '{split}' selects none of the {len(files)} given files")
+        return chosen
+    if split_file:
+        raise ToolkitError(f"{sf}: no such split file")
+    files = sorted(files)
+    n_test = max(1, round(test_fraction * len(files))) if len(files) > 1 else 0
+    chosen = files[len(files) - n_test:] if split == "test" else files[: len(files) - n_test]
+    if not chosen:
+        raise ToolkitError(f"split '{split}' is empty for {len(files)} file(s); pass a split file")
+    return chosen
+
+
+def resize_image(img: np.ndarray, res: int, *, nearest: bool = False) -> np.ndarray:
+    """[H, W, C] or [H, W] -> res × res (area averaging when shrinking, bilinear when growing)."""
+    import cv2
+
+    if img.shape[0] == res and img.shape[1] == res:
+        return img
+    interp = cv2.INTER_NEAREST if nearest else (cv2.INTER_AREA if img.shape[0] > res else cv2.INTER_LINEAR)
+    return cv2.resize(img, (res, res), interpolation=interp)
+
+
+class GazeDataset(torch.utils.data.Dataset):
+    """Samples of subject files as dicts of torch tensors.
+
+    Args:
+        paths: files and/or folders of ``*.h5`` subject files.
+        split: "all", "train" or "test" (see :func:`split_files`).
+        res: output resolution (square); None keeps the stored one. Landmarks and K are rescaled.
+        composite: put white outside the head mask (the stored images may have any background).
+        with_mesh: also return ``vertice`` [V, 3] (world frame; large).
+
+    Each sample: ``image`` [3, R, R] float32 RGB in [0, 1]; ``head_mask``, ``left_eye_mask``,
+    ``right_eye_mask`` [1, R, R] float32 in {0, 1} (soft at resized edges); ``landmarks`` [68, 2] pixels of
+    the R × R image; ``landmarks_3d`` [68, 3]; ``K`` [3, 3] (for R × R); ``w2c_R`` [3, 3]; ``w2c_T`` [3];
+    ``viewmat`` [4, 4]; ``pitchyaw_head`` [2]; ``face_head_pose`` [2]; ``pose`` [6]; ``scale`` [1];
+    ``latent_code`` [144]; ``cam_index``, ``frame_index``, ``subject``, ``row`` int64 scalars; and, where the
+    file has them, ``pitchyaw_cam`` [2], ``expression_params`` [4], ``light_dir`` [3].
+    """
+
+    def __init__(self, paths, split: str = "all", res: int | None = None, *, composite: bool = True,
+                 with_mesh: bool = False, split_file=None, test_fraction: float = 0.25):
+        self.files = split_files(find_subject_files(paths), split, split_file, test_fraction)
+        if res is not None and not 8 <= int(res) <= 4096:
+            raise ToolkitError(f"res: expected an integer in [8, 4096], got {res}")
+        self.res = None if res is None else int(res)
+        self.composite, self.with_mesh = composite, with_mesh
+        self.info = [validate_subject_file(f) for f in self.files]
+        self.index = np.concatenate([np.stack([np.full(i["n"], k), np.arange(i["n"])], 1) for k, i in enumerate(self.info)])
+        self._handles: dict[int, Any] = {}
+        self._pid = os.getpid()
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def _file(self, k: int):
+        import h5py
+
+        if self._pid != os.getpid():  # forked into a worker: never reuse the parent's handles
+            self._handles, self._pid = {}, os.getpid()
+        h = self._handles.get(k)
+        if h is None:
+            try:
+                h = self._handles[k] = h5py.File(self.files[k], "r")
+            except OSError as e:
+                raise ToolkitError(f"{self.files[k]}: cannot open ({e})") from e
+        return h
+
+    def close(self) -> None:
+        for h in self._handles.values():
+            h.close()
+        self._handles = {}
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_handles"] = {}
+        return state
+
+    def read_row(self, k: int, row: int) -> dict[str, np.ndarray]:
+        """Raw arrays of one row of file ``k`` (no resizing), for tools that need the stored data."""
+        f = self._file(k)
+        keys = ["face_patch", "head_mask", "left_eye_mask", "right_eye_mask", "facial_landmarks",
+                "facial_landmarks_3d", "latent_codes", "pose", "scale", "w2c_Rmat", "w2c_Tvec", "inmat",
+                "pitchyaw_head", "face_head_pose", "cam_index", "frame_index"]
+        keys += [o for o in self.info[k]["optional"] if o in OPTIONAL]
+        if self.with_mesh:
+            keys.append("vertice")
+        out = {}
+        for key in keys:
+            try:
+                out[key] = np.asarray(f[key][row])
+            except (OSError, KeyError, ValueError) as e:
+                raise ToolkitError(f"{self.files[k]}: cannot read key '{key}' row {row} (truncated or corrupt?): {e}") from e
+        return out
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        if not -len(self) <= i < len(self):
+            raise IndexError(i)
+        k, row = (int(x) for x in self.index[i])
+        r = self.read_row(k, row)
+        H, W = r["face_patch"].shape[:2]
+        img = r["face_patch"][..., ::-1].astype(np.float32) / 255.0  # stored BGR
+        masks = {m: r[m].astype(np.float32) / 255.0 for m in ("head_mask", "left_eye_mask", "right_eye_mask")}
+        res = self.res or H
+        if self.composite:
+            a = masks["head_mask"][..., None]
+            img = img * a + (1 - a)
+        img = resize_image(img, res)
+        masks = {m: resize_image(v, res) for m, v in masks.items()}
+        sx, sy = res / W, res / H
+        lm = r["facial_landmarks"].astype(np.float32) * np.array([sx, sy], np.float32)
+        K = r["inmat"].astype(np.float32).copy()
+        K[0] *= sx
+        K[1] *= sy
+        V = np.eye(4, dtype=np.float32)
+        V[:3, :3], V[:3, 3] = r["w2c_Rmat"], r["w2c_Tvec"]
+        t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+        out = {
+            "image": t(img.transpose(2, 0, 1)),
+            **{m: t(v[None]) for m, v in masks.items()},
+            "landmarks": t(lm),
+            "landmarks_3d": t(r["facial_landmarks_3d"]),
+            "K": t(K),
+            "w2c_R": t(r["w2c_Rmat"]),
+            "w2c_T": t(r["w2c_Tvec"]),
+            "viewmat": t(V),
+            "pitchyaw_head": t(r["pitchyaw_head"]),
+            "face_head_pose": t(r["face_head_pose"]),
+            "pose": t(r["pose"]),
+            "scale": t(np.reshape(r["scale"], (1,))),
+            "latent_code": t(r["latent_codes"]),
+            "cam_index": torch.tensor(int(r["cam_index"])),
+            "frame_index": torch.tensor(int(r["frame_index"])),
+            "subject": torch.tensor(k),
+            "row": torch.tensor(row),
+        }
+        for o in ("pitchyaw_cam", "expression_params", "light_dir"):
+            if o in r:
+                out[o] = t(r[o])
+        if self.with_mesh:
+            out["vertice"] = t(r["vertice"])
+        return out

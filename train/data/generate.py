@@ -1,0 +1,160 @@
+"""Generate synthetic subject files: random frames (gaze, head pose, expression, light) × an 18-camera rig.
+
+Row order is frame-major: row = frame · n_cameras + camera. Every image of a frame shares one mesh upload.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from toolkit.cameras import Camera, eth_xgaze_rig
+from toolkit.errors import ToolkitError
+from train.data.format import write_subject_h5
+from train.data.synthetic import (
+    IDENTITY_NAMES,
+    EXPRESSION_NAMES,
+    Subject,
+    SubjectParams,
+    build_subject,
+    latent_code,
+    normalized_camera,
+    pose_matrix,
+    render_views,
+    sample_expression,
+    sample_head_pose,
+)
+
+GAZE_RANGE_DEG = 40.0
+NORM_DISTANCE, NORM_CROP = 0.6, 0.26  # metres: normalized camera distance and face-crop width
+RIG_RADIUS = 1.0
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int):
+    # Per-vertex shape maths is tiny; torch's thread pool only adds contention (10x slower under load).
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def sample_frames(seed: int, n_frames: int) -> dict[str, np.ndarray]:
+    """Per-frame random gaze [n, 2] (±40° head frame), pose [n, 6], expression [n, 4], light [n, 3]."""
+    rng = np.random.default_rng([seed, 11])
+    gaze = rng.uniform(-1, 1, (n_frames, 2)) * math.radians(GAZE_RANGE_DEG)
+    pose = sample_head_pose(rng, n_frames)
+    expr = sample_expression(rng, n_frames)
+    light = np.concatenate([rng.uniform(-0.6, 0.6, (n_frames, 2)), -np.ones((n_frames, 1))], 1)
+    light /= np.linalg.norm(light, axis=1, keepdims=True)
+    return {"gaze": gaze.astype(np.float32), "pose": pose, "expression": expr, "light": light.astype(np.float32)}
+
+
+def frame_cameras(subject: Subject, pose, rig: list[Camera], res: int, scale: float = 1.0) -> list[Camera]:
+    """The normalized cameras of one frame: each rig camera aimed at the posed face centre."""
+    R, t = pose_matrix(pose)
+    face_w = scale * R @ subject.face_center + t
+    return [normalized_camera(c, face_w, R, res, distance=NORM_DISTANCE, crop=NORM_CROP) for c in rig]
+
+
+def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, seed: int | None = None,
+                     rig: list[Camera] | None = None, subject: Subject | None = None):
+    """Render one subject: returns (rows, subject_arrays, attrs) ready for ``write_subject_h5``."""
+    if n_frames < 1:
+        raise ToolkitError(f"n_frames must be >= 1, got {n_frames}")
+    if not 16 <= res <= 2048:
+        raise ToolkitError(f"res must be in [16, 2048], got {res}")
+    seed = params.seed if seed is None else seed
+    rig = rig or eth_xgaze_rig(radius=RIG_RADIUS)
+    with _torch_threads(1):
+        subject = subject or build_subject(params)
+        fr = sample_frames(seed, n_frames)
+        chunks = []
+        for i in range(n_frames):
+            cams = frame_cameras(subject, fr["pose"][i], rig, res)
+            out = render_views(subject, fr["gaze"][i], fr["pose"][i], fr["expression"][i], cams,
+                               light_dirs=fr["light"][i])
+            out["light_dir"] = np.tile(fr["light"][i], (len(cams), 1))
+            out["cam_index"] = np.arange(len(cams), dtype=np.int32)
+            out["frame_index"] = np.full(len(cams), i, dtype=np.int32)
+            chunks.append(out)
+        out = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    u8 = lambda m: (m.astype(np.uint8) * 255)  # noqa: E731
+    rgb8 = np.clip(np.rint(out["rgb"] * 255), 0, 255).astype(np.uint8)
+    n = len(rgb8)
+    rows = {
+        "face_patch": np.ascontiguousarray(rgb8[..., ::-1]),  # BGR, as the ETH-XGaze files
+        "head_mask": u8(out["head_mask"]),
+        "left_eye_mask": u8(out["left_eye_mask"]),
+        "right_eye_mask": u8(out["right_eye_mask"]),
+        "facial_landmarks": out["landmarks_2d"],
+        "facial_landmarks_3d": out["landmarks_3d"],
+        "latent_codes": latent_code(np.tile(params.vector(), (n, 1)), out["expression"]).astype(np.float32),
+        "pose": out["pose"],
+        "scale": out["scale"],
+        "w2c_Rmat": out["w2c_R"],
+        "w2c_Tvec": out["w2c_T"],
+        "inmat": out["K"],
+        "pitchyaw_head": out["pitchyaw_head"],
+        "face_head_pose": out["face_head_pose"],
+        "cam_index": out["cam_index"],
+        "frame_index": out["frame_index"],
+        "vertice": out["vertice"],
+        "pitchyaw_cam": out["pitchyaw_cam"],
+        "expression_params": out["expression"],
+        "light_dir": out["light_dir"].astype(np.float32),
+    }
+    subj = {
+        "neutral_vertice": subject.neutral_vertices(),
+        "mesh_faces": subject.head_faces.astype(np.int32),
+        "eyeball_centers": subject.eye_centers.astype(np.float32),
+        "eyeball_radii": np.full(2, subject.eye_radius, np.float32),
+        "identity_params": params.vector(),
+    }
+    attrs = {
+        "source": "train.data.synthetic",
+        "subject_params": params.to_json(),
+        "frame_seed": int(seed),
+        "n_cameras": len(rig),
+        "rig": json.dumps({"kind": "eth_xgaze_rig", "radius": RIG_RADIUS}),
+        "normalization": json.dumps({"distance": NORM_DISTANCE, "crop": NORM_CROP}),
+        "identity_names": json.dumps(list(IDENTITY_NAMES)),
+        "expression_names": json.dumps(list(EXPRESSION_NAMES)),
+        "ambient": 0.45,
+    }
+    return rows, subj, attrs
+
+
+def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int, res: int = 128, seed: int = 0,
+                  test_fraction: float = 0.25, log=print) -> list[Path]:
+    """Write ``subject0000.h5`` ... plus ``split.json`` into ``out_dir``; returns the subject files."""
+    if n_subjects < 1:
+        raise ToolkitError(f"--subjects must be >= 1, got {n_subjects}")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ToolkitError(f"{out_dir}: exists and is not a directory")
+    paths = []
+    t0 = time.perf_counter()
+    rig = eth_xgaze_rig(radius=RIG_RADIUS)
+    for s in range(n_subjects):
+        params = SubjectParams.sample(seed * 100003 + s)
+        rows, subj, attrs = generate_subject(params, n_frames=n_frames, res=res, rig=rig)
+        p = write_subject_h5(out_dir / f"subject{s:04d}.h5", rows, subject=subj, attrs=attrs)
+        paths.append(p)
+        dt = time.perf_counter() - t0
+        log(f"{p}: {len(rows['face_patch'])} images ({(s + 1) * len(rows['face_patch']) / dt:.1f} images/s)")
+    n_test = max(1, round(test_fraction * n_subjects)) if n_subjects > 1 else 0
+    split = {"train": [p.name for p in paths[: n_subjects - n_test]], "test": [p.name for p in paths[n_subjects - n_test:]]}
+    from toolkit.io import atomic_write_json
+
+    atomic_write_json(out_dir / "split.json", split)
+    return paths

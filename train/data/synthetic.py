@@ -1,0 +1,651 @@
+"""Procedural subjects: identity + expression parameters -> head mesh, eyeball meshes, exact labels.
+
+A subject is the analytic head of :class:`toolkit.procedural.DemoHeadShape` (one shape for the demo head
+and every subject) with identity parameters, meshed by mapping a warped icosphere through its
+star-shaped radius function (so the head mesh is watertight by construction, with extra vertices
+around the eyes and mouth), plus two eyeball meshes: spheres with a sclera, an iris and a pupil, whose
+boundaries are exact rings. Gaze is a rigid rotation of each eyeball about its centre
+(``toolkit.eyes.gaze_rotation``), the same rotation for both eyes (a gaze target at infinity).
+
+Frames (see docs/data.md): the head frame is the toolkit's (metres, x image-right in a frontal view,
+y down, the face looks towards -z, canonical gaze (0, 0, -1)); ``pose`` = axis-angle (3) + translation
+(3) maps head to world: x_world = scale · R(pose[:3]) · x_head + pose[3:]; cameras are world-to-camera
+OpenCV. "Left eye" is the image-left eye (x < 0, iBUG 36-41).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from toolkit.cameras import Camera
+from toolkit.errors import ToolkitError
+from toolkit.eyes import gaze_rotation
+from toolkit.procedural import DemoHeadShape
+from toolkit.rotations import so3_exp, vector_to_pitchyaw
+
+IDENTITY_NAMES = (
+    "head_width", "head_height", "head_depth", "nose_height", "nose_width", "brow_height", "chin_height",
+    "eye_spacing", "eye_size", "eye_height", "iris_size", "lid_height", "skin_lightness", "skin_redness",
+    "iris_blueness", "iris_lightness", "hair_lightness", "hair_redness", "mouth_width", "mouth_height",
+    "lip_redness", "pupil_size",
+)
+"""Identity parameters, each normalized to [-1, 1] (0 = the average subject, close to the demo head)."""
+
+EXPRESSION_NAMES = ("mouth_open", "smile", "brow_raise", "eyelid")
+"""Expression parameters: mouth_open, eyelid in [0, 1]; smile, brow_raise in [-1, 1]; 0 = neutral."""
+
+EXPRESSION_RANGES = ((0.0, 1.0), (-1.0, 1.0), (-1.0, 1.0), (0.0, 1.0))
+ID_CODE_DIM, EXPR_CODE_DIM = 80, 64
+_EMBED_SEED = 20240605  # fixes the latent-code embedding forever: changing it changes every file's codes
+
+# Parts of the rendered scene (as in toolkit.scene): face 0, left eye 1, right eye 2.
+PART_HEAD, PART_LEFT_EYE, PART_RIGHT_EYE = 0, 1, 2
+EYE_SCLERA, EYE_IRIS, EYE_PUPIL = 0, 1, 2
+
+
+def _orthonormal_embedding(rows: int, cols: int, seed: int) -> np.ndarray:
+    q, _ = np.linalg.qr(np.random.default_rng(seed).standard_normal((rows, cols)))
+    return q.astype(np.float32)  # [rows, cols] with orthonormal columns: code = W p, p = W^T code
+
+
+_W_ID = _orthonormal_embedding(ID_CODE_DIM, len(IDENTITY_NAMES), _EMBED_SEED)
+_W_EXPR = _orthonormal_embedding(EXPR_CODE_DIM, len(EXPRESSION_NAMES), _EMBED_SEED + 1)
+
+
+def latent_code(identity: np.ndarray, expression: np.ndarray) -> np.ndarray:
+    """[..., 22] identity + [..., 4] expression -> [..., 144] code (80 identity dims, then 64 expression).
+
+    A fixed linear map with orthonormal columns, so the parameters are recovered exactly by
+    :func:`params_from_code`.
+    """
+    identity = np.asarray(identity, np.float32)
+    expression = np.asarray(expression, np.float32)
+    return np.concatenate([identity @ _W_ID.T, expression @ _W_EXPR.T], -1)
+
+
+def params_from_code(code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`latent_code`: [..., 144] -> ([..., 22] identity, [..., 4] expression)."""
+    code = np.asarray(code, np.float32)
+    return code[..., :ID_CODE_DIM] @ _W_ID, code[..., ID_CODE_DIM:] @ _W_EXPR
+
+
+def check_expression(expression, name: str = "expression") -> np.ndarray:
+    e = np.asarray(expression, np.float32)
+    if e.shape[-1:] != (len(EXPRESSION_NAMES),) or not np.isfinite(e).all():
+        raise ToolkitError(f"{name}: expected finite [..., {len(EXPRESSION_NAMES)}] {EXPRESSION_NAMES}, "
+                           f"got shape {list(e.shape)}")
+    for k, (lo, hi) in enumerate(EXPRESSION_RANGES):
+        if (e[..., k] < lo - 1e-6).any() or (e[..., k] > hi + 1e-6).any():
+            raise ToolkitError(f"{name}: {EXPRESSION_NAMES[k]} must lie in [{lo}, {hi}]")
+    return e
+
+
+def sample_expression(rng: np.random.Generator, n: int) -> np.ndarray:
+    """[n, 4] random expressions: half with an open mouth, mostly open eyes."""
+    mouth = rng.uniform(0, 1, n) ** 1.5 * (rng.uniform(0, 1, n) < 0.5)
+    smile = rng.uniform(-0.6, 1.0, n)
+    brow = rng.uniform(-0.8, 0.8, n)
+    lid = rng.uniform(0, 0.5, n)
+    return np.stack([mouth, smile, brow, lid], -1).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class SubjectParams:
+    """A subject's identity: ``identity`` [22] in [-1, 1] (names in IDENTITY_NAMES), and its seed."""
+
+    identity: tuple[float, ...] = tuple(0.0 for _ in IDENTITY_NAMES)
+    seed: int = 0
+
+    def __post_init__(self):
+        u = np.asarray(self.identity, np.float64)
+        if u.shape != (len(IDENTITY_NAMES),) or not np.isfinite(u).all() or np.abs(u).max() > 1 + 1e-6:
+            raise ToolkitError(f"SubjectParams.identity: expected {len(IDENTITY_NAMES)} finite values in [-1, 1]")
+
+    @classmethod
+    def sample(cls, seed: int) -> "SubjectParams":
+        """A random identity, deterministic in ``seed``."""
+        rng = np.random.default_rng([seed, 7])
+        return cls(tuple(float(x) for x in rng.uniform(-1, 1, len(IDENTITY_NAMES))), int(seed))
+
+    def vector(self) -> np.ndarray:
+        return np.asarray(self.identity, np.float32)
+
+    def to_json(self) -> str:
+        return json.dumps({"identity": list(self.identity), "seed": self.seed, "names": list(IDENTITY_NAMES)})
+
+    @classmethod
+    def from_json(cls, text: str) -> "SubjectParams":
+        try:
+            d = json.loads(text)
+            return cls(tuple(float(x) for x in d["identity"]), int(d.get("seed", 0)))
+        except (ValueError, KeyError, TypeError) as e:
+            raise ToolkitError(f"subject params: not a SubjectParams JSON ({e})") from e
+
+    def _u(self, name: str) -> float:
+        return float(self.identity[IDENTITY_NAMES.index(name)])
+
+    def colors(self) -> dict[str, np.ndarray]:
+        """Albedos of skin, hair, lips, iris from the identity."""
+        u = self._u
+        skin = np.array([0.86, 0.66, 0.55]) * (1 + 0.18 * u("skin_lightness")) + np.array([0.04, -0.02, -0.03]) * u(
+            "skin_redness")
+        hair = np.array([0.20, 0.13, 0.08]) * (1 + 0.8 * max(u("hair_lightness"), -0.6)) + np.array(
+            [0.08, 0.02, -0.02]) * u("hair_redness")
+        lips = skin * np.array([0.85, 0.52, 0.52]) * (1 + 0.1 * u("lip_redness"))
+        blue = 0.5 * (u("iris_blueness") + 1)
+        iris = ((1 - blue) * np.array([0.34, 0.21, 0.10]) + blue * np.array([0.25, 0.42, 0.58])) * (
+            1 + 0.35 * u("iris_lightness"))
+        clip = lambda c: np.clip(c, 0.02, 0.98).astype(np.float32)  # noqa: E731
+        return {"skin": clip(skin), "hair": clip(hair), "lips": clip(lips), "iris": clip(iris)}
+
+    def shape(self, expression=None) -> DemoHeadShape:
+        """The analytic head of this identity with ``expression`` [4] (default neutral)."""
+        u = self._u
+        e = np.zeros(len(EXPRESSION_NAMES)) if expression is None else check_expression(expression)
+        base = DemoHeadShape(
+            semi_axes=(0.075 + 0.006 * u("head_width"), 0.10 + 0.008 * u("head_height"),
+                       0.09 + 0.006 * u("head_depth")),
+            eye_offset_x=0.031 + 0.003 * u("eye_spacing"),
+            eye_y=-0.005 + 0.003 * u("eye_height"),
+            eye_radius=0.012 + 0.0007 * u("eye_size"),
+            nose_height=0.024 + 0.007 * u("nose_height"),
+            nose_width=0.09 + 0.02 * u("nose_width"),
+            brow_height=0.006 + 0.003 * u("brow_height"),
+            brow_y=-0.30,
+            chin_height=0.008 + 0.005 * u("chin_height"),
+            skin=tuple(float(x) for x in self.colors()["skin"]),
+            iris=tuple(float(x) for x in self.colors()["iris"]),
+            mouth_width=0.024 + 0.003 * u("mouth_width"),
+            mouth_y=0.062 + 0.004 * u("mouth_height"),
+        )
+        # Seat the eyeballs so their fronts lie 1.5 mm behind the closed skin: hidden unless the lids open.
+        ex, ey = base.eye_offset_x, base.eye_y
+        d = base.dirs_from_base_xy(torch.tensor([[ex, ey]], dtype=torch.float64))
+        z_skin = float(base.surface_points(d)[0, 2])
+        return replace(
+            base,
+            eye_z=z_skin + base.eye_radius + 0.0015,
+            eye_opening=(0.0135 + 0.0012 * u("eye_size"), 0.0052 + 0.0009 * u("lid_height")),
+            mouth_open=float(e[0]), smile=float(e[1]), brow_raise=float(e[2]), eyelid=float(e[3]),
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# Meshes
+# ----------------------------------------------------------------------------------------------
+
+
+def _lens_warp(dirs: np.ndarray, focus: np.ndarray, strength: float, sigma: float) -> np.ndarray:
+    """Pull unit directions towards ``focus`` (a bijection of the sphere for strength < 1).
+
+    theta -> theta (1 - strength exp(-theta^2 / sigma^2)) is monotone when strength < 1, so the
+    icosphere topology (and watertightness) is kept while vertex density near ``focus`` grows by
+    about 1 / (1 - strength)^2.
+    """
+    cos_t = np.clip(dirs @ focus, -1, 1)
+    theta = np.arccos(cos_t)
+    new_theta = theta * (1 - strength * np.exp(-(theta / sigma) ** 2))
+    perp = dirs - cos_t[:, None] * focus
+    n = np.linalg.norm(perp, axis=1, keepdims=True)
+    perp = np.where(n > 1e-12, perp / np.maximum(n, 1e-12), 0.0)
+    return np.cos(new_theta)[:, None] * focus + np.sin(new_theta)[:, None] * perp
+
+
+def _eyeball_mesh(theta_pupil: float, theta_iris: float, segments: int = 40):
+    """Unit sphere around the origin looking along -z, with exact pupil/iris boundary rings.
+
+    Returns (verts [Ve, 3], faces [Fe, 3], region [Fe] int8 (0 sclera, 1 iris, 2 pupil), theta [Ve]).
+    Each region has its own rings, so colours do not bleed across boundaries (the rings coincide).
+    """
+    bands = [
+        (EYE_PUPIL, np.linspace(0, theta_pupil, 4)),
+        (EYE_IRIS, np.linspace(theta_pupil, theta_iris, 6)),
+        (EYE_SCLERA, np.concatenate([np.linspace(theta_iris, theta_iris + 0.3, 4)[:-1],
+                                     np.linspace(theta_iris + 0.3, math.pi, 9)])),
+    ]
+    phi = np.linspace(0, 2 * math.pi, segments, endpoint=False)
+    verts, faces, region, thetas = [], [], [], []
+    for reg, ths in bands:
+        idx = sum(len(v) for v in verts)
+        ring_idx = []
+        for th in ths:
+            if th < 1e-9 or th > math.pi - 1e-9:
+                pts = np.array([[0.0, 0.0, -math.cos(th)]])
+            else:
+                pts = np.stack([math.sin(th) * np.cos(phi), math.sin(th) * np.sin(phi),
+                                np.full(segments, -math.cos(th))], -1)
+            verts.append(pts)
+            thetas.append(np.full(len(pts), th))
+            ring_idx.append(np.arange(idx, idx + len(pts)))
+            idx += len(pts)
+        for a, b in zip(ring_idx[:-1], ring_idx[1:], strict=True):
+            for s in range(segments):
+                s1 = (s + 1) % segments
+                if len(a) == 1:  # fan from the front pole
+                    faces.append((a[0], b[s1], b[s]))
+                elif len(b) == 1:  # fan to the back pole
+                    faces.append((a[s], a[s1], b[0]))
+                else:
+                    faces += [(a[s], a[s1], b[s1]), (a[s], b[s1], b[s])]
+                region += [reg] * (1 if len(a) == 1 or len(b) == 1 else 2)
+    v = np.concatenate(verts).astype(np.float64)
+    f = np.asarray(faces, np.int64)
+    # Outward winding (right-hand rule): flip faces whose normal points inwards.
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    flip = (n * v[f].mean(1)).sum(1) < 0
+    f[flip] = f[flip][:, ::-1]
+    return v, f, np.asarray(region, np.int8), np.concatenate(thetas)
+
+
+def _smoothstep(e0, e1, x):
+    t = np.clip((x - e0) / (e1 - e0), 0, 1)
+    return t * t * (3 - 2 * t)
+
+
+@dataclass
+class Subject:
+    """A built subject: neutral meshes in the head frame plus everything needed to pose them.
+
+    Attributes:
+        params: the identity.
+        head_dirs: [V, 3] unit directions from the head centre (the mesh vertices are
+            ``shape.surface_points(head_dirs)`` for the expression's shape).
+        head_faces: [F, 3] int64, outward winding, watertight.
+        eye_local: [Ve, 3] unit eyeball vertices looking along -z; eye_faces [Fe, 3]; eye_region [Fe].
+        eye_centers: [2, 3] head frame (left = image-left first); eye_radius: metres.
+    """
+
+    params: SubjectParams
+    head_dirs: np.ndarray
+    head_faces: np.ndarray
+    eye_local: np.ndarray
+    eye_faces: np.ndarray
+    eye_region: np.ndarray
+    eye_theta: np.ndarray
+    eye_colors: np.ndarray
+    eye_centers: np.ndarray
+    eye_radius: float
+    face_center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    # -- shape ------------------------------------------------------------------------------
+    def shape(self, expression=None) -> DemoHeadShape:
+        return self.params.shape(expression)
+
+    def head_vertices(self, expression=None) -> np.ndarray:
+        """[V, 3] head-frame vertices for ``expression`` [4] (default neutral)."""
+        d = torch.from_numpy(self.head_dirs)
+        return self.shape(expression).surface_points(d).numpy().astype(np.float32)
+
+    def neutral_vertices(self) -> np.ndarray:
+        return self.head_vertices(None)
+
+    def head_colors(self, expression=None) -> np.ndarray:
+        """[V, 3] albedo of the head vertices (skin, hair, brows, lips, eye sockets, mouth)."""
+        shape = self.shape(expression)
+        cols = self.params.colors()
+        d = torch.from_numpy(self.head_dirs)
+        x, y = (t.numpy() for t in shape.base_xy(d))
+        z = self.head_dirs[:, 2]
+        pz = shape.center[2] + shape.ellipsoid_radius(d).numpy() * z
+        c = np.tile(cols["skin"], (len(x), 1))
+        front = z < -0.35
+        # Hair: top and back (hairline raised over the forehead).
+        hair = ((y < shape.eye_y - 0.048) & ~(front & (y > shape.eye_y - 0.062))) | ((pz > 0.02) & (y < 0.06))
+        c[hair] = cols["hair"]
+        # Brows follow brow_raise.
+        by = shape.eye_y - 0.020 - 0.004 * shape.brow_raise
+        for ex in (-shape.eye_offset_x, shape.eye_offset_x):
+            dx = x - ex
+            brow = front & (np.abs(y - (by - 0.004 * (1 - (dx / 0.018) ** 2))) < 0.0028) & (np.abs(dx) < 0.018)
+            c[brow] = cols["hair"] * 1.1
+        # Lips: between the outer lip line and the mouth opening.
+        xt = torch.from_numpy(x)
+        yc = shape.mouth_centerline(xt).numpy()
+        h_open = shape.mouth_half_opening(xt).numpy()
+        prof = np.sqrt(np.clip(1 - (x / (shape.mouth_width * 1.05)) ** 2, 0, 1))
+        upper = (y < yc) & (yc - y < h_open + 0.0045 * prof)
+        lower = (y >= yc) & (y - yc < h_open + 0.0060 * prof)
+        lips = front & (np.abs(x) < shape.mouth_width * 1.05) & (upper | lower)
+        c[lips] = cols["lips"]
+        # Inside the mouth and the eye sockets: dark, reddish.
+        mouth_in = shape.mouth_weight(d).numpy()
+        c = c * (1 - mouth_in[:, None]) + mouth_in[:, None] * np.array([0.25, 0.06, 0.07])
+        sock = shape.socket_weight(d).numpy()
+        c = c * (1 - 0.6 * sock[:, None]) + 0.6 * sock[:, None] * np.array([0.55, 0.30, 0.30])
+        cheek = front & (((np.abs(x) - 0.045) ** 2 + (y - 0.03) ** 2) < 0.015**2)
+        c[cheek] *= np.array([1.0, 0.92, 0.92])
+        return np.clip(c, 0, 1).astype(np.float32)
+
+    # -- eyes -------------------------------------------------------------------------------
+    def eyeball_vertices(self, pitchyaw) -> np.ndarray:
+        """[2, Ve, 3] head-frame eyeball vertices turned to head-frame gaze ``pitchyaw`` [2] (radians)."""
+        R = gaze_rotation(torch.as_tensor(np.array(pitchyaw, np.float64))).numpy()
+        local = self.eye_radius * self.eye_local @ R.T
+        return (local[None] + self.eye_centers[:, None, :]).astype(np.float32)
+
+    # -- landmarks --------------------------------------------------------------------------
+    def landmarks(self, expression=None) -> np.ndarray:
+        """[68, 3] iBUG-68 landmarks in the head frame on the expression's surface."""
+        shape = self.shape(expression)
+        xy = landmark_base_xy(shape)
+        d = shape.dirs_from_base_xy(torch.from_numpy(xy))
+        return shape.surface_points(d).numpy().astype(np.float32)
+
+    # -- whole scene ------------------------------------------------------------------------
+    def scene_mesh(self, expression, pitchyaw) -> dict[str, np.ndarray]:
+        """Head + both eyeballs as one mesh in the head frame.
+
+        Returns verts [V', 3], faces [F', 3], colors [V', 3], face_part [F'] (0 head, 1 left eye,
+        2 right eye) and face_eye_region [F'] (-1 head, else 0 sclera / 1 iris / 2 pupil).
+        """
+        hv = self.head_vertices(expression)
+        hc = self.head_colors(expression)
+        ev = self.eyeball_vertices(pitchyaw)
+        nv, ne = len(hv), len(self.eye_local)
+        verts = np.concatenate([hv, ev[0], ev[1]])
+        faces = np.concatenate([self.head_faces, self.eye_faces + nv, self.eye_faces + nv + ne])
+        colors = np.concatenate([hc, self.eye_colors, self.eye_colors])
+        F, Fe = len(self.head_faces), len(self.eye_faces)
+        part = np.concatenate([np.full(F, PART_HEAD), np.full(Fe, PART_LEFT_EYE), np.full(Fe, PART_RIGHT_EYE)])
+        region = np.concatenate([np.full(F, -1), self.eye_region, self.eye_region])
+        return {"verts": verts, "faces": faces, "colors": colors, "face_part": part.astype(np.int8),
+                "face_eye_region": region.astype(np.int8)}
+
+
+def landmark_base_xy(shape: DemoHeadShape) -> np.ndarray:
+    """[68, 2] iBUG-68 landmark positions in base (x, y) coordinates of ``shape`` (metres).
+
+    0-16 jaw (image-left to image-right), 17-21 / 22-26 brows, 27-30 nose bridge, 31-35 nose base,
+    36-41 left (image-left) eye from its outer corner clockwise in the image, 42-47 right eye from its
+    inner corner, 48-59 outer lips from the left corner, 60-67 inner lips.
+    """
+    ex, ey = shape.eye_offset_x, shape.eye_y
+    aw, _ = shape.eye_opening
+    aw = aw if aw > 0 else 0.0135
+    pts = np.zeros((68, 2))
+    # Jaw: a half ellipse from ear level round the chin.
+    t = np.linspace(0, math.pi, 17)
+    chin_y = shape.center[1] + shape.semi_axes[1] * 0.93 + 0.008 * shape.mouth_open
+    pts[0:17, 0] = -shape.semi_axes[0] * 0.9 * np.cos(t)
+    pts[0:17, 1] = ey + (chin_y - ey) * np.sin(t)
+    # Brows: outer to inner on the left, inner to outer on the right.
+    by = ey - 0.020 - 0.004 * shape.brow_raise
+    bx = np.linspace(-0.016, 0.016, 5)
+    pts[17:22] = np.stack([-ex + bx, by - 0.004 * (1 - (bx / 0.018) ** 2)], -1)
+    pts[22:27] = np.stack([ex + bx, by - 0.004 * (1 - (bx / 0.018) ** 2)], -1)
+    # Nose: bridge from between the eyes to the tip, then the base.
+    tip_y = shape.center[1] + 0.35 * shape.semi_axes[1]
+    pts[27:31] = np.stack([np.zeros(4), np.linspace(ey, tip_y, 4)], -1)
+    pts[31:36] = np.stack([np.linspace(-0.013, 0.013, 5), np.full(5, tip_y + 0.010)], -1)
+    pts[[31, 35], 1] -= 0.003
+    # Eyes: corners and lids just outside the opening (on the outer skin, not the rim wall).
+    m = 0.0006
+
+    def lid(dx, upper):
+        h = float(shape.opening_half_height(torch.tensor(dx), torch.tensor(upper)))
+        return ey - (h + m) if upper else ey + (h + m)
+
+    third = aw / 3
+    for sgn, base in ((-1, 36), (1, 42)):
+        cx = sgn * ex
+        if sgn < 0:  # 36 outer, 37-38 upper (outer->inner), 39 inner, 40-41 lower (inner->outer)
+            order = [(-aw - m, None), (-third, True), (third, True), (aw + m, None), (third, False), (-third, False)]
+        else:  # 42 inner, 43-44 upper (inner->outer), 45 outer, 46-47 lower (outer->inner)
+            order = [(-aw - m, None), (-third, True), (third, True), (aw + m, None), (third, False), (-third, False)]
+        for k, (dx, up) in enumerate(order):
+            pts[base + k] = (cx + dx, ey if up is None else lid(dx, up))
+    # Lips: outer contour 48-59 and inner 60-67, following smile and mouth_open.
+    mw = shape.mouth_width
+
+    def yc(x):
+        return float(shape.mouth_centerline(torch.tensor(x)))
+
+    def hopen(x):
+        return float(shape.mouth_half_opening(torch.tensor(x)))
+
+    def prof(x):
+        return math.sqrt(max(0.0, 1 - (x / (mw * 1.05)) ** 2))
+
+    outer_x = [-mw, -0.6 * mw, -0.25 * mw, 0.0, 0.25 * mw, 0.6 * mw, mw, 0.6 * mw, 0.25 * mw, 0.0, -0.25 * mw,
+               -0.6 * mw]
+    for k, x in enumerate(outer_x):
+        if k in (0, 6):
+            pts[48 + k] = (x, yc(x))
+        elif k < 6:
+            pts[48 + k] = (x, yc(x) - hopen(x) - 0.0045 * prof(x) + 0.0004)
+        else:
+            pts[48 + k] = (x, yc(x) + hopen(x) + 0.0060 * prof(x) - 0.0004)
+    inner_x = [-0.85 * mw, -0.4 * mw, 0.0, 0.4 * mw, 0.85 * mw, 0.4 * mw, 0.0, -0.4 * mw]
+    for k, x in enumerate(inner_x):
+        if k in (0, 4):
+            pts[60 + k] = (x, yc(x))
+        elif k < 4:
+            pts[60 + k] = (x, yc(x) - hopen(x))
+        else:
+            pts[60 + k] = (x, yc(x) + hopen(x))
+    return pts
+
+
+def build_subject(params: SubjectParams, *, subdivisions: int = 5) -> Subject:
+    """Mesh a subject: warped icosphere head (watertight) + eyeball template with exact iris rings."""
+    import trimesh
+
+    shape = params.shape()
+    ico = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    dirs = np.asarray(ico.vertices, np.float64)
+    faces = np.asarray(ico.faces, np.int64)
+    c = np.asarray(shape.center)
+    for focus_xy, strength, sigma in (
+        ((-shape.eye_offset_x, shape.eye_y), 0.72, 0.22),
+        ((shape.eye_offset_x, shape.eye_y), 0.72, 0.22),
+        ((0.0, shape.mouth_y), 0.55, 0.25),
+    ):
+        focus = shape.dirs_from_base_xy(torch.tensor([focus_xy], dtype=torch.float64)).numpy()[0]
+        dirs = _lens_warp(dirs, focus, strength, sigma)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    # Outward winding survives the bijective warp; enforce it anyway against the surface.
+    p = shape.surface_points(torch.from_numpy(dirs)).numpy()
+    n = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
+    if ((n * (p[faces].mean(1) - c)).sum(1) < 0).mean() > 0.5:
+        faces = faces[:, ::-1].copy()
+
+    u = params._u
+    theta_iris = 0.50 + 0.05 * u("iris_size")
+    theta_pupil = 0.19 + 0.04 * u("pupil_size")
+    ev, ef, region, theta = _eyeball_mesh(theta_pupil, theta_iris)
+    iris_col = params.colors()["iris"]
+    ecol = np.tile(np.array([0.95, 0.94, 0.91], np.float32), (len(ev), 1))
+    t_iris = np.clip((theta - theta_pupil) / (theta_iris - theta_pupil), 0, 1)
+    # Vertex colours by region; a vertex on a boundary ring belongs to the band that created it.
+    vreg = np.zeros(len(ev), np.int8)
+    for reg in (EYE_PUPIL, EYE_IRIS, EYE_SCLERA):
+        vreg[np.unique(ef[region == reg])] = reg
+    iris_v = vreg == EYE_IRIS
+    ecol[iris_v] = iris_col * (1.15 - 0.55 * _smoothstep(0.6, 1.0, t_iris[iris_v]))[:, None]
+    ecol[vreg == EYE_PUPIL] = (0.03, 0.03, 0.03)
+    sclera_back = (vreg == EYE_SCLERA) & (theta > 1.2)
+    ecol[sclera_back] = (0.93, 0.80, 0.78)
+    subject = Subject(
+        params=params, head_dirs=dirs.astype(np.float64), head_faces=faces, eye_local=ev, eye_faces=ef,
+        eye_region=region, eye_theta=theta, eye_colors=np.clip(ecol, 0, 1).astype(np.float32),
+        eye_centers=shape.eye_centers().numpy().astype(np.float64), eye_radius=float(shape.eye_radius),
+    )
+    lm = subject.landmarks()
+    subject.face_center = lm[[36, 39, 42, 45, 48, 54]].mean(0).astype(np.float64)
+    return subject
+
+
+# ----------------------------------------------------------------------------------------------
+# Poses, cameras, rendering
+# ----------------------------------------------------------------------------------------------
+
+
+def pose_matrix(pose) -> tuple[np.ndarray, np.ndarray]:
+    """[6] axis-angle + translation -> (R [3, 3], t [3]) with x_world = scale · R x_head + t."""
+    pose = np.array(pose, np.float64)  # a writable copy (torch.from_numpy rejects read-only views)
+    R = so3_exp(torch.from_numpy(pose[:3].copy())).numpy()
+    return R, pose[3:6]
+
+
+def sample_head_pose(rng: np.random.Generator, n: int) -> np.ndarray:
+    """[n, 6] random head poses: yaw ±25°, pitch ±15°, roll ±8°, translation ±15 mm."""
+    pyr = rng.uniform(-1, 1, (n, 3)) * np.radians([15.0, 25.0, 8.0])
+    out = np.zeros((n, 6), np.float32)
+    for i, (p, y, r) in enumerate(pyr):
+        R = (so3_exp(torch.tensor([0.0, y, 0.0])) @ so3_exp(torch.tensor([p, 0.0, 0.0]))
+             @ so3_exp(torch.tensor([0.0, 0.0, r])))
+        from toolkit.rotations import so3_log
+
+        out[i, :3] = so3_log(R).numpy()
+    out[:, 3:] = rng.uniform(-0.015, 0.015, (n, 3))
+    return out
+
+
+def normalized_camera(rig_camera: Camera, face_center_world: np.ndarray, head_R_world: np.ndarray, res: int,
+                      *, distance: float = 0.6, crop: float = 0.26) -> Camera:
+    """ETH-XGaze-style normalized camera: from the rig camera's centre, aimed at the face centre.
+
+    The camera looks at ``face_center_world`` from ``distance`` metres along the rig camera's ray,
+    with no roll relative to the head (its x axis is perpendicular to the head's x axis' complement,
+    as in the ETH-XGaze normalization: down = forward × head_x), and a focal length such that a
+    ``crop`` metres wide square at the face centre fills the ``res`` × ``res`` image.
+    """
+    C = rig_camera.center.numpy().astype(np.float64)
+    fwd = face_center_world - C
+    fwd /= max(np.linalg.norm(fwd), 1e-12)
+    down = np.cross(fwd, head_R_world[:, 0])
+    down /= max(np.linalg.norm(down), 1e-12)
+    right = np.cross(down, fwd)
+    R = np.stack([right, down, fwd])
+    center = face_center_world - distance * fwd
+    V = np.eye(4)
+    V[:3, :3] = R
+    V[:3, 3] = -R @ center
+    f = res * distance / crop
+    K = np.array([[f, 0, res / 2], [0, f, res / 2], [0, 0, 1]])
+    return Camera(torch.from_numpy(K).float(), torch.from_numpy(V).float(), res, res)
+
+
+_RASTERIZERS: dict = {}
+
+
+def _rasterizer(width: int, height: int):
+    from render.mesh_gl import MeshRasterizer
+
+    r = _RASTERIZERS.get("r")
+    if r is None:
+        r = _RASTERIZERS["r"] = MeshRasterizer(width, height)
+    r.resize(width, height)
+    return r
+
+
+def render_views(subject: Subject, gaze, pose, expression, cameras: list[Camera], *, scale=1.0,
+                 light_dirs=None, ambient: float = 0.45, rasterizer=None) -> dict[str, np.ndarray]:
+    """Render N images of ``subject`` with exact labels (any gaze / pose / expression / camera).
+
+    Args:
+        gaze: [N, 2] or [2] head-frame (pitch, yaw) radians. pose: [N, 6] or [6] head -> world.
+        expression: [N, 4] or [4]. cameras: N ``toolkit.cameras.Camera`` (world-to-camera, all one size).
+        scale: scalar or [N] head scale. light_dirs: [N, 3] or [3] world-space directions towards the
+            light (default: a headlight per camera).
+        rasterizer: a ``render.mesh_gl.MeshRasterizer`` to reuse (default: one per process).
+
+    Rows with identical gaze, pose, expression, scale and light share one mesh upload.
+
+    Returns dict of numpy arrays: ``rgb`` [N, H, W, 3] float32 in [0, 1] on white; ``head_mask``,
+    ``left_eye_mask``, ``right_eye_mask`` [N, H, W] bool (head = every drawn pixel, eye = visible
+    eyeball); ``eye_region`` [N, H, W] int8 (-1, 0 sclera, 1 iris, 2 pupil); ``depth`` [N, H, W];
+    ``landmarks_2d`` [N, 68, 2] pixels; ``landmarks_3d`` [N, 68, 3] world; ``vertice`` [N, V, 3] world
+    head vertices; ``K`` [N, 3, 3]; ``w2c_R`` [N, 3, 3]; ``w2c_T`` [N, 3]; ``pitchyaw_head``,
+    ``pitchyaw_cam``, ``face_head_pose`` [N, 2]; ``pose`` [N, 6]; ``scale`` [N, 1]; ``expression`` [N, 4].
+    """
+    n = len(cameras)
+    if n == 0:
+        raise ToolkitError("render_views: no cameras given")
+
+    def rows(a, width, name):
+        a = np.asarray(a, np.float64)
+        if a.shape == (width,):
+            a = np.broadcast_to(a, (n, width))
+        if a.shape != (n, width) or not np.isfinite(a).all():
+            raise ToolkitError(f"render_views: {name} must be finite [{n}, {width}] or [{width}], got {list(a.shape)}")
+        return np.ascontiguousarray(a)
+
+    gaze = rows(gaze, 2, "gaze")
+    if (np.abs(gaze) > math.pi / 2 + 1e-6).any():
+        raise ToolkitError("render_views: gaze pitch/yaw must lie in [-pi/2, pi/2] radians")
+    pose = rows(pose, 6, "pose")
+    expression = rows(check_expression(expression), len(EXPRESSION_NAMES), "expression")
+    scale = rows(np.reshape(np.asarray(scale, np.float64), (-1, 1)) if np.ndim(scale) else [float(scale)], 1, "scale")
+    if (scale <= 0).any():
+        raise ToolkitError("render_views: scale must be > 0")
+    lights = None if light_dirs is None else rows(light_dirs, 3, "light_dirs")
+    W, H = cameras[0].width, cameras[0].height
+    if any((c.width, c.height) != (W, H) for c in cameras):
+        raise ToolkitError("render_views: all cameras must have the same image size")
+    rast = rasterizer or _rasterizer(W, H)
+    rast.resize(W, H)
+
+    out = {k: [] for k in ("rgb", "head_mask", "left_eye_mask", "right_eye_mask", "eye_region", "depth",
+                           "landmarks_2d", "landmarks_3d", "vertice", "K", "w2c_R", "w2c_T", "pitchyaw_cam",
+                           "face_head_pose")}
+    key = np.concatenate([gaze, pose, expression, scale] + ([lights] if lights is not None else []), 1)
+    start = 0
+    while start < n:
+        stop = start + 1
+        while stop < n and np.array_equal(key[stop], key[start]):
+            stop += 1
+        R, t = pose_matrix(pose[start])
+        s = float(scale[start, 0])
+        mesh = subject.scene_mesh(expression[start], gaze[start])
+        world = (s * mesh["verts"].astype(np.float64) @ R.T + t).astype(np.float32)
+        lm = subject.landmarks(expression[start]).astype(np.float64)
+        lm_w = s * lm @ R.T + t
+        views = np.stack([c.viewmat.numpy() for c in cameras[start:stop]])
+        Ks = np.stack([c.K.numpy() for c in cameras[start:stop]])
+        cam_lights = None if lights is None else np.einsum("cij,j->ci", views[:, :3, :3], lights[start])
+        res = rast.render_views(world, mesh["faces"], views, Ks, colors=mesh["colors"], light_dir=cam_lights,
+                                ambient=ambient, smooth=True)
+        g_head = _pitchyaw_vec(gaze[start])
+        for c, r in enumerate(res):
+            Rc, tc = views[c, :3, :3].astype(np.float64), views[c, :3, 3].astype(np.float64)
+            tri = r["tri_id"]
+            part = np.where(tri >= 0, mesh["face_part"][np.clip(tri, 0, None)], -1)
+            out["rgb"].append(r["rgb"])
+            out["head_mask"].append(r["mask"])
+            out["left_eye_mask"].append(part == PART_LEFT_EYE)
+            out["right_eye_mask"].append(part == PART_RIGHT_EYE)
+            out["eye_region"].append(np.where(tri >= 0, mesh["face_eye_region"][np.clip(tri, 0, None)], -1))
+            out["depth"].append(r["depth"])
+            pc = lm_w @ Rc.T + tc
+            K = Ks[c].astype(np.float64)
+            out["landmarks_2d"].append(np.stack([K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 1] * pc[:, 1] / pc[:, 2] + K[0, 2],
+                                                 K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], -1))
+            out["landmarks_3d"].append(lm_w)
+            out["vertice"].append(world[: len(subject.head_dirs)])
+            out["K"].append(K)
+            out["w2c_R"].append(Rc)
+            out["w2c_T"].append(tc)
+            RcR = Rc @ R
+            out["pitchyaw_cam"].append(vector_to_pitchyaw(torch.from_numpy(RcR @ g_head)).numpy())
+            out["face_head_pose"].append(vector_to_pitchyaw(torch.from_numpy(RcR @ np.array([0.0, 0, -1]))).numpy())
+        start = stop
+    result = {k: np.stack(v) for k, v in out.items()}
+    dt = {"rgb": np.float32, "depth": np.float32, "landmarks_2d": np.float32, "landmarks_3d": np.float32,
+          "vertice": np.float32, "K": np.float32, "w2c_R": np.float32, "w2c_T": np.float32,
+          "pitchyaw_cam": np.float32, "face_head_pose": np.float32, "eye_region": np.int8}
+    for k, d in dt.items():
+        result[k] = result[k].astype(d)
+    result.update(pitchyaw_head=gaze.astype(np.float32), pose=pose.astype(np.float32),
+                  scale=scale.astype(np.float32), expression=expression.astype(np.float32))
+    return result
+
+
+def _pitchyaw_vec(py: np.ndarray) -> np.ndarray:
+    p, y = float(py[0]), float(py[1])
+    return np.array([-math.cos(p) * math.sin(y), -math.sin(p), -math.cos(p) * math.cos(y)])
