@@ -65,10 +65,19 @@ def _cmd_extract(a) -> int:
 
 
 def _cmd_fit(a) -> int:
-    from geometry.fit import FitConfig, fit_dataset
+    from geometry.fit import FitConfig
+    from geometry.fit_dataset import fit_dataset
 
+    if a.steps < 1 or a.res < 4:
+        raise ToolkitError(f"--steps must be >= 1 and --res >= 4, got {a.steps} and {a.res}")
+    try:
+        holdout = [int(c) for c in a.holdout.split(",") if c.strip()]
+    except ValueError:
+        raise ToolkitError(f"--holdout: expected comma-separated camera indices, got {a.holdout!r}") from None
     cfg = FitConfig(steps=a.steps, extract_res=a.res, seed=a.seed)
-    summary = fit_dataset(a.dataset, a.output, cfg, holdout=a.holdout, log=print)
+    summary = fit_dataset(a.dataset, a.output, cfg, holdout_cams=holdout, log=print)
+    summary.pop("history", None)
+    summary.pop("config", None)
     print(json.dumps(summary, indent=2))
     return 0
 
@@ -117,9 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("fit", help="fit the neutral head SDF to a synthetic multi-view dataset (HDF5)")
     s.add_argument("dataset")
     s.add_argument("output", help="output folder (mesh, SDF checkpoint, Gaussians, fit.json)")
-    s.add_argument("--steps", type=int, default=600)
-    s.add_argument("--res", type=int, default=96, help="extraction grid resolution")
-    s.add_argument("--holdout", type=int, default=3, help="views held out for the IoU check")
+    s.add_argument("--steps", type=int, default=400)
+    s.add_argument("--res", type=int, default=80, help="extraction grid resolution")
+    s.add_argument("--holdout", default="2,7,10,15", help="rig cameras held out of the fit for the IoU check")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(fn=_cmd_fit)
     s = sub.add_parser("render", help="multi-view contact sheet of a mesh (render/mesh_gl.py)")

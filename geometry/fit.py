@@ -37,19 +37,20 @@ from toolkit.errors import ToolkitError
 class FitConfig:
     """Optimisation settings shared by the silhouette and the mesh/point-cloud fits."""
 
-    steps: int = 600
+    steps: int = 400
     """Optimiser steps after the sphere pre-training."""
-    batch: int = 4096
+    batch: int = 1024
     """Sample points per step."""
     lr: float = 1e-3
-    pool: int = 200_000
+    pool: int = 100_000
     """Precomputed labelled sample points (uniform in the box + concentrated near the surface)."""
     truncation: float = 0.1
     """SDF targets are clamped to +-truncation x box half-size: the fit focuses on the surface band."""
     w_sdf: float = 1.0
     w_landmarks: float = 1.0
     w_eikonal: float = 0.02
-    """0 disables the eikonal term (it needs a double backward and costs ~2x per step)."""
+    """0 disables the eikonal term (|grad sdf| = 1, on ``eikonal_batch`` of the step's points)."""
+    eikonal_batch: int = 256
     w_laplacian: float = 0.0
     """Uniform-Laplacian smoothness of the extracted DMTet mesh, applied every ``laplacian_every`` steps."""
     laplacian_every: int = 10
@@ -57,10 +58,10 @@ class FitConfig:
     grad_clip: float = 1.0
     max_bad_steps: int = 20
     """Consecutive non-finite steps tolerated (skipped) before raising."""
-    extract_res: int = 96
+    extract_res: int = 80
     """Grid resolution of the final mesh."""
     grid_kind: str = "kuhn"
-    pretrain_steps: int = 200
+    pretrain_steps: int = 100
     seed: int = 0
     net: SDFNetConfig = field(default_factory=SDFNetConfig)
 
@@ -120,9 +121,13 @@ def visual_hull_sdf(points: torch.Tensor, views: Views, chunk: int = 65536) -> t
 
     Per view: the mask's 2D signed distance at the projection (bilinear; beyond the image border the
     distance keeps growing, as the masks are assumed to contain the whole head), times depth / focal length.
-    Views that see a point behind the camera ignore it. Max over views = intersection of the cones.
+    Views that see a point behind the camera ignore it, and so do views whose mask touches the border,
+    for points beyond it. Max over views = intersection of the cones.
     """
     sds = [torch.from_numpy(mask_signed_distance(m.numpy())) for m in views.masks]
+    # A mask that touches the image border may have cut the head off: beyond such a border the view
+    # has no evidence (the point is not carved by it); otherwise the distance keeps growing out there.
+    cut = [bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any()) for m in views.masks]
     H, W = views.masks.shape[1:]
     out = []
     for i in range(0, points.shape[0], chunk):
@@ -141,7 +146,10 @@ def visual_hull_sdf(points: torch.Tensor, views: Views, chunk: int = 65536) -> t
             beyond = torch.sqrt((u - 0.5 - cu) ** 2 + (w - 0.5 - cw) ** 2)
             d_px = _bilinear(sds[v], cu, cw) + beyond
             world_per_px = zs / (0.5 * (K[0, 0] + K[1, 1])) / R.det().abs().pow(1 / 3).clamp_min(1e-12)
-            d = torch.where(z > 1e-6, d_px * world_per_px, torch.full_like(z, -float("inf")))
+            seen = z > 1e-6
+            if cut[v]:
+                seen &= beyond == 0
+            d = torch.where(seen, d_px * world_per_px, torch.full_like(z, -float("inf")))
             best = torch.maximum(best, d)
         out.append(best)
     d = torch.cat(out)
@@ -163,15 +171,18 @@ def _bilinear(img: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tens
 
 
 def silhouette_iou(verts: torch.Tensor, faces: torch.Tensor, views: Views) -> list[float]:
-    """IoU of the mesh's rendered silhouette (render.mesh_gl) with each view's mask."""
-    from render.mesh_gl import render_mesh
+    """IoU of the mesh's silhouette (rendered with render.mesh_gl, exact pixel-centre coverage) per view."""
+    from render.mesh_gl import MeshRasterizer
 
-    ious = []
     H, W = views.masks.shape[1:]
-    for v in range(len(views)):
-        out = render_mesh(verts, faces, views.viewmats[v], views.Ks[v], W, H)
-        m = torch.as_tensor(np.asarray(out["mask"])).reshape(H, W).bool()
-        gt = views.masks[v]
+    r = MeshRasterizer(W, H)
+    try:
+        outs = r.render_views(verts.detach().float(), faces, views.viewmats, views.Ks)
+    finally:
+        r.release()
+    ious = []
+    for out, gt in zip(outs, views.masks):
+        m = torch.from_numpy(np.asarray(out["mask"])).bool()
         ious.append(float((m & gt).sum()) / max(float((m | gt).sum()), 1.0))
     return ious
 
@@ -221,6 +232,7 @@ def fit_sdf_to_targets(pool_pts: torch.Tensor, pool_sdf: torch.Tensor, cfg: FitC
     net = SDFNet(cfg.net)
     if sphere is not None and cfg.pretrain_steps > 0:
         sphere.steps = cfg.pretrain_steps
+        sphere.batch = cfg.batch
         pretrain_sphere(net, sphere)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(cfg.steps, 1), eta_min=cfg.lr * 0.05)
@@ -230,13 +242,13 @@ def fit_sdf_to_targets(pool_pts: torch.Tensor, pool_sdf: torch.Tensor, cfg: FitC
     history, bad, skipped = [], 0, 0
     for step in range(cfg.steps):
         idx = torch.randint(0, pool_pts.shape[0], (cfg.batch,), generator=g)
-        x = pool_pts[idx].clone().requires_grad_(cfg.w_eikonal > 0)
-        sdf = net.sdf(x)
+        sdf = net.sdf(pool_pts[idx])
         terms = {"sdf": (sdf.clamp(-tau, tau) - target_all[idx]).abs().mean() / net.scale}
         if landmarks is not None and cfg.w_landmarks > 0:
             terms["landmarks"] = net.sdf(landmarks).abs().mean() / net.scale
-        if cfg.w_eikonal > 0:
-            (grad,) = torch.autograd.grad(sdf.sum(), x, create_graph=True)
+        if cfg.w_eikonal > 0:  # on a small subset: the double backward costs ~3 forward passes per point
+            x = pool_pts[idx[: cfg.eikonal_batch]].clone().requires_grad_(True)
+            (grad,) = torch.autograd.grad(net.sdf(x).sum(), x, create_graph=True)
             terms["eikonal"] = (grad.norm(dim=-1) - 1).square().mean()
         if cfg.w_laplacian > 0 and step % cfg.laplacian_every == 0:
             try:

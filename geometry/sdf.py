@@ -185,7 +185,7 @@ def pretrain_sphere(net: SDFNet, init: SphereInit | None = None) -> float:
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        err = float((sdf - target).abs().mean())
+        err = float((sdf.detach() - target).abs().mean())
     return err
 
 
