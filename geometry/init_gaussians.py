@@ -158,6 +158,12 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
             scales[m] = knn_spacing(pts[m])[:, None].expand(-1, 3)
         elif int(m.sum()):
             scales[m] = float(eyes_meta["left" if pid == PART_LEFT_EYE else "right"]["radius"]) * 0.2
+    # DMTet meshes can have vertices a hair apart (where the surface grazes a grid vertex): floor each
+    # part's scales at 0.2 x its median so no Gaussian collapses to a point.
+    for pid in (PART_FACE, PART_LEFT_EYE, PART_RIGHT_EYE):
+        m = part == pid
+        if int(m.sum()):
+            scales[m] = scales[m].clamp_min(0.2 * float(scales[m].median()))
     if net is not None:
         with torch.no_grad():
             feats = net.evaluate(pts.to(net.center.device))[2].float().cpu()
