@@ -277,7 +277,7 @@ def fit_sdf_to_targets(pool_pts: torch.Tensor, pool_sdf: torch.Tensor, cfg: FitC
         opt.step()
         sched.step()
         if step % 50 == 0 or step == cfg.steps - 1:
-            rec = {"step": step, "loss": float(loss), **{k: float(v) for k, v in terms.items()}}
+            rec = {"step": step, "loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}}
             history.append(rec)
             if log:
                 log(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in rec.items()))
