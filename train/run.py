@@ -88,7 +88,8 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     train_files = _split(ctx, "train")
     src = train_files[min(g.subject, len(train_files) - 1)]
     out = ctx.run_dir / "geometry"
-    fit_cfg = replace(FitConfig(), steps=g.steps, extract_res=g.extract_res, seed=ctx.config.seed)
+    fit_cfg = replace(FitConfig(), steps=g.steps, extract_res=g.extract_res, pretrain_steps=g.pretrain_steps,
+                      pool=g.pool, seed=ctx.config.seed)
     summary = fit_dataset(src, out, fit_cfg, init_scene=False, log=None)
     ctx.log(f"[geometry] held-out silhouette IoU {summary.get('heldout_iou_mean', float('nan')):.3f}, "
             f"Chamfer/diag {summary.get('chamfer_rel_diag', float('nan')):.4f}, {summary['fit_seconds']:.0f} s")

@@ -38,6 +38,10 @@ class GeometryStageConfig:
     """SDF fitting steps (after the sphere pre-training)."""
     extract_res: int = 64
     """DMTet grid resolution of the neutral mesh."""
+    pretrain_steps: int = 100
+    """sphere pre-training steps of the SDF network."""
+    pool: int = 100_000
+    """labelled sample points (visual-hull signed distances) the fit draws from."""
     gaussians: int = 6000
     """Gaussians sampled on the neutral mesh (face + eyes)."""
     subject: int = 0
@@ -146,11 +150,11 @@ def tiny_preset() -> RunConfig:
     """Seconds, for tests: 2 subjects, few steps."""
     return RunConfig(
         preset="tiny",
-        data=DataConfig(subjects=3, frames=1, res=64, test_fraction=0.34),
-        geometry=GeometryStageConfig(steps=20, extract_res=32, gaussians=1500),
-        codec=CodecStageConfig(steps=10, base_channels=8, batch=8),
-        estimator=EstimatorStageConfig(steps=10, input_size=32, batch=8),
-        gaussian=GaussianStageConfig(steps=6, batch=2, gaussians_hidden=16, ckpt_every=3, log_every=3),
+        data=DataConfig(subjects=2, frames=1, res=64, test_fraction=0.5),
+        geometry=GeometryStageConfig(steps=20, extract_res=24, pretrain_steps=50, pool=20000, gaussians=800),
+        codec=CodecStageConfig(steps=4, base_channels=8, batch=4),
+        estimator=EstimatorStageConfig(steps=4, input_size=32, batch=8),
+        gaussian=GaussianStageConfig(steps=4, batch=2, gaussians_hidden=16, ckpt_every=2, log_every=2),
         eval=EvalConfig(pairs_per_subject=2, sweep_frames=3),
     )
 
