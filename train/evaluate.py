@@ -142,3 +142,16 @@ def image_grid(rows: list[torch.Tensor], labels: list[str] | None = None) -> np.
         if labels:
             cv2.putText(grid, labels[i], (3, i * H + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
     return grid
+
+
+@torch.no_grad()
+def model_gaze_sweep(model, renderer, item: dict, gazes: torch.Tensor, res: int, steps: int = 1,
+                     device="cpu") -> torch.Tensor:
+    """Render one input view (a dataset item) at each head-frame gaze [G, 2] -> [G, 3, res, res] on white."""
+    G = gazes.shape[0]
+    rep = lambda k: torch.as_tensor(item[k]).float()[None].expand(G, *torch.as_tensor(item[k]).shape).to(device)  # noqa: E731
+    batch = {"code": rep("latent_code"), "pose": rep("pose"), "viewmat": rep("viewmat"), "K": rep("K"),
+             "gaze_head": gazes.float().to(device)}
+    out = render_pairs(model, renderer, batch, res, steps)
+    mask = torch.as_tensor(item["head_mask"]).float().to(device)[None]
+    return composite_on_white(out, mask.expand(G, *mask.shape[1:])).cpu()
