@@ -8,6 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+# Test tensors are small: extra threads only add overhead, and on a busy 2-core machine they thrash
+# (10-50x slowdowns were measured). Benchmarks, not tests, measure multi-threaded speed.
+torch.set_num_threads(1)
+
 
 @pytest.fixture(autouse=True)
 def _seed_everything():

@@ -23,7 +23,7 @@ T = TypeVar("T")
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:
-    """Dataclass -> plain dict of YAML-safe values (tuples become lists)."""
+    """Dataclass (or any nesting of them in tuples, lists, dicts) -> plain YAML-safe values (tuples become lists)."""
 
     def conv(v: Any) -> Any:
         if dataclasses.is_dataclass(v):
@@ -170,5 +170,5 @@ def config_hash(obj: Any) -> str:
     """A stable short hash of a config (or any YAML-able value), for stage skipping."""
     import hashlib
 
-    data = to_dict(obj) if dataclasses.is_dataclass(obj) else obj
+    data = to_dict(obj)
     return hashlib.sha256(yaml.safe_dump(data, sort_keys=True).encode()).hexdigest()[:16]

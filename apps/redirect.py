@@ -1,0 +1,205 @@
+"""Write a gaze-redirected copy of a dataset: the job users come for (augmented data for gaze estimators).
+
+    python -m apps.redirect RUN_DIR DATASET OUT.h5 [--gazes grid:5x5:30 | random:200:35 | file:gazes.csv]
+                            [--rows N] [--batch 8] [--seed 0]
+
+For every input row (camera, head pose, codes from the HDF5 dataset, see docs/data.md) and every target
+gaze (head frame, degrees in the spec), the trained model renders the same person looking there. The
+output is one HDF5 file in the same schema, with the target gaze as the label (``pitchyaw_head``, and
+``pitchyaw_cam`` in the camera frame) plus ``source_row`` and ``source_file``.
+
+Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun skips finished chunks,
+and the final file is assembled (atomically) when all chunks exist. Shardable: under ``torchrun`` each
+process renders the chunks ``k ≡ rank (mod world)`` and rank 0 assembles.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from toolkit.errors import ToolkitError, run_cli
+from toolkit.rotations import so3_exp
+
+GRID_EXAMPLE = "grid:5x5:30 (N×N grid over ±30°), random:200:35 (200 gazes uniform in ±35°), file:gazes.csv"
+
+
+def parse_gazes(spec: str, seed: int = 0) -> np.ndarray:
+    """A gaze spec -> [G, 2] (pitch, yaw) radians, head frame."""
+    kind, _, rest = spec.partition(":")
+    try:
+        if kind == "grid":
+            dims, rng = rest.split(":")
+            ny, nx = (int(v) for v in dims.lower().split("x"))
+            r = math.radians(float(rng))
+            p = np.linspace(-r, r, ny) if ny > 1 else np.zeros(1)
+            y = np.linspace(-r, r, nx) if nx > 1 else np.zeros(1)
+            out = np.stack(np.meshgrid(p, y, indexing="ij"), -1).reshape(-1, 2)
+        elif kind == "random":
+            n, rng = rest.split(":")
+            r = math.radians(float(rng))
+            out = np.random.default_rng(seed).uniform(-r, r, size=(int(n), 2))
+        elif kind == "file":
+            path = Path(rest)
+            if not path.is_file():
+                raise ToolkitError(f"--gazes file {path}: no such file")
+            vals = np.loadtxt(path, delimiter=",", ndmin=2, comments="#")
+            if vals.shape[1] != 2:
+                raise ToolkitError(f"--gazes file {path}: expected two columns (pitch, yaw in degrees), got {vals.shape[1]}")
+            out = np.radians(vals)
+        else:
+            raise ValueError
+    except ToolkitError:
+        raise
+    except (ValueError, IndexError):
+        raise ToolkitError(f"--gazes {spec!r}: expected {GRID_EXAMPLE}") from None
+    if out.size == 0 or not np.isfinite(out).all() or (np.abs(out) >= math.pi / 2).any():
+        raise ToolkitError(f"--gazes {spec!r}: gazes must be finite and within ±90°")
+    return out.astype(np.float32)
+
+
+def _chunk_path(parts: Path, k: int) -> Path:
+    return parts / f"part_{k:05d}.npz"
+
+
+def render_chunk(model, renderer, ds, rows: list[int], gazes: np.ndarray, res: int, steps: int, device) -> dict:
+    """Render every (row, gaze) pair of ``rows`` -> arrays of the output schema."""
+    items = [ds[r] for r in rows]
+    out: dict[str, list] = {k: [] for k in ("face_patch", "head_mask", "pitchyaw_head", "pitchyaw_cam", "pose",
+                                            "w2c_Rmat", "w2c_Tvec", "inmat", "latent_codes", "face_head_pose",
+                                            "cam_index", "frame_index", "source_row", "left_eye_mask",
+                                            "right_eye_mask", "facial_landmarks", "facial_landmarks_3d", "scale",
+                                            "vertice")}
+    from toolkit.rotations import pitchyaw_to_vector, vector_to_pitchyaw
+
+    for it, r in zip(items, rows):
+        G = gazes.shape[0]
+        rep = lambda k: torch.as_tensor(it[k]).float()[None].expand(G, *torch.as_tensor(it[k]).shape).to(device)  # noqa: E731
+        gz = torch.from_numpy(gazes).to(device)
+        code, pose, V, K = rep("latent_code"), rep("pose"), rep("viewmat"), rep("K")
+        with torch.no_grad():
+            maps = model(code, pose, gz, V, K, res, res, renders=("head",))
+            if hasattr(renderer, "diffusion"):
+                img = renderer.render(maps["head"], code, gaze=gz, pose=pose, steps=steps)
+            else:
+                img = renderer.render(maps["head"], code, gaze=gz, pose=pose)
+        mask = torch.as_tensor(it["head_mask"]).float().to(device)
+        img = img * mask + (1 - mask)
+        R = V[:, :3, :3] @ so3_exp(pose[:, :3])
+        cam_gaze = vector_to_pitchyaw(torch.einsum("bij,bj->bi", R, pitchyaw_to_vector(gz)))
+        bgr = (img.clamp(0, 1).permute(0, 2, 3, 1).cpu().numpy()[..., ::-1] * 255).round().astype(np.uint8)
+        out["face_patch"].append(bgr)
+        out["head_mask"].append(np.repeat((mask[0].cpu().numpy() > 0.5).astype(np.uint8)[None] * 255, G, 0))
+        out["pitchyaw_head"].append(gazes)
+        out["pitchyaw_cam"].append(cam_gaze.cpu().numpy())
+        out["pose"].append(pose.cpu().numpy())
+        out["w2c_Rmat"].append(V[:, :3, :3].cpu().numpy())
+        out["w2c_Tvec"].append(V[:, :3, 3].cpu().numpy())
+        out["inmat"].append(K.cpu().numpy())
+        out["latent_codes"].append(code.cpu().numpy())
+        out["face_head_pose"].append(np.repeat(np.asarray(it["face_head_pose"], np.float32)[None], G, 0))
+        out["cam_index"].append(np.full(G, int(it["cam_index"])))
+        out["frame_index"].append(np.full(G, int(it["frame_index"])))
+        out["source_row"].append(np.full(G, r))
+        # Gaze does not move the lids, landmarks or mesh of the synthetic subjects: the input's stay valid.
+        for key, src in (("left_eye_mask", "left_eye_mask"), ("right_eye_mask", "right_eye_mask")):
+            m = (np.asarray(it[src]).reshape(res, res) > 0.5).astype(np.uint8) * 255
+            out[key].append(np.repeat(m[None], G, 0))
+        for key, src in (("facial_landmarks", "landmarks"), ("facial_landmarks_3d", "landmarks_3d"),
+                         ("scale", "scale"), ("vertice", "vertice")):
+            a = np.asarray(it[src], np.float32)
+            out[key].append(np.repeat(a[None], G, 0))
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
+    """Concatenate the chunk files into one HDF5 file (atomic); returns the number of images."""
+    import h5py
+
+    from toolkit.io import atomic_write
+
+    arrays: dict[str, list] = {}
+    for k in range(n_chunks):
+        with np.load(_chunk_path(parts, k)) as z:
+            for name in z.files:
+                arrays.setdefault(name, []).append(z[name])
+    cat = {k: np.concatenate(v) for k, v in arrays.items()}
+    with atomic_write(out_path, "wb") as f:
+        with h5py.File(f, "w") as h:
+            for k, v in cat.items():
+                h.create_dataset(k, data=v, compression="lzf" if v.ndim >= 3 else None)
+            for k, v in attrs.items():
+                h.attrs[k] = v
+    return int(cat["face_patch"].shape[0])
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m apps.redirect", description=__doc__.split("\n")[0])
+    ap.add_argument("run_dir", help="a trained run directory (train/run.py)")
+    ap.add_argument("dataset", help="an HDF5 subject file (docs/data.md)")
+    ap.add_argument("out", help="output HDF5 file")
+    ap.add_argument("--gazes", default="grid:3x3:25", help=f"target gazes: {GRID_EXAMPLE}")
+    ap.add_argument("--rows", type=int, default=0, help="use only the first N input rows (0 = all)")
+    ap.add_argument("--batch", type=int, default=4, help="input rows per chunk")
+    ap.add_argument("--steps", type=int, default=0, help="DDIM steps (0 = the run's setting)")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    from train.config import load_yaml_config
+    from train.data.dataset import GazeDataset
+    from train.distributed import barrier, cleanup, init_distributed
+    from train.run import RunContext, STAGES, load_trained
+    from train.run_config import RunConfig
+    from train.stages import run_stages
+
+    run_dir = Path(args.run_dir)
+    if not (run_dir / "config.yaml").is_file():
+        raise ToolkitError(f"{run_dir}: not a run directory (no config.yaml); train one with python -m train.run")
+    if args.batch < 1:
+        raise ToolkitError(f"--batch must be >= 1, got {args.batch}")
+    gazes = parse_gazes(args.gazes, args.seed)
+    cfg = load_yaml_config(RunConfig, run_dir / "config.yaml")
+    ctx = RunContext(run_dir, cfg, log=lambda m: None)
+    run_stages(STAGES, [], ctx)  # read the finished stages' outputs
+    if "gaussian" not in ctx.outputs:
+        raise ToolkitError(f"{run_dir}: stage 'gaussian' has not finished; nothing to render with")
+    info = init_distributed("cpu" if not torch.cuda.is_available() else "auto")
+    device = torch.device(info.device)
+    model, renderer = load_trained(ctx, device)
+    ds = GazeDataset([args.dataset], res=cfg.data.res, with_mesh=True)
+    n_rows = len(ds) if args.rows <= 0 else min(args.rows, len(ds))
+    chunks = [list(range(i, min(i + args.batch, n_rows))) for i in range(0, n_rows, args.batch)]
+    out = Path(args.out)
+    parts = out.with_suffix(out.suffix + ".parts")
+    parts.mkdir(parents=True, exist_ok=True)
+    from tqdm import tqdm
+
+    from toolkit.io import atomic_write
+
+    mine = [k for k in range(len(chunks)) if k % info.world_size == info.rank]
+    todo = [k for k in mine if not _chunk_path(parts, k).exists()]
+    steps = args.steps or cfg.gaussian.sampling_steps
+    for k in tqdm(todo, desc=f"redirect (rank {info.rank})", disable=not info.is_main, initial=len(mine) - len(todo),
+                  total=len(mine)):
+        arrays = render_chunk(model, renderer, ds, chunks[k], gazes, cfg.data.res, steps, device)
+        with atomic_write(_chunk_path(parts, k), "wb") as f:
+            np.savez(f, **arrays)
+    barrier(info)
+    if info.is_main:
+        n = assemble(parts, len(chunks), out, {"source_file": str(args.dataset), "run_dir": str(run_dir),
+                                               "gazes_spec": args.gazes, "generator": "apps.redirect"})
+        for p in parts.iterdir():
+            p.unlink()
+        parts.rmdir()
+        print(f"wrote {out}: {n} redirected images ({n_rows} rows × {len(gazes)} gazes)")
+    cleanup(info)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))

@@ -1,0 +1,144 @@
+"""``geometry fit DATASET OUT``: the neutral head from a multi-view HDF5 subject file (docs/data.md).
+
+geometry must not import train, so the keys are read here directly with h5py. Every row's camera is
+moved into the **head** frame (camera-from-head = w2c o pose, with the pose's scale), so silhouettes from
+all frames and all rig cameras constrain one neutral head; the 3D landmarks are moved into the head frame
+the same way and their per-landmark median over the frames (robust to the expressions) is used.
+Rows of the ``holdout_cams`` rig cameras are kept out of the fit and score it (silhouette IoU).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from geometry.fit import FitConfig, Views, fit_silhouettes, silhouette_iou
+from toolkit.errors import ToolkitError
+from toolkit.io import atomic_write_json, check_readable_file
+from toolkit.rotations import so3_exp
+
+ROW_KEYS = ("head_mask", "inmat", "w2c_Rmat", "w2c_Tvec", "pose", "facial_landmarks_3d")
+DEFAULT_HOLDOUT = (2, 7, 10, 15)
+
+
+def _read(f, path, key, shape_tail=None):
+    if key not in f:
+        raise ToolkitError(f"{path}: missing dataset {key!r} (expected the keys of docs/data.md)")
+    a = np.asarray(f[key])
+    if shape_tail is not None and tuple(a.shape[1:]) != shape_tail:
+        raise ToolkitError(f"{path}: {key} has shape {list(a.shape)}, expected [N, {', '.join(map(str, shape_tail))}]")
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        raise ToolkitError(f"{path}: {key} contains NaN/inf")
+    return a
+
+
+def read_subject(path: str | os.PathLike) -> dict:
+    """Head-frame views and landmarks of one subject file.
+
+    Returns dict: masks [N, H, W] bool, Ks [N, 3, 3], viewmats [N, 4, 4] (head -> camera, scale folded
+    in), landmarks [68, 3] (head frame, median over frames), cam_index [N], and when present the
+    generator's ground truth: gt_verts [V, 3] (head frame), gt_faces [F, 3].
+    """
+    import h5py
+
+    path = check_readable_file(path, "HDF5 subject file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise ToolkitError(f"{path}: not an HDF5 file ({str(e)[:120]})") from None
+    with f:
+        masks = _read(f, path, "head_mask")
+        if masks.ndim != 3 or masks.shape[0] < 1:
+            raise ToolkitError(f"{path}: head_mask must be [N, H, W], got {list(masks.shape)}")
+        n = masks.shape[0]
+        K = _read(f, path, "inmat", (3, 3))
+        Rc = _read(f, path, "w2c_Rmat", (3, 3))
+        tc = _read(f, path, "w2c_Tvec").reshape(n, 3)
+        pose = _read(f, path, "pose", (6,))
+        scale = np.asarray(f["scale"]).reshape(n) if "scale" in f else np.ones(n)
+        lmk_w = _read(f, path, "facial_landmarks_3d", (68, 3))
+        cam = np.asarray(f["cam_index"]).reshape(n) if "cam_index" in f else np.arange(n)
+        frame = np.asarray(f["frame_index"]).reshape(n) if "frame_index" in f else np.arange(n)
+        for k, a in (("inmat", K), ("w2c_Rmat", Rc), ("pose", pose), ("facial_landmarks_3d", lmk_w)):
+            if a.shape[0] != n:
+                raise ToolkitError(f"{path}: {k} has {a.shape[0]} rows, head_mask has {n}")
+        gt = {}
+        if "neutral_vertice" in f and "mesh_faces" in f:
+            gt = {"gt_verts": torch.from_numpy(np.asarray(f["neutral_vertice"], np.float32)),
+                  "gt_faces": torch.from_numpy(np.asarray(f["mesh_faces"]).astype(np.int64))}
+    if not (scale > 0).all():
+        raise ToolkitError(f"{path}: scale must be > 0")
+    R = so3_exp(torch.from_numpy(pose[:, :3].astype(np.float64))).numpy()  # head -> world rotation
+    t = pose[:, 3:6].astype(np.float64)
+    view = np.zeros((n, 4, 4))
+    view[:, :3, :3] = Rc.astype(np.float64) @ (scale[:, None, None] * R)
+    view[:, :3, 3] = np.einsum("nij,nj->ni", Rc.astype(np.float64), t) + tc
+    view[:, 3, 3] = 1
+    lmk_h = np.einsum("nji,nkj->nki", R, lmk_w.astype(np.float64) - t[:, None, :]) / scale[:, None, None]
+    # Landmarks are the same for all cameras of a frame: one per frame, then the median over frames.
+    _, first = np.unique(frame, return_index=True)
+    landmarks = np.median(lmk_h[first], axis=0)
+    return {"masks": torch.from_numpy(masks > 127), "Ks": torch.from_numpy(K.astype(np.float32)),
+            "viewmats": torch.from_numpy(view.astype(np.float32)),
+            "landmarks": torch.from_numpy(landmarks.astype(np.float32)), "cam_index": torch.from_numpy(cam.astype(np.int64)),
+            **gt}
+
+
+def split_views(data: dict, holdout_cams=DEFAULT_HOLDOUT) -> tuple[Views, Views | None]:
+    """(training views, held-out views or None) by rig camera index."""
+    hold = torch.zeros(data["masks"].shape[0], dtype=torch.bool)
+    for c in holdout_cams:
+        hold |= data["cam_index"] == int(c)
+    if bool(hold.all()):
+        raise ToolkitError("fit: every row is held out; pass fewer --holdout cameras")
+    train = Views(data["masks"][~hold], data["Ks"][~hold], data["viewmats"][~hold])
+    test = Views(data["masks"][hold], data["Ks"][hold], data["viewmats"][hold]) if bool(hold.any()) else None
+    return train, test
+
+
+def fit_dataset(dataset: str | os.PathLike, out_dir: str | os.PathLike, cfg: FitConfig | None = None, *,
+                holdout_cams=DEFAULT_HOLDOUT, max_eval_views: int = 24, init_scene: bool = True, log=None) -> dict:
+    """Fit, then write ``neutral_mesh.ply``, ``sdf.safetensors``, ``gaussians.safetensors`` and ``fit.json``.
+
+    Returns the summary written to fit.json (timing, held-out IoU, Chamfer to the ground truth if present).
+    """
+    from geometry.mesh_stats import compare_meshes, save_mesh
+
+    cfg = cfg or FitConfig()
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ToolkitError(f"{out}: exists and is not a folder")
+    t0 = time.perf_counter()
+    data = read_subject(dataset)
+    train, test = split_views(data, holdout_cams)
+    res = fit_silhouettes(train, cfg, landmarks=data["landmarks"], log=log)
+    summary: dict = {"dataset": str(dataset), "train_views": len(train), "fit_seconds": res.seconds,
+                     "skipped_steps": res.skipped_steps, "vertices": int(res.verts.shape[0]),
+                     "faces": int(res.faces.shape[0]), "config": json.loads(json.dumps(asdict(cfg), default=list))}
+    if test is not None:
+        idx = torch.linspace(0, len(test) - 1, min(len(test), max_eval_views)).round().long().unique()
+        ious = silhouette_iou(res.verts, res.faces, test.subset(idx))
+        summary.update(heldout_views=len(idx), heldout_iou_mean=float(np.mean(ious)), heldout_iou_min=float(np.min(ious)))
+    if "gt_verts" in data:
+        cmp = compare_meshes(data["gt_verts"], data["gt_faces"], res.verts, res.faces)
+        summary.update(chamfer=cmp["chamfer"], chamfer_rel_diag=cmp["chamfer_rel_diag"],
+                       hausdorff_rel_diag=cmp["hausdorff_rel_diag"], normal_consistency=cmp["normal_consistency"])
+    out.mkdir(parents=True, exist_ok=True)
+    save_mesh(out / "neutral_mesh.ply", res.verts, res.faces)
+    res.net.save(out / "sdf.safetensors", {"dataset": str(dataset)})
+    if init_scene:
+        from geometry.init_gaussians import init_gaussians
+
+        scene = init_gaussians(res.verts, res.faces, data["landmarks"], res.net)
+        scene.save(out / "gaussians.safetensors")
+        summary["gaussians"] = scene.num_gaussians
+    summary["total_seconds"] = time.perf_counter() - t0
+    summary["history"] = res.history
+    atomic_write_json(out / "fit.json", summary)
+    return summary

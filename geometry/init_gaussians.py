@@ -1,0 +1,181 @@
+"""Neutral head mesh (+ 68 iBUG landmarks) -> the initial two-stream GaussianScene.
+
+- Points: the mesh vertices (or ``n_points`` area-uniform surface samples).
+- Eyes, each on its own (GazeGaussian's reference code used the left set for both eyes, a bug):
+  left = landmarks 36–41 (the eye on the image's left, part 1), right = 42–47 (part 2). Each eyeball's
+  centre and radius are fitted (``toolkit.eyes.fit_sphere``) to the mesh points inside that eye's lid
+  polygon; when those points do not determine a plausible sphere, an anatomical prior is used (radius
+  0.4 x eye width, centre behind the lid centroid along the head's inward axis). Gaze rotates each eye
+  about this centre, so it is stored in ``metadata["eyes"]`` in the format of ``toolkit.eyes``.
+- Partition: a point is eye when it lies on its eyeball's shell and near that eye's landmarks.
+- Features: the SDF network's 128-d feature at each point (``feature_kind = "neural"``); without a
+  network, mid-grey RGB.
+- Scales: from the mean distance to the 3 nearest neighbours of the same part. Face Gaussians are
+  anisotropic: per axis, the RMS neighbour offset along that axis (rotations stay identity, so the axes
+  are the head frame's; a patch of the flat front of the face gets thin along z), clamped to
+  [0.2, 1] x the mean distance. Eye Gaussians are isotropic.
+- Opacity 0.3 face / 0.9 eye; identity rotations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from toolkit.errors import ToolkitError
+from toolkit.eyes import fit_sphere
+from toolkit.procedural import knn_spacing
+from toolkit.scene import PART_FACE, PART_LEFT_EYE, PART_RIGHT_EYE, GaussianScene
+
+LEFT_EYE = list(range(36, 42))
+RIGHT_EYE = list(range(42, 48))
+INWARD = torch.tensor([0.0, 0.0, 1.0])  # the face looks towards -z (README conventions)
+
+
+@dataclass
+class InitConfig:
+    """Gaussian initialization parameters."""
+
+    n_points: int | None = None
+    """None: one Gaussian per mesh vertex; else area-uniform surface samples."""
+    opacity_face: float = 0.3
+    opacity_eye: float = 0.9
+    eye_radius_ratio: float = 0.4
+    """Prior eyeball radius as a fraction of the eye width (corner 36-39 / 42-45 distance): ~12 mm / 30 mm."""
+    shell_tolerance: float = 0.35
+    """A point is on the eyeball shell when | |p - c| - r | < tolerance x r."""
+    min_eye_points: int = 32
+    """Eyes with fewer mesh points are topped up with samples on the eyeball's front cap."""
+    seed: int = 0
+
+
+def _polygon_contains(poly: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """Even-odd test of [P, 2] points in a closed [K, 2] polygon."""
+    inside = torch.zeros(pts.shape[0], dtype=torch.bool)
+    k = poly.shape[0]
+    for i in range(k):
+        a, b = poly[i], poly[(i + 1) % k]
+        cond = (a[1] > pts[:, 1]) != (b[1] > pts[:, 1])
+        xint = a[0] + (pts[:, 1] - a[1]) * (b[0] - a[0]) / (b[1] - a[1] + 1e-30)
+        inside ^= cond & (pts[:, 0] < xint)
+    return inside
+
+
+def fit_eyeball(points: torch.Tensor, eye_lmk: torch.Tensor, cfg: InitConfig) -> dict:
+    """Eyeball {"center", "radius", "fit"} for one eye from mesh points and its 6 lid landmarks [6, 3]."""
+    width = float((eye_lmk[0] - eye_lmk[3]).norm())
+    if not width > 0:
+        raise ToolkitError("init_gaussians: eye corner landmarks coincide; cannot size the eyeball")
+    r_prior = cfg.eye_radius_ratio * width
+    lid_c = eye_lmk.mean(0)
+    # The lid polygon in the head's frontal (x, y) plane, dilated by 20 % around its centroid.
+    poly = (eye_lmk[:, :2] - lid_c[:2]) * 1.2 + lid_c[:2]
+    near = (points[:, 2] - lid_c[2]).abs() < r_prior
+    cand = points[near & _polygon_contains(poly, points[:, :2])]
+    prior_c = lid_c + INWARD * (r_prior * 0.8)  # the cornea bulges ~0.2 r in front of the lid plane
+    if cand.shape[0] >= 8:
+        try:
+            c, r = fit_sphere(cand)
+            ok = (0.5 * r_prior < float(r) < 2.0 * r_prior) and float((c - lid_c) @ INWARD) > 0
+            if ok:
+                return {"center": c, "radius": r, "fit": f"sphere to {cand.shape[0]} points"}
+        except ToolkitError:
+            pass
+    return {"center": prior_c, "radius": torch.tensor(r_prior), "fit": f"prior ({cand.shape[0]} points in the lids)"}
+
+
+def _front_cap(center: torch.Tensor, radius: float, n: int, g: torch.Generator, cap_deg: float = 40.0) -> torch.Tensor:
+    u = torch.rand(n, generator=g)
+    cos_t = 1 - u * (1 - np.cos(np.radians(cap_deg)))
+    ang = torch.rand(n, generator=g) * 2 * np.pi
+    sin_t = torch.sqrt((1 - cos_t**2).clamp_min(0))
+    d = torch.stack([sin_t * torch.cos(ang), sin_t * torch.sin(ang), -cos_t], -1)
+    return center + radius * d
+
+
+def _anisotropic_scales(p: torch.Tensor, k: int = 3) -> torch.Tensor:
+    from scipy.spatial import cKDTree
+
+    pts = p.detach().double().numpy()
+    d, idx = cKDTree(pts).query(pts, k=k + 1)
+    mean_d = torch.from_numpy(d[:, 1:].mean(1)).float().clamp_min(1e-7)
+    off = p[torch.from_numpy(idx[:, 1:])] - p[:, None, :]  # [P, k, 3]
+    per_axis = off.square().mean(1).sqrt()
+    return torch.maximum(torch.minimum(per_axis, mean_d[:, None]), 0.2 * mean_d[:, None])
+
+
+def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Tensor, net=None,
+                   config: InitConfig | None = None) -> GaussianScene:
+    """Mesh verts [V, 3] / faces [F, 3] (head frame) + landmarks [68, 3] (+ SDFNet) -> GaussianScene."""
+    from geometry.mesh_stats import check_mesh, sample_surface
+
+    cfg = config or InitConfig()
+    check_mesh(verts, faces, "init_gaussians mesh")
+    landmarks = torch.as_tensor(landmarks, dtype=torch.float32)
+    if landmarks.shape != (68, 3) or not bool(torch.isfinite(landmarks).all()):
+        raise ToolkitError(f"init_gaussians: landmarks must be finite [68, 3] (iBUG order), got {list(landmarks.shape)}")
+    g = torch.Generator().manual_seed(cfg.seed)
+    verts = verts.detach().float()
+    if cfg.n_points is None:
+        pts = verts[torch.unique(faces)]
+    else:
+        pts = sample_surface(verts, faces, int(cfg.n_points), cfg.seed)[0].float()
+    if pts.shape[0] < 16:
+        raise ToolkitError(f"init_gaussians: the mesh gives only {pts.shape[0]} points; need at least 16")
+
+    part = torch.full((pts.shape[0],), PART_FACE, dtype=torch.int8)
+    eyes_meta, extra = {}, []
+    dist_to_eye = []
+    for ids in (LEFT_EYE, RIGHT_EYE):
+        dist_to_eye.append((pts - landmarks[ids].mean(0)).norm(dim=-1))
+    nearest_left = dist_to_eye[0] <= dist_to_eye[1]
+    for name, ids, pid, mine in (("left", LEFT_EYE, PART_LEFT_EYE, nearest_left), ("right", RIGHT_EYE, PART_RIGHT_EYE, ~nearest_left)):
+        eye = fit_eyeball(pts, landmarks[ids], cfg)
+        c, r = eye["center"], float(eye["radius"])
+        width = float((landmarks[ids[0]] - landmarks[ids[3]]).norm())
+        on_shell = ((pts - c).norm(dim=-1) - r).abs() < cfg.shell_tolerance * r
+        near = (pts - landmarks[ids].mean(0)).norm(dim=-1) < 0.6 * width
+        in_front = ((pts - c) @ INWARD) < 0
+        sel = on_shell & near & in_front & mine
+        part[sel] = pid
+        n_have = int(sel.sum())
+        if n_have < cfg.min_eye_points:
+            extra.append((_front_cap(c, r, cfg.min_eye_points - n_have, g), pid))
+        eyes_meta[name] = {"center": [float(x) for x in c], "radius": r, "part": pid, "fit": eye["fit"]}
+    for p, pid in extra:
+        pts = torch.cat([pts, p])
+        part = torch.cat([part, torch.full((p.shape[0],), pid, dtype=torch.int8)])
+
+    scales = torch.zeros(pts.shape[0], 3)
+    face = part == PART_FACE
+    if int(face.sum()) > 3:
+        scales[face] = _anisotropic_scales(pts[face])
+    for pid in (PART_LEFT_EYE, PART_RIGHT_EYE):
+        m = part == pid
+        if int(m.sum()) > 3:
+            scales[m] = knn_spacing(pts[m])[:, None].expand(-1, 3)
+        elif int(m.sum()):
+            scales[m] = float(eyes_meta["left" if pid == PART_LEFT_EYE else "right"]["radius"]) * 0.2
+    # DMTet meshes can have vertices a hair apart (where the surface grazes a grid vertex): floor each
+    # part's scales at 0.2 x its median so no Gaussian collapses to a point.
+    for pid in (PART_FACE, PART_LEFT_EYE, PART_RIGHT_EYE):
+        m = part == pid
+        if int(m.sum()):
+            scales[m] = scales[m].clamp_min(0.2 * float(scales[m].median()))
+    if net is not None:
+        with torch.no_grad():
+            feats = net.evaluate(pts.to(net.center.device))[2].float().cpu()
+        kind = "neural"
+    else:
+        feats = torch.full((pts.shape[0], 3), 0.5)
+        kind = "rgb"
+    opac = torch.where(face, torch.tensor(cfg.opacity_face), torch.tensor(cfg.opacity_eye))
+    scene = GaussianScene.from_activated(
+        means=pts, scales=scales, opacities=opac, features=feats, part=part,
+        metadata={"units": "m", "feature_kind": kind, "source": "geometry.init_gaussians",
+                  "frame": "head: x image-right, y down, face towards -z; canonical gaze (0, 0, -1)",
+                  "eyes": eyes_meta},
+    )
+    return scene.validate()

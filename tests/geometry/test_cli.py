@@ -1,0 +1,104 @@
+"""``python -m geometry``: every subcommand, and bad input -> one line ``error: ...``, exit status 2."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from geometry.__main__ import main
+from geometry.mesh_stats import save_mesh
+from geometry.sdf import SDFNet, SDFNetConfig, SphereInit, pretrain_sphere
+from toolkit.errors import run_cli
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _run(*args) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-m", "geometry", *map(str, args)], capture_output=True, text=True,
+                          env=env, cwd=ROOT, timeout=300)
+
+
+@pytest.fixture
+def sphere_ply(tmp_path):
+    m = trimesh.creation.icosphere(2)
+    p = tmp_path / "sphere.ply"
+    save_mesh(p, torch.tensor(m.vertices, dtype=torch.float32), torch.tensor(m.faces))
+    return p
+
+
+def _ascii_ply(path, verts, faces):
+    lines = ["ply", "format ascii 1.0", f"element vertex {len(verts)}", "property float x", "property float y",
+             "property float z", f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
+    lines += [" ".join(str(c) for c in v) for v in verts] + ["3 " + " ".join(map(str, f)) for f in faces]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_bad_inputs_one_line_exit_2(tmp_path):
+    (tmp_path / "notamesh.ply").write_text("hello, I am text\n")
+    cases = [
+        ("inspect", tmp_path / "missing.ply"),
+        ("inspect", tmp_path / "notamesh.ply"),
+        ("inspect", _ascii_ply(tmp_path / "empty.ply", [[0, 0, 0], [1, 0, 0], [0, 1, 0]], [])),
+        ("inspect", _ascii_ply(tmp_path / "nan.ply", [[0, 0, 0], ["nan", 0, 0], [0, 1, 0]], [[0, 1, 2]])),
+    ]
+    for cmd, path in cases:
+        r = _run(cmd, path)
+        assert r.returncode == 2, (path, r.stderr)
+        err = r.stderr.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and "Traceback" not in r.stderr, r.stderr
+    assert "NaN" in _run("inspect", tmp_path / "nan.ply").stderr
+    assert "empty" in _run("inspect", tmp_path / "empty.ply").stderr
+
+
+def test_bad_inputs_in_process(tmp_path, capsys, sphere_ply):
+    assert run_cli(main, ["compare", str(sphere_ply), str(tmp_path / "nope.obj")]) == 2
+    assert run_cli(main, ["extract", str(sphere_ply), str(tmp_path / "o.ply")]) == 2  # a mesh is no checkpoint
+    assert run_cli(main, ["fit", str(sphere_ply), str(tmp_path / "fit")]) == 2  # a mesh is no HDF5 file
+    assert run_cli(main, ["clean", str(sphere_ply), str(tmp_path / "o.xyz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 4 and all(e.startswith("error: ") for e in err)
+    assert not (tmp_path / "o.xyz").exists()
+
+
+def test_inspect_json_compare_clean(tmp_path, sphere_ply):
+    r = _run("inspect", sphere_ply, "--json")
+    assert r.returncode == 0, r.stderr
+    stats = json.loads(r.stdout)
+    assert stats["watertight"] and stats["genus"] == 0 and stats["faces"] == 320
+    assert _run("inspect", sphere_ply).stdout.count("\n") > 10
+    r = _run("compare", sphere_ply, sphere_ply, "--json", "--samples", 2000)
+    assert r.returncode == 0 and json.loads(r.stdout)["chamfer"] < 1e-5
+    out = tmp_path / "clean.ply"
+    assert run_cli(main, ["clean", str(sphere_ply), str(out), "--target-faces", "100"]) == 0
+    assert trimesh.load(out).faces.shape[0] <= 100
+
+
+def test_extract_and_render(tmp_path):
+    net = SDFNet(SDFNetConfig(hidden=32, feature_dim=4, box_min=(-1, -1, -1), box_max=(1, 1, 1)))
+    pretrain_sphere(net, SphereInit((0.1, 0, 0), 0.5, steps=150, batch=1024, lr=3e-3))
+    ckpt = tmp_path / "sdf.safetensors"
+    net.save(ckpt)
+    out = tmp_path / "m.ply"
+    assert run_cli(main, ["extract", str(ckpt), str(out), "--res", "24"]) == 0
+    m = trimesh.load(out)
+    assert m.is_watertight and m.volume > 0
+    assert np.linalg.norm(m.vertices - [0.1, 0, 0], axis=1).mean() == pytest.approx(0.5, abs=0.05)
+    png = tmp_path / "sheet.png"
+    r = _run("render", out, png, "--views", 3, "--size", 64)
+    if r.returncode == 2 and "GL" in r.stderr:
+        pytest.skip(f"no headless GL here: {r.stderr.strip()}")
+    assert r.returncode == 0, r.stderr
+    import imageio.v3 as iio
+
+    img = iio.imread(png)
+    assert img.shape == (64, 3 * 64, 3) and (img < 250).any()

@@ -1,0 +1,194 @@
+"""Marching tetrahedra: closed, outward, consistently wound meshes; gradients; every failure mode."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from geometry.dmtet import marching_tets
+from geometry.tets import GRID_KINDS, subdivide, tet_grid
+from toolkit.errors import ToolkitError
+
+
+def _mesh(v, f):
+    return trimesh.Trimesh(v.detach().double().numpy(), f.numpy(), process=False)
+
+
+def _sphere_sdf(v, c=(0.1, -0.05, 0.07), r=0.55):
+    return (v - torch.tensor(c, dtype=v.dtype)).norm(dim=-1) - r
+
+
+def _torus_sdf(v, R=0.5, r=0.2):
+    q = torch.stack([torch.sqrt(v[:, 0] ** 2 + v[:, 2] ** 2) - R, v[:, 1]], -1)
+    return q.norm(dim=-1) - r
+
+
+@pytest.mark.parametrize("kind", GRID_KINDS)
+def test_sphere_closed_outward_consistent(kind):
+    v, t = tet_grid(kind, 12, use_cache=False)
+    mv, mf, feat = marching_tets(v, t, _sphere_sdf(v))
+    assert feat is None and mf.dtype == torch.long
+    m = _mesh(mv, mf)
+    assert m.is_watertight and m.is_winding_consistent
+    assert m.volume > 0  # outward normals
+    assert abs(m.volume - 4 / 3 * math.pi * 0.55**3) < 0.07 * 4 / 3 * math.pi * 0.55**3
+    assert m.euler_number == 2
+    # One vertex per cut edge: no duplicates, no unreferenced vertices.
+    assert torch.unique(mv, dim=0).shape[0] == mv.shape[0]
+    assert torch.unique(mf).numel() == mv.shape[0]
+    # Normals point away from the centre everywhere.
+    n = torch.tensor(np.array(m.face_normals), dtype=torch.float32)
+    cdir = torch.tensor(np.array(m.triangles_center), dtype=torch.float32) - torch.tensor([0.1, -0.05, 0.07])
+    assert bool(((n * cdir).sum(-1) > 0).all())
+
+
+@pytest.mark.parametrize("kind", GRID_KINDS)
+def test_torus_genus_one_and_subdivided(kind):
+    v, t = tet_grid(kind, 10, use_cache=False)
+    v, t, _ = subdivide(v, t)
+    mv, mf, _ = marching_tets(v, t, _torus_sdf(v))
+    m = _mesh(mv, mf)
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+    assert m.euler_number == 0  # genus 1
+
+
+def test_second_order_convergence():
+    errs = []
+    for res in (8, 16, 32):
+        v, t = tet_grid("kuhn", res, use_cache=False, dtype=torch.float64)
+        mv, _, _ = marching_tets(v, t, _sphere_sdf(v))
+        errs.append(float((_sphere_sdf(mv).abs()).max()))
+    assert errs[1] < errs[0] / 3 and errs[2] < errs[1] / 3, errs
+
+
+def test_features_interpolated_exactly_for_linear_fields():
+    v, t = tet_grid("bcc", 6, use_cache=False, dtype=torch.float64)
+    feats = torch.stack([v[:, 0] * 2 + 1, v[:, 1] - v[:, 2]], 1)
+    mv, mf, mfeat = marching_tets(v, t, _sphere_sdf(v), feats)
+    torch.testing.assert_close(mfeat, torch.stack([mv[:, 0] * 2 + 1, mv[:, 1] - mv[:, 2]], 1))
+
+
+def test_gradients_match_finite_differences():
+    v, t = tet_grid("kuhn", 3, use_cache=False, dtype=torch.float64)
+    v = v.clone().requires_grad_(True)
+    s = _sphere_sdf(v.detach()).clone().requires_grad_(True)
+    f = torch.randn(v.shape[0], 2, dtype=torch.float64, requires_grad=True)
+
+    def fn(vv, ss, ff):
+        mv, _, mfeat = marching_tets(vv, t, ss, ff)
+        return mv, mfeat
+
+    assert torch.autograd.gradcheck(fn, (v, s, f), eps=1e-6, atol=1e-5)
+
+
+def test_all_positive_all_negative_nan_messages():
+    v, t = tet_grid("kuhn", 3, use_cache=False)
+    with pytest.raises(ToolkitError, match="all positive"):
+        marching_tets(v, t, torch.ones(v.shape[0]))
+    with pytest.raises(ToolkitError, match="all negative"):
+        marching_tets(v, t, -torch.ones(v.shape[0]))
+    with pytest.raises(ToolkitError, match="all positive"):
+        marching_tets(v, t, torch.zeros(v.shape[0]))  # zeros count as outside
+    s = _sphere_sdf(v)
+    s[3] = float("nan")
+    with pytest.raises(ToolkitError, match="1 NaN"):
+        marching_tets(v, t, s)
+    s[3] = float("inf")
+    with pytest.raises(ToolkitError, match="NaN/inf"):
+        marching_tets(v, t, s)
+
+
+def test_bad_shapes_and_ids():
+    v, t = tet_grid("kuhn", 2, use_cache=False)
+    s = _sphere_sdf(v)
+    with pytest.raises(ToolkitError, match="sdf must have shape"):
+        marching_tets(v, t, s[:-1])
+    with pytest.raises(ToolkitError, match="verts"):
+        marching_tets(v[:, :2], t, s)
+    with pytest.raises(ToolkitError, match="tets"):
+        marching_tets(v, t.float(), s)
+    with pytest.raises(ToolkitError, match="features"):
+        marching_tets(v, t, s, torch.zeros(3, 2))
+    bad = t.clone()
+    bad[0, 0] = v.shape[0] + 5
+    with pytest.raises(ToolkitError, match="vertex ids"):
+        marching_tets(v, bad, s)
+    with pytest.raises(ToolkitError, match="floating point"):
+        marching_tets(v, t, (s > 0).long())
+
+
+def test_exact_zeros_on_many_vertices():
+    """A plane through a grid layer and a sphere through lattice points: no duplicates, no zero-area faces."""
+    v, t = tet_grid("kuhn", 8, use_cache=False)  # lattice spacing 0.25: z = 0 is a grid plane
+    for sdf in (v[:, 2].clone(), (v.abs().max(1).values - 0.5)):  # plane; cube surface through grid points
+        n_zero = int((sdf == 0).sum())
+        assert n_zero >= 81
+        mv, mf, _ = marching_tets(v, t, sdf)
+        assert torch.isfinite(mv).all()
+        assert torch.unique(mv, dim=0).shape[0] == mv.shape[0]
+        area = torch.linalg.cross(mv[mf[:, 1]] - mv[mf[:, 0]], mv[mf[:, 2]] - mv[mf[:, 0]]).norm(dim=-1)
+        assert float(area.min()) > 0
+    m = _mesh(mv, mf)
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+
+
+def test_single_tet_every_case():
+    """Each of the 14 sign patterns on one tet: right triangle count, outward winding, vertices on edges."""
+    v = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
+    t = torch.tensor([[0, 1, 2, 3]])
+    for case in range(1, 15):
+        inside = torch.tensor([(case >> i) & 1 for i in range(4)], dtype=torch.bool)
+        s = torch.where(inside, -torch.rand(4, dtype=torch.float64) - 0.1, torch.rand(4, dtype=torch.float64) + 0.1)
+        mv, mf, _ = marching_tets(v, t, s)
+        k = int(inside.sum())
+        assert mf.shape[0] == (2 if k == 2 else 1) and mv.shape[0] == (4 if k == 2 else 3)
+        # Winding: normals point from the inside vertices' centroid towards the outside ones.
+        d = v[~inside].mean(0) - v[inside].mean(0)
+        n = torch.linalg.cross(mv[mf[:, 1]] - mv[mf[:, 0]], mv[mf[:, 2]] - mv[mf[:, 0]])
+        assert bool(((n @ d) > 0).all()), case
+        assert torch.isfinite(mv).all()
+
+
+def test_near_degenerate_tets_after_large_offsets_finite_grads():
+    g = torch.Generator().manual_seed(1)
+    v0, t = tet_grid("kuhn", 6, use_cache=False)
+    cell = 2 / 6
+    for scale in (0.49, 3.0, 50.0):  # half a cell (DMTet's bound), then far beyond (inverted tets)
+        off = (torch.rand(v0.shape, generator=g) * 2 - 1) * cell * scale
+        v = (v0 + off).requires_grad_(True)
+        s = (_sphere_sdf(v0) + torch.randn(v0.shape[0], generator=g) * 1e-7).requires_grad_(True)
+        s.data[::7] = 0.0  # exact zeros too
+        s.data[1::11] = 1e-30  # and denormal-small values
+        feats = torch.randn(v0.shape[0], 4, generator=g, requires_grad=True)
+        mv, mf, mfeat = marching_tets(v, t, s, feats)
+        loss = mv.square().sum() + mfeat.sum() + (mv[mf].mean(1)).sum()
+        loss.backward()
+        for x in (mv, mfeat, v.grad, s.grad, feats.grad):
+            assert torch.isfinite(x).all()
+    # Collapse a whole region of vertices onto one point (zero-volume tets).
+    v = v0.clone()
+    v[v0.norm(dim=-1) < 0.8] = 0.0
+    v.requires_grad_(True)
+    s = _sphere_sdf(v0).requires_grad_(True)
+    mv, _, _ = marching_tets(v, t, s)
+    mv.sum().backward()
+    assert torch.isfinite(mv).all() and torch.isfinite(v.grad).all() and torch.isfinite(s.grad).all()
+
+
+def test_surface_leaving_box_is_open_not_broken():
+    v, t = tet_grid("kuhn", 6, use_cache=False)
+    mv, mf, _ = marching_tets(v, t, _sphere_sdf(v, c=(0.9, 0, 0), r=0.5))
+    m = _mesh(mv, mf)
+    assert not m.is_watertight and m.is_winding_consistent
+    assert np.isfinite(m.vertices).all()
+
+
+def test_int32_tets_and_float64():
+    v, t = tet_grid("bcc", 5, use_cache=False, dtype=torch.float64)
+    a = marching_tets(v, t, _sphere_sdf(v))
+    b = marching_tets(v, t.int(), _sphere_sdf(v))
+    assert torch.equal(a[1], b[1]) and a[0].dtype == torch.float64

@@ -1,0 +1,95 @@
+"""Gaussian initialization: separate eyes (36–41 left, 42–47 right), eyeball metadata, scales, opacities."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from geometry.init_gaussians import InitConfig, init_gaussians
+from geometry.sdf import SDFNet, SDFNetConfig
+from toolkit.errors import ToolkitError
+from toolkit.eyes import eyeball_info, redirect_eyes
+from toolkit.scene import PART_FACE, PART_LEFT_EYE, PART_RIGHT_EYE
+
+
+@pytest.fixture(scope="module")
+def subject():
+    from train.data.synthetic import SubjectParams, build_subject
+
+    s = build_subject(SubjectParams.sample(3), subdivisions=4)
+    m = s.scene_mesh(None, (0.0, 0.0))  # head + eyeballs, as a silhouette fit sees them
+    v = torch.tensor(m["verts"], dtype=torch.float32)
+    f = torch.tensor(m["faces"].astype(np.int64))
+    lmk = torch.tensor(s.landmarks(), dtype=torch.float32)
+    return v, f, lmk, torch.tensor(s.eye_centers, dtype=torch.float32), float(s.eye_radius)
+
+
+def test_eyes_separate_and_metadata(subject):
+    v, f, lmk, centers, radius = subject
+    net = SDFNet(SDFNetConfig(hidden=16, feature_dim=8, box_min=(-0.15,) * 3, box_max=(0.15,) * 3))
+    scene = init_gaussians(v, f, lmk, net)
+    assert scene.features.shape[1] == 8 and scene.metadata["feature_kind"] == "neural"
+    eyes = scene.metadata["eyes"]
+    assert set(eyes) == {"left", "right"} and eyes["left"]["part"] == PART_LEFT_EYE and eyes["right"]["part"] == PART_RIGHT_EYE
+    for i, name in enumerate(("left", "right")):
+        c = torch.tensor(eyes[name]["center"])
+        assert float((c - centers[i]).norm()) < 0.004, (name, c, centers[i])
+        assert eyes[name]["radius"] == pytest.approx(radius, rel=0.3)
+        m = scene.part == eyes[name]["part"]
+        assert int(m.sum()) >= InitConfig().min_eye_points
+        # Eye Gaussians sit on their own eyeball, near their own landmarks.
+        d = (scene.means[m] - c).norm(dim=-1)
+        assert float((d - eyes[name]["radius"]).abs().max()) < 0.5 * eyes[name]["radius"]
+        own = lmk[36:42] if name == "left" else lmk[42:48]
+        assert float((scene.means[m].mean(0) - own.mean(0)).norm()) < 0.02
+    assert eyes["left"]["center"][0] < 0 < eyes["right"]["center"][0]
+    # toolkit.eyes reads the same metadata, and redirection rotates about these centres.
+    info = eyeball_info(scene)
+    assert torch.allclose(info["left"]["center"], torch.tensor(eyes["left"]["center"]))
+    turned = redirect_eyes(scene, (0.2, -0.3))
+    m = scene.part == PART_RIGHT_EYE
+    c = info["right"]["center"]
+    torch.testing.assert_close((turned.means[m] - c).norm(dim=-1), (scene.means[m] - c).norm(dim=-1), atol=1e-6, rtol=1e-5)
+    assert torch.equal(turned.means[scene.part == PART_FACE], scene.means[scene.part == PART_FACE])
+
+
+def test_opacity_scales_rotations(subject):
+    v, f, lmk, _, _ = subject
+    scene = init_gaussians(v, f, lmk)
+    face, eye = scene.part == PART_FACE, scene.part != PART_FACE
+    torch.testing.assert_close(scene.opacities[face], torch.full((int(face.sum()),), 0.3))
+    torch.testing.assert_close(scene.opacities[eye], torch.full((int(eye.sum()),), 0.9))
+    q = scene.quats
+    assert torch.equal(q, torch.tensor([[1.0, 0, 0, 0]]).expand_as(q))
+    s = scene.scales
+    assert torch.allclose(s[eye], s[eye][:, :1].expand(-1, 3))  # isotropic eyes
+    aniso = s[face].max(1).values / s[face].min(1).values
+    assert float(aniso.median()) > 1.2  # anisotropic face
+    assert bool(torch.isfinite(s).all()) and float(s.min()) > 0
+    assert scene.metadata["feature_kind"] == "rgb" and scene.features.shape[1] == 3
+
+
+def test_right_eye_uses_its_own_landmarks(subject):
+    """The reference bug used 36–41 for both eyes: moving 42–47 must move only the right eyeball."""
+    v, f, lmk, _, _ = subject
+    base = init_gaussians(v, f, lmk).metadata["eyes"]
+    lmk2 = lmk.clone()
+    lmk2[42:48, 1] += 0.004
+    moved = init_gaussians(v, f, lmk2).metadata["eyes"]
+    assert moved["left"]["center"] == base["left"]["center"]
+    assert moved["right"]["center"] != base["right"]["center"]
+
+
+def test_sampled_points_and_bad_input(subject):
+    v, f, lmk, _, _ = subject
+    scene = init_gaussians(v, f, lmk, config=InitConfig(n_points=3000))
+    assert 3000 <= scene.num_gaussians <= 3000 + 2 * InitConfig().min_eye_points
+    with pytest.raises(ToolkitError, match="landmarks"):
+        init_gaussians(v, f, lmk[:60])
+    bad = lmk.clone()
+    bad[5, 0] = float("nan")
+    with pytest.raises(ToolkitError, match="landmarks"):
+        init_gaussians(v, f, bad)
+    with pytest.raises(ToolkitError):
+        init_gaussians(v, f[:0], lmk)

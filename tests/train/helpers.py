@@ -1,0 +1,31 @@
+"""Small shared pieces of the train/ tests: a tiny model on the procedural head, inputs, the rasterizer."""
+
+from __future__ import annotations
+
+import torch
+
+from toolkit.procedural import demo_camera
+from train.gaussian_model import GaussianModel, GaussianModelConfig
+
+
+def rasterizer_for_tests():
+    """``render.splat.rasterize`` (the project's torch splatter)."""
+    from render.splat import rasterize
+
+    return rasterize
+
+
+def small_model(scene, **overrides) -> GaussianModel:
+    cfg = GaussianModelConfig(hidden=32, depth=3, **overrides)
+    torch.manual_seed(0)
+    return GaussianModel.from_scene(scene, cfg, rasterizer=rasterizer_for_tests())
+
+
+def model_inputs(batch: int, seed: int = 0, width: int = 64, height: int = 64):
+    """(code [B, 144], pose [B, 6] zeros, gaze [B, 2], viewmats [B, 4, 4], Ks [B, 3, 3]) for a frontal camera."""
+    g = torch.Generator().manual_seed(seed)
+    code = torch.randn(batch, 144, generator=g) * 0.5
+    pose = torch.zeros(batch, 6)
+    gaze = (torch.rand(batch, 2, generator=g) - 0.5) * 0.6
+    cam = demo_camera(width, height)
+    return code, pose, gaze, cam.viewmat.expand(batch, 4, 4).clone(), cam.K.expand(batch, 3, 3).clone()

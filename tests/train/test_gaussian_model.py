@@ -1,0 +1,319 @@
+"""Two-stream Gaussian model: initialization, eye rotation about each eye's own centre, face cache, renders,
+orthogonality through the real fields."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from tests.train.helpers import model_inputs, rasterizer_for_tests, small_model
+from toolkit.errors import ToolkitError
+from toolkit.eyes import gaze_rotation, rotate_about
+from toolkit.procedural import demo_head_scene
+from train.gaussian_model import GaussianModel, GaussianModelConfig
+from train.losses import OrthogonalityLoss
+
+
+def test_from_scene_splits_streams_and_lifts_features():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    n_face = int((scene.part == 0).sum())
+    assert model.num_face == n_face and model.num_eye == scene.num_gaussians - n_face
+    assert model.face_features.shape == (n_face, 32)
+    assert torch.allclose(model.face_features[:, :3], scene.features[scene.part == 0])
+    assert float(model.face_features.detach()[:, 3:].abs().sum()) == 0
+    # Eyes isotropic: one log-scale per Gaussian; sides follow the part labels.
+    assert model.eye_log_scales.dim() == 1
+    assert int((model.eye_side == 0).sum()) == int((scene.part == 1).sum())
+    c = torch.tensor([scene.metadata["eyes"]["left"]["center"], scene.metadata["eyes"]["right"]["center"]])
+    assert torch.allclose(model.eye_centers, c)
+
+
+def test_from_scene_rejects_bad_scenes():
+    scene = demo_head_scene(600)
+    with pytest.raises(ToolkitError, match="eye"):
+        GaussianModel.from_scene(scene.select(scene.part != 2), GaussianModelConfig(hidden=16))
+    bad = scene.clone()
+    bad.metadata["units"] = "furlong"
+    with pytest.raises(ToolkitError, match="units"):
+        GaussianModel.from_scene(bad)
+    with pytest.raises(ToolkitError, match="near_m"):
+        GaussianModel.from_scene(scene, GaussianModelConfig(near_m=0.05, far_m=0.01))
+
+
+def test_eyes_rotate_rigidly_about_their_own_centres():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    code, pose, _, _, _ = model_inputs(1)
+    gaze = torch.tensor([[0.4, -0.6]])
+    eyes = model.gaussians(code, pose, gaze)["eyes"]
+    for side, name, part in ((0, "left", 1), (1, "right", 2)):
+        sel = model.eye_side == side
+        c = torch.tensor(scene.metadata["eyes"][name]["center"])
+        canon = model.eye_means[sel].detach()
+        moved = eyes["means"][0, sel].detach()
+        # Zero-initialized residual: exactly the analytic rotation about this eye's own centre.
+        expect, _ = rotate_about(canon, torch.zeros(len(canon), 4), gaze_rotation(gaze[0]), c)
+        assert torch.allclose(moved, expect, atol=1e-6)
+        # The eye moved, its centre did not: distances to its own centre are preserved.
+        assert float((moved - canon).norm(dim=-1).max()) > 0.003
+        assert torch.allclose((moved - c).norm(dim=-1), (canon - c).norm(dim=-1), atol=1e-6)
+        assert torch.equal(scene.means[scene.part == part], canon)
+
+
+def test_eye_centres_are_fixed_points_and_each_eye_uses_its_own():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    torch.nn.init.normal_(model.eye_field.mlp.last.weight, std=1.0)
+    with torch.no_grad():  # put one Gaussian of each eye exactly on its eyeball centre
+        for side in (0, 1):
+            first = int(torch.nonzero(model.eye_side == side)[0])
+            model.eye_means[first] = model.eye_centers[side]
+    code, pose, _, _, _ = model_inputs(1)
+    g = model.gaussians(code, pose, torch.tensor([[0.7, -1.2]]))["eyes"]["means"][0].detach()
+    for side in (0, 1):
+        first = int(torch.nonzero(model.eye_side == side)[0])
+        assert torch.allclose(g[first], model.eye_centers[side], atol=1e-6)
+    # Swapping which Gaussians belong to which eye changes the result (no shared landmarks or centre).
+    model.eye_side = 1 - model.eye_side
+    g2 = model.gaussians(code, pose, torch.tensor([[0.7, -1.2]]))["eyes"]["means"][0].detach()
+    assert float((g2 - g).abs().max()) > 0.01
+
+
+def test_learned_residual_keeps_each_eye_rigid_about_its_own_centre():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    torch.nn.init.normal_(model.eye_field.mlp.last.weight, std=1.0)  # a non-trivial residual rotation
+    code, pose, _, _, _ = model_inputs(2, seed=1)
+    gaze = torch.tensor([[0.3, 0.2], [-0.5, 0.9]])
+    g = model.gaussians(code, pose, gaze)["eyes"]
+    R = g["rotations"]
+    assert not torch.allclose(R[:, 0], R[:, 1], atol=1e-3)  # left and right get their own rotations
+    for side in (0, 1):
+        sel = model.eye_side == side
+        c = model.eye_centers[side]
+        canon = model.eye_means[sel].detach()
+        for b in range(2):
+            expect = (canon - c) @ R[b, side].T + c
+            assert torch.allclose(g["means"][b, sel].detach(), expect.detach(), atol=1e-6)
+            assert torch.allclose(torch.linalg.det(R[b, side]).detach(), torch.tensor(1.0), atol=1e-5)
+
+
+def test_frontal_gaze_and_zero_pose_leave_canonical_geometry():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    code, pose, _, _, _ = model_inputs(1)
+    g = model.gaussians(code, pose, torch.zeros(1, 2))
+    assert torch.allclose(g["eyes"]["means"][0], model.eye_means, atol=1e-6)
+    assert torch.allclose(g["face"]["means"][0], model.face_means, atol=1e-6)
+
+
+def test_head_pose_is_a_rigid_transform_of_everything():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    model.face_field.pose_mlp.last.weight.data.zero_()
+    code = torch.zeros(1, 144)
+    pose = torch.tensor([[0.1, -0.3, 0.05, 0.01, 0.02, -0.03]])
+    g = model.gaussians(code, pose, torch.zeros(1, 2))
+    from toolkit.rotations import so3_exp
+
+    R = so3_exp(pose[0, :3])
+    # Zero-init fields: the posed face is exactly R x + t of the canonical one.
+    assert torch.allclose(g["face"]["means"][0].detach(), model.face_means.detach() @ R.T + pose[0, 3:], atol=1e-6)
+    assert torch.allclose(g["eyes"]["means"][0].detach(), model.eye_means.detach() @ R.T + pose[0, 3:], atol=1e-6)
+
+
+def test_expression_weights_follow_landmark_distance():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    lam = model.expression_weights()
+    d = torch.cdist(model.face_means.detach(), model.landmarks).min(1).values
+    assert bool((lam[d < 0.02] == 1).all()) and bool((lam[d > 0.05] == 0).all())
+    mid = (d > 0.021) & (d < 0.049)
+    assert bool(((lam[mid] > 0) & (lam[mid] < 1)).all())
+    # Units: the same scene in millimetres gives the same weights.
+    mm = scene.clone()
+    mm.means = mm.means * 1000
+    mm.metadata["units"] = "mm"
+    mm.metadata["eyes"] = {k: {"center": [1000 * x for x in v["center"]], "radius": 1000 * v["radius"]}
+                           for k, v in scene.metadata["eyes"].items()}
+    assert torch.allclose(small_model(mm).expression_weights(), lam, atol=1e-5)
+
+
+def test_face_stream_cached_when_only_gaze_changes():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    code, pose, gaze, viewmats, Ks = model_inputs(1)
+    r = ("face", "eyes")
+    with torch.no_grad():
+        out1 = model(code, pose, gaze, viewmats, Ks, 64, 64, renders=r)
+        misses = model.cache_misses
+        out2 = model(code, pose, gaze + 0.2, viewmats, Ks, 64, 64, renders=r)
+        assert model.cache_misses == misses and model.cache_hits >= 1
+        assert torch.equal(out1["face"], out2["face"])
+        assert not torch.equal(out1["eyes"], out2["eyes"])
+        model.gaussians(code + 0.1, pose, gaze)  # a new code: recomputed
+        assert model.cache_misses == misses + 1
+        model.gaussians(code + 0.1, pose * 1.1 + 0.01, gaze)  # a new pose: recomputed
+        assert model.cache_misses == misses + 2
+        model.gaussians(code + 0.1, pose * 1.1 + 0.01, gaze - 0.3)  # gaze only: hit
+        assert model.cache_misses == misses + 2
+
+
+def test_cache_invalidated_when_parameters_change():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    code, pose, gaze, _, _ = model_inputs(1)
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    for _ in range(2):
+        opt.zero_grad()
+        g = model.gaussians(code, pose, gaze)
+        (g["face"]["features"].square().mean() + g["face"]["means"].square().mean()).backward()
+        opt.step()
+    assert model.cache_misses == 2 and model.cache_hits == 0
+    # Gaze-only change within one step reuses the face output and backward through the sum works.
+    opt.zero_grad()
+    a = model.gaussians(code, pose, gaze)
+    b = model.gaussians(code, pose, gaze + 0.3)
+    assert model.cache_hits == 1
+    (a["face"]["means"].sum() + b["face"]["means"].sum() + b["eyes"]["means"].sum()).backward()
+    assert torch.isfinite(model.face_means.grad).all()
+
+
+def test_renders_shapes_skipping_and_white_background():
+    scene = demo_head_scene(800)
+    model = small_model(scene)
+    code, pose, gaze, viewmats, Ks = model_inputs(2, width=128, height=96)
+    with torch.no_grad():
+        out = model(code, pose, gaze, viewmats, Ks, 128, 96)
+    for r in ("head", "face", "eyes"):
+        assert out[r].shape == (2, 32, 24, 32) and out[r + "_alpha"].shape == (2, 1, 24, 32)
+        assert torch.isfinite(out[r]).all()
+    assert torch.equal(out["rgb"], out["head"][:, :3])
+    # Corners are background: RGB white, other channels 0.
+    assert torch.allclose(out["head"][:, :3, 0, 0], torch.ones(2, 3), atol=1e-3)
+    assert float(out["head"][:, 3:, 0, 0].abs().max()) < 1e-3
+    # The head covers the centre; the eyes-only render covers less than the head.
+    assert float(out["head_alpha"][:, 0, 12, 16].min()) > 0.5
+    assert float(out["eyes_alpha"].sum()) < float(out["head_alpha"].sum())
+    model.clear_cache()
+    calls = []
+    model._rasterizer = _counting(rasterizer_for_tests(), calls)
+    with torch.no_grad():
+        only = model(code, pose, gaze, viewmats, Ks, 128, 96, renders=("head",))
+    assert set(only) == {"head", "head_alpha", "rgb"} and len(calls) == 2  # one call per sample, head only
+    misses = model.cache_misses
+    with torch.no_grad():
+        eyes_only = model(code, pose, gaze, viewmats, Ks, 128, 96, renders=("eyes",))
+    assert set(eyes_only) == {"eyes", "eyes_alpha"} and model.cache_misses == misses  # face stream not evaluated
+    with pytest.raises(ToolkitError, match="renders"):
+        model(code, pose, gaze, viewmats, Ks, 128, 96, renders=("mouth",))
+
+
+def _counting(fn, calls):
+    def wrapped(*a, **k):
+        calls.append(1)
+        return fn(*a, **k)
+    return wrapped
+
+
+def test_gaze_changes_only_the_eye_region_of_the_head_render():
+    scene = demo_head_scene(1500)
+    model = small_model(scene)
+    code, pose, _, viewmats, Ks = model_inputs(1, width=128, height=128)
+    with torch.no_grad():
+        a = model(code, pose, torch.zeros(1, 2), viewmats, Ks, 128, 128, renders=("head", "face"))
+        b = model(code, pose, torch.tensor([[0.0, 0.6]]), viewmats, Ks, 128, 128, renders=("head", "face"))
+    assert torch.equal(a["face"], b["face"])
+    diff = (a["head"][0, :3] - b["head"][0, :3]).abs().sum(0)
+    assert float(diff.max()) > 0.05
+    # All changed pixels lie in the upper-middle band where the eyes are (rows above the image centre).
+    rows = torch.nonzero(diff > 0.05)[:, 0]
+    assert int(rows.max()) < 20
+
+
+def test_auto_decoder_codes_and_camera_offsets():
+    scene = demo_head_scene(600)
+    model = small_model(scene, num_images=5)
+    torch.nn.init.normal_(model.face_field.expr_mlp.last.weight, std=0.1)  # zero-init would block the code's gradient
+    code, pose, gaze, viewmats, Ks = model_inputs(2)
+    idx = torch.tensor([1, 3])
+    out = model(code, pose, gaze, viewmats, Ks, 64, 64, image_index=idx, renders=("head",))
+    out["head"].mean().backward()
+    assert model.image_codes.weight.grad is not None
+    g = model.image_codes.weight.grad
+    assert float(g[[0, 2, 4]].abs().sum()) == 0 and float(g[idx].abs().sum()) > 0
+    assert model.camera_offsets.weight.grad is not None and float(model.camera_offsets.weight.grad[idx].abs().sum()) > 0
+    with pytest.raises(ToolkitError, match="num_images"):
+        small_model(scene)(code, pose, gaze, viewmats, Ks, 64, 64, image_index=idx)
+
+
+def test_orthogonality_loss_on_the_real_fields():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    ortho = OrthogonalityLoss(*model.orthogonality_layers())
+    code, pose, gaze, _, _ = model_inputs(2)
+    code = code.clone().requires_grad_(True)
+    model.gaussians(code, pose, gaze)
+    loss = ortho()
+    loss.backward()
+    first = {id(p) for layer in model.orthogonality_layers() for p in layer.parameters()}
+    for name, p in model.named_parameters():
+        if id(p) in first:
+            assert p.grad is not None and float(p.grad.abs().sum()) > 0, name
+        else:
+            assert p.grad is None, name
+    assert code.grad is None
+    ortho.remove()
+
+
+def test_input_shapes_are_checked():
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    code, pose, gaze, viewmats, Ks = model_inputs(2)
+    with pytest.raises(ToolkitError, match="code"):
+        model.gaussians(code[:, :10], pose, gaze)
+    with pytest.raises(ToolkitError, match="gaze"):
+        model.gaussians(code, pose, gaze[:, :1])
+    with pytest.raises(ToolkitError, match="viewmats"):
+        model(code, pose, gaze, viewmats[:1], Ks, 64, 64)
+
+
+def test_export_scene_round_trips_through_the_scene_format(tmp_path):
+    from toolkit.scene import GaussianScene
+
+    scene = demo_head_scene(600)
+    model = small_model(scene)
+    code, pose, gaze, _, _ = model_inputs(1)
+    out = model.export_scene(code, pose, torch.tensor([[0.2, math.radians(30)]]))
+    out.save(tmp_path / "s.safetensors")
+    back = GaussianScene.load(tmp_path / "s.safetensors")
+    assert back.num_gaussians == scene.num_gaussians and back.features.shape[1] == 32
+    assert torch.equal(back.part.sort().values, scene.part.sort().values)
+
+
+def test_checkpoint_round_trip(tmp_path):
+    scene = demo_head_scene(600)
+    model = small_model(scene, num_images=3)
+    torch.nn.init.normal_(model.face_field.expr_mlp.last.weight, std=0.1)
+    with torch.no_grad():
+        model.image_codes.weight.normal_()
+    path = tmp_path / "gm.safetensors"
+    model.save(path, {"step": 7})
+    back = GaussianModel.load(path, rasterizer=model._rasterizer)
+    code, pose, gaze, _, _ = model_inputs(2)
+    idx = torch.tensor([0, 2])
+    a = model.gaussians(code, pose, gaze, idx)
+    b = back.gaussians(code, pose, gaze, idx)
+    for s in ("face", "eyes"):
+        for k in a[s]:
+            assert torch.equal(a[s][k], b[s][k]), (s, k)
+    from toolkit.io import save_checkpoint
+
+    save_checkpoint(tmp_path / "other.safetensors", {"x": torch.zeros(1)}, {"kind": "nope"})
+    with pytest.raises(ToolkitError, match="not a Gaussian model"):
+        GaussianModel.load(tmp_path / "other.safetensors")
+    with pytest.raises(ToolkitError, match="no such"):
+        GaussianModel.load(tmp_path / "missing.safetensors")

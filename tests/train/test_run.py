@@ -1,0 +1,126 @@
+"""The staged pipeline end to end at the tiny preset: stages, skipping, config errors, resume, eval, redirect."""
+
+import json
+import shutil
+
+import h5py
+import pytest
+import torch
+
+from toolkit import ToolkitError
+from train import run
+
+TINY = ["--preset", "tiny"]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("run")
+    torch.set_num_threads(1)  # tiny tensors: threads only add overhead (and thrash on a loaded machine)
+    assert run.main([*TINY, "--run-dir", str(d)]) == 0
+    return d
+
+
+def test_all_stages_write_their_outputs(tiny_run):
+    for rel in ("config.yaml", "data/split.json", "geometry/gaussians.safetensors", "geometry/neutral_mesh.ply",
+                "codec.safetensors", "estimator_loss.safetensors", "estimator_eval.safetensors",
+                "gaussian/final.safetensors", "report.md", "metrics.json", "qualitative.png", "metrics.jsonl"):
+        assert (tiny_run / rel).exists(), rel
+    m = json.loads((tiny_run / "metrics.json").read_text())["metrics"]
+    for k in ("gaze_error_deg", "head_pose_error_deg", "psnr", "ssim"):
+        assert m[k] is not None and m[k] == m[k], k
+    assert m["lpips"] is None
+    report = (tiny_run / "report.md").read_text()
+    assert "| Method | Gaze" in report and "n/a" in report
+
+
+def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, capsys):
+    assert run.main([*TINY, "--run-dir", str(tiny_run), "--stages", "all"]) == 0
+    status = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["stages"]
+    assert set(status.values()) == {"skipped"}
+    assert run.main([*TINY, "--run-dir", str(tiny_run), "--stages", "eval", "eval.pairs_per_subject=1"]) == 0
+    status = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["stages"]
+    assert status == {"eval": "ran"}
+
+
+@pytest.mark.parametrize(
+    "override,msg",
+    [
+        ("gaussian.stepz=3", "unknown config key 'gaussian.stepz'; did you mean 'steps'"),
+        ("gaussian.steps=many", "'gaussian.steps': expected an integer"),
+        ("gaussian.renderer=gan", "'gaussian.renderer': expected one of"),
+        ("colour=red", "unknown config key 'colour'"),
+    ],
+)
+def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
+    from toolkit.errors import run_cli
+
+    d = tmp_path / "never"
+    assert run_cli(run.main, [*TINY, "--run-dir", str(d), override]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and msg.split("'")[1] in err and err.count("\n") == 1
+    assert not d.exists()
+    with pytest.raises(ToolkitError, match=msg):
+        run.main([*TINY, "--run-dir", str(d), override])
+
+
+def test_unknown_stage_and_missing_dataset(tmp_path):
+    with pytest.raises(ToolkitError, match="unknown stage"):
+        run.main([*TINY, "--run-dir", str(tmp_path), "--stages", "train"])
+    with pytest.raises(ToolkitError, match="data.root"):
+        run.main([*TINY, "--run-dir", str(tmp_path), "--stages", "data", f"data.root={tmp_path / 'nope'}"])
+
+
+def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path):
+    from train.checkpoint import CheckpointManager
+
+    full = tmp_path / "full"
+    shutil.copytree(tiny_run, full)
+    part = tmp_path / "part"
+    shutil.copytree(tiny_run, part)
+    assert run.main([*TINY, "--run-dir", str(full), "--stages", "gaussian", "--force", "gaussian",
+                     "gaussian.steps=4", "gaussian.ckpt_every=2"]) == 0
+    shutil.rmtree(part / "gaussian")
+    # "Crash" after step 2: run 2 steps, then continue the 4-step schedule from the step-2 checkpoint.
+    mgr = CheckpointManager(part / "gaussian" / "checkpoints")
+    assert run.main([*TINY, "--run-dir", str(part), "--stages", "gaussian", "--force", "gaussian",
+                     "gaussian.steps=4", "gaussian.ckpt_every=2", "gaussian.log_every=2"]) == 0
+    # Re-create the interrupted state: keep only the step-2 checkpoint, then resume.
+    for p in mgr.all():
+        if not p.name.endswith("0002.safetensors"):
+            p.unlink()
+    assert run.main([*TINY, "--run-dir", str(part), "--stages", "gaussian", "--force", "gaussian", "--resume",
+                     "gaussian.steps=4", "gaussian.ckpt_every=2", "gaussian.log_every=2"]) == 0
+    from toolkit.io import load_tensors
+
+    a, _ = load_tensors(full / "gaussian" / "final.safetensors")
+    b, _ = load_tensors(part / "gaussian" / "final.safetensors")
+    weights = [k for k in a if k.startswith("module/")]
+    assert weights and all(torch.equal(a[k], b[k]) for k in weights)
+
+
+def test_corrupt_checkpoint_is_clear_error(tiny_run, tmp_path):
+    d = tmp_path / "c"
+    shutil.copytree(tiny_run, d)
+    ck = d / "gaussian" / "final.safetensors"
+    ck.write_bytes(ck.read_bytes()[:1000])
+    with pytest.raises(ToolkitError, match="final.safetensors: not a valid safetensors"):
+        run.main([*TINY, "--run-dir", str(d), "--stages", "eval", "--force", "eval"])
+
+
+def test_redirect_app_writes_a_loadable_dataset(tiny_run, tmp_path):
+    from apps import redirect
+    from train.data.dataset import GazeDataset
+
+    src = sorted((tiny_run / "data").glob("*.h5"))[-1]
+    out = tmp_path / "redirected.h5"
+    assert redirect.main([str(tiny_run), str(src), str(out), "--gazes", "grid:2x2:20", "--rows", "2", "--batch", "1"]) == 0
+    with h5py.File(out) as f:
+        assert f["face_patch"].shape[0] == 8 and f["pitchyaw_head"].shape == (8, 2)
+        assert not (out.parent / "redirected.h5.parts").exists()
+    ds = GazeDataset([out])
+    assert len(ds) == 8
+    with pytest.raises(ToolkitError, match="--gazes"):
+        redirect.main([str(tiny_run), str(src), str(out), "--gazes", "spiral:3"])
+    with pytest.raises(ToolkitError, match="not a run directory"):
+        redirect.main([str(tmp_path), str(src), str(out)])

