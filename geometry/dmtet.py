@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import torch
 
-from toolkit.errors import ToolkitError
 from geometry.tets import TET_EDGES, edge_keys
+from toolkit.errors import ToolkitError
 
 CLAMP_T = 1e-4  # crossing weights stay in [CLAMP_T, 1 - CLAMP_T] (see module doc)
 DENOM_EPS = 1e-20

@@ -110,21 +110,16 @@ def _bcc_topology(res: int) -> tuple[torch.Tensor, torch.Tensor]:
         p, a, b = torch.meshgrid(torch.arange(n), torch.arange(res), torch.arange(res), indexing="ij")
         p, a, b = p.reshape(-1), a.reshape(-1), b.reshape(-1)
 
-        def corner(da, db):
+        def at(i_axis, i_u, i_v, axis=axis, u=u, v=v):
             idx = [None, None, None]
-            idx[axis], idx[u], idx[v] = p, a + da, b + db
-            return corner_id(*idx)
+            idx[axis], idx[u], idx[v] = i_axis, i_u, i_v
+            return idx
 
-        def centre(dp):
-            idx = [None, None, None]
-            idx[axis], idx[u], idx[v] = p + dp, a, b
-            return centre_id(*idx)
-
-        square = [corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)]  # cyclic order
+        square = [corner_id(*at(p, a + da, b + db)) for da, db in ((0, 0), (1, 0), (1, 1), (0, 1))]  # cyclic order
         has_lo = p > 0  # a cube on the -axis side of this face
         has_hi = p < res
-        c_lo = torch.where(has_lo, centre(-1), torch.zeros_like(p))
-        c_hi = torch.where(has_hi, centre(0), torch.zeros_like(p))
+        c_lo = torch.where(has_lo, centre_id(*at(p - 1, a, b)), torch.zeros_like(p))
+        c_hi = torch.where(has_hi, centre_id(*at(p, a, b)), torch.zeros_like(p))
         inner = has_lo & has_hi
         for e in range(4):  # octahedron around the centre-centre axis: one tet per square edge
             q0, q1 = square[e], square[(e + 1) % 4]

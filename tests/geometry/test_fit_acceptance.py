@@ -20,11 +20,11 @@ def test_fit_synthetic_subject_meets_acceptance(tmp_path):
     pytest.importorskip("moderngl")
     from geometry.fit import FitConfig
     from geometry.fit_dataset import fit_dataset, read_subject
+    from toolkit.errors import ToolkitError
+    from toolkit.scene import GaussianScene
     from train.data.format import write_subject_h5
     from train.data.generate import generate_subject
     from train.data.synthetic import SubjectParams
-    from toolkit.errors import ToolkitError
-    from toolkit.scene import GaussianScene
 
     try:
         rows, subj, attrs = generate_subject(SubjectParams.sample(0), n_frames=3, res=128, seed=0)

@@ -7,7 +7,16 @@ import pytest
 import torch
 import trimesh
 
-from geometry.fit import FitConfig, Views, fit_mesh, fit_points, fit_sdf_to_targets, fit_silhouettes, mask_signed_distance, visual_hull_sdf
+from geometry.fit import (
+    FitConfig,
+    Views,
+    fit_mesh,
+    fit_points,
+    fit_sdf_to_targets,
+    fit_silhouettes,
+    mask_signed_distance,
+    visual_hull_sdf,
+)
 from geometry.mesh_stats import compare_meshes
 from geometry.sdf import SDFNet, SDFNetConfig, SphereInit, extract_mesh, pretrain_sphere
 from toolkit.cameras import orbit_rig
