@@ -15,6 +15,7 @@ Vertices are de-indexed (three corners per face) so face normals stay exact for 
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
@@ -91,11 +92,21 @@ def create_context():
 
 
 def shared_context():
-    """One process-wide headless context, created on first use (what ``render_mesh`` uses)."""
+    """One headless context per process, created on first use (what ``render_mesh`` uses).
+
+    EGL does not survive ``fork``: a child forked after the parent initialised GL can neither use the
+    parent's context nor reliably create its own (Mesa hangs), so it gets a ToolkitError instead.
+    """
     global _SHARED_CONTEXT
+    if _SHARED_CONTEXT is not None and _SHARED_CONTEXT[0] != os.getpid():
+        raise ToolkitError(
+            "render.mesh_gl: this process was forked after OpenGL was initialised in its parent; EGL cannot "
+            "be used here. Start workers with the 'spawn' method (e.g. DataLoader(multiprocessing_context="
+            "'spawn')) or render before/without forking"
+        )
     if _SHARED_CONTEXT is None:
-        _SHARED_CONTEXT = create_context()
-    return _SHARED_CONTEXT
+        _SHARED_CONTEXT = (os.getpid(), create_context())
+    return _SHARED_CONTEXT[1]
 
 
 def _as_array(x, name: str, dtype) -> np.ndarray:

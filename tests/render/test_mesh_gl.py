@@ -291,3 +291,22 @@ def test_render_views_equals_single_renders():
     with pytest.raises(ToolkitError, match="Ks"):
         r.render_views(v, f, views, np.stack([K] * 2))
     r.release()
+
+
+def _render_in_child() -> str:
+    v, f = cube()
+    view, K = frontal_camera()
+    try:
+        mesh_gl.render_mesh(v, f, view, K, 16, 16)
+    except ToolkitError as e:
+        return str(e)
+    return "rendered"
+
+
+def test_forked_child_gets_a_clear_error_not_a_hang():
+    import multiprocessing as mp
+
+    mesh_gl.shared_context()  # the parent holds a context before forking, as a DataLoader parent would
+    with mp.get_context("fork").Pool(1) as pool:
+        msg = pool.apply_async(_render_in_child).get(timeout=60)
+    assert "forked after OpenGL was initialised" in msg and "spawn" in msg

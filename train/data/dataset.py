@@ -191,8 +191,8 @@ class GazeDataset(torch.utils.data.Dataset):
             "pose": t(r["pose"]),
             "scale": t(np.reshape(r["scale"], (1,))),
             "latent_code": t(r["latent_codes"]),
-            "cam_index": torch.tensor(int(r["cam_index"])),
-            "frame_index": torch.tensor(int(r["frame_index"])),
+            "cam_index": torch.tensor(int(np.reshape(r["cam_index"], -1)[0])),
+            "frame_index": torch.tensor(int(np.reshape(r["frame_index"], -1)[0])),
             "subject": torch.tensor(k),
             "row": torch.tensor(row),
         }

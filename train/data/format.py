@@ -106,6 +106,8 @@ def _check_dataset(path, f, key: str, spec: tuple, kinds: str, sizes: dict, n: i
     shape = tuple(ds.shape)
     if key == "scale" and len(shape) == 1:  # (N,) is accepted for scale
         shape = shape + (1,)
+    if spec == () and len(shape) == 2 and shape[1] == 1:  # indices stored (N, 1), as GazeNeRF's files do
+        shape = shape[:1]
     if len(shape) != 1 + len(spec):
         raise ToolkitError(f"{path}: key '{key}' has shape {list(ds.shape)}, expected [N, {', '.join(map(str, spec))}]"
                            if spec else f"{path}: key '{key}' has shape {list(ds.shape)}, expected [N]")
@@ -172,6 +174,7 @@ def validate_subject_file(path: str | os.PathLike) -> dict[str, Any]:
         if (lab["scale"] <= 0).any():
             _bad(path, "scale", "has non-positive values")
         for k in ("cam_index", "frame_index"):
+            lab[k] = lab[k].reshape(-1)
             if (lab[k] < 0).any():
                 _bad(path, k, "has negative values")
         lm = lab["facial_landmarks"]

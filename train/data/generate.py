@@ -19,8 +19,8 @@ from toolkit.cameras import Camera, eth_xgaze_rig
 from toolkit.errors import ToolkitError
 from train.data.format import write_subject_h5
 from train.data.synthetic import (
-    IDENTITY_NAMES,
     EXPRESSION_NAMES,
+    IDENTITY_NAMES,
     Subject,
     SubjectParams,
     build_subject,

@@ -84,6 +84,7 @@ class SyntheticRedirectionPairs(torch.utils.data.Dataset):
     Each item: ``{"input": <GazeDataset sample>, "target": {"image" [3, R, R], "head_mask",
     "left_eye_mask", "right_eye_mask" [1, R, R], "pitchyaw_head" [2], "pitchyaw_cam" [2]}, "pair" [2]}``.
     The target is the input's view (camera, head pose, expression, light) with the target row's gaze.
+    Targets are rendered with OpenGL: use DataLoader(multiprocessing_context="spawn") for workers.
     """
 
     def __init__(self, path: str | os.PathLike, pairs: np.ndarray | None = None, *, res: int | None = None,

@@ -34,11 +34,15 @@ def test_synth_then_inspect(tmp_path, capsys):
     assert (out / "subject0000_sheet.png").exists()
 
 
-def test_cli_errors_are_one_line(tmp_path):
+def test_cli_errors_are_one_line(tmp_path, capsys):
     bad = tmp_path / "bad.h5"
     bad.write_bytes(b"garbage")
     for args in (["inspect", str(tmp_path / "missing.h5")], ["inspect", str(bad)],
                  ["synth", "--subjects", "0", "--out", str(tmp_path / "o")]):
-        r = subprocess.run([sys.executable, "-m", "train.data", *args], cwd=ROOT, capture_output=True, text=True)
-        assert r.returncode == 2, r.stderr
-        assert r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, r.stderr
+        assert run_cli(main, args) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1, err
+    # The real entry point: exit status 2, one line, no traceback.
+    r = subprocess.run([sys.executable, "-m", "train.data", "inspect", str(bad)], cwd=ROOT, capture_output=True,
+                       text=True)
+    assert r.returncode == 2 and r.stderr.startswith(f"error: {bad}") and r.stderr.count("\n") == 1, r.stderr

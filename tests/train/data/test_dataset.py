@@ -107,9 +107,12 @@ def test_optional_keys_are_optional(tmp_path, subject_file):
     rows, attrs = _copy_rows(subject_file)
     for k in ("pitchyaw_cam", "expression_params", "light_dir", "neutral_vertice"):
         rows.pop(k)
+    rows["cam_index"] = rows["cam_index"][:, None].astype(np.uint8)  # GazeNeRF-style (N, 1) uint8
+    rows["scale"] = rows["scale"][:, 0]  # (N,) is accepted too
     p = _write(tmp_path, "real_like.h5", rows)
     s = GazeDataset(p)[0]
     assert "pitchyaw_cam" not in s and s["image"].shape == (3, 96, 96)
+    assert int(GazeDataset(p)[20]["cam_index"]) == 2 and s["scale"].shape == (1,)
 
 
 @pytest.mark.parametrize(

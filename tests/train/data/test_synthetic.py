@@ -186,8 +186,8 @@ def test_masks_match_the_silhouette(subject_file, subject):
 @pytest.mark.parametrize("gaze_deg", [(0, 0), (6, -30), (-12, 25), (0, 38)])  # pupil clear of the lids
 def test_rendered_iris_matches_labelled_gaze(subject, gaze_deg):
     """Back-project the rendered pupil's centroid onto the eyeball sphere: its direction is the gaze."""
-    from train.data.generate import frame_cameras
     from toolkit.cameras import eth_xgaze_rig
+    from train.data.generate import frame_cameras
 
     pose = np.array([0.05, -0.1, 0.02, 0.01, -0.005, 0.01])
     cams = frame_cameras(subject, pose, eth_xgaze_rig(), 512)
