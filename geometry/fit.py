@@ -233,6 +233,7 @@ def fit_sdf_to_targets(pool_pts: torch.Tensor, pool_sdf: torch.Tensor, cfg: FitC
     if sphere is not None and cfg.pretrain_steps > 0:
         sphere.steps = cfg.pretrain_steps
         sphere.batch = cfg.batch
+        sphere.lr = max(sphere.lr, cfg.lr)
         pretrain_sphere(net, sphere)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(cfg.steps, 1), eta_min=cfg.lr * 0.05)
