@@ -10,6 +10,7 @@ import json
 import sys
 from typing import Sequence
 
+from geometry.fit import FitConfig
 from toolkit.errors import ToolkitError, run_cli
 
 
@@ -65,7 +66,6 @@ def _cmd_extract(a) -> int:
 
 
 def _cmd_fit(a) -> int:
-    from geometry.fit import FitConfig
     from geometry.fit_dataset import fit_dataset
 
     if a.steps < 1 or a.res < 4:
@@ -126,8 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("fit", help="fit the neutral head SDF to a synthetic multi-view dataset (HDF5)")
     s.add_argument("dataset")
     s.add_argument("output", help="output folder (mesh, SDF checkpoint, Gaussians, fit.json)")
-    s.add_argument("--steps", type=int, default=400)
-    s.add_argument("--res", type=int, default=80, help="extraction grid resolution")
+    s.add_argument("--steps", type=int, default=FitConfig.steps)
+    s.add_argument("--res", type=int, default=FitConfig.extract_res, help="extraction grid resolution")
     s.add_argument("--holdout", default="2,7,10,15", help="rig cameras held out of the fit for the IoU check")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(fn=_cmd_fit)

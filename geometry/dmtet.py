@@ -11,16 +11,16 @@ Output vertices lie on the grid edges whose endpoint SDF values change sign, at 
 - Tets must be positively oriented (``geometry.tets`` grids are); faces are then wound counter-clockwise
   seen from outside, i.e. right-hand normals point outward. Each grid edge yields one vertex shared by
   all tets around it, so a closed zero set inside the grid gives a watertight, consistently wound mesh.
-- Edges are deduplicated with a 1-D ``torch.unique`` on int64 keys ``min * V + max``
-  (``torch.unique(dim=0)`` sorts rows lexicographically and is many times slower on CPU).
+- Edges are deduplicated by sorting int64 keys ``min * V + max`` once (``geometry.tets.unique_inverse``);
+  ``torch.unique(dim=0)`` sorts rows lexicographically and is many times slower on CPU.
 """
 
 from __future__ import annotations
 
 import torch
 
+from geometry.tets import TET_EDGES, edge_keys, unique_inverse
 from toolkit.errors import ToolkitError
-from geometry.tets import TET_EDGES, edge_keys
 
 CLAMP_T = 1e-4  # crossing weights stay in [CLAMP_T, 1 - CLAMP_T] (see module doc)
 DENOM_EPS = 1e-20
@@ -139,7 +139,7 @@ def marching_tets(verts: torch.Tensor, tets: torch.Tensor, sdf: torch.Tensor, fe
         cut = o[:, TET_EDGES[:, 0]] != o[:, TET_EDGES[:, 1]]  # [Tx, 6]
         e = tets_x[:, TET_EDGES][cut]  # [C, 2]
         keys = edge_keys(e[:, 0], e[:, 1], V)
-        uniq, inv = torch.unique(keys, return_inverse=True)
+        uniq, inv = unique_inverse(keys)
         ea, eb = uniq // V, uniq % V
         tet_edge_vert = torch.full(cut.shape, -1, dtype=torch.long, device=verts.device)
         tet_edge_vert[cut] = inv  # [Tx, 6] output vertex per local edge (-1 = not cut)

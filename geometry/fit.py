@@ -37,12 +37,12 @@ from toolkit.errors import ToolkitError
 class FitConfig:
     """Optimisation settings shared by the silhouette and the mesh/point-cloud fits."""
 
-    steps: int = 400
+    steps: int = 300
     """Optimiser steps after the sphere pre-training."""
     batch: int = 1024
     """Sample points per step."""
     lr: float = 1e-3
-    pool: int = 100_000
+    pool: int = 60_000
     """Precomputed labelled sample points (uniform in the box + concentrated near the surface)."""
     truncation: float = 0.1
     """SDF targets are clamped to +-truncation x box half-size: the fit focuses on the surface band."""
@@ -58,7 +58,7 @@ class FitConfig:
     grad_clip: float = 1.0
     max_bad_steps: int = 20
     """Consecutive non-finite steps tolerated (skipped) before raising."""
-    extract_res: int = 80
+    extract_res: int = 64
     """Grid resolution of the final mesh."""
     grid_kind: str = "kuhn"
     pretrain_steps: int = 100
@@ -233,6 +233,7 @@ def fit_sdf_to_targets(pool_pts: torch.Tensor, pool_sdf: torch.Tensor, cfg: FitC
     if sphere is not None and cfg.pretrain_steps > 0:
         sphere.steps = cfg.pretrain_steps
         sphere.batch = cfg.batch
+        sphere.lr = max(sphere.lr, cfg.lr)
         pretrain_sphere(net, sphere)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(cfg.steps, 1), eta_min=cfg.lr * 0.05)

@@ -63,7 +63,7 @@ class SDFNetConfig:
 def positional_encoding(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
     """[N, 3] in [-1, 1] -> [N, 3 + 6 n_freqs]: x, then sin and cos of 2^k pi x."""
     freqs = (2.0 ** torch.arange(n_freqs, dtype=x.dtype, device=x.device)) * math.pi
-    xf = (x[:, None, :] * freqs[:, None]).reshape(x.shape[0], -1)
+    xf = (x[:, None, :] * freqs[:, None]).reshape(x.shape[0], 3 * n_freqs)
     return torch.cat([x, torch.sin(xf), torch.cos(xf)], -1)
 
 

@@ -110,21 +110,16 @@ def _bcc_topology(res: int) -> tuple[torch.Tensor, torch.Tensor]:
         p, a, b = torch.meshgrid(torch.arange(n), torch.arange(res), torch.arange(res), indexing="ij")
         p, a, b = p.reshape(-1), a.reshape(-1), b.reshape(-1)
 
-        def corner(da, db):
+        def at(i_axis, i_u, i_v, axis=axis, u=u, v=v):
             idx = [None, None, None]
-            idx[axis], idx[u], idx[v] = p, a + da, b + db
-            return corner_id(*idx)
+            idx[axis], idx[u], idx[v] = i_axis, i_u, i_v
+            return idx
 
-        def centre(dp):
-            idx = [None, None, None]
-            idx[axis], idx[u], idx[v] = p + dp, a, b
-            return centre_id(*idx)
-
-        square = [corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)]  # cyclic order
+        square = [corner_id(*at(p, a + da, b + db)) for da, db in ((0, 0), (1, 0), (1, 1), (0, 1))]  # cyclic order
         has_lo = p > 0  # a cube on the -axis side of this face
         has_hi = p < res
-        c_lo = torch.where(has_lo, centre(-1), torch.zeros_like(p))
-        c_hi = torch.where(has_hi, centre(0), torch.zeros_like(p))
+        c_lo = torch.where(has_lo, centre_id(*at(p - 1, a, b)), torch.zeros_like(p))
+        c_hi = torch.where(has_hi, centre_id(*at(p, a, b)), torch.zeros_like(p))
         inner = has_lo & has_hi
         for e in range(4):  # octahedron around the centre-centre axis: one tet per square edge
             q0, q1 = square[e], square[(e + 1) % 4]
@@ -228,6 +223,24 @@ def edge_keys(a: torch.Tensor, b: torch.Tensor, n_verts: int) -> torch.Tensor:
     return torch.minimum(a, b) * n_verts + torch.maximum(a, b)
 
 
+def unique_inverse(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.unique(keys, return_inverse=True)`` for int64 keys (any shape), as one sort plus linear passes.
+
+    (torch.unique with an inverse does extra work on CPU; this is ~2-3x faster on large key sets.)
+    """
+    shape = keys.shape
+    keys = keys.reshape(-1)
+    if keys.numel() == 0:
+        return keys.clone(), torch.zeros(shape, dtype=torch.long, device=keys.device)
+    sorted_keys, perm = torch.sort(keys)
+    first = torch.ones_like(sorted_keys, dtype=torch.bool)
+    first[1:] = sorted_keys[1:] != sorted_keys[:-1]
+    group = torch.cumsum(first, 0) - 1
+    inv = torch.empty_like(group)
+    inv[perm] = group
+    return sorted_keys[first], inv.reshape(shape)
+
+
 def subdivide(verts: torch.Tensor, tets: torch.Tensor, features: torch.Tensor | None = None
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Midpoint subdivision: every tet -> 8; new vertices at unique edge midpoints (differentiable).
@@ -248,7 +261,7 @@ def subdivide(verts: torch.Tensor, tets: torch.Tensor, features: torch.Tensor | 
     tets = tets.long()
     e = tets[:, TET_EDGES]  # [T, 6, 2]
     keys = edge_keys(e[..., 0], e[..., 1], V)
-    uniq, inv = torch.unique(keys, return_inverse=True)
+    uniq, inv = unique_inverse(keys)
     ea, eb = uniq // V, uniq % V
     new_verts = torch.cat([verts, (verts[ea] + verts[eb]) / 2], 0)
     new_feat = None

@@ -93,3 +93,13 @@ def test_sampled_points_and_bad_input(subject):
         init_gaussians(v, f, bad)
     with pytest.raises(ToolkitError):
         init_gaussians(v, f[:0], lmk)
+
+
+def test_duplicate_vertices_give_finite_positive_scales(subject):
+    v, f, lmk, _, _ = subject
+    v2 = torch.cat([v, v[:500] + 1e-9])  # near-duplicates, as DMTet produces where the surface grazes a vertex
+    f2 = torch.cat([f, f[:200]])
+    f2[-200:] = torch.where(f2[-200:] < 500, f2[-200:] + v.shape[0], f2[-200:])
+    scene = init_gaussians(v2, f2, lmk)
+    s = scene.scales
+    assert torch.isfinite(s).all() and float(s.min()) > 1e-5

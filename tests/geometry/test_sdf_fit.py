@@ -7,7 +7,16 @@ import pytest
 import torch
 import trimesh
 
-from geometry.fit import FitConfig, Views, fit_mesh, fit_points, fit_sdf_to_targets, fit_silhouettes, mask_signed_distance, visual_hull_sdf
+from geometry.fit import (
+    FitConfig,
+    Views,
+    fit_mesh,
+    fit_points,
+    fit_sdf_to_targets,
+    fit_silhouettes,
+    mask_signed_distance,
+    visual_hull_sdf,
+)
 from geometry.mesh_stats import compare_meshes
 from geometry.sdf import SDFNet, SDFNetConfig, SphereInit, extract_mesh, pretrain_sphere
 from toolkit.cameras import orbit_rig
@@ -158,3 +167,27 @@ def test_mask_signed_distance():
         mask_signed_distance(np.zeros((4, 4), bool))
     with pytest.raises(ToolkitError, match="Views"):
         Views(torch.zeros(2, 4, 4), torch.eye(3)[None], torch.eye(4)[None].expand(2, 4, 4))
+
+
+def test_network_extreme_inputs_finite_grads():
+    net = SDFNet(SDFNetConfig(hidden=32, feature_dim=4, box_min=(-0.1,) * 3, box_max=(0.1,) * 3))
+    x = torch.tensor([[1e6, -1e6, 3e5], [0.0, 0.0, 0.0], [1e-30, 0, 0], [0.1, 0.1, 0.1]], requires_grad=True)
+    sdf, off, feat = net(x)
+    (sdf.sum() + off.sum() + feat.sum()).backward()
+    assert torch.isfinite(sdf).all() and torch.isfinite(off).all() and torch.isfinite(feat).all()
+    assert torch.isfinite(x.grad).all() and all(torch.isfinite(p.grad).all() for p in net.parameters())
+
+
+def test_laplacian_term_runs_and_is_finite():
+    from geometry.fit import _laplacian_loss
+
+    v, f = _ellipsoid(3)
+    noisy = v + torch.randn_like(v) * 0.003
+    assert _laplacian_loss(noisy, f) > 2 * _laplacian_loss(v, f)
+    pts = (torch.rand(4000, 3) * 2 - 1) * 0.15
+    target = (pts / torch.tensor([0.075, 0.10, 0.09])).norm(dim=-1).sub(1) * 0.075
+    box = SDFNetConfig(hidden=32, n_freqs=3, feature_dim=8, box_min=(-0.15,) * 3, box_max=(0.15,) * 3)
+    cfg = _tiny(steps=13, w_laplacian=0.1, laplacian_every=4, laplacian_res=12, pretrain_steps=40, extract_res=16, net=box)
+    res = fit_sdf_to_targets(pts, target, cfg, sphere=SphereInit((0, 0, 0), 0.08))
+    assert "laplacian" in res.history[-1] and all(np.isfinite(h["laplacian"]) for h in res.history if "laplacian" in h)
+    assert res.skipped_steps == 0 and torch.isfinite(res.verts).all()

@@ -112,3 +112,14 @@ def test_subdivide_differentiable_and_bad_input():
         subdivide(v.detach(), t, torch.zeros(3))
     with pytest.raises(ToolkitError, match="tets"):
         subdivide(v.detach(), t[:, :3])
+
+
+def test_unique_inverse_matches_torch():
+    from geometry.tets import unique_inverse
+
+    g = torch.Generator().manual_seed(0)
+    for n in (0, 1, 7, 5000):
+        k = torch.randint(0, 50, (n,), generator=g) * 1_000_003
+        u, inv = unique_inverse(k)
+        u2, inv2 = torch.unique(k, return_inverse=True)
+        assert torch.equal(u, u2) and torch.equal(inv, inv2)
