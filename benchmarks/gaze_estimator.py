@@ -78,6 +78,7 @@ def main(argv=None) -> int:
     ap.add_argument("--input-size", type=int, default=64)
     ap.add_argument("--channels", default="32,64,96,128")
     ap.add_argument("--instances", type=int, default=1)
+    ap.add_argument("--loss-space", default="vectors", choices=["vectors", "angles"])
     ap.add_argument("--log-every", type=int, default=250)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for loss.safetensors / eval.safetensors")
@@ -111,7 +112,8 @@ def main(argv=None) -> int:
     names = ["loss", "eval"][: a.instances] if a.instances <= 2 else [f"est{i}" for i in range(a.instances)]
     rows, series = [], {}
     for k, name in enumerate(names):
-        tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every, seed=k)
+        tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every, seed=k,
+                                      loss_space=a.loss_space)
         start = time.perf_counter()
         stamps = []
         def progress(step, rec, st=stamps, t0=start, name=name):

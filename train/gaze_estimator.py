@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from toolkit.io import load_checkpoint, save_checkpoint
-from toolkit.rotations import angular_error_deg
+from toolkit.rotations import angular_error_deg, pitchyaw_to_vector
 
 log = logging.getLogger(__name__)
 CHECKPOINT_KIND = "ditgaze.gaze_estimator"
@@ -164,6 +164,9 @@ class GazeEstimatorTrainConfig:
     weight_decay: float = 1e-4
     head_weight: float = 0.5
     """weight of the head pitch/yaw L1 term relative to the gaze term."""
+    loss_space: str = "vectors"
+    """"vectors": L1 between unit direction vectors of prediction and label (no ±180° yaw wrap-around, every
+    direction weighted by its angle); "angles": L1 on raw (pitch, yaw) radians."""
     augment: bool = True
     brightness: float = 0.15
     contrast: float = 0.15
@@ -219,6 +222,8 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
     _check_data(images, labels, "train")
     if val is not None:
         _check_data(*val, "val")
+    if tc.loss_space not in ("vectors", "angles"):
+        raise ToolkitError(f"GazeEstimatorTrainConfig.loss_space: expected 'vectors' or 'angles', got {tc.loss_space!r}")
     if tc.steps < 1 or tc.batch_size < 1:
         raise ToolkitError(f"GazeEstimatorTrainConfig: steps and batch_size must be >= 1, got {tc.steps}, {tc.batch_size}")
     torch.manual_seed(tc.seed)
@@ -240,7 +245,14 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         y = labels[idx].float().to(device)
         if tc.augment:
             x = augment_batch(x, tc, g)
-        loss = ((model(x) - y).abs() * w).mean()
+        pred = model(x)
+        if tc.loss_space == "vectors":
+            pv = torch.cat([pitchyaw_to_vector(pred[:, :2]), pitchyaw_to_vector(pred[:, 2:])], -1)
+            yv = torch.cat([pitchyaw_to_vector(y[:, :2]), pitchyaw_to_vector(y[:, 2:])], -1)
+            d = (pv - yv).abs()
+            loss = d[:, :3].mean() + tc.head_weight * d[:, 3:].mean()
+        else:
+            loss = ((pred - y).abs() * w).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

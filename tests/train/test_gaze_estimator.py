@@ -113,5 +113,10 @@ def test_trainer_rejects_bad_data():
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 2), TINY)
     with pytest.raises(ToolkitError, match="NaN"):
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.full((4, 4), float("nan")), TINY)
+    with pytest.raises(ToolkitError, match="loss_space"):
+        train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 4), TINY, GazeEstimatorTrainConfig(loss_space="x"))
+    _, hist = train_gaze_estimator(torch.rand(8, 3, 32, 32), torch.rand(8, 4) - 0.5, TINY,
+                                   GazeEstimatorTrainConfig(steps=2, batch_size=4, log_every=2, loss_space="angles"))
+    assert math.isfinite(hist[-1]["loss"])
     with pytest.raises(ToolkitError, match="steps"):
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 4), TINY, GazeEstimatorTrainConfig(steps=0))
