@@ -2,15 +2,19 @@
 PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
-PYTEST_ARGS ?=
+# Tests marked slow (the geometry acceptance fit, ~5 CPU-minutes) run with `make test-all`.
+PYTEST_ARGS ?= -m "not slow"
 VPY := $(VENV)/bin/python
 # The install stamp changes with the dependency list and the torch spec, so a second run skips pip.
 STAMP := $(VENV)/.ditgaze-installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)-$(shell echo '$(TORCH_SPEC)' | cksum | cut -d' ' -f1)
 
-.PHONY: test demo setup sysdeps lint bench clean
+.PHONY: test test-all demo setup sysdeps lint bench clean
 
 test: setup
 	$(VPY) -m pytest $(PYTEST_ARGS)
+
+test-all: setup
+	$(VPY) -m pytest
 
 demo: setup
 	$(VPY) -m apps.demo --out out/demo
@@ -32,8 +36,10 @@ $(STAMP):
 lint: setup
 	$(VPY) -m ruff check toolkit render geometry train apps tests benchmarks
 
+# Every benchmark prints its run-time-against-error table and writes a PNG under out/benchmarks/.
 bench: setup
-	$(VPY) benchmarks/splat.py
+	set -e; for b in $(filter-out benchmarks/common.py benchmarks/__init__.py,$(wildcard benchmarks/*.py)); do \
+		echo "== $$b"; $(VPY) $$b; done
 
 clean:
 	rm -rf out .pytest_cache

@@ -69,7 +69,7 @@ def test_toolkit_cli_errors_are_one_line(tmp_path):
 
 
 def test_demo_writes_scene_files(tmp_path):
-    r = _run("-m", "apps.demo", "--out", str(tmp_path), "--gaussians", "2000")
+    r = _run("-m", "apps.demo", "--out", str(tmp_path), "--gaussians", "2000", "--skip-training")
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "demo_head.safetensors").exists() and (tmp_path / "demo_head.ply").exists()
     r = _run("-m", "toolkit", "convert", str(tmp_path / "demo_head.ply"), str(tmp_path / "again.safetensors"))

@@ -71,5 +71,8 @@ def barrier(info: DistInfo) -> None:
 
 
 def cleanup(info: DistInfo) -> None:
+    """Tear down the process group; all ranks meet first so none exits while a peer still talks to it
+    (a rank leaving early made gloo abort its peers with SIGABRT)."""
     if info.enabled and dist.is_initialized():
+        dist.barrier()
         dist.destroy_process_group()
