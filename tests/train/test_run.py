@@ -32,6 +32,7 @@ def test_all_stages_write_their_outputs(tiny_run):
     assert m["lpips"] is None
     report = (tiny_run / "report.md").read_text()
     assert "| Method | Gaze" in report and "n/a" in report
+    assert "estimator's own held-out error" in report
 
 
 def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, capsys):
