@@ -72,20 +72,16 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     from apps import redirect
     from apps.preview import write_contact_sheet, write_video
     from train import run
-    from train.config import load_yaml_config
     from train.data.dataset import GazeDataset
     from train.evaluate import model_gaze_sweep
-    from train.run_config import RunConfig
-    from train.stages import RunContext, run_stages
 
     run_dir = out / "run"
     print(f"== DiT-Gaze pipeline ({preset} preset) -> {run_dir} ==", flush=True)
     code = run.main(["--preset", preset, "--run-dir", str(run_dir), *overrides])
     if code:
         raise ToolkitError(f"the training pipeline stopped (exit {code})")
-    cfg = load_yaml_config(RunConfig, run_dir / "config.yaml")
-    ctx = RunContext(run_dir, cfg, log=lambda m: None)
-    run_stages(run.STAGES, [], ctx)
+    ctx = run.open_run(run_dir)
+    cfg = ctx.config
     test_file = run._split(ctx, "test")[0]
     model, renderer = run.load_trained(ctx, "cpu")
     item = GazeDataset([test_file], res=cfg.data.res)[0]

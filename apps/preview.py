@@ -38,8 +38,28 @@ WINDOW_HELP = """window controls:
 
 
 # ---------------------------------------------------------------------------------------------- scenes
+def load_trained_scene(run_dir: str):
+    """A trained run directory (train/run.py) -> the model's Gaussians as an RGB scene.
+
+    The two-stream model is posed with a training subject's code, the identity head pose and a frontal
+    gaze; its feature channels 0..2 (supervised as the low-resolution RGB image) become the colours.
+    The eyes are then scrubbed rigidly about their fitted eyeball centres, like any scene.
+    """
+    from train.data.dataset import GazeDataset
+    from train.run import _split, load_trained, open_run
+
+    ctx = open_run(run_dir)
+    model, _ = load_trained(ctx, "cpu")
+    item = GazeDataset(_split(ctx, "train"), res=ctx.config.data.res)[0]
+    code = torch.as_tensor(item["latent_code"]).float()[None]
+    scene = model.export_scene(code, torch.zeros(1, 6), torch.zeros(1, 2))
+    scene.features = scene.features[:, :3].clamp(0, 1)
+    scene.metadata["feature_kind"] = "rgb"
+    return scene.validate()
+
+
 def load_scene(spec: str):
-    """A ``.safetensors`` / ``.ply`` scene path, or ``demo[:N]`` for the procedural head with N Gaussians."""
+    """A ``.safetensors`` / ``.ply`` scene path, a trained run directory, or ``demo[:N]`` (the procedural head)."""
     from toolkit.io import check_readable_file
     from toolkit.procedural import demo_head_scene
     from toolkit.scene import GaussianScene
@@ -50,10 +70,12 @@ def load_scene(spec: str):
         except ValueError:
             raise ToolkitError(f"scene {spec!r}: expected demo or demo:N with an integer N") from None
         return demo_head_scene(n)
+    if os.path.isdir(spec) and os.path.isfile(os.path.join(spec, "config.yaml")):
+        return load_trained_scene(spec)
     ext = os.path.splitext(spec)[1].lower()
     if ext not in (".ply", ".safetensors"):
-        raise ToolkitError(f"{spec}: expected a .safetensors or .ply Gaussian scene (or demo[:N]); trained "
-                           "checkpoints are not supported yet")
+        raise ToolkitError(f"{spec}: expected a .safetensors or .ply Gaussian scene, a trained run directory "
+                           "(with config.yaml), or demo[:N]")
     check_readable_file(spec, "scene file")
     return GaussianScene.read(spec)
 
@@ -468,10 +490,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="python apps/preview.py", formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Preview a Gaussian head and scrub its gaze live (OpenGL; headless through EGL).",
-        epilog=WINDOW_HELP + "\nSCENE is a .safetensors or .ply Gaussian scene, or demo[:N] for the procedural "
-        "head. Loading a trained DiT-Gaze checkpoint is not supported yet (the train module does not exist "
-        "yet): the eye Gaussians are rotated rigidly about their eyeball centres.")
-    ap.add_argument("scene", help="scene file (.safetensors / .ply) or demo[:N]")
+        epilog=WINDOW_HELP + "\nSCENE is a .safetensors or .ply Gaussian scene, a trained run directory "
+        "(train/run.py: its Gaussians' RGB channels, posed with a training subject's code), or demo[:N] for the "
+        "procedural head. The eye Gaussians are rotated rigidly about their eyeball centres.")
+    ap.add_argument("scene", help="scene file (.safetensors / .ply), a trained run directory, or demo[:N]")
     ap.add_argument("--headless", action="store_true", help="no window: render --sweep through EGL")
     ap.add_argument("--sweep", help="headless output: .mp4 video or .png contact sheet of the gaze grid")
     ap.add_argument("--pitch", default="20:-20:3", help="pitch grid in degrees, MIN:MAX:N or a,b,c; the first is the top row (default 20:-20:3)")

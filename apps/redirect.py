@@ -150,24 +150,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=0, help="DDIM steps (0 = the run's setting)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
-    from train.config import load_yaml_config
     from train.data.dataset import GazeDataset
     from train.distributed import barrier, cleanup, init_distributed
-    from train.run import RunContext, STAGES, load_trained
-    from train.run_config import RunConfig
-    from train.stages import run_stages
+    from train.run import load_trained, open_run
 
     run_dir = Path(args.run_dir)
-    if not (run_dir / "config.yaml").is_file():
-        raise ToolkitError(f"{run_dir}: not a run directory (no config.yaml); train one with python -m train.run")
     if args.batch < 1:
         raise ToolkitError(f"--batch must be >= 1, got {args.batch}")
     gazes = parse_gazes(args.gazes, args.seed)
-    cfg = load_yaml_config(RunConfig, run_dir / "config.yaml")
-    ctx = RunContext(run_dir, cfg, log=lambda m: None)
-    run_stages(STAGES, [], ctx)  # read the finished stages' outputs
-    if "gaussian" not in ctx.outputs:
-        raise ToolkitError(f"{run_dir}: stage 'gaussian' has not finished; nothing to render with")
+    ctx = open_run(run_dir)
+    cfg = ctx.config
     info = init_distributed("cpu" if not torch.cuda.is_available() else "auto")
     device = torch.device(info.device)
     model, renderer = load_trained(ctx, device)

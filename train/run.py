@@ -221,6 +221,18 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     return {"checkpoint": "gaussian/final.safetensors"}
 
 
+def open_run(run_dir: str | Path) -> RunContext:
+    """A finished (or partly finished) run directory -> its context, with the outputs of its finished stages."""
+    run_dir = Path(run_dir)
+    if not (run_dir / "config.yaml").is_file():
+        raise ToolkitError(f"{run_dir}: not a run directory (no config.yaml); train one with python -m train.run")
+    ctx = RunContext(run_dir, load_yaml_config(RunConfig, run_dir / "config.yaml"), log=lambda m: None)
+    run_stages(STAGES, [], ctx)
+    if "gaussian" not in ctx.outputs:
+        raise ToolkitError(f"{run_dir}: stage 'gaussian' has not finished; there is no trained model")
+    return ctx
+
+
 def load_trained(ctx: RunContext, device):
     """(model, renderer) restored from the gaussian stage's final checkpoint (a clear error when incompatible)."""
     from train.checkpoint import load_training_checkpoint

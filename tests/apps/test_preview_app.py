@@ -188,7 +188,7 @@ def test_script_entry_point_prints_no_traceback(tmp_path):
     assert r.returncode == 2 and r.stderr.startswith("error: ") and "Traceback" not in r.stderr
     h = subprocess.run([sys.executable, str(ROOT / "apps" / "preview.py"), "--help"], capture_output=True,
                        text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert h.returncode == 0 and "checkpoint is not supported yet" in " ".join(h.stdout.split())
+    assert h.returncode == 0 and "a trained run directory" in " ".join(h.stdout.split())
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     w = subprocess.run([sys.executable, str(ROOT / "apps" / "preview.py"), "demo:200"], capture_output=True,
                        text=True, timeout=120, env={**env, "PYTHONPATH": str(ROOT)})

@@ -125,3 +125,14 @@ def test_redirect_app_writes_a_loadable_dataset(tiny_run, tmp_path):
         redirect.main([str(tiny_run), str(src), str(out), "--gazes", "spiral:3"])
     with pytest.raises(ToolkitError, match="not a run directory"):
         redirect.main([str(tmp_path), str(src), str(out)])
+
+
+def test_preview_opens_a_trained_run(tiny_run, tmp_path):
+    from apps.preview import load_scene, render_gaze_sweep
+
+    scene = load_scene(str(tiny_run))
+    assert scene.features.shape[1] == 3 and {1, 2} <= set(scene.part.unique().tolist())
+    info = render_gaze_sweep(scene, tmp_path / "sweep.png", [0], [-20, 20], 64, 64)
+    assert (tmp_path / "sweep.png").exists() and len(info["gazes"]) == 2
+    with pytest.raises(ToolkitError, match=r"a trained run directory \(with config.yaml\)"):
+        load_scene(str(tmp_path))
