@@ -24,6 +24,7 @@ import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from toolkit.rotations import angular_error_deg
+from train.metrics import composite_on_white  # noqa: F401  (re-exported: the loss and the metrics composite alike)
 
 log = logging.getLogger(__name__)
 REGIONS = ("head", "face", "eyes")
@@ -54,11 +55,6 @@ class ImageLossConfig:
     vgg_path: str | None = None
     """local torchvision-layout VGG16 state dict (.pth/.pt/.safetensors); None disables the perceptual term."""
     region_weights: dict[str, float] = field(default_factory=lambda: {"head": 1.0, "face": 1.0, "eyes": 1.0})
-
-
-def composite_on_white(image: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """[B, C, H, W] image, [B, 1, H, W] mask in [0, 1] -> the image inside the mask, white (1) outside."""
-    return image * mask + (1.0 - mask)
 
 
 class ImageLoss(nn.Module):
