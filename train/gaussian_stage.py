@@ -150,10 +150,13 @@ class GaussianTrainer:
         return terms
 
 
-def build_model(scene_path: Path, landmarks: torch.Tensor | None, cfg: GaussianStageConfig, device) -> GaussianModel:
+def build_model(scene_path: Path, cfg: GaussianStageConfig, device) -> GaussianModel:
+    """The two-stream model from the geometry stage's scene; its ``metadata["landmarks"]`` drive λτ."""
     from toolkit.scene import GaussianScene
 
     scene = GaussianScene.load(scene_path)
+    landmarks = scene.metadata.get("landmarks")
+    landmarks = None if landmarks is None else torch.tensor(landmarks, dtype=torch.float32)
     mcfg = GaussianModelConfig(hidden=cfg.gaussians_hidden)
     return GaussianModel.from_scene(scene, mcfg, landmarks=landmarks).to(device)
 

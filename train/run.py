@@ -82,7 +82,6 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     from geometry.init_gaussians import InitConfig, init_gaussians
     from geometry.mesh_stats import load_mesh
     from geometry.sdf import SDFNet
-    from toolkit.scene import GaussianScene
 
     g = ctx.config.geometry
     train_files = _split(ctx, "train")
@@ -99,7 +98,6 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     scene = init_gaussians(verts, faces, data["landmarks"], net, InitConfig(n_points=g.gaussians, seed=ctx.config.seed))
     scene.metadata["landmarks"] = data["landmarks"].tolist()
     scene.save(out / "gaussians.safetensors")
-    assert isinstance(scene, GaussianScene)
     return {"scene": "geometry/gaussians.safetensors", "mesh": "geometry/neutral_mesh.ply", "fit": "geometry/fit.json"}
 
 
@@ -177,14 +175,7 @@ def _renderer(ctx: RunContext, device):
 def _gaussian_modules(ctx: RunContext, device):
     from train.gaussian_stage import build_model
 
-    landmarks = None
-    from toolkit.scene import GaussianScene
-
-    scene_path = ctx.path("geometry", "scene")
-    meta = GaussianScene.load(scene_path).metadata
-    if "landmarks" in meta:
-        landmarks = torch.tensor(meta["landmarks"], dtype=torch.float32)
-    return build_model(scene_path, landmarks, ctx.config.gaussian, device), _renderer(ctx, device)
+    return build_model(ctx.path("geometry", "scene"), ctx.config.gaussian, device), _renderer(ctx, device)
 
 
 def stage_gaussian(ctx: RunContext) -> dict[str, str]:

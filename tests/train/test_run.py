@@ -125,6 +125,9 @@ def test_redirect_app_writes_a_loadable_dataset(tiny_run, tmp_path):
         redirect.main([str(tiny_run), str(src), str(out), "--gazes", "spiral:3"])
     with pytest.raises(ToolkitError, match="not a run directory"):
         redirect.main([str(tmp_path), str(src), str(out)])
+    from toolkit.errors import run_cli
+
+    assert run_cli(redirect.main, [str(tiny_run), str(src), str(out), "--batch", "0"]) == 2
 
 
 def test_preview_opens_a_trained_run(tiny_run, tmp_path):
