@@ -37,11 +37,19 @@ class GazeEstimatorConfig:
     """Network shape."""
 
     input_size: int = 96
-    """square input resolution (images are resized to it)."""
+    """width the (cropped) input is resized to; the height follows the crop's aspect ratio."""
+    crop: tuple[float, float, float, float] = (0.0, 1.0, 0.0, 1.0)
+    """(top, bottom, left, right) fractions of the image kept before resizing. The whole face crop by
+    default; an eye band such as ``EYE_BAND`` spends every input pixel where the gaze is visible."""
     channels: tuple[int, ...] = (32, 64, 96, 128)
     """channels of the stride-2 stages (the input is downsampled 2^len(channels) times)."""
     hidden: int = 256
     dropout: float = 0.0
+
+
+EYE_BAND = (0.3, 0.62, 0.24, 0.76)
+"""Rows/columns of the project's normalized face crops (train/data, docs/data.md) that hold both eyes in
+every view of the synthetic rig (measured from the eye landmarks 36-47 over all cameras, poses and gazes)."""
 
 
 class ConvBlock(nn.Module):
@@ -71,8 +79,13 @@ class GazeEstimator(nn.Module):
     def __init__(self, config: GazeEstimatorConfig | None = None):
         super().__init__()
         self.config = cfg = config or GazeEstimatorConfig()
-        if cfg.input_size < 2 ** len(cfg.channels) or not cfg.channels:
-            raise ToolkitError(f"GazeEstimatorConfig: input_size {cfg.input_size} too small for {len(cfg.channels)} stride-2 stages")
+        top, bottom, left, right = cfg.crop
+        if not (0.0 <= top < bottom <= 1.0 and 0.0 <= left < right <= 1.0):
+            raise ToolkitError(f"GazeEstimatorConfig.crop: expected 0 <= top < bottom <= 1 and 0 <= left < right <= 1, "
+                               f"got {cfg.crop}")
+        self.input_hw = (max(1, round(cfg.input_size * (bottom - top) / (right - left))), cfg.input_size)
+        if min(self.input_hw) < 2 ** len(cfg.channels) or not cfg.channels:
+            raise ToolkitError(f"GazeEstimatorConfig: input {self.input_hw} too small for {len(cfg.channels)} stride-2 stages")
         self.stem = nn.Sequential(nn.Conv2d(3, cfg.channels[0], 3, 1, 1, bias=False),
                                   nn.GroupNorm(min(8, cfg.channels[0]), cfg.channels[0]), nn.ReLU())
         blocks, c = [], cfg.channels[0]
@@ -80,19 +93,24 @@ class GazeEstimator(nn.Module):
             blocks.append(ConvBlock(c, c_out, 2))
             c = c_out
         self.blocks = nn.Sequential(*blocks)
-        s = cfg.input_size
+        h, w = self.input_hw
         for _ in cfg.channels:
-            s = (s + 1) // 2
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(c * s * s, cfg.hidden), nn.ReLU(),
+            h, w = (h + 1) // 2, (w + 1) // 2
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(c * h * w, cfg.hidden), nn.ReLU(),
                                   nn.Dropout(cfg.dropout), nn.Linear(cfg.hidden, 4))
 
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
         if images.dim() != 4 or images.shape[1] != 3:
             raise ToolkitError(f"GazeEstimator: images must be [B, 3, H, W] RGB in [0, 1], got {list(images.shape)}")
-        s = self.config.input_size
-        if images.shape[2:] != (s, s):
-            images = F.interpolate(images, size=(s, s), mode="bilinear", align_corners=False,
-                                   antialias=images.shape[2] > s or images.shape[3] > s)
+        H, W = images.shape[2:]
+        top, bottom, left, right = self.config.crop
+        r0, r1 = int(round(top * H)), max(int(round(top * H)) + 1, int(round(bottom * H)))
+        c0, c1 = int(round(left * W)), max(int(round(left * W)) + 1, int(round(right * W)))
+        images = images[:, :, r0:r1, c0:c1]
+        h, w = self.input_hw
+        if tuple(images.shape[2:]) != (h, w):
+            images = F.interpolate(images, size=(h, w), mode="bilinear", align_corners=False,
+                                   antialias=images.shape[2] > h or images.shape[3] > w)
         return (images - 0.5) / 0.25
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
@@ -129,8 +147,9 @@ class GazeEstimator(nn.Module):
         if unknown:
             raise ToolkitError(f"{path}: unknown gaze estimator config field(s) {unknown}")
         raw = dict(raw)
-        if "channels" in raw:
-            raw["channels"] = tuple(raw["channels"])
+        for key in ("channels", "crop"):
+            if key in raw:
+                raw[key] = tuple(raw[key])
         try:
             model = cls(GazeEstimatorConfig(**raw))
         except (TypeError, ValueError) as e:
