@@ -131,7 +131,12 @@ def _load_codec(ctx: RunContext, device):
 
 def stage_estimator(ctx: RunContext) -> dict[str, str]:
     from train.gaussian_stage import load_split
-    from train.gaze_estimator import EYE_BAND, GazeEstimatorConfig, GazeEstimatorTrainConfig, train_gaze_estimator
+    from train.gaze_estimator import (
+        EYE_BAND,
+        GazeEstimatorConfig,
+        GazeEstimatorTrainConfig,
+        train_gaze_estimator,
+    )
 
     e = ctx.config.estimator
     res = ctx.config.data.res
