@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from toolkit.io import load_checkpoint, save_checkpoint
-from toolkit.rotations import angular_error_deg, pitchyaw_to_vector
+from toolkit.rotations import angular_error_deg, normalized_head_rotation, pitchyaw_to_vector, vector_to_pitchyaw
 
 log = logging.getLogger(__name__)
 CHECKPOINT_KIND = "ditgaze.gaze_estimator"
@@ -45,11 +45,27 @@ class GazeEstimatorConfig:
     """channels of the stride-2 stages (the input is downsampled 2^len(channels) times)."""
     hidden: int = 256
     dropout: float = 0.0
+    head_frame: bool = True
+    """predict gaze in the head frame plus the head pose, and compose the camera-frame gaze exactly
+    (``toolkit.rotations.normalized_head_rotation``): the eyes' appearance in their sockets then maps to one
+    output instead of being entangled with the view. False: regress camera-frame gaze directly."""
 
 
 EYE_BAND = (0.3, 0.62, 0.24, 0.76)
 """Rows/columns of the project's normalized face crops (train/data, docs/data.md) that hold both eyes in
 every view of the synthetic rig (measured from the eye landmarks 36-47 over all cameras, poses and gazes)."""
+
+
+def head_to_camera_gaze(gaze_head: torch.Tensor, head_pose: torch.Tensor) -> torch.Tensor:
+    """[B, 2] head-frame gaze, [B, 2] head pose (normalized camera) -> [B, 2] camera-frame gaze (pitch, yaw)."""
+    g = (normalized_head_rotation(head_pose) @ pitchyaw_to_vector(gaze_head).unsqueeze(-1)).squeeze(-1)
+    return vector_to_pitchyaw(g)
+
+
+def camera_to_head_gaze(gaze_cam: torch.Tensor, head_pose: torch.Tensor) -> torch.Tensor:
+    """The inverse of :func:`head_to_camera_gaze`: [B, 2] camera-frame gaze -> [B, 2] head-frame gaze."""
+    R = normalized_head_rotation(head_pose)
+    return vector_to_pitchyaw((R.transpose(-1, -2) @ pitchyaw_to_vector(gaze_cam).unsqueeze(-1)).squeeze(-1))
 
 
 class ConvBlock(nn.Module):
@@ -113,8 +129,16 @@ class GazeEstimator(nn.Module):
                                    antialias=images.shape[2] > h or images.shape[3] > w)
         return (images - 0.5) / 0.25
 
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
+    def forward_parts(self, images: torch.Tensor) -> torch.Tensor:
+        """[B, 3, H, W] -> [B, 4]: the network's own outputs, (head-frame gaze, head pose) when
+        ``config.head_frame``, else (camera-frame gaze, head pose)."""
         return self.head(self.blocks(self.stem(self.preprocess(images))))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        out = self.forward_parts(images)
+        if not self.config.head_frame:
+            return out
+        return torch.cat([head_to_camera_gaze(out[:, :2], out[:, 2:]), out[:, 2:]], 1)
 
     def gaze(self, images: torch.Tensor) -> torch.Tensor:
         """[B, 3, H, W] -> [B, 2] gaze (pitch, yaw)."""
@@ -264,12 +288,18 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         y = labels[idx].float().to(device)
         if tc.augment:
             x = augment_batch(x, tc, g)
-        pred = model(x)
+        parts = model.forward_parts(x)
+        pred = parts if not model.config.head_frame else \
+            torch.cat([head_to_camera_gaze(parts[:, :2], parts[:, 2:]), parts[:, 2:]], 1)
         if tc.loss_space == "vectors":
             pv = torch.cat([pitchyaw_to_vector(pred[:, :2]), pitchyaw_to_vector(pred[:, 2:])], -1)
             yv = torch.cat([pitchyaw_to_vector(y[:, :2]), pitchyaw_to_vector(y[:, 2:])], -1)
             d = (pv - yv).abs()
             loss = d[:, :3].mean() + tc.head_weight * d[:, 3:].mean()
+            if model.config.head_frame:
+                # Supervise the head-frame gaze too: it is what the eyes show, whatever the view.
+                d_h = pitchyaw_to_vector(parts[:, :2]) - pitchyaw_to_vector(camera_to_head_gaze(y[:, :2], y[:, 2:]))
+                loss = loss + d_h.abs().mean()
         else:
             loss = ((pred - y).abs() * w).mean()
         opt.zero_grad(set_to_none=True)

@@ -9,6 +9,7 @@ import torch
 
 from toolkit.errors import ToolkitError
 from toolkit.io import save_checkpoint
+from toolkit.rotations import angular_error_deg
 from train.drawn_faces import draw_faces, drawn_face_dataset
 from train.gaze_estimator import (
     EYE_BAND,
@@ -141,3 +142,21 @@ def test_trainer_rejects_bad_data():
     assert math.isfinite(hist[-1]["loss"])
     with pytest.raises(ToolkitError, match="steps"):
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 4), TINY, GazeEstimatorTrainConfig(steps=0))
+
+
+def test_head_frame_output_is_composed_exactly():
+    from train.gaze_estimator import camera_to_head_gaze, head_to_camera_gaze
+
+    torch.manual_seed(3)
+    gh = (torch.rand(32, 2) * 2 - 1) * 0.8
+    hp = (torch.rand(32, 2) * 2 - 1) * 1.2
+    back = camera_to_head_gaze(head_to_camera_gaze(gh, hp), hp)
+    assert float(angular_error_deg(back, gh).max()) < 1e-2
+    torch.testing.assert_close(head_to_camera_gaze(gh, torch.zeros_like(hp)), gh, atol=1e-5, rtol=0)
+    model = GazeEstimator(TINY).eval()
+    x = torch.rand(4, 3, 32, 32)
+    parts, out = model.forward_parts(x), model(x)
+    torch.testing.assert_close(out[:, 2:], parts[:, 2:])
+    torch.testing.assert_close(out[:, :2], head_to_camera_gaze(parts[:, :2], parts[:, 2:]))
+    direct = GazeEstimator(GazeEstimatorConfig(input_size=32, channels=(8, 16, 16), hidden=32, head_frame=False)).eval()
+    assert torch.equal(direct(x), direct.forward_parts(x))

@@ -11,7 +11,7 @@ import torch
 
 from tests.train.data.conftest import needs_gl
 from toolkit.errors import ToolkitError
-from toolkit.rotations import so3_exp, vector_to_pitchyaw
+from toolkit.rotations import angular_error_deg, so3_exp, vector_to_pitchyaw
 from train.data import synthetic as syn
 
 
@@ -95,6 +95,13 @@ def test_file_labels_are_consistent(subject_file, subject):
         g_head = syn._pitchyaw_vec(r["pitchyaw_head"][i])
         g_cam = r["w2c_Rmat"][i] @ R @ g_head
         np.testing.assert_allclose(vector_to_pitchyaw(torch.from_numpy(g_cam)).numpy(), r["pitchyaw_cam"][i], atol=1e-5)
+    # The normalized camera leaves no head roll: the camera-frame gaze is the head-frame gaze turned by the
+    # rotation that the camera-frame head pose alone fixes (what the gaze estimator composes).
+    from train.gaze_estimator import head_to_camera_gaze
+
+    composed = head_to_camera_gaze(torch.from_numpy(r["pitchyaw_head"]).double(),
+                                   torch.from_numpy(r["face_head_pose"]).double())
+    assert float(angular_error_deg(composed, torch.from_numpy(r["pitchyaw_cam"]).double()).max()) < 1e-3
     assert (np.abs(np.degrees(r["pitchyaw_head"])) <= 40 + 1e-4).all()
     ident, expr = syn.params_from_code(r["latent_codes"])
     np.testing.assert_allclose(expr, r["expression_params"], atol=1e-5)
