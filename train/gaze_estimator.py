@@ -25,7 +25,12 @@ import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from toolkit.io import load_checkpoint, save_checkpoint
-from toolkit.rotations import angular_error_deg, normalized_head_rotation, pitchyaw_to_vector, vector_to_pitchyaw
+from toolkit.rotations import (
+    angular_error_deg,
+    normalized_head_rotation,
+    pitchyaw_to_vector,
+    vector_to_pitchyaw,
+)
 
 log = logging.getLogger(__name__)
 CHECKPOINT_KIND = "ditgaze.gaze_estimator"
