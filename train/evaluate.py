@@ -36,6 +36,10 @@ def _fid(real: torch.Tensor, fake: torch.Tensor) -> float | None:
     return float(helper.compute_fid_score())
 
 
+def _estimate(estimator, images: torch.Tensor, landmarks: torch.Tensor) -> torch.Tensor:
+    return estimator(images, landmarks) if getattr(getattr(estimator, "config", None), "eyes", False) else estimator(images)
+
+
 @torch.no_grad()
 def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, steps: int) -> torch.Tensor:
     maps = model(batch["code"], batch["pose"], batch["gaze_head"], batch["viewmat"], batch["K"], res, res,
@@ -100,8 +104,9 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         n_images += out.shape[0]
         render_time = time.perf_counter() - ts
         out_w, tgt_w = composite_on_white(out, mask), composite_on_white(tgt, mask)
-        with torch.no_grad():
-            e_out, e_tgt = estimator(out_w), estimator(tgt_w)
+        lm = st("landmarks")  # the target is the input's view: same landmarks
+        with torch.no_grad():  # eye-patch estimators read the landmarks (render and target share the view)
+            e_out, e_tgt = _estimate(estimator, out_w, lm), _estimate(estimator, tgt_w, lm)
         ge = angular_error_deg(e_out[:, :2], e_tgt[:, :2])
         he = angular_error_deg(e_out[:, 2:4], e_tgt[:, 2:4])
         p, s = psnr(out_w, tgt_w), ssim(out_w, tgt_w)

@@ -45,6 +45,7 @@ class TrainBatchData:
     head_pose_cam: torch.Tensor  # [N, 2]
     viewmat: torch.Tensor  # [N, 4, 4]
     K: torch.Tensor  # [N, 3, 3]
+    landmarks: torch.Tensor  # [N, 68, 2] pixels (eye-patch gaze estimators read them)
 
     @property
     def res(self) -> int:
@@ -70,7 +71,8 @@ def load_split(files: list[Path], split: str, res: int) -> TrainBatchData:
     eyes = (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)
     return TrainBatchData(image=st("image"), head=st("head_mask"), eyes=eyes, code=st("latent_code"),
                           pose=st("pose"), gaze_head=st("pitchyaw_head"), gaze_cam=st("pitchyaw_cam"),
-                          head_pose_cam=st("face_head_pose"), viewmat=st("viewmat"), K=st("K"))
+                          head_pose_cam=st("face_head_pose"), viewmat=st("viewmat"), K=st("K"),
+                          landmarks=st("landmarks"))
 
 
 def region_masks(b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -127,7 +129,7 @@ class GaussianTrainer:
         l_img, _ = self.image_loss(img, target, masks)
         small = F.interpolate(target, size=maps["rgb"].shape[-2:], mode="area")
         l_rgb = (maps["rgb"] - small).abs().mean()
-        l_gaze = self.gaze_loss(img, target_image=target)
+        l_gaze = self.gaze_loss(img, target_image=target, landmarks=b["landmarks"])
         terms = {"image": l_img, "rgb": l_rgb, "diffusion": out.aux_loss, "gaze": l_gaze}
         total = l_img + cfg.lambda_rgb * l_rgb + cfg.diffusion_weight * out.aux_loss + cfg.lambda_gaze * l_gaze
         if self.ortho is not None:
@@ -143,7 +145,7 @@ class GaussianTrainer:
             l_face, _ = self.image_loss(out_w.image, target, {"face": masks["face"]},
                                         weights={"head": 0.0, "eyes": 0.0, "face": 1.0})
             phi_cam = gaze_to_camera(phi, self.data.head_to_camera(b))
-            l_weak_gaze = self.gaze_loss(out_w.image, target_gaze=phi_cam)
+            l_weak_gaze = self.gaze_loss(out_w.image, target_gaze=phi_cam, landmarks=b["landmarks"])
             terms.update(weak_face=l_face, weak_gaze=l_weak_gaze)
             total = total + cfg.weak_weight * (l_face + cfg.lambda_gaze * l_weak_gaze)
         terms["total"] = total

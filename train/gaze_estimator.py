@@ -50,6 +50,12 @@ class GazeEstimatorConfig:
     """channels of the stride-2 stages (the input is downsampled 2^len(channels) times)."""
     hidden: int = 256
     dropout: float = 0.0
+    eyes: bool = False
+    """read two eye patches cut at the eye landmarks (iBUG 36-41 and 42-47, see :func:`eye_patches`) plus the
+    68-landmark layout instead of the whole face. Every call then needs the image's landmarks. At 128²
+    an eye is ~12 px wide: a whole-face CNN does not learn to find and read it, a patch at the eye does."""
+    eye_patch: tuple[int, int] = (24, 36)
+    """(height, width) of each resampled eye patch; the patch spans 1.2 x 2 eye widths (corner to corner)."""
     head_frame: bool = True
     """predict gaze in the head frame plus the head pose, and compose the camera-frame gaze exactly
     (``toolkit.rotations.normalized_head_rotation``): the eyes' appearance in their sockets then maps to one
@@ -59,6 +65,42 @@ class GazeEstimatorConfig:
 EYE_BAND = (0.3, 0.62, 0.24, 0.76)
 """Rows/columns of the project's normalized face crops (train/data, docs/data.md) that hold both eyes in
 every view of the synthetic rig (measured from the eye landmarks 36-47 over all cameras, poses and gazes)."""
+
+
+LEFT_EYE, RIGHT_EYE = slice(36, 42), slice(42, 48)  # iBUG-68 indices; "left" = image-left (GazeGaussian)
+
+
+def eye_patches(images: torch.Tensor, landmarks: torch.Tensor, size: tuple[int, int] = (24, 36)) -> torch.Tensor:
+    """Cut both eyes out of face images, differentiably (bilinear ``grid_sample``).
+
+    Args:
+        images: [B, C, H, W]. landmarks: [B, 68, 2] iBUG-68 (x, y) pixel coordinates of the same images
+            (pixel centres at integer + 0.5 convention-free: x = 0 is the left edge of column 0).
+        size: (h, w) of each patch.
+    Returns:
+        [B, 2 C, h, w]: the image-left eye's channels, then the image-right eye's. Each window is centred on
+        the mean of the eye's six landmarks, spans 2 x 1.2 eye widths (corner to corner, at least 2 px) and is
+        turned with the line through the corners, so the patch is invariant to in-plane roll and scale.
+    """
+    B, C, H, W = images.shape
+    if landmarks.shape != (B, 68, 2):
+        raise ToolkitError(f"eye_patches: landmarks must be [B={B}, 68, 2] pixels, got {list(landmarks.shape)}")
+    h, w = size
+    out = []
+    for sl in (LEFT_EYE, RIGHT_EYE):
+        pts = landmarks[:, sl].float()
+        centre = pts.mean(1)
+        axis = pts[:, 3] - pts[:, 0]  # outer/inner corners: 36 -> 39, 42 -> 45
+        width = axis.norm(dim=-1).clamp_min(2.0)
+        cos, sin = (axis / width.unsqueeze(-1)).unbind(-1)
+        half_w, half_h = width, 0.6 * width  # half extents of the window, pixels
+        # affine_grid maps output coords in [-1, 1] to input coords in [-1, 1] (align_corners=False).
+        theta = torch.stack([
+            torch.stack([cos * half_w * 2 / W, -sin * half_h * 2 / W, centre[:, 0] * 2 / W - 1], -1),
+            torch.stack([sin * half_w * 2 / H, cos * half_h * 2 / H, centre[:, 1] * 2 / H - 1], -1)], 1)
+        grid = F.affine_grid(theta.to(images.dtype), [B, C, h, w], align_corners=False)
+        out.append(F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=False))
+    return torch.cat(out, 1)
 
 
 def head_to_camera_gaze(gaze_head: torch.Tensor, head_pose: torch.Tensor) -> torch.Tensor:
@@ -104,10 +146,12 @@ class GazeEstimator(nn.Module):
         if not (0.0 <= top < bottom <= 1.0 and 0.0 <= left < right <= 1.0):
             raise ToolkitError(f"GazeEstimatorConfig.crop: expected 0 <= top < bottom <= 1 and 0 <= left < right <= 1, "
                                f"got {cfg.crop}")
-        self.input_hw = (max(1, round(cfg.input_size * (bottom - top) / (right - left))), cfg.input_size)
+        self.input_hw = tuple(cfg.eye_patch) if cfg.eyes else \
+            (max(1, round(cfg.input_size * (bottom - top) / (right - left))), cfg.input_size)
         if min(self.input_hw) < 2 ** len(cfg.channels) or not cfg.channels:
             raise ToolkitError(f"GazeEstimatorConfig: input {self.input_hw} too small for {len(cfg.channels)} stride-2 stages")
-        self.stem = nn.Sequential(nn.Conv2d(3, cfg.channels[0], 3, 1, 1, bias=False),
+        c_in = 6 if cfg.eyes else 3
+        self.stem = nn.Sequential(nn.Conv2d(c_in, cfg.channels[0], 3, 1, 1, bias=False),
                                   nn.GroupNorm(min(8, cfg.channels[0]), cfg.channels[0]), nn.ReLU())
         blocks, c = [], cfg.channels[0]
         for c_out in cfg.channels:
@@ -117,7 +161,12 @@ class GazeEstimator(nn.Module):
         h, w = self.input_hw
         for _ in cfg.channels:
             h, w = (h + 1) // 2, (w + 1) // 2
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(c * h * w, cfg.hidden), nn.ReLU(),
+        n_feat = c * h * w
+        if cfg.eyes:
+            # The landmark layout carries the head pose and where the face sits; the patches carry the eyes.
+            self.layout = nn.Sequential(nn.Linear(136, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU())
+            n_feat += cfg.hidden
+        self.head = nn.Sequential(nn.Linear(n_feat, cfg.hidden), nn.ReLU(),
                                   nn.Dropout(cfg.dropout), nn.Linear(cfg.hidden, 4))
 
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
@@ -134,20 +183,31 @@ class GazeEstimator(nn.Module):
                                    antialias=images.shape[2] > h or images.shape[3] > w)
         return (images - 0.5) / 0.25
 
-    def forward_parts(self, images: torch.Tensor) -> torch.Tensor:
-        """[B, 3, H, W] -> [B, 4]: the network's own outputs, (head-frame gaze, head pose) when
-        ``config.head_frame``, else (camera-frame gaze, head pose)."""
-        return self.head(self.blocks(self.stem(self.preprocess(images))))
+    def forward_parts(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
+        """[B, 3, H, W] (+ [B, 68, 2] landmarks when ``config.eyes``) -> [B, 4]: the network's own outputs,
+        (head-frame gaze, head pose) when ``config.head_frame``, else (camera-frame gaze, head pose)."""
+        if not self.config.eyes:
+            return self.head(self.blocks(self.stem(self.preprocess(images))).flatten(1))
+        if images.dim() != 4 or images.shape[1] != 3:
+            raise ToolkitError(f"GazeEstimator: images must be [B, 3, H, W] RGB in [0, 1], got {list(images.shape)}")
+        if landmarks is None:
+            raise ToolkitError("GazeEstimator: this estimator reads eye patches and needs the images' landmarks "
+                               "([B, 68, 2] pixels)")
+        landmarks = landmarks.to(images.device, images.dtype)
+        x = (eye_patches(images, landmarks, self.input_hw) - 0.5) / 0.25
+        H, W = images.shape[2:]
+        layout = (landmarks / landmarks.new_tensor([W, H]) * 2 - 1).flatten(1)
+        return self.head(torch.cat([self.blocks(self.stem(x)).flatten(1), self.layout(layout)], 1))
 
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        out = self.forward_parts(images)
+    def forward(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
+        out = self.forward_parts(images, landmarks)
         if not self.config.head_frame:
             return out
         return torch.cat([head_to_camera_gaze(out[:, :2], out[:, 2:]), out[:, 2:]], 1)
 
-    def gaze(self, images: torch.Tensor) -> torch.Tensor:
+    def gaze(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
         """[B, 3, H, W] -> [B, 2] gaze (pitch, yaw)."""
-        return self(images)[:, :2]
+        return self(images, landmarks)[:, :2]
 
     # ------------------------------------------------------------------ storage
     def save(self, path: str | os.PathLike, info: dict | None = None) -> None:
@@ -176,7 +236,7 @@ class GazeEstimator(nn.Module):
         if unknown:
             raise ToolkitError(f"{path}: unknown gaze estimator config field(s) {unknown}")
         raw = dict(raw)
-        for key in ("channels", "crop"):
+        for key in ("channels", "crop", "eye_patch"):
             if key in raw:
                 raw[key] = tuple(raw[key])
         try:
@@ -221,12 +281,18 @@ class GazeEstimatorTrainConfig:
     noise: float = 0.02
     max_shift: float = 0.03
     """largest random translation, as a fraction of the image size (labels are unchanged by a small shift)."""
+    landmark_noise: float = 0.3
+    """standard deviation (pixels) of the jitter added to the landmarks of eye-patch estimators."""
     seed: int = 0
     log_every: int = 250
 
 
-def augment_batch(images: torch.Tensor, cfg: GazeEstimatorTrainConfig, g: torch.Generator) -> torch.Tensor:
-    """Light photometric jitter, Gaussian noise and a small integer shift (edge-replicated), [B, 3, H, W]."""
+def augment_batch(images: torch.Tensor, cfg: GazeEstimatorTrainConfig, g: torch.Generator,
+                  landmarks: torch.Tensor | None = None):
+    """Light photometric jitter, Gaussian noise and a small integer shift (edge-replicated), [B, 3, H, W].
+
+    With ``landmarks`` [B, 68, 2] returns ``(images, landmarks)``, the landmarks moved with the shift and
+    jittered by ``landmark_noise`` pixels (a detector's noise on real data)."""
     B, _, H, W = images.shape
     dev = images.device
     b = (torch.rand(B, 1, 1, 1, generator=g) * 2 - 1).to(dev) * cfg.brightness
@@ -238,7 +304,24 @@ def augment_batch(images: torch.Tensor, cfg: GazeEstimatorTrainConfig, g: torch.
     if ms > 0:
         dx, dy = (int(v) for v in torch.randint(-ms, ms + 1, (2,), generator=g))
         x = F.pad(x, (ms, ms, ms, ms), mode="replicate")[:, :, ms + dy:ms + dy + H, ms + dx:ms + dx + W]
-    return x.clamp(0, 1)
+    else:
+        dx = dy = 0
+    if landmarks is None:
+        return x.clamp(0, 1)
+    # Content moved by (-dx, -dy): the crop starts dx, dy pixels further along.
+    lm = landmarks - landmarks.new_tensor([dx, dy])
+    lm = lm + torch.randn(lm.shape, generator=g).to(lm.device) * cfg.landmark_noise
+    return x.clamp(0, 1), lm
+
+
+def _check_landmarks(landmarks: torch.Tensor | None, n: int, model_needs: bool, name: str) -> None:
+    if model_needs and landmarks is None:
+        raise ToolkitError(f"{name}: this estimator reads eye patches; landmarks [N, 68, 2] are required")
+    if landmarks is not None:
+        if tuple(landmarks.shape) != (n, 68, 2):
+            raise ToolkitError(f"{name} landmarks: expected [N={n}, 68, 2] pixels, got {list(landmarks.shape)}")
+        if not bool(torch.isfinite(landmarks).all()):
+            raise ToolkitError(f"{name} landmarks: contain NaN or inf")
 
 
 def _check_data(images: torch.Tensor, labels: torch.Tensor, name: str) -> None:
@@ -256,20 +339,26 @@ def _to_float(images: torch.Tensor) -> torch.Tensor:
 
 def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: GazeEstimatorConfig | None = None,
                          train_config: GazeEstimatorTrainConfig | None = None, *,
-                         val: tuple[torch.Tensor, torch.Tensor] | None = None, device: str | torch.device = "cpu",
+                         landmarks: torch.Tensor | None = None, val: tuple | None = None,
+                         device: str | torch.device = "cpu",
                          callback: Callable[[int, dict], None] | None = None) -> tuple[GazeEstimator, list[dict]]:
     """Train a :class:`GazeEstimator` on in-memory data.
 
     Args:
-        images: [N, 3, H, W] uint8 or float in [0, 1]; labels: [N, 4] radians (gaze pitch, yaw, head pitch, yaw).
-        val: optional held-out (images, labels) evaluated every ``log_every`` steps.
+        images: [N, 3, H, W] uint8 or float in [0, 1]; labels: [N, 4] radians (camera-frame gaze pitch, yaw,
+            head pitch, yaw in the normalized camera).
+        landmarks: [N, 68, 2] pixels, required by eye-patch estimators (``config.eyes``).
+        val: optional held-out (images, labels[, landmarks]) evaluated every ``log_every`` steps.
     Returns:
         (model in eval mode, history: list of {"step", "loss", ["val_gaze_deg", "val_head_deg"]}).
     """
     tc = train_config or GazeEstimatorTrainConfig()
+    needs = bool(config is not None and config.eyes)
     _check_data(images, labels, "train")
+    _check_landmarks(landmarks, images.shape[0], needs, "train")
     if val is not None:
-        _check_data(*val, "val")
+        _check_data(val[0], val[1], "val")
+        _check_landmarks(val[2] if len(val) > 2 else None, val[0].shape[0], needs, "val")
     if tc.loss_space not in ("vectors", "angles"):
         raise ToolkitError(f"GazeEstimatorTrainConfig.loss_space: expected 'vectors' or 'angles', got {tc.loss_space!r}")
     if tc.steps < 1 or tc.batch_size < 1:
@@ -291,9 +380,10 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         pos += tc.batch_size
         x = _to_float(images[idx]).to(device)
         y = labels[idx].float().to(device)
+        lm = landmarks[idx].float().to(device) if landmarks is not None else None
         if tc.augment:
-            x = augment_batch(x, tc, g)
-        parts = model.forward_parts(x)
+            x, lm = augment_batch(x, tc, g, lm) if lm is not None else (augment_batch(x, tc, g), None)
+        parts = model.forward_parts(x, lm)
         pred = parts if not model.config.head_frame else \
             torch.cat([head_to_camera_gaze(parts[:, :2], parts[:, 2:]), parts[:, 2:]], 1)
         if tc.loss_space == "vectors":
@@ -325,17 +415,21 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
 
 
 @torch.no_grad()
-def evaluate_gaze_estimator(model: GazeEstimator, images: torch.Tensor, labels: torch.Tensor, *,
-                            batch_size: int = 256, device: str | torch.device = "cpu") -> dict[str, float]:
-    """Mean angular errors in degrees on (images [N, 3, H, W], labels [N, 4]): {"val_gaze_deg", "val_head_deg"}."""
+def evaluate_gaze_estimator(model: GazeEstimator, images: torch.Tensor, labels: torch.Tensor,
+                            landmarks: torch.Tensor | None = None, *, batch_size: int = 256,
+                            device: str | torch.device = "cpu") -> dict[str, float]:
+    """Mean angular errors in degrees on (images [N, 3, H, W], labels [N, 4], landmarks [N, 68, 2] for
+    eye-patch estimators): {"val_gaze_deg", "val_head_deg"}."""
     _check_data(images, labels, "eval")
+    _check_landmarks(landmarks, images.shape[0], model.config.eyes, "eval")
     was = model.training
     model.eval()
     g_err, h_err = [], []
     for i in range(0, images.shape[0], batch_size):
         x = _to_float(images[i:i + batch_size]).to(device)
         y = labels[i:i + batch_size].float().to(device)
-        p = model(x)
+        lm = landmarks[i:i + batch_size].float().to(device) if landmarks is not None else None
+        p = model(x, lm)
         g_err.append(angular_error_deg(p[:, :2], y[:, :2]).cpu())
         h_err.append(angular_error_deg(p[:, 2:], y[:, 2:]).cpu())
     model.train(was)

@@ -199,14 +199,18 @@ class GazeLoss(nn.Module):
         return self
 
     def forward(self, render: torch.Tensor, target_image: torch.Tensor | None = None,
-                target_gaze: torch.Tensor | None = None, reduction: str = "mean") -> torch.Tensor:
+                target_gaze: torch.Tensor | None = None, reduction: str = "mean",
+                landmarks: torch.Tensor | None = None) -> torch.Tensor:
+        """``landmarks`` [B, 68, 2] (pixels of the target, which the render shares) are passed on to
+        estimators that read eye patches."""
         if (target_image is None) == (target_gaze is None):
             raise ToolkitError("GazeLoss: give exactly one of target_image or target_gaze")
+        est = self.estimator if landmarks is None else (lambda x: self.estimator(x, _fp32(landmarks)))
         with _no_autocast(render.device):
-            pred = self.estimator(_fp32(render))[:, :2]
+            pred = est(_fp32(render))[:, :2]
             if target_image is not None:
                 with torch.no_grad():
-                    target = self.estimator(_fp32(target_image))[:, :2]
+                    target = est(_fp32(target_image))[:, :2]
             else:
                 target = _fp32(target_gaze).to(pred.device)
                 if target.shape != pred.shape:

@@ -144,14 +144,15 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
     labels = lambda d: torch.cat([d.gaze_cam, d.head_pose_cam], 1)  # noqa: E731
     tr = load_split(_split(ctx, "train"), "all", res)
     te = load_split(_split(ctx, "test"), "all", res)
-    tr_images, tr_labels, val = to_u8(tr.image), labels(tr), (to_u8(te.image), labels(te))
+    tr_images, tr_labels, tr_lms = to_u8(tr.image), labels(tr), tr.landmarks
+    val = (to_u8(te.image), labels(te), te.landmarks)
     del tr, te
     crop = EYE_BAND if e.crop == "eye_band" else (0.0, 1.0, 0.0, 1.0)
     outs, summary = {}, {}
     for k, (name, path_given, seed) in enumerate((("loss", e.loss_path, 1), ("eval", e.eval_path, 2))):
         if path_given:
             continue
-        images, targets = tr_images, tr_labels
+        images, targets, lms = tr_images, tr_labels, tr_lms
         if e.synthetic_subjects > 0 and ctx.config.data.root:
             ctx.log("[estimator] synthetic_subjects ignored: data.root is an external dataset")
         elif e.synthetic_subjects > 0:
@@ -160,15 +161,16 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
             # Disjoint seed ranges: far above the data stage's subject seeds (seed * 100003 + index) and
             # different for the two estimators, which must stay independent.
             base = ctx.config.data.seed * 100003 + 50_000 + 10_000 * k
-            extra, extra_labels = estimator_images(range(base, base + e.synthetic_subjects), n_frames=e.synthetic_frames,
+            extra, extra_labels, extra_lms = estimator_images(range(base, base + e.synthetic_subjects), n_frames=e.synthetic_frames,
                                                    cameras_per_frame=e.cameras_per_frame, res=res, seed=seed,
                                                    log=ctx.log)
             images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
+            lms = torch.cat([lms, extra_lms])
         model, hist = train_gaze_estimator(
-            images, targets, GazeEstimatorConfig(input_size=e.input_size, crop=crop),
+            images, targets, GazeEstimatorConfig(input_size=e.input_size, crop=crop, eyes=e.crop == "eyes"),
             GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=ctx.config.seed * 10 + seed,
                                      log_every=max(1, e.steps)),
-            val=val)
+            landmarks=lms, val=val)
         model.save(ctx.run_dir / f"estimator_{name}.safetensors", {"role": name, "train_images": len(images)})
         summary[name] = dict(hist[-1] if hist else {}, train_images=len(images))
         ctx.log(f"[estimator] {name}: {len(images)} training images, held-out gaze error "

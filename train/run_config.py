@@ -71,9 +71,10 @@ class EstimatorStageConfig:
     input_size: int = 64
     """width the estimator's input region is resized to."""
     batch: int = 32
-    crop: Literal["face", "eye_band"] = "eye_band"
-    """region the estimators read: the whole normalized face crop or the band holding both eyes
-    (``train.gaze_estimator.EYE_BAND``, which spends every input pixel where the gaze shows)."""
+    crop: Literal["eyes", "face", "eye_band"] = "eyes"
+    """what the estimators read: two eye patches cut at the eye landmarks plus the landmark layout
+    (``GazeEstimatorConfig.eyes``), the whole normalized face crop, or the fixed band holding both eyes
+    (``train.gaze_estimator.EYE_BAND``)."""
     synthetic_subjects: int = 0
     """extra procedural subjects rendered for each estimator's training only (synthetic runs; ignored with
     data.root): many gazes, few cameras each. Seeds are disjoint from the data stage's subjects and

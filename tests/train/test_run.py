@@ -38,9 +38,9 @@ def test_all_stages_write_their_outputs(tiny_run):
     n_split = 18  # tiny preset: one training subject x one frame x 18 rig cameras
     extra = 1 * 2 * 2  # synthetic_subjects x synthetic_frames x cameras_per_frame
     assert est["loss"]["train_images"] == est["eval"]["train_images"] == n_split + extra
-    from train.gaze_estimator import EYE_BAND, GazeEstimator
+    from train.gaze_estimator import GazeEstimator
 
-    assert GazeEstimator.load(tiny_run / "estimator_eval.safetensors").config.crop == EYE_BAND
+    assert GazeEstimator.load(tiny_run / "estimator_eval.safetensors").config.eyes
 
 
 def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, capsys):

@@ -263,14 +263,15 @@ def test_bad_parameters_are_rejected(subject):
 def test_estimator_images_many_gazes_few_cameras_deterministic():
     from train.data.generate import estimator_images
 
-    imgs, labels = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1)
+    imgs, labels, lms = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1)
     assert imgs.shape == (12, 3, 32, 32) and imgs.dtype == torch.uint8 and labels.shape == (12, 4)
+    assert lms.shape == (12, 68, 2) and float(lms.min()) > 0 and float(lms.max()) < 32
     assert torch.isfinite(labels).all() and float(labels.abs().max()) <= math.pi
     # Each frame's two cameras see one gaze from two directions: different camera-frame labels.
     assert not torch.allclose(labels[0], labels[1])
-    again, labels2 = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1)
+    again, labels2, _ = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1)
     assert torch.equal(imgs, again) and torch.equal(labels, labels2)
-    other, _ = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=2)
+    other, _, _ = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=2)
     assert not torch.equal(imgs, other)
     with pytest.raises(ToolkitError, match="cameras_per_frame"):
         estimator_images([3], n_frames=1, cameras_per_frame=19)
