@@ -9,10 +9,11 @@ column                         required  meaning
                                          images the same size, any format OpenCV reads
 ``head_pitch``, ``head_yaw``   yes       head pose, degrees: (pitch, yaw) of the face direction (head −z) in the
                                          *normalized* camera's frame, the convention of ``face_head_pose``
+                                         (pitch in ±90, yaw in ±180)
 ``head_roll``                  no        roll about the face direction, degrees (default 0: the ETH-XGaze
                                          normalization removes roll by construction)
 ``gaze_pitch``, ``gaze_yaw``   no*       the image's own gaze, degrees, normalized camera frame (ETH-XGaze
-                                         labels); *needed on rows without ``code`` (test-time fitting)
+                                         labels; pitch in ±90, yaw in ±180); *needed on rows without ``code``
 ``focal``                      no        focal length in pixels of this image (default ``--focal``, else the
                                          project's normalized camera: size · NORM_DISTANCE / NORM_CROP)
 ``distance``                   no        camera-to-face-centre distance in metres (default ``--distance``,
@@ -160,9 +161,10 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
         elif hw != size:
             raise ToolkitError(f"{where}, column 'image': {img_path} is {hw[1]}x{hw[0]}; the first image is "
                                f"{size[1]}x{size[0]} (all images must have the same size)")
-        head = tuple(math.radians(num(c, required=c != "head_roll", lo=-90, hi=90) or 0.0)
-                     for c in ("head_pitch", "head_yaw", "head_roll"))
-        gp, gy = num("gaze_pitch", lo=-90, hi=90), num("gaze_yaw", lo=-90, hi=90)
+        # Pitch is an asin (±90°); yaw an atan2 (±180°: extreme ETH-XGaze cameras see |yaw| > 90°).
+        head = tuple(math.radians(num(c, required=c != "head_roll", lo=-lim, hi=lim) or 0.0)
+                     for c, lim in (("head_pitch", 90), ("head_yaw", 180), ("head_roll", 180)))
+        gp, gy = num("gaze_pitch", lo=-90, hi=90), num("gaze_yaw", lo=-180, hi=180)
         if (gp is None) != (gy is None):
             raise ToolkitError(f"{where}: gaze_pitch and gaze_yaw must both be given or both be empty")
         gaze = None if gp is None else (math.radians(gp), math.radians(gy))
@@ -209,7 +211,12 @@ def head_rotation(pitch_yaw_roll: torch.Tensor) -> torch.Tensor:
     z = -f
     ey = torch.tensor([0.0, 1.0, 0.0], dtype=z.dtype).expand_as(z)
     x = torch.linalg.cross(ey, z)
-    x = x / x.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    n = x.norm(dim=-1, keepdim=True)
+    # At pitch ±90° the face direction is ±y and "no camera-y component" leaves x free: take camera x
+    # (projected off z) so the rotation stays orthonormal.
+    ex = torch.tensor([1.0, 0.0, 0.0], dtype=z.dtype).expand_as(z)
+    fallback = ex - (ex * z).sum(-1, keepdim=True) * z
+    x = torch.where(n > 1e-6, x / n.clamp_min(1e-12), fallback / fallback.norm(dim=-1, keepdim=True).clamp_min(1e-12))
     y = torch.linalg.cross(z, x)
     R = torch.stack([x, y, z], -1)
     roll = torch.zeros_like(pitch_yaw_roll)

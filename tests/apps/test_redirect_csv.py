@@ -62,6 +62,20 @@ def test_head_rotation_round_trips_the_synthetic_normalized_cameras(tiny_trained
     assert not torch.allclose(Rr, head_rotation(torch.tensor([[0.2, -0.3, 0.0]])), atol=1e-3)
 
 
+def test_head_rotation_stress_extreme_angles():
+    """Degenerate (pitch ±90°) and extreme (yaw ±180°, large roll) inputs: orthonormal, finite, det +1,
+    finite gradients."""
+    pyr = torch.tensor([[math.pi / 2, 0.3, 0.0], [-math.pi / 2, -2.0, 1.0], [0.0, math.pi, 0.0],
+                        [1.4, -math.pi, -3.1], [0.0, 0.0, 0.0]], requires_grad=True)
+    R = head_rotation(pyr)
+    I = torch.eye(3).expand_as(R)
+    assert torch.isfinite(R).all() and torch.allclose(R.transpose(1, 2) @ R, I, atol=1e-5)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(5), atol=1e-5)
+    assert torch.allclose(R[-1], torch.eye(3), atol=1e-6)  # facing the camera, no roll: identity
+    R.sum().backward()
+    assert torch.isfinite(pyr.grad).all()
+
+
 def test_csv_input_writes_labelled_redirected_dataset(tiny_trained_run, crops, tmp_path):
     from train.data.dataset import GazeDataset
 
@@ -143,6 +157,7 @@ def _csv(folder, text):
         ("nan", "line 2, column 'head_yaw': expected a finite number, got 'nan'"),
         ("not_number", "line 2, column 'gaze_pitch': expected a number, got 'up'"),
         ("out_of_range", r"line 2, column 'head_pitch': expected degrees in \[-90, 90\]"),
+        ("yaw_out_of_range", r"line 2, column 'gaze_yaw': expected degrees in \[-180, 180\]"),
         ("unknown_column", r"unknown column\(s\) \['focl'\]"),
         ("bad_code", "line 2, column 'code': .*short.npy: expected 144 numbers"),
         ("no_code_no_gaze", "line 2: no 'code' given.*gaze_pitch and gaze_yaw"),
@@ -167,6 +182,7 @@ def test_bad_csv_input_is_one_line_error(tiny_trained_run, crops, tmp_path, caps
         "nan": f"{HEADER}\na.png,10,nan,3,4,,\n",
         "not_number": f"{HEADER}\na.png,10,-5,up,4,,\n",
         "out_of_range": f"{HEADER}\na.png,100,-5,3,4,,\n",
+        "yaw_out_of_range": f"{HEADER}\na.png,10,-5,3,200,,\n",
         "unknown_column": "image,head_pitch,head_yaw,focl\na.png,1,2,3\n",
         "bad_code": f"{HEADER}\na.png,10,-5,3,4,short.npy,\n",
         "no_code_no_gaze": f"{HEADER}\na.png,10,-5,,,,\n",
