@@ -24,11 +24,11 @@ column                         required  meaning
                                          default: fitted on the image (``train.evaluate.test_time_fit``)
 =============================  ========  =====================================================================
 
-Frames: the normalized camera is the world frame (``w2c`` = identity), looking along +z at the face
-centre (the mean of iBUG landmarks 36, 39, 42, 45, 48, 54 of the run's geometry) from ``distance`` metres,
-principal point at the image centre. The head rotation is rebuilt from (pitch, yaw, roll) with the
-normalization's no-roll rule (the head x axis has no camera-y component), so the synthetic dataset's own
-rows round-trip exactly.
+Frames: the head-to-camera rotation is rebuilt from (pitch, yaw, roll) with the normalization's no-roll
+rule (the head x axis has no camera-y component), so the synthetic dataset's own rows round-trip exactly;
+the camera looks along +z at the face centre (the mean of iBUG landmarks 36, 39, 42, 45, 48, 54 of the
+run's geometry) from ``distance`` metres, principal point at the image centre. The world frame is the
+head frame (``pose`` = 0, the centre of the training poses) and ``w2c`` carries the whole transform.
 
 Everything is validated before any rendering: each problem is one :class:`toolkit.ToolkitError` naming
 the CSV line and column (or the image file) and what was expected.
@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.rotations import pitchyaw_to_vector, so3_exp, so3_log
+from toolkit.rotations import pitchyaw_to_vector, so3_exp
 
 REQUIRED_COLUMNS = ("image", "head_pitch", "head_yaw")
 OPTIONAL_COLUMNS = ("head_roll", "gaze_pitch", "gaze_yaw", "focal", "distance", "mask", "code")
@@ -263,19 +263,25 @@ class LabelsCsvSource:
         R = head_rotation(pyr)
         d = torch.tensor([r.distance for r in rows], dtype=torch.float32)
         t = torch.stack([torch.zeros_like(d), torch.zeros_like(d), d], -1) - R @ self.face_center
-        pose = torch.cat([so3_log(R), t], -1)
+        # World = head frame (pose 0, the centre of the poses the model was trained on); the camera carries
+        # the whole head-to-camera transform. The model's pose inputs are not invariant to how that transform
+        # is split between pose and camera; camera-frame head poses (often > 45°) lie outside the rig-world
+        # poses of training (yaw ±25°, pitch ±15°). See docs/redirect.md for the measured effect.
+        pose = torch.zeros(len(rows), 6)
+        V = torch.eye(4).repeat(len(rows), 1, 1)
+        V[:, :3, :3], V[:, :3, 3] = R, t
         s = self.res / self.size
         K = torch.zeros(len(rows), 3, 3)
         K[:, 0, 0] = K[:, 1, 1] = torch.tensor([r.focal for r in rows]) * s
         K[:, 0, 2] = K[:, 1, 2] = self.res / 2
         K[:, 2, 2] = 1
         gaze_cam = torch.tensor([r.gaze if r.gaze is not None else (0.0, 0.0) for r in rows], dtype=torch.float32)
-        # The image's gaze in the head frame (camera = world here): g_head = Rᵀ g_cam.
+        # The image's gaze in the head frame: g_head = Rᵀ g_cam.
         from toolkit.rotations import vector_to_pitchyaw
 
         gaze_head = vector_to_pitchyaw(torch.einsum("bji,bj->bi", R, pitchyaw_to_vector(gaze_cam)))
-        return {"pose": pose, "R": R, "K": K, "viewmat": torch.eye(4).expand(len(rows), 4, 4).clone(),
-                "face_head_pose": pyr[:, :2], "gaze_head": gaze_head}
+        return {"pose": pose, "R": R, "t": t, "K": K, "viewmat": V, "face_head_pose": pyr[:, :2],
+                "gaze_head": gaze_head}
 
     def items(self, idx: list[int], model, renderer, device, *, fit_steps: int, fit_lr: float = 1e-2) -> list[dict]:
         """Dataset-like dicts (the keys ``apps.redirect.render_chunk`` reads) for rows ``idx``.
@@ -311,14 +317,13 @@ class LabelsCsvSource:
             with torch.enable_grad():
                 code[sel] = test_time_fit(model, renderer, batch, image[sel], mask[sel], res, fit_steps, lr=fit_lr)
         head_a, face_a, eyes_a = silhouettes(code)
-        R, t = geo["R"].cpu(), geo["pose"][:, 3:].cpu()
+        R, t = geo["R"].cpu(), geo["t"].cpu()
         out = []
         for i in range(len(rows)):
             head = user_masks[i] if user_masks[i] is not None else (head_a[i].cpu() > 0.5).float()
             # Visible eyeball: covered by the eye Gaussians where the face layer (lids, socket) is open.
             eyes = ((eyes_a[i].cpu() > 0.5) & (face_a[i].cpu() < 0.5)).float()[0]
-            lm3 = self.landmarks_head @ R[i].T + t[i]
-            uvw = lm3 @ geo["K"][i].cpu().T
+            uvw = (self.landmarks_head @ R[i].T + t[i]) @ geo["K"][i].cpu().T
             uv = uvw[:, :2] / uvw[:, 2:].clamp_min(1e-6)
             # Split the eye pixels by the nearer projected eye (iBUG 36-41 = image-left eye, 42-47 = right).
             jj, ii = torch.meshgrid(torch.arange(res) + 0.5, torch.arange(res) + 0.5, indexing="xy")
@@ -330,6 +335,6 @@ class LabelsCsvSource:
                 "K": geo["K"][i].cpu(), "head_mask": head, "left_eye_mask": left[None], "right_eye_mask": (eyes - left)[None],
                 "face_head_pose": geo["face_head_pose"][i].cpu(), "cam_index": torch.tensor(0),
                 "frame_index": torch.tensor(idx[i]), "landmarks": uv,
-                "landmarks_3d": lm3, "scale": torch.ones(1), "vertice": self.mesh_head @ R[i].T + t[i],
+                "landmarks_3d": self.landmarks_head, "scale": torch.ones(1), "vertice": self.mesh_head,
             })
         return out

@@ -95,19 +95,23 @@ def test_csv_input_writes_labelled_redirected_dataset(tiny_trained_run, crops, t
         for i in range(3):
             rows = slice(4 * i, 4 * i + 4)
             assert np.allclose(o["face_head_pose"][rows], f["face_head_pose"][i], atol=1e-5)
-            # The camera is the world frame; the head-to-camera rotation is the generator's exactly.
-            assert np.allclose(o["w2c_Rmat"][rows], np.eye(3)) and np.allclose(o["w2c_Tvec"][rows], 0)
+            # World = head frame (pose 0); the head-to-camera rotation is the generator's exactly, and the
+            # face centre sits on the optical axis at 0.6 m.
+            assert np.allclose(o["pose"][rows], 0)
             R_true = f["w2c_Rmat"][i] @ so3_exp(torch.tensor(f["pose"][i, :3])).numpy()
-            R_out = so3_exp(torch.tensor(o["pose"][4 * i, :3])).numpy()
+            R_out = o["w2c_Rmat"][4 * i] @ so3_exp(torch.tensor(o["pose"][4 * i, :3])).numpy()
             assert np.allclose(R_out, R_true, atol=1e-4)
+            c = o["facial_landmarks_3d"][4 * i][[36, 39, 42, 45, 48, 54]].mean(0)
+            assert np.allclose(o["w2c_Rmat"][4 * i] @ c + o["w2c_Tvec"][4 * i], [0, 0, 0.6], atol=1e-5)
             # Camera-frame gaze label = R · head-frame target gaze.
             g_cam = vector_to_pitchyaw(pitchyaw_to_vector(torch.tensor(gz)) @ torch.tensor(R_out).float().T)
             assert np.allclose(o["pitchyaw_cam"][rows], g_cam.numpy(), atol=1e-4)
             # The normalized camera (0.6 m, 0.26 m crop): landmarks of the run's geometry land on the
             # generator's landmarks of this (different) subject within a few pixels / a centimetre.
             assert np.abs(o["facial_landmarks"][4 * i] - f["facial_landmarks"][i]).mean() < 3.0
-            world_lm = f["facial_landmarks_3d"][i] @ f["w2c_Rmat"][i].T + f["w2c_Tvec"][i]
-            assert np.abs(o["facial_landmarks_3d"][4 * i] - world_lm).mean() < 0.01
+            cam_true = f["facial_landmarks_3d"][i] @ f["w2c_Rmat"][i].T + f["w2c_Tvec"][i]
+            cam_out = o["facial_landmarks_3d"][4 * i] @ o["w2c_Rmat"][4 * i].T + o["w2c_Tvec"][4 * i]
+            assert np.abs(cam_out - cam_true).mean() < 0.01
             K = o["inmat"][4 * i]
             assert np.isclose(K[0, 0], 64 * 0.6 / 0.26, rtol=1e-5) and np.isclose(K[0, 2], 32)
         codes = o["latent_codes"][:]
