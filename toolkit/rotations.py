@@ -182,6 +182,24 @@ def vector_to_pitchyaw(g: torch.Tensor, *, eps: float = 1e-9) -> torch.Tensor:
     return torch.stack([pitch, yaw], -1)
 
 
+def normalized_head_rotation(head_pitchyaw: torch.Tensor) -> torch.Tensor:
+    """[..., 2] head pose (pitch, yaw) in an ETH-XGaze normalized camera -> [..., 3, 3] head-to-camera rotation.
+
+    Normalization leaves the head no roll: the camera's y axis is perpendicular to the head's x axis, so the
+    pose is fixed by where the face points, ``f = pitchyaw_to_vector(head_pitchyaw) = R @ (0, 0, -1)``.
+    Camera-frame gaze is then ``R @`` head-frame gaze. Where the face points along the camera's y axis
+    (pitch ±90°) the head x axis is undefined and falls back to the camera's x axis; the result stays finite.
+    """
+    z = -pitchyaw_to_vector(head_pitchyaw)
+    x = torch.stack([z[..., 2], torch.zeros_like(z[..., 0]), -z[..., 0]], -1)  # e_y × z
+    n = x.norm(dim=-1, keepdim=True)
+    fallback = torch.zeros_like(x)
+    fallback[..., 0] = 1.0
+    x = torch.where(n > 1e-6, x / n.clamp_min(1e-6), fallback)
+    y = torch.linalg.cross(z, x, dim=-1)
+    return torch.stack([x, y, z], -1)
+
+
 def angular_error_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Angle in degrees between [..., 3] vectors, or between [..., 2] pitch/yaw pairs (converted first)."""
     if a.shape[-1] == 2:

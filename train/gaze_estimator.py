@@ -25,7 +25,12 @@ import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from toolkit.io import load_checkpoint, save_checkpoint
-from toolkit.rotations import angular_error_deg, pitchyaw_to_vector
+from toolkit.rotations import (
+    angular_error_deg,
+    normalized_head_rotation,
+    pitchyaw_to_vector,
+    vector_to_pitchyaw,
+)
 
 log = logging.getLogger(__name__)
 CHECKPOINT_KIND = "ditgaze.gaze_estimator"
@@ -37,11 +42,35 @@ class GazeEstimatorConfig:
     """Network shape."""
 
     input_size: int = 96
-    """square input resolution (images are resized to it)."""
+    """width the (cropped) input is resized to; the height follows the crop's aspect ratio."""
+    crop: tuple[float, float, float, float] = (0.0, 1.0, 0.0, 1.0)
+    """(top, bottom, left, right) fractions of the image kept before resizing. The whole face crop by
+    default; an eye band such as ``EYE_BAND`` spends every input pixel where the gaze is visible."""
     channels: tuple[int, ...] = (32, 64, 96, 128)
     """channels of the stride-2 stages (the input is downsampled 2^len(channels) times)."""
     hidden: int = 256
     dropout: float = 0.0
+    head_frame: bool = True
+    """predict gaze in the head frame plus the head pose, and compose the camera-frame gaze exactly
+    (``toolkit.rotations.normalized_head_rotation``): the eyes' appearance in their sockets then maps to one
+    output instead of being entangled with the view. False: regress camera-frame gaze directly."""
+
+
+EYE_BAND = (0.3, 0.62, 0.24, 0.76)
+"""Rows/columns of the project's normalized face crops (train/data, docs/data.md) that hold both eyes in
+every view of the synthetic rig (measured from the eye landmarks 36-47 over all cameras, poses and gazes)."""
+
+
+def head_to_camera_gaze(gaze_head: torch.Tensor, head_pose: torch.Tensor) -> torch.Tensor:
+    """[B, 2] head-frame gaze, [B, 2] head pose (normalized camera) -> [B, 2] camera-frame gaze (pitch, yaw)."""
+    g = (normalized_head_rotation(head_pose) @ pitchyaw_to_vector(gaze_head).unsqueeze(-1)).squeeze(-1)
+    return vector_to_pitchyaw(g)
+
+
+def camera_to_head_gaze(gaze_cam: torch.Tensor, head_pose: torch.Tensor) -> torch.Tensor:
+    """The inverse of :func:`head_to_camera_gaze`: [B, 2] camera-frame gaze -> [B, 2] head-frame gaze."""
+    R = normalized_head_rotation(head_pose)
+    return vector_to_pitchyaw((R.transpose(-1, -2) @ pitchyaw_to_vector(gaze_cam).unsqueeze(-1)).squeeze(-1))
 
 
 class ConvBlock(nn.Module):
@@ -71,8 +100,13 @@ class GazeEstimator(nn.Module):
     def __init__(self, config: GazeEstimatorConfig | None = None):
         super().__init__()
         self.config = cfg = config or GazeEstimatorConfig()
-        if cfg.input_size < 2 ** len(cfg.channels) or not cfg.channels:
-            raise ToolkitError(f"GazeEstimatorConfig: input_size {cfg.input_size} too small for {len(cfg.channels)} stride-2 stages")
+        top, bottom, left, right = cfg.crop
+        if not (0.0 <= top < bottom <= 1.0 and 0.0 <= left < right <= 1.0):
+            raise ToolkitError(f"GazeEstimatorConfig.crop: expected 0 <= top < bottom <= 1 and 0 <= left < right <= 1, "
+                               f"got {cfg.crop}")
+        self.input_hw = (max(1, round(cfg.input_size * (bottom - top) / (right - left))), cfg.input_size)
+        if min(self.input_hw) < 2 ** len(cfg.channels) or not cfg.channels:
+            raise ToolkitError(f"GazeEstimatorConfig: input {self.input_hw} too small for {len(cfg.channels)} stride-2 stages")
         self.stem = nn.Sequential(nn.Conv2d(3, cfg.channels[0], 3, 1, 1, bias=False),
                                   nn.GroupNorm(min(8, cfg.channels[0]), cfg.channels[0]), nn.ReLU())
         blocks, c = [], cfg.channels[0]
@@ -80,23 +114,36 @@ class GazeEstimator(nn.Module):
             blocks.append(ConvBlock(c, c_out, 2))
             c = c_out
         self.blocks = nn.Sequential(*blocks)
-        s = cfg.input_size
+        h, w = self.input_hw
         for _ in cfg.channels:
-            s = (s + 1) // 2
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(c * s * s, cfg.hidden), nn.ReLU(),
+            h, w = (h + 1) // 2, (w + 1) // 2
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(c * h * w, cfg.hidden), nn.ReLU(),
                                   nn.Dropout(cfg.dropout), nn.Linear(cfg.hidden, 4))
 
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
         if images.dim() != 4 or images.shape[1] != 3:
             raise ToolkitError(f"GazeEstimator: images must be [B, 3, H, W] RGB in [0, 1], got {list(images.shape)}")
-        s = self.config.input_size
-        if images.shape[2:] != (s, s):
-            images = F.interpolate(images, size=(s, s), mode="bilinear", align_corners=False,
-                                   antialias=images.shape[2] > s or images.shape[3] > s)
+        H, W = images.shape[2:]
+        top, bottom, left, right = self.config.crop
+        r0, r1 = int(round(top * H)), max(int(round(top * H)) + 1, int(round(bottom * H)))
+        c0, c1 = int(round(left * W)), max(int(round(left * W)) + 1, int(round(right * W)))
+        images = images[:, :, r0:r1, c0:c1]
+        h, w = self.input_hw
+        if tuple(images.shape[2:]) != (h, w):
+            images = F.interpolate(images, size=(h, w), mode="bilinear", align_corners=False,
+                                   antialias=images.shape[2] > h or images.shape[3] > w)
         return (images - 0.5) / 0.25
 
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
+    def forward_parts(self, images: torch.Tensor) -> torch.Tensor:
+        """[B, 3, H, W] -> [B, 4]: the network's own outputs, (head-frame gaze, head pose) when
+        ``config.head_frame``, else (camera-frame gaze, head pose)."""
         return self.head(self.blocks(self.stem(self.preprocess(images))))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        out = self.forward_parts(images)
+        if not self.config.head_frame:
+            return out
+        return torch.cat([head_to_camera_gaze(out[:, :2], out[:, 2:]), out[:, 2:]], 1)
 
     def gaze(self, images: torch.Tensor) -> torch.Tensor:
         """[B, 3, H, W] -> [B, 2] gaze (pitch, yaw)."""
@@ -129,8 +176,9 @@ class GazeEstimator(nn.Module):
         if unknown:
             raise ToolkitError(f"{path}: unknown gaze estimator config field(s) {unknown}")
         raw = dict(raw)
-        if "channels" in raw:
-            raw["channels"] = tuple(raw["channels"])
+        for key in ("channels", "crop"):
+            if key in raw:
+                raw[key] = tuple(raw[key])
         try:
             model = cls(GazeEstimatorConfig(**raw))
         except (TypeError, ValueError) as e:
@@ -245,12 +293,18 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         y = labels[idx].float().to(device)
         if tc.augment:
             x = augment_batch(x, tc, g)
-        pred = model(x)
+        parts = model.forward_parts(x)
+        pred = parts if not model.config.head_frame else \
+            torch.cat([head_to_camera_gaze(parts[:, :2], parts[:, 2:]), parts[:, 2:]], 1)
         if tc.loss_space == "vectors":
             pv = torch.cat([pitchyaw_to_vector(pred[:, :2]), pitchyaw_to_vector(pred[:, 2:])], -1)
             yv = torch.cat([pitchyaw_to_vector(y[:, :2]), pitchyaw_to_vector(y[:, 2:])], -1)
             d = (pv - yv).abs()
             loss = d[:, :3].mean() + tc.head_weight * d[:, 3:].mean()
+            if model.config.head_frame:
+                # Supervise the head-frame gaze too: it is what the eyes show, whatever the view.
+                d_h = pitchyaw_to_vector(parts[:, :2]) - pitchyaw_to_vector(camera_to_head_gaze(y[:, :2], y[:, 2:]))
+                loss = loss + d_h.abs().mean()
         else:
             loss = ((pred - y).abs() * w).mean()
         opt.zero_grad(set_to_none=True)

@@ -131,25 +131,48 @@ def _load_codec(ctx: RunContext, device):
 
 def stage_estimator(ctx: RunContext) -> dict[str, str]:
     from train.gaussian_stage import load_split
-    from train.gaze_estimator import GazeEstimatorConfig, GazeEstimatorTrainConfig, train_gaze_estimator
+    from train.gaze_estimator import (
+        EYE_BAND,
+        GazeEstimatorConfig,
+        GazeEstimatorTrainConfig,
+        train_gaze_estimator,
+    )
 
     e = ctx.config.estimator
     res = ctx.config.data.res
+    to_u8 = lambda x: (x * 255).round().clamp(0, 255).to(torch.uint8)  # noqa: E731
+    labels = lambda d: torch.cat([d.gaze_cam, d.head_pose_cam], 1)  # noqa: E731
     tr = load_split(_split(ctx, "train"), "all", res)
     te = load_split(_split(ctx, "test"), "all", res)
-    labels = lambda d: torch.cat([d.gaze_cam, d.head_pose_cam], 1)  # noqa: E731
+    tr_images, tr_labels, val = to_u8(tr.image), labels(tr), (to_u8(te.image), labels(te))
+    del tr, te
+    crop = EYE_BAND if e.crop == "eye_band" else (0.0, 1.0, 0.0, 1.0)
     outs, summary = {}, {}
-    for name, path_given, seed in (("loss", e.loss_path, 1), ("eval", e.eval_path, 2)):
+    for k, (name, path_given, seed) in enumerate((("loss", e.loss_path, 1), ("eval", e.eval_path, 2))):
         if path_given:
             continue
+        images, targets = tr_images, tr_labels
+        if e.synthetic_subjects > 0 and ctx.config.data.root:
+            ctx.log("[estimator] synthetic_subjects ignored: data.root is an external dataset")
+        elif e.synthetic_subjects > 0:
+            from train.data.generate import estimator_images
+
+            # Disjoint seed ranges: far above the data stage's subject seeds (seed * 100003 + index) and
+            # different for the two estimators, which must stay independent.
+            base = ctx.config.data.seed * 100003 + 50_000 + 10_000 * k
+            extra, extra_labels = estimator_images(range(base, base + e.synthetic_subjects), n_frames=e.synthetic_frames,
+                                                   cameras_per_frame=e.cameras_per_frame, res=res, seed=seed,
+                                                   log=ctx.log)
+            images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
         model, hist = train_gaze_estimator(
-            tr.image, labels(tr), GazeEstimatorConfig(input_size=e.input_size),
+            images, targets, GazeEstimatorConfig(input_size=e.input_size, crop=crop),
             GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=ctx.config.seed * 10 + seed,
                                      log_every=max(1, e.steps)),
-            val=(te.image, labels(te)))
-        model.save(ctx.run_dir / f"estimator_{name}.safetensors", {"role": name})
-        summary[name] = hist[-1] if hist else {}
-        ctx.log(f"[estimator] {name}: held-out gaze error {summary[name].get('val_gaze_deg', float('nan')):.2f} deg")
+            val=val)
+        model.save(ctx.run_dir / f"estimator_{name}.safetensors", {"role": name, "train_images": len(images)})
+        summary[name] = dict(hist[-1] if hist else {}, train_images=len(images))
+        ctx.log(f"[estimator] {name}: {len(images)} training images, held-out gaze error "
+                f"{summary[name].get('val_gaze_deg', float('nan')):.2f} deg")
         outs[name] = f"estimator_{name}.safetensors"
     atomic_write_json(ctx.run_dir / "estimators.json", summary)
     outs["summary"] = "estimators.json"

@@ -69,7 +69,19 @@ class EstimatorStageConfig:
     """an independently trained estimator for evaluation; empty: train one (another seed)."""
     steps: int = 600
     input_size: int = 64
+    """width the estimator's input region is resized to."""
     batch: int = 32
+    crop: Literal["face", "eye_band"] = "eye_band"
+    """region the estimators read: the whole normalized face crop or the band holding both eyes
+    (``train.gaze_estimator.EYE_BAND``, which spends every input pixel where the gaze shows)."""
+    synthetic_subjects: int = 0
+    """extra procedural subjects rendered for each estimator's training only (synthetic runs; ignored with
+    data.root): many gazes, few cameras each. Seeds are disjoint from the data stage's subjects and
+    between the two estimators, so neither sees a held-out subject or the other's training subjects."""
+    synthetic_frames: int = 60
+    """random (gaze, pose, expression) frames per extra subject."""
+    cameras_per_frame: int = 2
+    """rig cameras drawn at random per extra frame."""
 
 
 @dataclass
@@ -153,7 +165,7 @@ def tiny_preset() -> RunConfig:
         data=DataConfig(subjects=2, frames=1, res=64, test_fraction=0.5),
         geometry=GeometryStageConfig(steps=20, extract_res=24, pretrain_steps=50, pool=20000, gaussians=800),
         codec=CodecStageConfig(steps=4, base_channels=8, batch=4),
-        estimator=EstimatorStageConfig(steps=4, input_size=32, batch=8),
+        estimator=EstimatorStageConfig(steps=4, input_size=32, batch=8, synthetic_subjects=1, synthetic_frames=2),
         gaussian=GaussianStageConfig(steps=4, batch=2, gaussians_hidden=16, ckpt_every=2, log_every=2),
         eval=EvalConfig(pairs_per_subject=2, sweep_frames=3),
     )

@@ -128,3 +128,25 @@ def test_angular_error():
     x = torch.tensor([[0.3, -0.2]], requires_grad=True)
     angular_error_deg(x, x.detach()).sum().backward()
     assert torch.isfinite(x.grad).all()
+
+
+def test_normalized_head_rotation_has_no_roll_and_points_the_face():
+    from toolkit.rotations import normalized_head_rotation, pitchyaw_to_vector
+
+    torch.manual_seed(0)
+    hp = (torch.rand(64, 2, dtype=torch.float64) * 2 - 1) * torch.tensor([1.4, 3.1], dtype=torch.float64)
+    R = normalized_head_rotation(hp)
+    eye = torch.eye(3, dtype=torch.float64).expand(64, 3, 3)
+    torch.testing.assert_close(R.transpose(-1, -2) @ R, eye)
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(64, dtype=torch.float64))
+    forward = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    torch.testing.assert_close(R @ forward, pitchyaw_to_vector(hp))
+    assert float(R[:, 1, 0].abs().max()) < 1e-12  # head x axis has no camera-y component: no roll
+    front = hp[:, 1].abs() < math.pi / 2
+    assert bool((R[front, 0, 0] > 0).all())  # a face towards the camera keeps the camera's x sense
+    torch.testing.assert_close(normalized_head_rotation(torch.zeros(2, dtype=torch.float64)), eye[0])
+    # Degenerate: the face points along the camera's y axis; finite values and gradients.
+    pole = torch.tensor([[math.pi / 2, 0.3], [-math.pi / 2, -1.0]], requires_grad=True)
+    Rp = normalized_head_rotation(pole)
+    Rp.sum().backward()
+    assert torch.isfinite(Rp).all() and torch.isfinite(pole.grad).all()

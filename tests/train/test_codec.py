@@ -185,3 +185,30 @@ def test_sd_vae_wrapper_scaling_and_range(tmp_path, monkeypatch):
     assert codec.vae.seen.min() == pytest.approx(0.5)  # the VAE saw [-1, 1]
     assert z.shape == (1, 4, 2, 2) and torch.allclose(z, torch.full_like(z, 0.5 * SD_VAE_SCALING))
     torch.testing.assert_close(codec.decode(z), img)
+
+
+def test_sd_vae_real_diffusers_folder_round_trip(tmp_path):
+    """The real diffusers AutoencoderKL, SD's architecture (4 blocks: 8x down, 4 latent channels) at tiny
+    widths, saved with save_pretrained and read back through SDVAECodec: the exact code path a user's
+    local ``vae/`` folder takes (no hub)."""
+    diffusers = pytest.importorskip("diffusers")
+    torch.manual_seed(0)
+    vae = diffusers.AutoencoderKL(
+        in_channels=3, out_channels=3, latent_channels=4, layers_per_block=1, norm_num_groups=4,
+        down_block_types=("DownEncoderBlock2D",) * 4, up_block_types=("UpDecoderBlock2D",) * 4,
+        block_out_channels=(4, 8, 8, 8), scaling_factor=SD_VAE_SCALING)
+    vae.save_pretrained(tmp_path / "vae")
+    codec = load_codec(tmp_path / "vae")
+    assert isinstance(codec, SDVAECodec) and codec.scaling == pytest.approx(SD_VAE_SCALING)
+    assert not any(p.requires_grad for p in codec.parameters())
+    img = torch.rand(2, 3, 32, 32)
+    z = codec.encode(img)
+    assert z.shape == (2, 4, 4, 4) and torch.isfinite(z).all()
+    with torch.no_grad():
+        mean = vae.encode(img * 2 - 1).latent_dist.mean
+    torch.testing.assert_close(z, mean * SD_VAE_SCALING)
+    out = codec.decode(z)
+    assert out.shape == img.shape and torch.isfinite(out).all()
+    (tmp_path / "vae" / "diffusion_pytorch_model.safetensors").write_bytes(b"truncated")
+    with pytest.raises(ToolkitError, match="could not load"):
+        SDVAECodec(tmp_path / "vae")

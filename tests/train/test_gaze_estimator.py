@@ -9,8 +9,10 @@ import torch
 
 from toolkit.errors import ToolkitError
 from toolkit.io import save_checkpoint
+from toolkit.rotations import angular_error_deg
 from train.drawn_faces import draw_faces, drawn_face_dataset
 from train.gaze_estimator import (
+    EYE_BAND,
     GazeEstimator,
     GazeEstimatorConfig,
     GazeEstimatorTrainConfig,
@@ -32,6 +34,26 @@ def test_forward_shapes_any_input_size_and_gradient_to_the_image():
     assert model.gaze(torch.rand(2, 3, 32, 32)).shape == (2, 2)
     with pytest.raises(ToolkitError, match="images"):
         model(torch.rand(2, 1, 32, 32))
+
+
+def test_crop_sees_only_the_band_and_round_trips(tmp_path):
+    cfg = GazeEstimatorConfig(input_size=32, channels=(8, 16), hidden=16, crop=EYE_BAND)
+    model = GazeEstimator(cfg).eval()
+    top, bottom, left, right = EYE_BAND
+    assert model.input_hw == (round(32 * (bottom - top) / (right - left)), 32)
+    x = torch.rand(2, 3, 128, 128, requires_grad=True)
+    model(x).sum().backward()
+    touched = x.grad.abs().sum((0, 1)) > 0
+    rows, cols = touched.any(1).nonzero().squeeze(1), touched.any(0).nonzero().squeeze(1)
+    # Gradient reaches exactly the cropped rows/columns (bilinear resizing stays inside the band).
+    assert int(rows.min()) == round(top * 128) and int(rows.max()) == round(bottom * 128) - 1
+    assert int(cols.min()) == round(left * 128) and int(cols.max()) == round(right * 128) - 1
+    model.save(tmp_path / "band.safetensors")
+    back = GazeEstimator.load(tmp_path / "band.safetensors")
+    assert back.config == cfg and torch.equal(back(x.detach()), model(x.detach()))
+    for bad in ((0.5, 0.4, 0.0, 1.0), (0.0, 1.0, -0.1, 1.0), (0.0, 1.2, 0.0, 1.0)):
+        with pytest.raises(ToolkitError, match="crop"):
+            GazeEstimator(GazeEstimatorConfig(input_size=32, channels=(8,), crop=bad))
 
 
 def test_checkpoint_round_trip_is_exact_and_frozen(tmp_path):
@@ -120,3 +142,21 @@ def test_trainer_rejects_bad_data():
     assert math.isfinite(hist[-1]["loss"])
     with pytest.raises(ToolkitError, match="steps"):
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 4), TINY, GazeEstimatorTrainConfig(steps=0))
+
+
+def test_head_frame_output_is_composed_exactly():
+    from train.gaze_estimator import camera_to_head_gaze, head_to_camera_gaze
+
+    torch.manual_seed(3)
+    gh = (torch.rand(32, 2) * 2 - 1) * 0.8
+    hp = (torch.rand(32, 2) * 2 - 1) * 1.2
+    back = camera_to_head_gaze(head_to_camera_gaze(gh, hp), hp)
+    assert float(angular_error_deg(back, gh).max()) < 1e-2
+    torch.testing.assert_close(head_to_camera_gaze(gh, torch.zeros_like(hp)), gh, atol=1e-5, rtol=0)
+    model = GazeEstimator(TINY).eval()
+    x = torch.rand(4, 3, 32, 32)
+    parts, out = model.forward_parts(x), model(x)
+    torch.testing.assert_close(out[:, 2:], parts[:, 2:])
+    torch.testing.assert_close(out[:, :2], head_to_camera_gaze(parts[:, :2], parts[:, 2:]))
+    direct = GazeEstimator(GazeEstimatorConfig(input_size=32, channels=(8, 16, 16), hidden=32, head_frame=False)).eval()
+    assert torch.equal(direct(x), direct.forward_parts(x))

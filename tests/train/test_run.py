@@ -33,6 +33,14 @@ def test_all_stages_write_their_outputs(tiny_run):
     report = (tiny_run / "report.md").read_text()
     assert "| Method | Gaze" in report and "n/a" in report
     assert "estimator's own held-out error" in report
+    # Each estimator trained on the run's training split plus its own extra synthetic subject.
+    est = json.loads((tiny_run / "estimators.json").read_text())
+    n_split = 18  # tiny preset: one training subject x one frame x 18 rig cameras
+    extra = 1 * 2 * 2  # synthetic_subjects x synthetic_frames x cameras_per_frame
+    assert est["loss"]["train_images"] == est["eval"]["train_images"] == n_split + extra
+    from train.gaze_estimator import EYE_BAND, GazeEstimator
+
+    assert GazeEstimator.load(tiny_run / "estimator_eval.safetensors").config.crop == EYE_BAND
 
 
 def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, capsys):

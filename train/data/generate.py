@@ -158,3 +158,44 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
 
     atomic_write_json(out_dir / "split.json", split)
     return paths
+
+
+def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2, res: int = 128,
+                     seed: int = 0, log=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Training images for a gaze estimator: many gazes per subject, few rig cameras per gaze.
+
+    The subject files of :func:`synth_dataset` show each (gaze, pose, expression) frame to all 18 cameras,
+    which is what multi-view fitting wants but starves an estimator of distinct eye states: it then
+    learns to recognise the frame instead of reading the eyes. Here every subject gets ``n_frames``
+    random frames, each seen by ``cameras_per_frame`` distinct rig cameras drawn at random.
+
+    Args:
+        subject_seeds: seeds for :meth:`SubjectParams.sample` (keep them disjoint from any evaluation subjects).
+    Returns:
+        images [N, 3, res, res] uint8 RGB, labels [N, 4] float32 radians: camera-frame gaze (pitch, yaw)
+        then camera-frame head pose (pitch, yaw), N = len(subject_seeds) · n_frames · cameras_per_frame.
+    """
+    rig = eth_xgaze_rig(radius=RIG_RADIUS)
+    if not 1 <= cameras_per_frame <= len(rig):
+        raise ToolkitError(f"cameras_per_frame must be in [1, {len(rig)}], got {cameras_per_frame}")
+    if n_frames < 1:
+        raise ToolkitError(f"n_frames must be >= 1, got {n_frames}")
+    images, labels = [], []
+    t0 = time.perf_counter()
+    with _torch_threads(1):
+        for k, s in enumerate(subject_seeds):
+            subject = build_subject(SubjectParams.sample(int(s)))
+            fr = sample_frames(int(s) + seed * 7919, n_frames)
+            rng = np.random.default_rng([int(s), seed, 23])
+            for i in range(n_frames):
+                sel = rng.choice(len(rig), cameras_per_frame, replace=False)
+                cams = frame_cameras(subject, fr["pose"][i], [rig[j] for j in sel], res)
+                out = render_views(subject, fr["gaze"][i], fr["pose"][i], fr["expression"][i], cams,
+                                   light_dirs=fr["light"][i])
+                images.append(np.clip(np.rint(out["rgb"] * 255), 0, 255).astype(np.uint8))
+                labels.append(np.concatenate([out["pitchyaw_cam"], out["face_head_pose"]], 1))
+            if log is not None:
+                done = (k + 1) * n_frames * cameras_per_frame
+                log(f"estimator images: subject {k + 1}/{len(subject_seeds)}, {done / (time.perf_counter() - t0):.0f} images/s")
+    img = torch.from_numpy(np.concatenate(images)).permute(0, 3, 1, 2).contiguous()
+    return img, torch.from_numpy(np.concatenate(labels).astype(np.float32))

@@ -11,7 +11,7 @@ import torch
 
 from tests.train.data.conftest import needs_gl
 from toolkit.errors import ToolkitError
-from toolkit.rotations import so3_exp, vector_to_pitchyaw
+from toolkit.rotations import angular_error_deg, so3_exp, vector_to_pitchyaw
 from train.data import synthetic as syn
 
 
@@ -95,6 +95,13 @@ def test_file_labels_are_consistent(subject_file, subject):
         g_head = syn._pitchyaw_vec(r["pitchyaw_head"][i])
         g_cam = r["w2c_Rmat"][i] @ R @ g_head
         np.testing.assert_allclose(vector_to_pitchyaw(torch.from_numpy(g_cam)).numpy(), r["pitchyaw_cam"][i], atol=1e-5)
+    # The normalized camera leaves no head roll: the camera-frame gaze is the head-frame gaze turned by the
+    # rotation that the camera-frame head pose alone fixes (what the gaze estimator composes).
+    from train.gaze_estimator import head_to_camera_gaze
+
+    composed = head_to_camera_gaze(torch.from_numpy(r["pitchyaw_head"]).double(),
+                                   torch.from_numpy(r["face_head_pose"]).double())
+    assert float(angular_error_deg(composed, torch.from_numpy(r["pitchyaw_cam"]).double()).max()) < 1e-3
     assert (np.abs(np.degrees(r["pitchyaw_head"])) <= 40 + 1e-4).all()
     ident, expr = syn.params_from_code(r["latent_codes"])
     np.testing.assert_allclose(expr, r["expression_params"], atol=1e-5)
@@ -250,3 +257,20 @@ def test_bad_parameters_are_rejected(subject):
         syn.render_views(subject, [0.0, 0.0], np.zeros(6), [0, 0, 0, 0], [])
     with pytest.raises(ToolkitError, match="scale"):
         syn.render_views(subject, [0.0, 0.0], np.zeros(6), [0, 0, 0, 0], [cam], scale=0.0)
+
+
+@needs_gl
+def test_estimator_images_many_gazes_few_cameras_deterministic():
+    from train.data.generate import estimator_images
+
+    imgs, labels = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1)
+    assert imgs.shape == (12, 3, 32, 32) and imgs.dtype == torch.uint8 and labels.shape == (12, 4)
+    assert torch.isfinite(labels).all() and float(labels.abs().max()) <= math.pi
+    # Each frame's two cameras see one gaze from two directions: different camera-frame labels.
+    assert not torch.allclose(labels[0], labels[1])
+    again, labels2 = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1)
+    assert torch.equal(imgs, again) and torch.equal(labels, labels2)
+    other, _ = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=2)
+    assert not torch.equal(imgs, other)
+    with pytest.raises(ToolkitError, match="cameras_per_frame"):
+        estimator_images([3], n_frames=1, cameras_per_frame=19)
