@@ -203,25 +203,14 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
 def head_rotation(pitch_yaw_roll: torch.Tensor) -> torch.Tensor:
     """[B, 3] (pitch, yaw, roll) radians -> [B, 3, 3] head-to-camera rotation.
 
-    The face direction (head −z) is ``pitchyaw_to_vector(pitch, yaw)``; with roll 0 the head x axis is
-    ``normalize(e_y × z_head)`` (no camera-y component: the ETH-XGaze normalization's "down = forward ×
-    head_x"), and roll turns the head about its own z axis.
+    ``toolkit.rotations.normalized_head_rotation`` of (pitch, yaw) (the normalization's no-roll rule: the head
+    x axis has no camera-y component), then ``roll`` about the head's own z axis (the face direction).
     """
-    f = pitchyaw_to_vector(pitch_yaw_roll[:, :2])
-    z = -f
-    ey = torch.tensor([0.0, 1.0, 0.0], dtype=z.dtype).expand_as(z)
-    x = torch.linalg.cross(ey, z)
-    n = x.norm(dim=-1, keepdim=True)
-    # At pitch ±90° the face direction is ±y and "no camera-y component" leaves x free: take camera x
-    # (projected off z) so the rotation stays orthonormal.
-    ex = torch.tensor([1.0, 0.0, 0.0], dtype=z.dtype).expand_as(z)
-    fallback = ex - (ex * z).sum(-1, keepdim=True) * z
-    x = torch.where(n > 1e-6, x / n.clamp_min(1e-12), fallback / fallback.norm(dim=-1, keepdim=True).clamp_min(1e-12))
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z], -1)
+    from toolkit.rotations import normalized_head_rotation
+
     roll = torch.zeros_like(pitch_yaw_roll)
     roll[:, 2] = pitch_yaw_roll[:, 2]
-    return R @ so3_exp(roll)
+    return normalized_head_rotation(pitch_yaw_roll[:, :2]) @ so3_exp(roll)
 
 
 class LabelsCsvSource:
