@@ -2,11 +2,25 @@
 
     python -m apps.redirect RUN_DIR DATASET OUT.h5 [--gazes grid:5x5:30 | random:200:35 | file:gazes.csv]
                             [--rows N] [--batch 8] [--seed 0]
+    python -m apps.redirect RUN_DIR crops/labels.csv OUT.h5 [--focal F] [--distance D] [--fit-steps N]
 
-For every input row (camera, head pose, codes from the HDF5 dataset, see docs/data.md) and every target
-gaze (head frame, degrees in the spec), the trained model renders the same person looking there. The
-output is one HDF5 file in the same schema, with the target gaze as the label (``pitchyaw_head``, and
-``pitchyaw_cam`` in the camera frame) plus ``source_row`` and ``source_file``.
+For every input row and every target gaze (head frame, degrees in the spec), the trained model renders the
+same person looking there. The output is one HDF5 file in the schema of docs/data.md, with the target gaze
+as the label (``pitchyaw_head``, and ``pitchyaw_cam`` in the camera frame) plus ``source_row`` (the input
+row) and the file attribute ``source_file``.
+
+Inputs:
+
+- an HDF5 subject file (docs/data.md): camera, head pose and codes come from the file;
+- a folder of normalized face crops (ETH-XGaze style) with a labels CSV, one row per image. Columns
+  (details and frames in ``apps/labels_csv.py`` and docs/redirect.md): ``image`` (path relative to the CSV),
+  ``head_pitch``, ``head_yaw`` (degrees, the face direction in the normalized camera) are required;
+  ``head_roll``, ``gaze_pitch``/``gaze_yaw`` (the image's own gaze, camera frame, degrees), ``focal``
+  (pixels), ``distance`` (metres), ``mask`` (head mask image) and ``code`` (``.npy`` of the 144-d shape code)
+  are optional. Rows without a code get one by test-time fitting on the image (``--fit-steps``; needs the
+  gaze columns). The whole CSV and every file it names are checked before any rendering; each problem is
+  one error naming the line and column. Output landmarks, mesh and eye masks of CSV rows come from the
+  run's geometry and the model's splatted silhouettes (approximate: the crops carry none).
 
 Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun skips finished chunks,
 and the final file is assembled (atomically) when all chunks exist. Shardable: under ``torchrun`` each
@@ -68,9 +82,10 @@ def _chunk_path(parts: Path, k: int) -> Path:
     return parts / f"part_{k:05d}.npz"
 
 
-def render_chunk(model, renderer, ds, rows: list[int], gazes: np.ndarray, res: int, steps: int, device) -> dict:
-    """Render every (row, gaze) pair of ``rows`` -> arrays of the output schema."""
-    items = [ds[r] for r in rows]
+def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.ndarray, res: int, steps: int,
+                 device) -> dict:
+    """Render every (row, gaze) pair of the input ``items`` (``GazeDataset`` items or
+    ``LabelsCsvSource.items``; ``rows`` their input row numbers) -> arrays of the output schema."""
     out: dict[str, list] = {k: [] for k in ("face_patch", "head_mask", "pitchyaw_head", "pitchyaw_cam", "pose",
                                             "w2c_Rmat", "w2c_Tvec", "inmat", "latent_codes", "face_head_pose",
                                             "cam_index", "frame_index", "source_row", "left_eye_mask",
@@ -139,32 +154,76 @@ def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
     return int(cat["face_patch"].shape[0])
 
 
+def is_labels_csv(path: str | Path) -> bool:
+    p = Path(path)
+    return p.suffix.lower() == ".csv" or (p.is_dir() and (p / "labels.csv").is_file())
+
+
+def open_source(ctx, args):
+    """The input rows: a ``GazeDataset`` over an HDF5 file, or a validated ``LabelsCsvSource``."""
+    cfg = ctx.config
+    if not is_labels_csv(args.dataset):
+        from train.data.dataset import GazeDataset
+
+        return GazeDataset([args.dataset], res=cfg.data.res, with_mesh=True)
+    from apps.labels_csv import LabelsCsvSource
+    from geometry.mesh_stats import load_mesh
+    from toolkit.scene import GaussianScene
+    from train.data.generate import NORM_CROP, NORM_DISTANCE
+
+    landmarks = GaussianScene.load(ctx.path("geometry", "scene")).metadata.get("landmarks")
+    if landmarks is None:
+        raise ToolkitError(f"{ctx.path('geometry', 'scene')}: no landmarks in its metadata (re-run stage geometry)")
+    verts, _ = load_mesh(ctx.path("geometry", "mesh"))
+    return LabelsCsvSource(args.dataset, cfg.data.res, torch.tensor(landmarks, dtype=torch.float32), verts,
+                           focal=args.focal, distance=args.distance, default_distance=NORM_DISTANCE,
+                           default_crop=NORM_CROP)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m apps.redirect", description=__doc__.split("\n")[0])
     ap.add_argument("run_dir", help="a trained run directory (train/run.py)")
-    ap.add_argument("dataset", help="an HDF5 subject file (docs/data.md)")
+    ap.add_argument("dataset", help="an HDF5 subject file (docs/data.md), or a labels CSV of face crops "
+                                    "(or the folder holding labels.csv; columns in docs/redirect.md)")
     ap.add_argument("out", help="output HDF5 file")
     ap.add_argument("--gazes", default="grid:3x3:25", help=f"target gazes: {GRID_EXAMPLE}")
     ap.add_argument("--rows", type=int, default=0, help="use only the first N input rows (0 = all)")
     ap.add_argument("--batch", type=int, default=4, help="input rows per chunk")
     ap.add_argument("--steps", type=int, default=0, help="DDIM steps (0 = the run's setting)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--focal", type=float, default=None,
+                    help="CSV input: focal length (pixels of the images) for rows without one "
+                         "(default: the project's normalized camera, size x 0.6 / 0.26)")
+    ap.add_argument("--distance", type=float, default=None,
+                    help="CSV input: camera-to-face distance (metres) for rows without one (default 0.6)")
+    ap.add_argument("--fit-steps", type=int, default=-1,
+                    help="CSV input: test-time fitting steps of the shape code on rows without a code "
+                         "(default: the run's eval.tta_steps, or 50 when that is 0)")
+    ap.add_argument("--fit-lr", type=float, default=1e-2, help="CSV input: learning rate of the code fitting")
     args = ap.parse_args(argv)
-    from train.data.dataset import GazeDataset
     from train.distributed import barrier, cleanup, init_distributed
     from train.run import load_trained, open_run
 
     run_dir = Path(args.run_dir)
     if args.batch < 1:
         raise ToolkitError(f"--batch must be >= 1, got {args.batch}")
+    if not args.fit_lr > 0:
+        raise ToolkitError(f"--fit-lr must be > 0, got {args.fit_lr}")
     gazes = parse_gazes(args.gazes, args.seed)
     ctx = open_run(run_dir)
     cfg = ctx.config
+    src = open_source(ctx, args)  # validates the whole input before any model is loaded
+    fit_steps = args.fit_steps if args.fit_steps >= 0 else (cfg.eval.tta_steps or 50)
     info = init_distributed("cpu" if not torch.cuda.is_available() else "auto")
     device = torch.device(info.device)
     model, renderer = load_trained(ctx, device)
-    ds = GazeDataset([args.dataset], res=cfg.data.res, with_mesh=True)
-    n_rows = len(ds) if args.rows <= 0 else min(args.rows, len(ds))
+
+    def items(rows: list[int]) -> list[dict]:
+        if hasattr(src, "items"):
+            return src.items(rows, model, renderer, device, fit_steps=fit_steps, fit_lr=args.fit_lr)
+        return [src[r] for r in rows]
+
+    n_rows = len(src) if args.rows <= 0 else min(args.rows, len(src))
     chunks = [list(range(i, min(i + args.batch, n_rows))) for i in range(0, n_rows, args.batch)]
     out = Path(args.out)
     parts = out.with_suffix(out.suffix + ".parts")
@@ -178,7 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     steps = args.steps or cfg.gaussian.sampling_steps
     for k in tqdm(todo, desc=f"redirect (rank {info.rank})", disable=not info.is_main, initial=len(mine) - len(todo),
                   total=len(mine)):
-        arrays = render_chunk(model, renderer, ds, chunks[k], gazes, cfg.data.res, steps, device)
+        arrays = render_chunk(model, renderer, items(chunks[k]), chunks[k], gazes, cfg.data.res, steps, device)
         with atomic_write(_chunk_path(parts, k), "wb") as f:
             np.savez(f, **arrays)
     barrier(info)

@@ -1,0 +1,329 @@
+"""Input of ``apps.redirect`` from a folder of normalized face crops with a labels CSV (see docs/redirect.md).
+
+One row per image; columns (header names exact, any order; an empty optional cell = not given):
+
+=============================  ========  =====================================================================
+column                         required  meaning
+=============================  ========  =====================================================================
+``image``                      yes       image path, relative to the CSV's folder (or absolute); square, all
+                                         images the same size, any format OpenCV reads
+``head_pitch``, ``head_yaw``   yes       head pose, degrees: (pitch, yaw) of the face direction (head −z) in the
+                                         *normalized* camera's frame, the convention of ``face_head_pose``
+                                         (pitch in ±90, yaw in ±180)
+``head_roll``                  no        roll about the face direction, degrees (default 0: the ETH-XGaze
+                                         normalization removes roll by construction)
+``gaze_pitch``, ``gaze_yaw``   no*       the image's own gaze, degrees, normalized camera frame (ETH-XGaze
+                                         labels; pitch in ±90, yaw in ±180); *needed on rows without ``code``
+``focal``                      no        focal length in pixels of this image (default ``--focal``, else the
+                                         project's normalized camera: size · NORM_DISTANCE / NORM_CROP)
+``distance``                   no        camera-to-face-centre distance in metres (default ``--distance``,
+                                         else NORM_DISTANCE = 0.6)
+``mask``                       no        head mask image (non-zero = head), same size as the image; default:
+                                         the trained model's splatted head silhouette
+``code``                       no        ``.npy`` file with the 144-d shape code (identity 80 + expression 64);
+                                         default: fitted on the image (``train.evaluate.test_time_fit``)
+=============================  ========  =====================================================================
+
+Frames: the head-to-camera rotation is rebuilt from (pitch, yaw, roll) with the normalization's no-roll
+rule (the head x axis has no camera-y component), so the synthetic dataset's own rows round-trip exactly;
+the camera looks along +z at the face centre (the mean of iBUG landmarks 36, 39, 42, 45, 48, 54 of the
+run's geometry) from ``distance`` metres, principal point at the image centre. The world frame is the
+head frame (``pose`` = 0, the centre of the training poses) and ``w2c`` carries the whole transform.
+
+Everything is validated before any rendering: each problem is one :class:`toolkit.ToolkitError` naming
+the CSV line and column (or the image file) and what was expected.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from toolkit.errors import ToolkitError
+from toolkit.rotations import pitchyaw_to_vector, so3_exp
+
+REQUIRED_COLUMNS = ("image", "head_pitch", "head_yaw")
+OPTIONAL_COLUMNS = ("head_roll", "gaze_pitch", "gaze_yaw", "focal", "distance", "mask", "code")
+CODE_DIM = 144
+FACE_CENTER_LANDMARKS = [36, 39, 42, 45, 48, 54]
+
+
+@dataclass
+class LabelRow:
+    """One validated CSV row (angles in radians, paths resolved)."""
+
+    line: int
+    image: Path
+    head: tuple[float, float, float]  # pitch, yaw, roll
+    gaze: tuple[float, float] | None  # camera frame
+    focal: float  # pixels of the stored image
+    distance: float  # metres
+    mask: Path | None
+    code: np.ndarray | None  # [144]
+
+
+def _read_image(path: Path, what: str, *, gray: bool = False) -> np.ndarray:
+    import cv2
+
+    if not path.is_file():
+        raise ToolkitError(f"{what} {path}: no such file")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
+    if img is None or img.size == 0:
+        raise ToolkitError(f"{what} {path}: not a readable image")
+    return img
+
+
+def _image_size(path: Path, what: str) -> tuple[int, int]:
+    img = _read_image(path, what, gray=True)
+    return int(img.shape[0]), int(img.shape[1])
+
+
+def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, distance: float | None = None,
+                default_distance: float = 0.6, default_crop: float = 0.26) -> tuple[list[LabelRow], int]:
+    """Validate a labels CSV and every file it names -> (rows, image size S).
+
+    ``focal``/``distance`` are the defaults for rows that leave those cells empty; without them the
+    project's normalized camera (``default_distance``, ``default_crop``) decides the focal length.
+    """
+    p = Path(csv_path)
+    if p.is_dir():
+        p = p / "labels.csv"
+    if not p.is_file():
+        raise ToolkitError(f"{p}: no such labels CSV (expected columns {', '.join(REQUIRED_COLUMNS)}, ...)")
+    for name, v in (("--focal", focal), ("--distance", distance)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ToolkitError(f"{name} must be a positive number, got {v}")
+    try:
+        with open(p, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            header = [h.strip() for h in (reader.fieldnames or [])]
+            raw = [(reader.line_num, r) for r in reader]
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise ToolkitError(f"{p}: not a readable CSV file ({e})") from None
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing:
+        raise ToolkitError(f"{p}: missing column(s) {missing}; the header has {header}")
+    unknown = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
+    if unknown:
+        raise ToolkitError(f"{p}: unknown column(s) {unknown}; columns are {list(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)}")
+    if ("gaze_pitch" in header) != ("gaze_yaw" in header):
+        raise ToolkitError(f"{p}: columns gaze_pitch and gaze_yaw go together; only one is present")
+    if not raw:
+        raise ToolkitError(f"{p}: no data rows")
+    base = p.parent
+    rows: list[LabelRow] = []
+    size: tuple[int, int] | None = None
+    for line, r in raw:
+        r = {(k or "").strip(): (v or "").strip() if isinstance(v, str) else "" for k, v in r.items()}
+        where = f"{p} line {line}"
+
+        def num(col: str, *, required: bool = False, lo: float = -math.inf, hi: float = math.inf,
+                positive: bool = False, where=where, r=r) -> float | None:
+            s = r.get(col, "")
+            if s == "":
+                if required:
+                    raise ToolkitError(f"{where}, column '{col}': empty; expected a number")
+                return None
+            try:
+                v = float(s)
+            except ValueError:
+                raise ToolkitError(f"{where}, column '{col}': expected a number, got {s!r}") from None
+            if not math.isfinite(v):
+                raise ToolkitError(f"{where}, column '{col}': expected a finite number, got {s!r}")
+            if positive and v <= 0:
+                raise ToolkitError(f"{where}, column '{col}': expected a positive number, got {s!r}")
+            if not lo <= v <= hi:
+                raise ToolkitError(f"{where}, column '{col}': expected degrees in [{lo:g}, {hi:g}], got {s!r}")
+            return v
+
+        def path(col: str, where=where, r=r) -> Path | None:
+            s = r.get(col, "")
+            if s == "":
+                return None
+            q = Path(s)
+            return q if q.is_absolute() else base / q
+
+        img_path = path("image")
+        if img_path is None:
+            raise ToolkitError(f"{where}, column 'image': empty; expected an image path")
+        hw = _image_size(img_path, f"{where}, column 'image':")
+        if hw[0] != hw[1]:
+            raise ToolkitError(f"{where}, column 'image': {img_path} is {hw[1]}x{hw[0]} (width x height); "
+                               "expected a square crop")
+        if size is None:
+            size = hw
+        elif hw != size:
+            raise ToolkitError(f"{where}, column 'image': {img_path} is {hw[1]}x{hw[0]}; the first image is "
+                               f"{size[1]}x{size[0]} (all images must have the same size)")
+        # Pitch is an asin (±90°); yaw an atan2 (±180°: extreme ETH-XGaze cameras see |yaw| > 90°).
+        head = tuple(math.radians(num(c, required=c != "head_roll", lo=-lim, hi=lim) or 0.0)
+                     for c, lim in (("head_pitch", 90), ("head_yaw", 180), ("head_roll", 180)))
+        gp, gy = num("gaze_pitch", lo=-90, hi=90), num("gaze_yaw", lo=-180, hi=180)
+        if (gp is None) != (gy is None):
+            raise ToolkitError(f"{where}: gaze_pitch and gaze_yaw must both be given or both be empty")
+        gaze = None if gp is None else (math.radians(gp), math.radians(gy))
+        f = num("focal", positive=True)
+        d = num("distance", positive=True)
+        d = d if d is not None else (distance if distance is not None else default_distance)
+        if f is None:
+            f = focal if focal is not None else size[0] * default_distance / default_crop
+        mask_path = path("mask")
+        if mask_path is not None:
+            mhw = _image_size(mask_path, f"{where}, column 'mask':")
+            if mhw != hw:
+                raise ToolkitError(f"{where}, column 'mask': {mask_path} is {mhw[1]}x{mhw[0]}; expected the image's "
+                                   f"size {hw[1]}x{hw[0]}")
+        code_path, code = path("code"), None
+        if code_path is not None:
+            if not code_path.is_file():
+                raise ToolkitError(f"{where}, column 'code': {code_path}: no such file")
+            try:
+                code = np.load(code_path, allow_pickle=False)
+            except (OSError, ValueError) as e:
+                raise ToolkitError(f"{where}, column 'code': {code_path}: not a .npy array ({e})") from None
+            code = np.asarray(code, np.float32).reshape(-1) if np.asarray(code).size == CODE_DIM else None
+            if code is None:
+                raise ToolkitError(f"{where}, column 'code': {code_path}: expected {CODE_DIM} numbers (identity 80 + "
+                                   "expression 64)")
+            if not np.isfinite(code).all():
+                raise ToolkitError(f"{where}, column 'code': {code_path}: contains NaN or inf")
+        if code is None and gaze is None:
+            raise ToolkitError(f"{where}: no 'code' given, so the code is fitted on the image, which needs the "
+                               "image's own gaze: fill gaze_pitch and gaze_yaw (or give a code)")
+        rows.append(LabelRow(line, img_path, head, gaze, float(f), float(d), mask_path, code))
+    return rows, size[0]
+
+
+def head_rotation(pitch_yaw_roll: torch.Tensor) -> torch.Tensor:
+    """[B, 3] (pitch, yaw, roll) radians -> [B, 3, 3] head-to-camera rotation.
+
+    ``toolkit.rotations.normalized_head_rotation`` of (pitch, yaw) (the normalization's no-roll rule: the head
+    x axis has no camera-y component), then ``roll`` about the head's own z axis (the face direction).
+    """
+    from toolkit.rotations import normalized_head_rotation
+
+    roll = torch.zeros_like(pitch_yaw_roll)
+    roll[:, 2] = pitch_yaw_roll[:, 2]
+    return normalized_head_rotation(pitch_yaw_roll[:, :2]) @ so3_exp(roll)
+
+
+class LabelsCsvSource:
+    """Rows of a labels CSV as dataset-like items for the redirect app (see the module docstring)."""
+
+    def __init__(self, csv_path, res: int, landmarks_head: torch.Tensor, mesh_head: torch.Tensor, *,
+                 focal: float | None = None, distance: float | None = None, default_distance: float = 0.6,
+                 default_crop: float = 0.26):
+        self.rows, self.size = read_labels(csv_path, focal=focal, distance=distance,
+                                           default_distance=default_distance, default_crop=default_crop)
+        self.path = Path(csv_path)
+        self.res = int(res)
+        self.landmarks_head = landmarks_head.float()  # [68, 3], the run's geometry (head frame)
+        self.mesh_head = mesh_head.float()  # [V, 3]
+        self.face_center = self.landmarks_head[FACE_CENTER_LANDMARKS].mean(0)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def _image(self, r: LabelRow) -> torch.Tensor:
+        from train.data.dataset import resize_image
+
+        bgr = _read_image(r.image, f"{self.path} line {r.line}, column 'image':")
+        rgb = resize_image(bgr[..., ::-1].astype(np.float32) / 255.0, self.res)
+        return torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
+
+    def _mask(self, r: LabelRow) -> torch.Tensor | None:
+        from train.data.dataset import resize_image
+
+        if r.mask is None:
+            return None
+        m = (_read_image(r.mask, f"{self.path} line {r.line}, column 'mask':", gray=True) > 0).astype(np.float32)
+        return torch.from_numpy((resize_image(m, self.res) > 0.5).astype(np.float32))[None]
+
+    def geometry(self, idx: list[int]) -> dict[str, torch.Tensor]:
+        """Camera, pose and labels of rows ``idx`` (no model needed)."""
+        rows = [self.rows[i] for i in idx]
+        pyr = torch.tensor([r.head for r in rows], dtype=torch.float32)
+        R = head_rotation(pyr)
+        d = torch.tensor([r.distance for r in rows], dtype=torch.float32)
+        t = torch.stack([torch.zeros_like(d), torch.zeros_like(d), d], -1) - R @ self.face_center
+        # World = head frame (pose 0, the centre of the poses the model was trained on); the camera carries
+        # the whole head-to-camera transform. The model's pose inputs are not invariant to how that transform
+        # is split between pose and camera; camera-frame head poses (often > 45°) lie outside the rig-world
+        # poses of training (yaw ±25°, pitch ±15°). See docs/redirect.md for the measured effect.
+        pose = torch.zeros(len(rows), 6)
+        V = torch.eye(4).repeat(len(rows), 1, 1)
+        V[:, :3, :3], V[:, :3, 3] = R, t
+        s = self.res / self.size
+        K = torch.zeros(len(rows), 3, 3)
+        K[:, 0, 0] = K[:, 1, 1] = torch.tensor([r.focal for r in rows]) * s
+        K[:, 0, 2] = K[:, 1, 2] = self.res / 2
+        K[:, 2, 2] = 1
+        gaze_cam = torch.tensor([r.gaze if r.gaze is not None else (0.0, 0.0) for r in rows], dtype=torch.float32)
+        # The image's gaze in the head frame: g_head = Rᵀ g_cam.
+        from toolkit.rotations import vector_to_pitchyaw
+
+        gaze_head = vector_to_pitchyaw(torch.einsum("bji,bj->bi", R, pitchyaw_to_vector(gaze_cam)))
+        return {"pose": pose, "R": R, "t": t, "K": K, "viewmat": V, "face_head_pose": pyr[:, :2],
+                "gaze_head": gaze_head}
+
+    def items(self, idx: list[int], model, renderer, device, *, fit_steps: int, fit_lr: float = 1e-2) -> list[dict]:
+        """Dataset-like dicts (the keys ``apps.redirect.render_chunk`` reads) for rows ``idx``.
+
+        Rows without a code get one by test-time fitting on their image (``fit_steps`` steps from the zero
+        code, the mean of the synthetic codes); rows without a mask use the model's splatted silhouette.
+        """
+        from train.evaluate import test_time_fit
+
+        geo = {k: v.to(device) for k, v in self.geometry(idx).items()}
+        rows = [self.rows[i] for i in idx]
+        res = self.res
+        code = torch.stack([torch.from_numpy(r.code) if r.code is not None else torch.zeros(CODE_DIM) for r in rows]).to(device)
+
+        def silhouettes(c):
+            with torch.no_grad():
+                maps = model(c, geo["pose"], geo["gaze_head"], geo["viewmat"], geo["K"], res, res,
+                             renders=("head", "face", "eyes"))
+            up = lambda a: torch.nn.functional.interpolate(a, size=(res, res), mode="bilinear",  # noqa: E731
+                                                           align_corners=False)
+            return up(maps["head_alpha"]), up(maps["face_alpha"]), up(maps["eyes_alpha"])
+
+        user_masks = [self._mask(r) for r in rows]
+        fit = [i for i, r in enumerate(rows) if r.code is None]
+        if fit and fit_steps > 0:
+            head_a, _, _ = silhouettes(code)
+            mask = torch.stack([m.to(device) if m is not None else (head_a[i] > 0.5).float()
+                                for i, m in enumerate(user_masks)])
+            image = torch.stack([self._image(r) for r in rows]).to(device)
+            sel = torch.tensor(fit, device=device)
+            batch = {"code": code[sel], "in_pose": geo["pose"][sel], "in_gaze_head": geo["gaze_head"][sel],
+                     "in_viewmat": geo["viewmat"][sel], "K": geo["K"][sel]}
+            with torch.enable_grad():
+                code[sel] = test_time_fit(model, renderer, batch, image[sel], mask[sel], res, fit_steps, lr=fit_lr)
+        head_a, face_a, eyes_a = silhouettes(code)
+        R, t = geo["R"].cpu(), geo["t"].cpu()
+        out = []
+        for i in range(len(rows)):
+            head = user_masks[i] if user_masks[i] is not None else (head_a[i].cpu() > 0.5).float()
+            # Visible eyeball: covered by the eye Gaussians where the face layer (lids, socket) is open.
+            eyes = ((eyes_a[i].cpu() > 0.5) & (face_a[i].cpu() < 0.5)).float()[0]
+            uvw = (self.landmarks_head @ R[i].T + t[i]) @ geo["K"][i].cpu().T
+            uv = uvw[:, :2] / uvw[:, 2:].clamp_min(1e-6)
+            # Split the eye pixels by the nearer projected eye (iBUG 36-41 = image-left eye, 42-47 = right).
+            jj, ii = torch.meshgrid(torch.arange(res) + 0.5, torch.arange(res) + 0.5, indexing="xy")
+            dl = (jj - uv[36:42, 0].mean()) ** 2 + (ii - uv[36:42, 1].mean()) ** 2
+            dr = (jj - uv[42:48, 0].mean()) ** 2 + (ii - uv[42:48, 1].mean()) ** 2
+            left = eyes * (dl <= dr)
+            out.append({
+                "latent_code": code[i].detach().cpu(), "pose": geo["pose"][i].cpu(), "viewmat": geo["viewmat"][i].cpu(),
+                "K": geo["K"][i].cpu(), "head_mask": head, "left_eye_mask": left[None], "right_eye_mask": (eyes - left)[None],
+                "face_head_pose": geo["face_head_pose"][i].cpu(), "cam_index": torch.tensor(0),
+                "frame_index": torch.tensor(idx[i]), "landmarks": uv,
+                "landmarks_3d": self.landmarks_head, "scale": torch.ones(1), "vertice": self.mesh_head,
+            })
+        return out

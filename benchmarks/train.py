@@ -1,0 +1,394 @@
+"""Training of the gaussian stage: step time broken down, and held-out quality against wall-clock time.
+
+Part 1, step breakdown: real ``GaussianTrainer.step`` calls (the stage's own step: main pass + weak
+supervision pass), with the parts timed in place by wrapping them (same inputs, same code path):
+
+- ``fields``: the face deformation field and the eye rotation field (+ the rigid head transform);
+- ``splat``: ``render.splat.rasterize`` calls;
+- ``renderer``: ``renderer.training_forward`` (DiT: codec encode, noising, DiT, decode; U-Net: forward);
+- ``losses``: image loss (L1 + SSIM), gaze loss (frozen estimator), orthogonality loss;
+- ``other fwd``: the rest of the forward step (batch gather, RGB loss, gaze sampler, sums);
+- ``backward``: ``total.backward()``; ``optim``: gradient clipping + Adam.
+
+At the ``demo`` configuration (the run's geometry scene, codec and loss estimator) and at the ``paper``
+configuration (DiT-Gaze-paper at 512², codec downsample 8 / 64 channels, 224² estimator, hidden 256) with an
+untrained codec/estimator and the procedural head as the Gaussians; on CPU the paper row uses fewer Gaussians
+and a smaller batch than the paper (``--paper-gaussians``, ``--paper-batch``; the row says which).
+
+Part 2, time to quality: for each variant (default ``dit`` and ``unet``, i.e. ``gaussian.renderer=...``) the
+stage's own ``train_loop`` + ``GaussianTrainer`` train from the same initialization seed for the same
+budget of training time (``--budget-s`` each; evaluation time is not counted; ``--clock cpu``, the default on
+CPU, counts this process's CPU seconds, which with one thread equal wall-clock on an idle core and do not
+depend on other jobs sharing the machine; ``--clock wall`` counts wall-clock), and every
+``--eval-every-s`` the held-out PSNR/SSIM/gaze error of ``train.evaluate.evaluate`` (the eval stage's protocol,
+``--pairs`` pairs per held-out subject) is recorded. Prints both tables and writes
+``out/benchmarks/train.png`` (PSNR against training seconds).
+
+    .venv/bin/python benchmarks/train.py --run-dir out/demo/run [--budget-s 180] [--threads 1]
+    .venv/bin/python benchmarks/train.py --run-dir RUN --skip-breakdown --variants dit:,nogaze:gaussian.lambda_gaze=0
+
+``--run-dir`` needs the stages data, geometry, codec and estimator of a ``demo`` run (``make demo`` makes
+one); without it they are run (demo preset) into ``out/benchmarks/train_run`` first (~6 CPU-minutes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import statistics
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot  # noqa: E402
+from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+
+PARTS = ("fields", "splat", "renderer", "losses")
+
+
+# ----------------------------------------------------------------------------- run context
+def open_prereqs(run_dir: Path, overrides: list[str]):
+    """A RunContext whose stages data..estimator are up to date (run them when missing)."""
+    from train import run
+    from train.config import apply_overrides, load_yaml_config
+    from train.run_config import RunConfig
+    from train.stages import RunContext, run_stages
+
+    need = ("data", "geometry", "codec", "estimator")
+    if not (run_dir / "config.yaml").is_file():
+        print(f"[bench] no run at {run_dir}: running stages {need} with the demo preset first", flush=True)
+        code = run.main(["--preset", "demo", "--run-dir", str(run_dir), "--stages", ",".join(need)])
+        if code:
+            raise ToolkitError(f"the prerequisite stages failed (exit {code})")
+    cfg = apply_overrides(load_yaml_config(RunConfig, run_dir / "config.yaml"), overrides)
+    ctx = RunContext(run_dir, cfg, log=lambda m: None)
+    run_stages(run.STAGES, [], ctx)
+    missing = [s for s in need if s not in ctx.outputs]
+    if missing:
+        raise ToolkitError(f"{run_dir}: stage(s) {missing} are not up to date; run "
+                           f"python -m train.run --run-dir {run_dir} --stages {','.join(need)}")
+    return ctx
+
+
+def with_overrides(ctx, overrides: list[str]):
+    from train.config import apply_overrides
+    from train.stages import RunContext
+
+    return RunContext(ctx.run_dir, apply_overrides(ctx.config, overrides), outputs=dict(ctx.outputs), log=ctx.log)
+
+
+# ----------------------------------------------------------------------------- part 1: breakdown
+class PartTimer:
+    """Wraps callables so their wall-clock time adds up under a part name (CUDA synchronized)."""
+
+    def __init__(self, device: torch.device, clock=time.perf_counter):
+        self.sync = device.type == "cuda"
+        self.clock = clock
+        self.t = dict.fromkeys(PARTS, 0.0)
+        self.depth = 0
+
+    def wrap(self, part: str, fn):
+        @functools.wraps(fn)
+        def timed(*a, **kw):
+            if self.depth:  # a part called from inside another part counts once (in the outer one)
+                return fn(*a, **kw)
+            if self.sync:
+                torch.cuda.synchronize()
+            self.depth += 1
+            t0 = self.clock()
+            try:
+                return fn(*a, **kw)
+            finally:
+                if self.sync:
+                    torch.cuda.synchronize()
+                self.t[part] += self.clock() - t0
+                self.depth -= 1
+        return timed
+
+    def reset(self) -> None:
+        self.t = dict.fromkeys(PARTS, 0.0)
+
+
+def instrument(trainer, timer: PartTimer) -> None:
+    from render.splat import rasterize
+
+    m = trainer.model
+    m.face_stream = timer.wrap("fields", m.face_stream)
+    m.eye_stream = timer.wrap("fields", m.eye_stream)
+    m._posed = timer.wrap("fields", m._posed)
+    m._rasterizer = timer.wrap("splat", rasterize)
+    trainer.renderer.training_forward = timer.wrap("renderer", trainer.renderer.training_forward)
+    for loss in (trainer.image_loss, trainer.gaze_loss):
+        loss.forward = timer.wrap("losses", loss.forward)
+    if trainer.ortho is not None:  # a plain callable object: replace it by a timed proxy of its bound __call__
+        trainer.ortho = _Proxy(timer.wrap("losses", trainer.ortho.__call__))
+
+
+class _Proxy:
+    def __init__(self, fn):
+        self.fn = fn
+
+    def __call__(self, *a, **kw):
+        return self.fn(*a, **kw)
+
+
+def time_steps(trainer, params, device, *, warmup: int, repeats: int, seed: int = 0,
+               clock=time.perf_counter) -> dict[str, float]:
+    """Median seconds per part over ``repeats`` real training steps (after ``warmup``).
+
+    ``clock``: ``time.perf_counter`` (wall) or ``time.thread_time`` (this thread's CPU time: with one torch
+    thread on CPU, forward and backward both run on the calling thread, so it measures the work itself
+    and not the other jobs on a shared machine)."""
+    from train.loop import step_generator
+
+    timer = PartTimer(device, clock)
+    instrument(trainer, timer)
+    opt = torch.optim.Adam(params)
+    rows = []
+    for s in range(warmup + repeats):
+        timer.reset()
+        opt.zero_grad(set_to_none=True)
+        sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+        sync()
+        t0 = clock()
+        terms = trainer.step(s, step_generator(seed, s))
+        sync()
+        t1 = clock()
+        terms["total"].backward()
+        sync()
+        t2 = clock()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        sync()
+        t3 = clock()
+        if not torch.isfinite(terms["total"]):
+            raise ToolkitError(f"benchmark step {s}: non-finite loss")
+        row = dict(timer.t)
+        row.update({"other fwd": (t1 - t0) - sum(timer.t.values()), "backward": t2 - t1, "optim": t3 - t2,
+                    "step": t3 - t0})
+        if s >= warmup:
+            rows.append(row)
+    return {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+
+
+def demo_trainer(ctx, device):
+    from train import run
+    from train.gaussian_stage import GaussianTrainer, load_split
+
+    cfg = ctx.config
+    torch.manual_seed(cfg.seed)
+    model, renderer = run._gaussian_modules(ctx, device)
+    data = load_split(run._split(ctx, "train"), "all", cfg.data.res)
+    trainer = GaussianTrainer(cfg.gaussian, model, renderer, run._estimator(ctx, "loss", device), data, device,
+                              cfg.gaussian.steps)
+    n = model.num_face + model.num_eye
+    return trainer, n
+
+
+def paper_trainer(ctx, device, n_gaussians: int, batch: int):
+    """The paper configuration's modules (untrained codec/estimator, procedural head) on 512² data."""
+    import torch.nn.functional as F
+
+    from toolkit.cameras import resize_intrinsics
+    from toolkit.procedural import demo_head_scene
+    from train import run
+    from train.codec import AutoencoderConfig, KLAutoencoder
+    from train.gaussian_model import GaussianModel, GaussianModelConfig
+    from train.gaussian_stage import GaussianTrainer, TrainBatchData, load_split
+    from train.gaze_estimator import GazeEstimator, GazeEstimatorConfig
+    from train.renderer import make_renderer
+    from train.run_config import paper_preset
+
+    p = paper_preset()
+    g = replace(p.gaussian, batch=batch)
+    res = p.data.res
+    torch.manual_seed(0)
+    model = GaussianModel.from_scene(demo_head_scene(n_gaussians), GaussianModelConfig(hidden=g.gaussians_hidden)).to(device)
+    codec = KLAutoencoder(AutoencoderConfig(downsample=p.codec.downsample, base_channels=p.codec.base_channels)).to(device)
+    renderer = make_renderer("dit", codec, model=g.dit_model, output_size=res).to(device)
+    est = GazeEstimator(GazeEstimatorConfig(input_size=p.estimator.input_size)).to(device)
+    d = load_split(run._split(ctx, "train"), "all", ctx.config.data.res)
+    n = min(len(d), 4 * batch)
+    up = lambda x, mode: F.interpolate(x[:n], size=(res, res), mode=mode)  # noqa: E731
+    r0 = d.res
+    data = TrainBatchData(image=up(d.image, "bilinear"), head=up(d.head, "nearest"), eyes=up(d.eyes, "nearest"),
+                          code=d.code[:n], pose=d.pose[:n], gaze_head=d.gaze_head[:n], gaze_cam=d.gaze_cam[:n],
+                          head_pose_cam=d.head_pose_cam[:n], viewmat=d.viewmat[:n],
+                          K=resize_intrinsics(d.K[:n], r0, r0, res, res))
+    # The procedural head sits at the origin of its own frame like the geometry scene: the demo poses fit it.
+    return GaussianTrainer(g, model, renderer, est, data, device, g.steps), n_gaussians
+
+
+def breakdown(ctx, device, args) -> list[dict]:
+    rows = []
+    configs = [("demo", lambda: demo_trainer(ctx, device), ctx.config.gaussian.batch, ctx.config.data.res,
+                ctx.config.gaussian.dit_model)]
+    if not args.skip_paper:
+        configs.append(("paper", lambda: paper_trainer(ctx, device, args.paper_gaussians, args.paper_batch),
+                        args.paper_batch, 512, "DiT-Gaze-paper"))
+    for name, make, batch, res, dit in configs:
+        for kind in args.breakdown_renderers.split(","):
+            if name == "paper" and kind != "dit":
+                continue  # the paper configuration is the DiT's
+            sub = with_overrides(ctx, [f"gaussian.renderer={kind}"]) if name == "demo" else ctx
+            print(f"[bench] step breakdown: {name} / {kind} ...", flush=True)
+            trainer, n_g = (demo_trainer(sub, device) if name == "demo" else make())
+            params = [p for m in (trainer.model, trainer.renderer) for p in m.parameters() if p.requires_grad]
+            clock = time.thread_time if args.clock == "cpu" else time.perf_counter
+            t = time_steps(trainer, params, device, warmup=args.warmup, repeats=args.repeats, clock=clock)
+            label = f"{name} ({res}², batch {batch}, {n_g} Gaussians, {dit if kind == 'dit' else 'U-Net'})"
+            if name == "paper":
+                label += f" [paper: 100000 Gaussians, batch 4{'; reduced for CPU' if device.type == 'cpu' else ''}]"
+            row = {"config": label, **{k: 1000 * v for k, v in t.items()}}
+            rows.append(row)
+    return rows
+
+
+# ----------------------------------------------------------------------------- part 2: time to quality
+class _BudgetReached(Exception):
+    pass
+
+
+def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list[dict]:
+    """Train the stage for ``budget_s`` seconds of training time; evaluate every ``eval_every_s``."""
+    from train import run
+    from train.evaluate import evaluate
+    from train.gaussian_stage import GaussianTrainer, load_split
+    from train.loop import train_loop
+
+    sub = with_overrides(ctx, overrides)
+    cfg = sub.config
+    g = cfg.gaussian
+    torch.manual_seed(cfg.seed)
+    model, renderer = run._gaussian_modules(sub, device)
+    data = load_split(run._split(sub, "train"), "all", cfg.data.res)
+    trainer = GaussianTrainer(g, model, renderer, run._estimator(sub, "loss", device), data, device, g.steps)
+    est = run._estimator(sub, "eval", device)
+    params = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": g.lr},
+              {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": g.renderer_lr}]
+    opt = torch.optim.Adam(params)
+    points: list[dict] = []
+    now = time.process_time if args.clock == "cpu" else time.perf_counter
+    clock = {"train": 0.0, "since": now(), "next_eval": 0.0}
+
+    def measure(step: int) -> None:
+        m = evaluate(model, renderer, est, test_files, res=cfg.data.res, pairs_per_subject=args.pairs,
+                     sampling_steps=g.sampling_steps, seed=cfg.seed, device=device, log=lambda s: None)["metrics"]
+        points.append({"train_s": clock["train"], "step": step, "psnr": m["psnr"], "ssim": m["ssim"],
+                       "gaze_deg": m["gaze_error_deg"]})
+        print(f"[bench]   {clock['train']:6.1f} s, step {step:4d}: PSNR {points[-1]['psnr']:.2f} dB, "
+              f"SSIM {points[-1]['ssim']:.3f}", flush=True)
+        clock["next_eval"] = clock["train"] + args.eval_every_s
+
+    def on_log(step: int, values: dict) -> None:
+        clock["train"] += now() - clock["since"]
+        if clock["train"] >= clock["next_eval"] or clock["train"] >= args.budget_s:
+            measure(step)
+        if clock["train"] >= args.budget_s:
+            raise _BudgetReached
+        clock["since"] = now()
+
+    measure(0)
+    clock["since"] = now()
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            train_loop("gaussian", trainer.step, modules={"model": model, "renderer": renderer},
+                       optimizers={"adam": opt}, steps=args.max_steps, run_dir=tmp, seed=cfg.seed,
+                       ckpt_every=10**9, log_every=1, grad_clip=g.grad_clip, progress=False, on_log=on_log)
+        except _BudgetReached:
+            pass
+    return points
+
+
+def parse_variants(spec: str) -> list[tuple[str, list[str]]]:
+    """``"dit:gaussian.renderer=dit,unet:gaussian.renderer=unet"``; a bare name X means gaussian.renderer=X."""
+    out = []
+    for part in spec.split(","):
+        name, _, ov = part.partition(":")
+        if not name:
+            raise ToolkitError(f"--variants: empty name in {spec!r}")
+        ovs = [o for o in ov.split(";") if o] if ov else ([f"gaussian.renderer={name}"] if name in ("dit", "unet") else [])
+        out.append((name, ovs))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run-dir", default=str(OUT_DIR / "train_run"), help="a demo run with its first four stages")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    ap.add_argument("--budget-s", type=float, default=180.0, help="training seconds per variant (default 180)")
+    ap.add_argument("--clock", choices=("cpu", "wall"), default=None,
+                    help="training time as process CPU seconds (default on CPU: with one thread it equals "
+                         "wall-clock on an idle core and is robust to other jobs on a shared machine) or wall-clock "
+                         "(default on CUDA)")
+    ap.add_argument("--eval-every-s", type=float, default=45.0, help="training seconds between evaluations")
+    ap.add_argument("--pairs", type=int, default=12, help="evaluation pairs per held-out subject")
+    ap.add_argument("--max-steps", type=int, default=100_000, help="stop a variant earlier at this many steps")
+    ap.add_argument("--variants", default="dit,unet",
+                    help="comma-separated NAME[:override;override...] (default dit,unet = gaussian.renderer=...)")
+    ap.add_argument("--breakdown-renderers", default="dit,unet")
+    ap.add_argument("--paper-gaussians", type=int, default=20000)
+    ap.add_argument("--paper-batch", type=int, default=1)
+    ap.add_argument("--warmup", type=int, default=1)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--skip-breakdown", action="store_true")
+    ap.add_argument("--skip-paper", action="store_true")
+    ap.add_argument("--skip-curve", action="store_true")
+    ap.add_argument("overrides", nargs="*", help="config overrides applied to every measurement (section.key=value)")
+    args = ap.parse_args(argv)
+    if args.budget_s <= 0 or args.eval_every_s <= 0:
+        raise ToolkitError("--budget-s and --eval-every-s must be > 0")
+    torch.set_num_threads(args.threads)
+    import os
+
+    print(machine_info())
+    print(f"load average at start: {os.getloadavg()[0]:.2f} (1 min)")
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if args.clock is None:
+        args.clock = "wall" if device.type == "cuda" else "cpu"
+    if args.clock == "cpu" and args.threads != 1:
+        print("note: --clock cpu with several threads counts the CPU time of all of them")
+    ctx = open_prereqs(Path(args.run_dir), args.overrides)
+    if not args.skip_breakdown:
+        rows = breakdown(ctx, device, args)
+        print(f"\nTraining step time ({'CPU ms of the training thread' if args.clock == 'cpu' else 'wall ms'}, median "
+              f"of {args.repeats} steps after {args.warmup} warm-up; main pass + weak-supervision pass):")
+        print(format_table(rows, ["config", *PARTS, "other fwd", "backward", "optim", "step"]))
+    if not args.skip_curve:
+        from train import run
+
+        test_files = run._split(ctx, "test")
+        series, final = {}, []
+        for name, ovs in parse_variants(args.variants):
+            print(f"[bench] time to quality: {name} ({' '.join(ovs) or 'run config'}), {args.budget_s:.0f} {args.clock} s "
+                  "budget",
+                  flush=True)
+            pts = time_to_quality(ctx, device, ovs, args, test_files)
+            series[name] = ([p["train_s"] for p in pts], [p["psnr"] for p in pts])
+            last = pts[-1]
+            final.append({"variant": name, "overrides": " ".join(ovs) or "-", "train s": last["train_s"],
+                          "steps": last["step"], "s/step": last["train_s"] / max(1, last["step"]),
+                          "PSNR dB": last["psnr"], "SSIM": last["ssim"], "gaze err deg": last["gaze_deg"],
+                          "best PSNR": max(p["psnr"] for p in pts)})
+            print("\n" + format_table([{"variant": name, **p} for p in pts]) + "\n")
+        print(f"Held-out quality at equal training time ({args.budget_s:.0f} {args.clock} s each, "
+              f"{len(test_files)} held-out subjects x {args.pairs} pairs):")
+        print(format_table(final))
+        path = save_plot(OUT_DIR / "train.png", series, xlabel=f"training time ({args.clock} s)",
+                         ylabel="held-out PSNR (dB)",
+                         title=f"gaussian stage: time to quality ({machine_info().split(',')[0]}, "
+                               f"{args.threads} thread(s))")
+        print(f"wrote {path}")
+    print(f"load average at end: {os.getloadavg()[0]:.2f} (1 min)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))
