@@ -70,7 +70,7 @@ def stage_data(ctx: RunContext) -> dict[str, str]:
     from train.data.generate import synth_dataset
 
     synth_dataset(ctx.run_dir / "data", n_subjects=d.subjects, n_frames=d.frames, res=d.res, seed=d.seed,
-                  test_fraction=d.test_fraction, log=ctx.log)
+                  test_fraction=d.test_fraction, light_jitter=d.light_jitter, log=ctx.log)
     return {"dir": "data", "split": "data/split.json"}
 
 

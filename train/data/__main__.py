@@ -97,7 +97,8 @@ def cmd_synth(a) -> int:
     from train.data.generate import synth_dataset
 
     t0 = time.perf_counter()
-    paths = synth_dataset(a.out, n_subjects=a.subjects, n_frames=a.frames, res=a.res, seed=a.seed)
+    paths = synth_dataset(a.out, n_subjects=a.subjects, n_frames=a.frames, res=a.res, seed=a.seed,
+                          light_jitter=a.light_jitter)
     dt = time.perf_counter() - t0
     n = a.subjects * a.frames * 18
     print(f"wrote {len(paths)} subjects ({n} images at {a.res}x{a.res}) to {a.out} in {dt:.1f} s "
@@ -131,6 +132,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     s.add_argument("--frames", type=int, default=10, help="random gaze/pose/expression frames per subject")
     s.add_argument("--res", type=int, default=128, help="face-patch resolution (512 matches ETH-XGaze)")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--light-jitter", type=float, default=0.6,
+                   help="spread of the per-frame light direction (0: one frontal light for every frame)")
     s.add_argument("--out", default="data/synth")
     i = sub.add_parser("inspect", help="summary table and a contact sheet of subject files")
     i.add_argument("path", help="a subject .h5 file or a folder of them")

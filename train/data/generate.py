@@ -35,6 +35,7 @@ from train.data.synthetic import (
 GAZE_RANGE_DEG = 40.0
 NORM_DISTANCE, NORM_CROP = 0.6, 0.26  # metres: normalized camera distance and face-crop width
 RIG_RADIUS = 1.0
+LIGHT_JITTER = 0.6  # default spread of the per-frame light direction (see sample_frames)
 
 
 @contextlib.contextmanager
@@ -48,13 +49,19 @@ def _torch_threads(n: int):
         torch.set_num_threads(old)
 
 
-def sample_frames(seed: int, n_frames: int) -> dict[str, np.ndarray]:
-    """Per-frame random gaze [n, 2] (±40° head frame), pose [n, 6], expression [n, 4], light [n, 3]."""
+def sample_frames(seed: int, n_frames: int, light_jitter: float = LIGHT_JITTER) -> dict[str, np.ndarray]:
+    """Per-frame random gaze [n, 2] (±40° head frame), pose [n, 6], expression [n, 4], light [n, 3].
+
+    The light direction is (x, y, -1) normalized with x, y uniform in ±``light_jitter`` (0: one frontal light
+    for every frame, like the full-lighting frames of ETH-XGaze that GazeNeRF and GazeGaussian train on).
+    """
+    if not 0.0 <= light_jitter <= 2.0:
+        raise ToolkitError(f"light_jitter must be in [0, 2], got {light_jitter}")
     rng = np.random.default_rng([seed, 11])
     gaze = rng.uniform(-1, 1, (n_frames, 2)) * math.radians(GAZE_RANGE_DEG)
     pose = sample_head_pose(rng, n_frames)
     expr = sample_expression(rng, n_frames)
-    light = np.concatenate([rng.uniform(-0.6, 0.6, (n_frames, 2)), -np.ones((n_frames, 1))], 1)
+    light = np.concatenate([rng.uniform(-1, 1, (n_frames, 2)) * light_jitter, -np.ones((n_frames, 1))], 1)
     light /= np.linalg.norm(light, axis=1, keepdims=True)
     return {"gaze": gaze.astype(np.float32), "pose": pose, "expression": expr, "light": light.astype(np.float32)}
 
@@ -67,7 +74,8 @@ def frame_cameras(subject: Subject, pose, rig: list[Camera], res: int, scale: fl
 
 
 def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, seed: int | None = None,
-                     rig: list[Camera] | None = None, subject: Subject | None = None):
+                     rig: list[Camera] | None = None, subject: Subject | None = None,
+                     light_jitter: float = LIGHT_JITTER):
     """Render one subject: returns (rows, subject_arrays, attrs) ready for ``write_subject_h5``."""
     if n_frames < 1:
         raise ToolkitError(f"n_frames must be >= 1, got {n_frames}")
@@ -77,7 +85,7 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
     rig = rig or eth_xgaze_rig(radius=RIG_RADIUS)
     with _torch_threads(1):
         subject = subject or build_subject(params)
-        fr = sample_frames(seed, n_frames)
+        fr = sample_frames(seed, n_frames, light_jitter)
         chunks = []
         for i in range(n_frames):
             cams = frame_cameras(subject, fr["pose"][i], rig, res)
@@ -135,7 +143,7 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
 
 
 def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int, res: int = 128, seed: int = 0,
-                  test_fraction: float = 0.25, log=print) -> list[Path]:
+                  test_fraction: float = 0.25, light_jitter: float = LIGHT_JITTER, log=print) -> list[Path]:
     """Write ``subject0000.h5`` ... plus ``split.json`` into ``out_dir``; returns the subject files."""
     if n_subjects < 1:
         raise ToolkitError(f"--subjects must be >= 1, got {n_subjects}")
@@ -147,7 +155,7 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
     rig = eth_xgaze_rig(radius=RIG_RADIUS)
     for s in range(n_subjects):
         params = SubjectParams.sample(seed * 100003 + s)
-        rows, subj, attrs = generate_subject(params, n_frames=n_frames, res=res, rig=rig)
+        rows, subj, attrs = generate_subject(params, n_frames=n_frames, res=res, rig=rig, light_jitter=light_jitter)
         p = write_subject_h5(out_dir / f"subject{s:04d}.h5", rows, subject=subj, attrs=attrs)
         paths.append(p)
         dt = time.perf_counter() - t0

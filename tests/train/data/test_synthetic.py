@@ -275,3 +275,17 @@ def test_estimator_images_many_gazes_few_cameras_deterministic():
     assert not torch.equal(imgs, other)
     with pytest.raises(ToolkitError, match="cameras_per_frame"):
         estimator_images([3], n_frames=1, cameras_per_frame=19)
+
+
+def test_light_jitter_zero_is_one_frontal_light():
+    from train.data.generate import sample_frames
+
+    fixed = sample_frames(5, 8, light_jitter=0.0)["light"]
+    np.testing.assert_allclose(fixed, np.tile([0.0, 0.0, -1.0], (8, 1)))
+    varied = sample_frames(5, 8, light_jitter=0.6)["light"]
+    np.testing.assert_allclose(np.linalg.norm(varied, axis=1), 1.0, atol=1e-6)
+    assert np.abs(varied[:, :2]).max() > 0.05 and np.abs(varied[:, :2] / -varied[:, 2:]).max() <= 0.6 + 1e-6
+    # Other draws are unchanged by the light spread (same seed, same gazes and poses).
+    np.testing.assert_array_equal(sample_frames(5, 8, 0.0)["gaze"], sample_frames(5, 8, 0.6)["gaze"])
+    with pytest.raises(ToolkitError, match="light_jitter"):
+        sample_frames(5, 2, light_jitter=-1)
