@@ -167,7 +167,8 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
             images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
             lms = torch.cat([lms, extra_lms])
         model, hist = train_gaze_estimator(
-            images, targets, GazeEstimatorConfig(input_size=e.input_size, crop=crop, eyes=e.crop == "eyes"),
+            images, targets, GazeEstimatorConfig(input_size=e.input_size, crop=crop, eyes=e.crop == "eyes",
+                                              channels=(32, 64, 96) if e.crop == "eyes" else (32, 64, 96, 128)),
             GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=ctx.config.seed * 10 + seed,
                                      log_every=max(1, e.steps)),
             landmarks=lms, val=val)

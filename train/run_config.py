@@ -72,19 +72,19 @@ class EstimatorStageConfig:
     """a trained gaze estimator for the gaze loss (safetensors); empty: train one."""
     eval_path: str = ""
     """an independently trained estimator for evaluation; empty: train one (another seed)."""
-    steps: int = 600
+    steps: int = 1500
     input_size: int = 64
-    """width the estimator's input region is resized to."""
-    batch: int = 32
+    """width the estimator's input region is resized to (face and eye_band inputs)."""
+    batch: int = 64
     crop: Literal["eyes", "face", "eye_band"] = "eyes"
     """what the estimators read: two eye patches cut at the eye landmarks plus the landmark layout
     (``GazeEstimatorConfig.eyes``), the whole normalized face crop, or the fixed band holding both eyes
     (``train.gaze_estimator.EYE_BAND``)."""
-    synthetic_subjects: int = 0
+    synthetic_subjects: int = 16
     """extra procedural subjects rendered for each estimator's training only (synthetic runs; ignored with
     data.root): many gazes, few cameras each. Seeds are disjoint from the data stage's subjects and
     between the two estimators, so neither sees a held-out subject or the other's training subjects."""
-    synthetic_frames: int = 60
+    synthetic_frames: int = 40
     """random (gaze, pose, expression) frames per extra subject."""
     cameras_per_frame: int = 2
     """rig cameras drawn at random per extra frame."""
@@ -157,7 +157,8 @@ def paper_preset() -> RunConfig:
         data=DataConfig(subjects=80, frames=20, res=512),
         geometry=GeometryStageConfig(steps=3000, extract_res=128, gaussians=100_000),
         codec=CodecStageConfig(steps=20_000, base_channels=64, downsample=8, batch=16),
-        estimator=EstimatorStageConfig(steps=20_000, input_size=224, batch=64),
+        estimator=EstimatorStageConfig(steps=20_000, input_size=224, batch=64, synthetic_subjects=200,
+                                       synthetic_frames=120),
         gaussian=GaussianStageConfig(dit_model="DiT-Gaze-paper", steps=100_000, batch=4, gaussians_hidden=256,
                                      ckpt_every=2000, log_every=50),
         eval=EvalConfig(pairs_per_subject=100),
