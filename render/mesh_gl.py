@@ -76,6 +76,16 @@ void main() {
 _SHARED_CONTEXT: Any = None
 
 
+def make_current(ctx) -> None:
+    """Make a standalone moderngl context current on this thread.
+
+    A process can hold several GL contexts (the mesh rasterizer's shared one, the preview's, a glfw
+    window's) and every GL call goes to whichever is current, so each entry point that touches GL claims
+    its own standalone context first.
+    """
+    ctx.__enter__()  # glcontext: make current (remembering the previous one for a matching __exit__)
+
+
 def create_context():
     """A new headless moderngl context (EGL, GL >= 3.3 core); ToolkitError naming what is missing."""
     try:
@@ -154,6 +164,7 @@ class MeshRasterizer:
 
     def __init__(self, width: int, height: int, *, ctx=None):
         self.ctx = ctx if ctx is not None else shared_context()
+        make_current(self.ctx)
         self.prog = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         self._fbo = None
         self._targets: list = []
@@ -299,6 +310,7 @@ class MeshRasterizer:
             lights = lights / norms[:, None]
 
         ctx = self.ctx
+        make_current(ctx)
         ibo = None
         if smooth:
             # Shared vertices + an index buffer: the vertex shader runs once per vertex, not per corner.

@@ -310,3 +310,25 @@ def test_forked_child_gets_a_clear_error_not_a_hang():
     with mp.get_context("fork").Pool(1) as pool:
         msg = pool.apply_async(_render_in_child).get(timeout=60)
     assert "forked after OpenGL was initialised" in msg and "spawn" in msg
+
+
+def test_renders_survive_another_current_context():
+    """Two standalone contexts in one process (the mesh rasterizer's and, e.g., the preview's): whichever
+    was made current last must not receive the rasterizer's GL calls (it did: the data CLI's contact sheet
+    came out blank after the preview tests had run)."""
+    v, f = cube()
+    view, K = frontal_camera()
+    ras = mesh_gl.MeshRasterizer(64, 48)
+    before = ras.render(v, f, view, K)
+    other = mesh_gl.create_context()  # made current on creation
+    tex = other.texture((16, 16), 4)  # objects in the other context must not clash with ours
+    late = mesh_gl.MeshRasterizer(80, 60)  # created while the other context is current
+    again = ras.render(v, f, view, K)
+    for k in ("mask", "depth", "tri_id", "rgb"):
+        np.testing.assert_array_equal(again[k], before[k])
+    assert late.render(v, f, view, K)["mask"].sum() > 0
+    tex.release()
+    other.release()
+    late.release()
+    np.testing.assert_array_equal(ras.render(v, f, view, K)["mask"], before["mask"])
+    ras.release()
