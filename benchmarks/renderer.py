@@ -118,7 +118,8 @@ def fit_renderers(args, device):
                                  model=KLAutoencoder(ae_config).to(device), log=log)
     torch.manual_seed(0)
     grid = args.train_size // ae_config.downsample
-    dit = DiTRenderer(make_dit(args.model, input_size=grid).to(device), codec, GaussianDiffusion())
+    dit = DiTRenderer(make_dit(args.model, input_size=grid, base_channels=codec.latent_channels).to(device), codec,
+                      GaussianDiffusion())
     base = BaselineRenderer(BaselineConfig()).to(device)
 
     def step_fn(renderer, opt):
@@ -194,16 +195,18 @@ def speed_table(args, device):
         for name, ch in [(m, ch) for m in args.speed_models for ch in args.speed_codec_channels
                          if "tiny" in m or ch == args.speed_codec_channels[0]]:
             torch.manual_seed(0)
-            r = DiTRenderer(make_dit(name, input_size=size // 8).to(device), codecs[ch]).eval()
+            r = DiTRenderer(make_dit(name, input_size=size // 8, base_channels=codecs[ch].latent_channels).to(device),
+                            codecs[ch]).eval()
             params = sum(p.numel() for p in r.dit.parameters()) / 1e6
             heavy = size == 512 or "tiny" not in name
             reps = 1 if size == 512 and "tiny" not in name else args.repeats
             z = torch.randn(B, 4, size // 8, size // 8, device=device)
             emb = r.dit.encode_features(f, (size // 8, size // 8))
+            zb = r.base_latent(f)
             t999 = torch.full((B,), 999, device=device)
             for prec in precisions:
                 t1 = run(lambda: r.render(f, c, steps=1), prec, reps) / B  # noqa: B023
-                t_call = run(lambda: r.dit(z, t999, f, c, feature_embedding=emb), prec, reps) / B  # noqa: B023
+                t_call = run(lambda: r.dit(z, t999, f, c, feature_embedding=emb, base=zb), prec, reps) / B  # noqa: B023
                 for k in STEPS:
                     if k == 1:
                         sec, how = t1, "measured"

@@ -19,7 +19,9 @@ How the two conditioning signals enter (the issue asks us to say it exactly):
   when growing -- then 3x3 conv). It is concatenated with the noisy latent to ``[B, C + E, H, W]`` and
   patchified by one Conv2d. The patch-embedding weights that read the ``E`` extra channels are zero at
   initialization, so the model starts as an unconditional latent DiT and learns to use the features, exactly
-  as InstructPix2Pix adds its image channels to a pretrained model.
+  as InstructPix2Pix adds its image channels to a pretrained model. With ``base_channels > 0`` (the residual
+  renderer) the base latent ``z_base`` -- the splatted RGB encoded by the frozen codec -- is concatenated as
+  well, ``[B, C + E + C_base, H, W]``, with zero-initialized weights too.
 
 Reads like DiT's ``models.py``: embedding layers, core model, sin-cos position embeddings, configurations.
 """
@@ -63,6 +65,10 @@ class DiTConfig:
     """Channels ``F`` of the splatted feature map."""
     feature_embed_channels: int = 8
     """Channels ``E`` the feature map is encoded to before the channel concatenation."""
+    base_channels: int = 0
+    """Channels of an optional *base latent* ``[B, base_channels, H, W]`` concatenated with the input (the
+    residual renderer passes the encoded splat RGB ``z_base``; 0 leaves it out). Zero-initialized like the
+    feature channels."""
     hidden_size: int = 384
     depth: int = 6
     num_heads: int = 8
@@ -83,6 +89,8 @@ class DiTConfig:
             raise ToolkitError(f"DiTConfig.input_size: {self.input_size} is not divisible by patch_size={self.patch_size}")
         if self.gaze_dim not in (0, 2):
             raise ToolkitError(f"DiTConfig.gaze_dim: expected 0 or 2 (pitch, yaw), got {self.gaze_dim}")
+        if self.base_channels < 0:
+            raise ToolkitError(f"DiTConfig.base_channels: expected >= 0, got {self.base_channels}")
         for name in ("patch_size", "latent_channels", "feature_channels", "depth", "num_heads", "shape_dim"):
             if getattr(self, name) < 1:
                 raise ToolkitError(f"DiTConfig.{name}: expected a positive integer, got {getattr(self, name)}")
@@ -250,7 +258,8 @@ class DiT(nn.Module):
         self.config = config
         c = config
         self.feature_encoder = FeatureEncoder(c.feature_channels, c.feature_embed_channels)
-        self.x_embedder = PatchEmbed(c.patch_size, c.latent_channels + c.feature_embed_channels, c.hidden_size)
+        self.x_embedder = PatchEmbed(c.patch_size, c.latent_channels + c.feature_embed_channels + c.base_channels,
+                                     c.hidden_size)
         self.t_embedder = TimestepEmbedder(c.hidden_size)
         self.code_embedder = CodeEmbedder(c.shape_dim, c.gaze_dim, c.pose_dim, c.hidden_size)
         grid = c.input_size // c.patch_size
@@ -270,7 +279,7 @@ class DiT(nn.Module):
         self.apply(_basic_init)
 
         # Patch embedding like nn.Linear (as DiT), then InstructPix2Pix: the weights that read the encoded
-        # feature channels start at zero, so the features cannot change the output until they are learned.
+        # feature (and base-latent) channels start at zero, so they cannot change the output until learned.
         w = self.x_embedder.proj.weight.data
         nn.init.xavier_uniform_(w.view(w.shape[0], -1))
         nn.init.zeros_(self.x_embedder.proj.bias)
@@ -308,8 +317,9 @@ class DiT(nn.Module):
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, feats: torch.Tensor, shape_code: torch.Tensor,
                 gaze: torch.Tensor | None = None, pose: torch.Tensor | None = None, *,
-                feature_embedding: torch.Tensor | None = None) -> torch.Tensor:
-        """``feature_embedding`` (from :meth:`encode_features`) skips the feature encoder when given."""
+                feature_embedding: torch.Tensor | None = None, base: torch.Tensor | None = None) -> torch.Tensor:
+        """``feature_embedding`` (from :meth:`encode_features`) skips the feature encoder when given;
+        ``base [B, base_channels, H, W]`` is required exactly when ``config.base_channels > 0``."""
         self._check_inputs(x, t, feats, shape_code)
         B, _, H, W = x.shape
         p = self.config.patch_size
@@ -321,7 +331,15 @@ class DiT(nn.Module):
         elif feature_embedding.shape != (B, self.config.feature_embed_channels, H, W):
             raise ToolkitError(f"DiT feature_embedding: expected [{B}, {self.config.feature_embed_channels}, {H}, {W}], "
                                f"got {list(feature_embedding.shape)}")
-        h = torch.cat([x, feature_embedding.to(x.dtype)], dim=1)
+        parts = [x, feature_embedding.to(x.dtype)]
+        if self.config.base_channels:
+            if base is None or base.shape != (B, self.config.base_channels, H, W):
+                raise ToolkitError(f"DiT base: expected [{B}, {self.config.base_channels}, {H}, {W}] (config.base_channels), "
+                                   f"got {None if base is None else list(base.shape)}")
+            parts.append(base.to(x.dtype))
+        elif base is not None:
+            raise ToolkitError("DiT base: this configuration has base_channels=0 but a base latent was given")
+        h = torch.cat(parts, dim=1)
         tokens = self.x_embedder(h) + pos.to(h.dtype)
         c = self.conditioning(t.expand(B) if t.dim() == 0 else t, shape_code, gaze, pose)
         for block in self.blocks:

@@ -12,6 +12,21 @@ A renderer turns the splatted feature map of the two-stream Gaussian model into 
 with the features and codes, take the x0 estimate, decode it (training); at inference run DDIM from seeded
 noise with K steps (K = 1 is the deterministic one-step path) and decode. The baseline (GazeGaussian's
 renderer) is :class:`train.baseline_renderer.BaselineRenderer`.
+
+**Residual parametrization** (``residual=True``, the default): the splat already knows a blurry image, its
+first three feature channels (``rgb``, supervised at 1/4 resolution). The renderer encodes that RGB, bilinearly
+upsampled to the output size and clamped to [0, 1], with the frozen codec into a base latent
+``z_base = codec.encode(up(rgb))`` and lets the DiT model only what is missing: the diffusion runs on the
+residual ``r0 = z0 - z_base`` (``x_t = a r0 + s eps``; targets ``eps`` or ``v = a eps - s r0``) and the clean
+latent estimate is ``x0 = z_base + r0_hat`` -- in the training pass (what the image and gaze losses see, with
+gradients through ``z_base`` into the features) and in DDIM (which samples ``r0`` from pure noise at
+``t = T - 1`` and adds ``z_base``). This is the ordinary diffusion of ``z0`` with the network's input shifted by
+``a z_base`` and its output by the known ``v``/``eps`` of ``z_base`` -- not SDEdit: no noise level is chosen and
+the one-step path still starts from pure noise. With v-prediction and zero terminal SNR (the defaults) the
+zero-initialized final layer (adaLN-Zero) predicts ``v = 0``, i.e. ``r0_hat = a_{T-1} x_{T-1} = 0``: the
+untrained one-step renderer returns exactly ``codec.decode(z_base)``, the splat's own image, and training
+learns the correction. The DiT also sees ``z_base`` as extra input channels when its ``base_channels`` is set
+(:func:`make_renderer` does so). ``residual=False`` is the plain latent DiT that starts from nothing.
 """
 
 from __future__ import annotations
@@ -21,6 +36,7 @@ from typing import Protocol, runtime_checkable
 
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from train.codec import LatentCodec
@@ -67,11 +83,13 @@ class DiTRenderer(nn.Module):
 
     ``upscale`` is output size / feature size (4 in GazeGaussian); the latent grid is then
     ``h * upscale / codec.downsample``. ``default_steps`` is the DDIM step count of ``render``.
-    The codec is frozen here: only the DiT trains, gradients reach it through ``codec.decode``.
+    The codec is frozen here: only the DiT trains, gradients reach it through ``codec.decode`` (and, with
+    ``residual``, into the features through ``codec.encode`` of the base latent).
+    ``residual``: predict the clean latent as ``z_base + r0_hat`` around the encoded splat RGB (module docstring).
     """
 
     def __init__(self, dit: DiT, codec: LatentCodec, diffusion: GaussianDiffusion | None = None, *,
-                 upscale: int = 4, default_steps: int = 1):
+                 upscale: int = 4, default_steps: int = 1, residual: bool = True):
         super().__init__()
         if dit.config.latent_channels != codec.latent_channels:
             raise ToolkitError(f"DiTRenderer: DiT latent_channels={dit.config.latent_channels} but the codec "
@@ -81,16 +99,30 @@ class DiTRenderer(nn.Module):
         self.diffusion = diffusion or GaussianDiffusion(DiffusionConfig())
         self.upscale = upscale
         self.default_steps = default_steps
+        self.residual = residual
+        if dit.config.base_channels and (not residual or dit.config.base_channels != codec.latent_channels):
+            raise ToolkitError(f"DiTRenderer: DiT base_channels={dit.config.base_channels} needs residual=True and the "
+                               f"codec's {codec.latent_channels} latent channels")
+        if dit.config.feature_channels < 3 and residual:
+            raise ToolkitError("DiTRenderer residual: the features need >= 3 channels (the first three are RGB)")
 
     def latent_shape(self, feats: torch.Tensor) -> tuple[int, int, int, int]:
         H, W = feats.shape[2] * self.upscale, feats.shape[3] * self.upscale
         h, w = self.codec.latent_size(H, W)
         return feats.shape[0], self.codec.latent_channels, h, w
 
-    def _model_fn(self, feats, shape_code, gaze, pose, latent_hw: tuple[int, int]):
+    def base_latent(self, feats: torch.Tensor) -> torch.Tensor:
+        """``z_base [B, C, H/f, W/f]``: the splatted RGB ``feats[:, :3]`` upsampled (bilinear) to the output size,
+        clamped to [0, 1] and encoded by the frozen codec; differentiable with respect to ``feats``."""
+        H, W = feats.shape[2] * self.upscale, feats.shape[3] * self.upscale
+        rgb = F.interpolate(feats[:, :3], size=(H, W), mode="bilinear", align_corners=False)
+        return self.codec.encode(rgb.clamp(0, 1)).float()
+
+    def _model_fn(self, feats, shape_code, gaze, pose, latent_hw: tuple[int, int], base: torch.Tensor | None = None):
         # The feature map is the same at every sampling step: encode it once.
         emb = self.dit.encode_features(feats, latent_hw)
-        return lambda x, t: self.dit(x, t, feats, shape_code, gaze, pose, feature_embedding=emb)
+        base = base if self.dit.config.base_channels else None
+        return lambda x, t: self.dit(x, t, feats, shape_code, gaze, pose, feature_embedding=emb, base=base)
 
     def training_forward(self, feats: torch.Tensor, shape_code: torch.Tensor, target: torch.Tensor, *,
                          gaze: torch.Tensor | None = None, pose: torch.Tensor | None = None,
@@ -102,11 +134,18 @@ class DiTRenderer(nn.Module):
                                f"{w * self.codec.downsample}] (features x {self.upscale}), got {list(target.shape)}")
         with torch.no_grad():
             x0 = self.codec.encode(target).float()
-        out = self.diffusion.training_step(self._model_fn(feats, shape_code, gaze, pose, (h, w)), x0, t=t,
+        base = self.base_latent(feats) if self.residual else None
+        # The diffusion runs on the residual; its target uses a detached base so the diffusion loss does not
+        # pull the splat toward the network's current output (the image losses train the splat through x0).
+        r0 = x0 - base.detach() if base is not None else x0
+        out = self.diffusion.training_step(self._model_fn(feats, shape_code, gaze, pose, (h, w), base), r0, t=t,
                                           generator=generator)
-        image = self.codec.decode(out["x0_pred"])
-        return RenderOutput(image=image, aux_loss=out["loss"],
-                            extras={"t": out["t"], "latent_pred": out["x0_pred"], "latent_target": x0})
+        latent = out["x0_pred"] + base if base is not None else out["x0_pred"]
+        image = self.codec.decode(latent)
+        extras = {"t": out["t"], "latent_pred": latent, "latent_target": x0}
+        if base is not None:
+            extras["latent_base"] = base
+        return RenderOutput(image=image, aux_loss=out["loss"], extras=extras)
 
     def render(self, feats: torch.Tensor, shape_code: torch.Tensor, *, gaze: torch.Tensor | None = None,
                pose: torch.Tensor | None = None, steps: int | None = None, seed: int = 0,
@@ -119,9 +158,12 @@ class DiTRenderer(nn.Module):
             noise = torch.randn(shape, generator=g)
         elif tuple(noise.shape) != shape:
             raise ToolkitError(f"DiTRenderer noise: expected {list(shape)}, got {list(noise.shape)}")
-        model_fn = self._model_fn(feats, shape_code, gaze, pose, shape[2:])
+        base = self.base_latent(feats) if self.residual else None
+        model_fn = self._model_fn(feats, shape_code, gaze, pose, shape[2:], base)
         latent = self.diffusion.ddim_sample(model_fn, noise.to(feats.device), steps or self.default_steps, eta=eta,
                                             generator=g)
+        if base is not None:  # DDIM sampled the residual
+            latent = latent + base.to(latent.dtype)
         return self.codec.decode(latent).clamp(0, 1)
 
     def forward(self, feats: torch.Tensor, shape_code: torch.Tensor, gaze: torch.Tensor | None = None,
@@ -131,16 +173,21 @@ class DiTRenderer(nn.Module):
 
 def make_renderer(kind: str, codec: LatentCodec | None = None, *, model: str = "DiT-Gaze-tiny",
                   output_size: int = 128, upscale: int = 4, diffusion: DiffusionConfig | None = None,
-                  **model_kw) -> nn.Module:
-    """``"dit"`` (needs a codec) or ``"baseline"``; ``model_kw`` go to the DiT config / baseline config."""
+                  residual: bool = True, **model_kw) -> nn.Module:
+    """``"dit"`` (needs a codec) or ``"baseline"``; ``model_kw`` go to the DiT config / baseline config.
+
+    ``residual`` (DiT only): the residual parametrization around the encoded splat RGB, with the base latent
+    also fed to the DiT as input channels (``base_channels``)."""
     if kind == "dit":
         from train.dit import make_dit
 
         if codec is None:
             raise ToolkitError("make_renderer('dit'): a latent codec is required (see train.codec.load_codec)")
         grid = output_size // codec.downsample
+        if residual:
+            model_kw.setdefault("base_channels", codec.latent_channels)
         dit = make_dit(model, input_size=grid, latent_channels=codec.latent_channels, **model_kw)
-        return DiTRenderer(dit, codec, GaussianDiffusion(diffusion), upscale=upscale)
+        return DiTRenderer(dit, codec, GaussianDiffusion(diffusion), upscale=upscale, residual=residual)
     if kind == "baseline":
         from train.baseline_renderer import BaselineConfig, BaselineRenderer
 

@@ -195,7 +195,7 @@ def _renderer(ctx: RunContext, device):
     g = ctx.config.gaussian
     codec = _load_codec(ctx, device) if g.renderer == "dit" else None
     return make_renderer("dit" if g.renderer == "dit" else "baseline", codec, model=g.dit_model,
-                         output_size=ctx.config.data.res).to(device)
+                         output_size=ctx.config.data.res, residual=g.residual).to(device)
 
 
 def _gaussian_modules(ctx: RunContext, device):

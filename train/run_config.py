@@ -95,6 +95,9 @@ class GaussianStageConfig:
     renderer: Literal["dit", "unet"] = "dit"
     """the neural renderer: the latent DiT (ours) or GazeGaussian's U-Net-style baseline."""
     dit_model: str = "DiT-Gaze-tiny"
+    residual: bool = True
+    """DiT only: predict the clean latent as the encoded, upsampled splat RGB plus a learned residual (the
+    untrained renderer outputs the splat's own image); false: the plain latent DiT. See train/renderer.py."""
     sampling_steps: int = 1
     """DDIM steps at evaluation (1 = the deterministic one-step path)."""
     orthogonality: bool = True
