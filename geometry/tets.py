@@ -23,6 +23,7 @@ import os
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError
@@ -226,13 +227,19 @@ def edge_keys(a: torch.Tensor, b: torch.Tensor, n_verts: int) -> torch.Tensor:
 def unique_inverse(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``torch.unique(keys, return_inverse=True)`` for int64 keys (any shape), as one sort plus linear passes.
 
-    (torch.unique with an inverse does extra work on CPU; this is ~2-3x faster on large key sets.)
+    (torch.unique with an inverse does extra work on CPU; this is ~2-3x faster on large key sets.) On CPU
+    the permutation comes from numpy's argsort (SIMD quicksort, ~2x faster than torch.sort on int64; the
+    order of equal keys does not matter here), on other devices from torch.sort.
     """
     shape = keys.shape
     keys = keys.reshape(-1)
     if keys.numel() == 0:
         return keys.clone(), torch.zeros(shape, dtype=torch.long, device=keys.device)
-    sorted_keys, perm = torch.sort(keys)
+    if keys.device.type == "cpu":
+        perm = torch.from_numpy(np.argsort(keys.detach().contiguous().numpy())).long()
+        sorted_keys = keys.index_select(0, perm)
+    else:
+        sorted_keys, perm = torch.sort(keys)
     first = torch.ones_like(sorted_keys, dtype=torch.bool)
     first[1:] = sorted_keys[1:] != sorted_keys[:-1]
     group = torch.cumsum(first, 0) - 1
