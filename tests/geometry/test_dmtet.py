@@ -310,3 +310,24 @@ def test_vectorized_path_gradients_finite_with_exact_zeros():
         assert torch.isfinite(x).all()
     assert float(s.grad.abs().sum()) > 0 and float(v.grad.abs().sum()) > 0
     assert torch.unique(mv, dim=0).shape[0] == mv.shape[0]  # zeros nudged: no duplicate vertices
+
+
+def test_benchmark_runs_with_and_without_scikit_image(monkeypatch, tmp_path, capsys):
+    """benchmarks/dmtet.py on tiny grids: Kuhn decays at second order, MC rows or a clear skip line, a PNG."""
+    import benchmarks.dmtet as bench
+
+    monkeypatch.setattr(bench, "OUT_DIR", tmp_path)
+    monkeypatch.setattr(bench, "have_skimage", lambda: False)
+    assert bench.main(["--res", "8", "16", "--repeats", "1", "--shapes", "sphere"]) == 0
+    out = capsys.readouterr().out
+    assert "skipped: scikit-image not installed" in out and "mc-skimage" not in out
+    assert (tmp_path / "dmtet.png").stat().st_size > 0
+    kuhn16 = [ln for ln in out.splitlines() if ln.startswith("| sphere |") and "|        kuhn |  16 |" in ln]
+    assert len(kuhn16) == 1 and 1.7 < float(kuhn16[0].split("|")[-2]) < 2.5  # the order column
+    monkeypatch.undo()
+    pytest.importorskip("skimage.measure")
+    monkeypatch.setattr(bench, "OUT_DIR", tmp_path)
+    r = bench.run_mc(bench.sphere, 16, 1)
+    assert r["samples"] == 17**3 and r["faces"] > 0 and r["face_err_mean"] < 0.1 * 2 / 16
+    occ = bench.run_mc(bench.sphere, 16, 1, "trimesh")
+    assert occ["faces"] > 0 and occ["face_err_mean"] > r["face_err_mean"]  # binary occupancy: worse
