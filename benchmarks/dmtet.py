@@ -219,9 +219,9 @@ def main(argv=None) -> int:
                        "order": order}
                 rows.append(row)
                 print(f"  {shape} {name} res {res}: {r['time_s']:.4f} s, face error {r['face_err_mean']:.3g}", flush=True)
-                series.setdefault(f"{shape} {name}", ([], []))
-                series[f"{shape} {name}"][0].append(r["time_s"])
-                series[f"{shape} {name}"][1].append(r["face_err_mean"])
+                xs, ys = series.setdefault(shape, {}).setdefault(name, ([], []))
+                xs.append(r["time_s"])
+                ys.append(r["face_err_mean"])
     if rows:
         cols = ["shape", "method", "res", "samples", "tets", "faces", "grid_s", "sdf_s", "time_s", "vert_err_max",
                 "face_err_mean", "face_err/cell", "order"]
@@ -229,10 +229,11 @@ def main(argv=None) -> int:
         print(format_table(rows, cols))
         if mc_note:
             print(mc_note)
-        path = save_plot(OUT_DIR / "dmtet.png", series, xlabel="extraction time (s)", ylabel="mean face-centroid error",
-                         title="DMTet: run time vs surface error (Kuhn, BCC, Kuhn+subdivision, marching cubes)",
-                         logx=True, logy=True)
-        print(f"plot: {path}")
+        for shape, by_method in series.items():  # one plot per shape: 5 methods, distinct colours
+            path = save_plot(OUT_DIR / f"dmtet_{shape}.png", by_method, xlabel="extraction time (s)",
+                             ylabel="mean face-centroid error", logx=True, logy=True,
+                             title=f"{shape}: extraction time vs surface error, res {min(a.res)}-{max(a.res)}")
+            print(f"plot: {path}")
     res = max(a.res)
     print(f"\nextraction at {res} (Kuhn, off-centre sphere), stage by stage; load average now "
           "%.2f %.2f %.2f" % os.getloadavg())

@@ -321,7 +321,7 @@ def test_benchmark_runs_with_and_without_scikit_image(monkeypatch, tmp_path, cap
     assert bench.main(["--res", "8", "16", "--repeats", "1", "--shapes", "sphere"]) == 0
     out = capsys.readouterr().out
     assert "skipped: scikit-image not installed" in out and "mc-skimage" not in out
-    assert (tmp_path / "dmtet.png").stat().st_size > 0
+    assert (tmp_path / "dmtet_sphere.png").stat().st_size > 0
     kuhn16 = [ln for ln in out.splitlines() if ln.startswith("| sphere |") and "|        kuhn |  16 |" in ln]
     assert len(kuhn16) == 1 and 1.7 < float(kuhn16[0].split("|")[-2]) < 2.5  # the order column
     monkeypatch.undo()
