@@ -85,7 +85,9 @@ def _cut_table() -> torch.Tensor:
 _CUT_TABLE = _cut_table()
 _E0, _E1 = TET_EDGES[:, 0].contiguous(), TET_EDGES[:, 1].contiguous()
 _ALL_INSIDE = 0x01010101  # four inside bytes read as one int32 (same value in either byte order)
-_CHUNK = 1 << 18  # tets per chunk of the crossing test: 1 MiB of corner flags, cache-resident
+# Tets per chunk of the crossing test (16 MiB of corner flags). Small chunks were no faster on one thread
+# and, with 2 threads on a busy machine, each chunk's parallel ops wait on the other thread: few chunks.
+_CHUNK = 1 << 22
 
 
 def _nonzero_sparse(mask: torch.Tensor) -> torch.Tensor:
@@ -110,9 +112,8 @@ def _crossing_tets(inside: torch.Tensor, tets: torch.Tensor, n_verts: int) -> tu
 
     This pass over all T tets is the whole cost on large grids, so it is kept lean: per chunk of tets,
     one flat byte gather of the corners' inside flags into a reused buffer, then each tet's 4 bytes
-    read as one int32 word (crossed unless all 0 or all 1). Chunks keep the bytes cache-resident
-    between the gather and the test and avoid a fresh 4T-byte allocation (page faults) per call; no
-    per-column ops or int64 temporaries of size T are made.
+    read as one int32 word (crossed unless all 0 or all 1). The reused buffer avoids a fresh 4T-byte
+    allocation (page faults) per call; no per-column ops or int64 temporaries of size T are made.
     """
     flags = inside.to(torch.uint8)
     T = tets.shape[0]
