@@ -192,3 +192,142 @@ def test_int32_tets_and_float64():
     a = marching_tets(v, t, _sphere_sdf(v))
     b = marching_tets(v, t.int(), _sphere_sdf(v))
     assert torch.equal(a[1], b[1]) and a[0].dtype == torch.float64
+
+
+
+# ------------------------------------------------------------------ optimized path vs a plain reference
+def _canonical(tri):
+    """A triangle as its vertex ids rotated so the smallest comes first (winding kept)."""
+    r = tri.index(min(tri))
+    return tuple(tri[r:] + tri[:r])
+
+
+def _reference_marching_tets(verts, tets, sdf, features=None):
+    """Plain per-tet DMTet (python loops, a dict for edge dedup): the spec the vectorized path must meet.
+
+    Returns verts [M, 3] float64 ordered by edge key min * V + max, the sorted list of canonical faces and
+    features [M, C] float64 (or None).
+    """
+    from geometry.dmtet import _TRI_COUNT, _TRI_TABLE
+    from geometry.tets import TET_EDGES
+
+    V = verts.shape[0]
+    inside = (sdf < 0).tolist()
+    tris = []
+    for tet in tets.long().tolist():
+        case = sum(int(inside[v]) << i for i, v in enumerate(tet))
+        for k in range(int(_TRI_COUNT[case])):
+            tri = []
+            for le in _TRI_TABLE[case, k].tolist():
+                a, b = tet[int(TET_EDGES[le, 0])], tet[int(TET_EDGES[le, 1])]
+                assert inside[a] != inside[b]
+                tri.append((min(a, b), max(a, b)))
+            tris.append(tri)
+    edges = sorted({e for tri in tris for e in tri}, key=lambda e: e[0] * V + e[1])
+    vid = {e: i for i, e in enumerate(edges)}
+    out_v, out_feat = [], []
+    for a, b in edges:
+        sa, sb = float(sdf[a]), float(sdf[b])
+        t = min(max(-sa / (sb - sa), 1e-4), 1 - 1e-4)
+        out_v.append((verts[a].double() * (1 - t) + verts[b].double() * t).tolist())
+        if features is not None:
+            out_feat.append((features[a].double() * (1 - t) + features[b].double() * t).tolist())
+    faces = sorted(_canonical([vid[e] for e in tri]) for tri in tris)
+    feats = torch.tensor(out_feat, dtype=torch.float64) if features is not None else None
+    return torch.tensor(out_v, dtype=torch.float64).reshape(-1, 3), faces, feats
+
+
+def _random_sdf(v, g, mode):
+    if mode == "noise":  # many tiny disconnected components: every case pattern occurs
+        return torch.randn(v.shape[0], generator=g, dtype=v.dtype)
+    if mode == "zeros":  # values in {-1, 0, 1}: a third of the vertices exactly zero
+        return torch.randint(-1, 2, (v.shape[0],), generator=g).to(v.dtype)
+    if mode == "plane":  # a zero set through a whole grid layer
+        return v[:, 2] - v[0, 2] - (v[:, 2].max() - v[0, 2]) / 2
+    return (v - torch.rand(3, generator=g, dtype=v.dtype) * 0.4).norm(dim=-1) - 0.5 + torch.randn(
+        v.shape[0], generator=g, dtype=v.dtype) * 0.05
+
+
+@pytest.mark.parametrize("kind", GRID_KINDS)
+@pytest.mark.parametrize("mode", ["noise", "zeros", "plane", "bumpy"])
+def test_vectorized_path_equals_plain_reference(kind, mode):
+    g = torch.Generator().manual_seed(GRID_KINDS.index(kind) * 10 + len(mode))
+    for res in (1, 2, 5):
+        v, t = tet_grid(kind, res, use_cache=False, dtype=torch.float64)
+        v = v + (torch.rand(v.shape, generator=g, dtype=torch.float64) - 0.5) * 0.3 / res  # deformed grid
+        s = _random_sdf(v, g, mode)
+        f = torch.randn(v.shape[0], 2, generator=g, dtype=torch.float64)
+        if not bool((s < 0).any()) or bool((s < 0).all()):
+            continue
+        rv, rf, rfeat = _reference_marching_tets(v, t, s, f)
+        assert rf  # mixed signs on a connected grid: some tet is crossed
+        mv, mf, mfeat = marching_tets(v, t, s, f)
+        torch.testing.assert_close(mv, rv, rtol=0, atol=1e-12)
+        torch.testing.assert_close(mfeat, rfeat, rtol=0, atol=1e-12)
+        assert sorted(_canonical(tri) for tri in mf.tolist()) == rf, (kind, mode, res)
+
+
+def test_crossing_scan_across_chunk_boundaries(monkeypatch):
+    """Tiny chunks (and odd tails) give the same crossed tets as one plain nonzero over all tets."""
+    import geometry.dmtet as dm
+
+    g = torch.Generator().manual_seed(3)
+    v, t = tet_grid("bcc", 4, use_cache=False)
+    s = torch.randn(v.shape[0], generator=g)
+    s[::5] = 0.0
+    inside = s < 0
+    flags = inside[t]
+    want = ((flags.any(1)) & ~(flags.all(1))).nonzero().squeeze(1)
+    full = marching_tets(v, t, s)
+    for chunk in (1, 3, 8, 13, 1000, 1 << 18):
+        monkeypatch.setattr(dm, "_CHUNK", chunk)
+        ids, corner = dm._crossing_tets(inside, t, v.shape[0])
+        assert torch.equal(ids, want), chunk
+        assert torch.equal(corner.bool(), flags[want]), chunk
+        for x, y in zip(marching_tets(v, t, s)[:2], full[:2]):
+            assert torch.equal(x, y), chunk
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 64, 1001])
+def test_nonzero_sparse_matches_nonzero(n):
+    from geometry.dmtet import _nonzero_sparse
+
+    g = torch.Generator().manual_seed(n)
+    for p in (0.0, 0.01, 0.5, 1.0):
+        m = torch.rand(n, generator=g) < p
+        assert torch.equal(_nonzero_sparse(m), m.nonzero().squeeze(1)), (n, p)
+
+
+def test_vectorized_path_gradients_finite_with_exact_zeros():
+    g = torch.Generator().manual_seed(5)
+    v0, t = tet_grid("kuhn", 5, use_cache=False)
+    v = v0.clone().requires_grad_(True)
+    s = torch.randint(-1, 2, (v0.shape[0],), generator=g).float().requires_grad_(True)
+    f = torch.randn(v0.shape[0], 3, generator=g, requires_grad=True)
+    mv, mf, mfeat = marching_tets(v, t, s, f)
+    (mv.square().sum() + mfeat.sum()).backward()
+    for x in (mv, mfeat, v.grad, s.grad, f.grad):
+        assert torch.isfinite(x).all()
+    assert float(s.grad.abs().sum()) > 0 and float(v.grad.abs().sum()) > 0
+    assert torch.unique(mv, dim=0).shape[0] == mv.shape[0]  # zeros nudged: no duplicate vertices
+
+
+def test_benchmark_runs_with_and_without_scikit_image(monkeypatch, tmp_path, capsys):
+    """benchmarks/dmtet.py on tiny grids: Kuhn decays at second order, MC rows or a clear skip line, a PNG."""
+    import benchmarks.dmtet as bench
+
+    monkeypatch.setattr(bench, "OUT_DIR", tmp_path)
+    monkeypatch.setattr(bench, "have_skimage", lambda: False)
+    assert bench.main(["--res", "8", "16", "--repeats", "1", "--shapes", "sphere"]) == 0
+    out = capsys.readouterr().out
+    assert "skipped: scikit-image not installed" in out and "mc-skimage" not in out
+    assert (tmp_path / "dmtet_sphere.png").stat().st_size > 0
+    kuhn16 = [ln for ln in out.splitlines() if ln.startswith("| sphere |") and "|        kuhn |  16 |" in ln]
+    assert len(kuhn16) == 1 and 1.7 < float(kuhn16[0].split("|")[-2]) < 2.5  # the order column
+    monkeypatch.undo()
+    pytest.importorskip("skimage.measure")
+    monkeypatch.setattr(bench, "OUT_DIR", tmp_path)
+    r = bench.run_mc(bench.sphere, 16, 1)
+    assert r["samples"] == 17**3 and r["faces"] > 0 and r["face_err_mean"] < 0.1 * 2 / 16
+    occ = bench.run_mc(bench.sphere, 16, 1, "trimesh")
+    assert occ["faces"] > 0 and occ["face_err_mean"] > r["face_err_mean"]  # binary occupancy: worse

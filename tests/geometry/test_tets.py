@@ -123,3 +123,18 @@ def test_unique_inverse_matches_torch():
         u, inv = unique_inverse(k)
         u2, inv2 = torch.unique(k, return_inverse=True)
         assert torch.equal(u, u2) and torch.equal(inv, inv2)
+
+
+def test_orientation_triple_product_exact_on_integers_and_matches_det():
+    from geometry.tets import _orient, _triple
+
+    g = torch.Generator().manual_seed(4)
+    coords = torch.randint(-1000, 1000, (40, 3), generator=g)
+    t = torch.randint(0, 40, (3000, 4), generator=g)
+    vi = _triple(coords, t)  # integer path: exact int64
+    vd = torch.linalg.det(torch.stack([coords[t[:, i]] - coords[t[:, 0]] for i in (1, 2, 3)], -1).double())
+    assert vi.dtype == torch.long and torch.equal(vi, vd.round().long())
+    o = _orient(coords, t)
+    vo = _triple(coords, o)
+    assert bool((vo >= 0).all()) and torch.equal(vo, vi.abs())
+    assert torch.equal(o[:, :2], t[:, :2]) and torch.equal(o.sort(1).values, t.sort(1).values)
