@@ -72,7 +72,7 @@ class EstimatorStageConfig:
     """a trained gaze estimator for the gaze loss (safetensors); empty: train one."""
     eval_path: str = ""
     """an independently trained estimator for evaluation; empty: train one (another seed)."""
-    steps: int = 1500
+    steps: int = 1200
     input_size: int = 64
     """width the estimator's input region is resized to (face and eye_band inputs)."""
     batch: int = 64
@@ -80,7 +80,7 @@ class EstimatorStageConfig:
     """what the estimators read: two eye patches cut at the eye landmarks plus the landmark layout
     (``GazeEstimatorConfig.eyes``), the whole normalized face crop, or the fixed band holding both eyes
     (``train.gaze_estimator.EYE_BAND``)."""
-    synthetic_subjects: int = 16
+    synthetic_subjects: int = 12
     """extra procedural subjects rendered for each estimator's training only (synthetic runs; ignored with
     data.root): many gazes, few cameras each. Seeds are disjoint from the data stage's subjects and
     between the two estimators, so neither sees a held-out subject or the other's training subjects."""
