@@ -29,3 +29,17 @@ def model_inputs(batch: int, seed: int = 0, width: int = 64, height: int = 64):
     gaze = (torch.rand(batch, 2, generator=g) - 0.5) * 0.6
     cam = demo_camera(width, height)
     return code, pose, gaze, cam.viewmat.expand(batch, 4, 4).clone(), cam.K.expand(batch, 3, 3).clone()
+
+
+def fit_renderer(renderer, feats: torch.Tensor, code: torch.Tensor, target: torch.Tensor, g: torch.Generator,
+                 steps: int, lr: float = 3e-3) -> float:
+    """Train ``renderer.dit`` on one batch (its own loss + L1 on the image) -> the L1 error of a render after."""
+    opt = torch.optim.Adam(renderer.dit.parameters(), lr=lr)
+    for _ in range(steps):
+        out = renderer.training_forward(feats, code, target, generator=g)
+        loss = out.aux_loss + (out.image - target).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        return float((renderer.render(feats, code) - target).abs().mean())

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.train.helpers import fit_renderer
 from tests.train.threads import single_thread  # noqa: F401  (autouse)
 from toolkit import ToolkitError
 from train.codec import AutoencoderConfig, KLAutoencoder, PixelCodec
@@ -56,16 +57,8 @@ def test_it_learns_to_render_from_features_in_pixel_space():
     code = torch.zeros(8, 144)
     with torch.no_grad():
         before = (r.render(feats, code) - target).abs().mean()
-    opt = torch.optim.Adam(r.dit.parameters(), lr=3e-3)
-    for _ in range(150):
-        out = r.training_forward(feats, code, target, generator=g)
-        loss = out.aux_loss + (out.image - target).abs().mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    with torch.no_grad():
-        after = (r.render(feats, code) - target).abs().mean()
-    assert after < 0.5 * before, (float(before), float(after))
+    after = fit_renderer(r, feats, code, target, g, 150)
+    assert after < 0.5 * before, (float(before), after)
 
 
 def test_errors():

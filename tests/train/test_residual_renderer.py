@@ -8,6 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from tests.train.helpers import fit_renderer
 from tests.train.threads import single_thread  # noqa: F401  (autouse)
 from toolkit import ToolkitError
 from train.codec import AutoencoderConfig, KLAutoencoder, PixelCodec
@@ -159,16 +160,7 @@ def test_learns_the_missing_detail_faster_than_from_nothing():
         torch.manual_seed(0)
         dit = make_dit("DiT-Gaze-tiny", input_size=8, latent_channels=3, base_channels=3 if residual else 0)
         r = DiTRenderer(dit, PixelCodec(), GaussianDiffusion(DiffusionConfig()), upscale=2, residual=residual)
-        g = torch.Generator().manual_seed(0)
-        opt = torch.optim.Adam(r.dit.parameters(), lr=3e-3)
-        for _ in range(60):
-            out = r.training_forward(feats, code, target, generator=g)
-            loss = out.aux_loss + (out.image - target).abs().mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        with torch.no_grad():
-            errs[residual] = float((r.render(feats, code) - target).abs().mean())
+        errs[residual] = fit_renderer(r, feats, code, target, torch.Generator().manual_seed(0), 60)
     assert errs[True] < errs[False], errs
 
 
