@@ -29,7 +29,7 @@ $(STAMP):
 	$(VPY) -m pip install -q --upgrade pip setuptools wheel
 	# torch first, from the pinned spec, so nothing below can pull a CUDA build.
 	$(VPY) -m pip install -q "$(TORCH_SPEC)"
-	$(VPY) -m pip install -q -e ".[dev,sd-vae]"
+	$(VPY) -m pip install -q -e ".[dev,sd-vae,bench]"
 	@rm -f $(VENV)/.ditgaze-installed-*
 	@touch $@
 
