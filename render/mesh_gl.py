@@ -337,6 +337,7 @@ class MeshRasterizer:
                 self.prog["u_tex"].value = 0
             self._fbo.use()
             ctx.viewport = (0, 0, self.width, self.height)
+            ctx.scissor = None  # the shared context may hold a preview pass's scissor box
             ctx.disable(ctx.CULL_FACE | ctx.BLEND)
             ctx.enable(ctx.DEPTH_TEST)
             for c in range(C):

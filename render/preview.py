@@ -121,8 +121,9 @@ class PreviewSplatter:
         self.width, self.height = int(width), int(height)
         self.near, self.far, self.eps2d = float(near_plane), float(far_plane), float(eps2d)
         self.resort_tolerance = float(resort_tolerance)
-        self._own_ctx = ctx is None
-        self.ctx = ctx if ctx is not None else create_headless_context()
+        # Headless splatters share the process's one standalone context with render.mesh_gl: with two
+        # standalone EGL contexts in a process, one's GL calls could land in the other's objects.
+        self.ctx = ctx if ctx is not None else _shared_context()
         c = self.ctx
         self._splat = c.program(vertex_shader=sh.SPLAT_VERTEX, fragment_shader=sh.SPLAT_FRAGMENT)
         self._layer = c.program(vertex_shader=sh.FULLSCREEN_VERTEX, fragment_shader=sh.LAYER_FRAGMENT)
@@ -150,7 +151,7 @@ class PreviewSplatter:
         return tex, self.ctx.framebuffer(color_attachments=[tex])
 
     def release(self) -> None:
-        """Free the GL objects (the context too when this splatter created it)."""
+        """Free the GL objects (a shared or caller's context stays)."""
         for lst in self._lists.values():
             lst.release()
         for obj in (self._data_tex, self._fbo, self._target, self._layer_vao, self._present_vao, self._splat,
@@ -162,8 +163,6 @@ class PreviewSplatter:
             for k in ("back_fbo", "back_tex", "front_fbo", "front_tex"):
                 self._layers[k].release()
             self._layers = None
-        if self._own_ctx:
-            self.ctx.release()
 
     # ------------------------------------------------------------------ uploads
     def _upload(self, means, quats, scales, opacities, colors, may_change=None) -> tuple[np.ndarray | None, np.ndarray]:
@@ -259,6 +258,7 @@ class PreviewSplatter:
         import moderngl
 
         fbo.use()
+        self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)  # the shared context may hold a mesh pass's state
         self.ctx.viewport = (0, 0, self.width, self.height)
         self.ctx.scissor = rect
         if clear:
@@ -560,15 +560,15 @@ class PreviewSplatter:
 # ---------------------------------------------------------------------------------------------- scenes
 
 
-_SHARED_CTX = None
-
-
 def _shared_context():
-    """One headless context per process for the one-shot functions (EGL contexts are slow to make)."""
-    global _SHARED_CTX
-    if _SHARED_CTX is None:
-        _SHARED_CTX = create_headless_context()
-    return _SHARED_CTX
+    """The process's one headless context (``render.mesh_gl.shared_context``: EGL contexts are slow to make,
+    and a second standalone context in the same process is how GL calls end up in the wrong one)."""
+    from render.mesh_gl import shared_context
+
+    try:
+        return shared_context()
+    except ToolkitError:
+        return create_headless_context()  # the same EGL attempt again, for its library-naming message
 
 
 def render_preview(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,

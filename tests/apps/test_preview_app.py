@@ -168,12 +168,12 @@ def test_missing_egl_is_a_clear_cli_error(tmp_path, capsys, monkeypatch):
     import ctypes.util
 
     from apps.preview import main
-    from render import preview
+    from render import mesh_gl
 
     def no_egl(*a, **k):
         raise Exception("libEGL.so.1: cannot open shared object file")
 
-    monkeypatch.setattr(preview, "_SHARED_CTX", None)
+    monkeypatch.setattr(mesh_gl, "_SHARED_CONTEXT", None)
     monkeypatch.setattr(moderngl, "create_context", no_egl)
     monkeypatch.setattr(ctypes.util, "find_library", lambda name: None if name == "EGL" else f"lib{name}.so")
     assert run_cli(main, ["demo:200", "--headless", "--sweep", str(tmp_path / "o.png")]) == 2
