@@ -27,6 +27,7 @@ from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot, ti
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.rotations import angular_error_deg  # noqa: E402
 from train.gaze_estimator import (  # noqa: E402
+    EYE_CHANNELS,
     GazeEstimatorConfig,
     GazeEstimatorTrainConfig,
     train_gaze_estimator,
@@ -108,7 +109,7 @@ def main(argv=None) -> int:
           f"{len(test[0])} test images ({source}), {train[0].shape[-1]}px, made in {time.perf_counter() - t0:.0f} s")
     rows, series = [], {}
     for mode in modes:
-        cfg = GazeEstimatorConfig(eyes=True, channels=(32, 64, 96)) if mode == "eyes" else \
+        cfg = GazeEstimatorConfig(eyes=True, channels=EYE_CHANNELS) if mode == "eyes" else \
             GazeEstimatorConfig(input_size=a.input_size)
         tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every)
         start, stamps = time.perf_counter(), []

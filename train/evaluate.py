@@ -89,10 +89,6 @@ def _fid(real: torch.Tensor, fake: torch.Tensor, log=print) -> float | None:
         return None
 
 
-def _estimate(estimator, images: torch.Tensor, landmarks: torch.Tensor) -> torch.Tensor:
-    return estimator(images, landmarks) if getattr(getattr(estimator, "config", None), "eyes", False) else estimator(images)
-
-
 @torch.no_grad()
 def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, steps: int) -> torch.Tensor:
     maps = model(batch["code"], batch["pose"], batch["gaze_head"], batch["viewmat"], batch["K"], res, res,
@@ -127,7 +123,10 @@ def _last_t(renderer, B: int, device) -> torch.Tensor | None:
 def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
              sampling_steps: int = 1, tta_steps: int = 0, seed: int = 0, device="cpu",
              log=print) -> dict[str, Any]:
-    """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure}."""
+    """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure}.
+
+    ``estimator`` is a :class:`train.gaze_estimator.GazeEstimator`, called with the images and their landmarks
+    (eye-patch estimators read them, whole-face ones ignore them)."""
     from train.data.pairing import SyntheticRedirectionPairs
 
     model.eval()
@@ -159,7 +158,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         out_w, tgt_w = composite_on_white(out, mask), composite_on_white(tgt, mask)
         lm = st("landmarks")  # the target is the input's view: same landmarks
         with torch.no_grad():  # eye-patch estimators read the landmarks (render and target share the view)
-            e_out, e_tgt = _estimate(estimator, out_w, lm), _estimate(estimator, tgt_w, lm)
+            e_out, e_tgt = estimator(out_w, lm), estimator(tgt_w, lm)
         ge = angular_error_deg(e_out[:, :2], e_tgt[:, :2])
         he = angular_error_deg(e_out[:, 2:4], e_tgt[:, 2:4])
         p, s = psnr(out_w, tgt_w), ssim(out_w, tgt_w)

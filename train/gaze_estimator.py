@@ -67,6 +67,9 @@ EYE_BAND = (0.3, 0.62, 0.24, 0.76)
 every view of the synthetic rig (measured from the eye landmarks 36-47 over all cameras, poses and gazes)."""
 
 
+EYE_CHANNELS = (32, 64, 96)
+"""stride-2 stages of the eye-patch design (a 24 x 36 patch pair: three halvings leave 3 x 5)."""
+
 LEFT_EYE, RIGHT_EYE = slice(36, 42), slice(42, 48)  # iBUG-68 indices; "left" = image-left (GazeGaussian)
 
 
@@ -169,9 +172,13 @@ class GazeEstimator(nn.Module):
         self.head = nn.Sequential(nn.Linear(n_feat, cfg.hidden), nn.ReLU(),
                                   nn.Dropout(cfg.dropout), nn.Linear(cfg.hidden, 4))
 
-    def preprocess(self, images: torch.Tensor) -> torch.Tensor:
+    @staticmethod
+    def _check_images(images: torch.Tensor) -> None:
         if images.dim() != 4 or images.shape[1] != 3:
             raise ToolkitError(f"GazeEstimator: images must be [B, 3, H, W] RGB in [0, 1], got {list(images.shape)}")
+
+    def preprocess(self, images: torch.Tensor) -> torch.Tensor:
+        self._check_images(images)
         H, W = images.shape[2:]
         top, bottom, left, right = self.config.crop
         r0, r1 = int(round(top * H)), max(int(round(top * H)) + 1, int(round(bottom * H)))
@@ -188,8 +195,7 @@ class GazeEstimator(nn.Module):
         (head-frame gaze, head pose) when ``config.head_frame``, else (camera-frame gaze, head pose)."""
         if not self.config.eyes:
             return self.head(self.blocks(self.stem(self.preprocess(images))).flatten(1))
-        if images.dim() != 4 or images.shape[1] != 3:
-            raise ToolkitError(f"GazeEstimator: images must be [B, 3, H, W] RGB in [0, 1], got {list(images.shape)}")
+        self._check_images(images)
         if landmarks is None:
             raise ToolkitError("GazeEstimator: this estimator reads eye patches and needs the images' landmarks "
                                "([B, 68, 2] pixels)")
@@ -199,11 +205,14 @@ class GazeEstimator(nn.Module):
         layout = (landmarks / landmarks.new_tensor([W, H]) * 2 - 1).flatten(1)
         return self.head(torch.cat([self.blocks(self.stem(x)).flatten(1), self.layout(layout)], 1))
 
-    def forward(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
-        out = self.forward_parts(images, landmarks)
+    def compose(self, parts: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward_parts` outputs -> [B, 4] (camera-frame gaze, head pose)."""
         if not self.config.head_frame:
-            return out
-        return torch.cat([head_to_camera_gaze(out[:, :2], out[:, 2:]), out[:, 2:]], 1)
+            return parts
+        return torch.cat([head_to_camera_gaze(parts[:, :2], parts[:, 2:]), parts[:, 2:]], 1)
+
+    def forward(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
+        return self.compose(self.forward_parts(images, landmarks))
 
     def gaze(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
         """[B, 3, H, W] -> [B, 2] gaze (pitch, yaw)."""
@@ -384,8 +393,7 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         if tc.augment:
             x, lm = augment_batch(x, tc, g, lm) if lm is not None else (augment_batch(x, tc, g), None)
         parts = model.forward_parts(x, lm)
-        pred = parts if not model.config.head_frame else \
-            torch.cat([head_to_camera_gaze(parts[:, :2], parts[:, 2:]), parts[:, 2:]], 1)
+        pred = model.compose(parts)
         if tc.loss_space == "vectors":
             pv = torch.cat([pitchyaw_to_vector(pred[:, :2]), pitchyaw_to_vector(pred[:, 2:])], -1)
             yv = torch.cat([pitchyaw_to_vector(y[:, :2]), pitchyaw_to_vector(y[:, 2:])], -1)

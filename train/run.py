@@ -133,6 +133,7 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
     from train.gaussian_stage import load_split
     from train.gaze_estimator import (
         EYE_BAND,
+        EYE_CHANNELS,
         GazeEstimatorConfig,
         GazeEstimatorTrainConfig,
         train_gaze_estimator,
@@ -168,7 +169,7 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
             lms = torch.cat([lms, extra_lms])
         model, hist = train_gaze_estimator(
             images, targets, GazeEstimatorConfig(input_size=e.input_size, crop=crop, eyes=e.crop == "eyes",
-                                              channels=(32, 64, 96) if e.crop == "eyes" else (32, 64, 96, 128)),
+                                              channels=EYE_CHANNELS if e.crop == "eyes" else GazeEstimatorConfig.channels),
             GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=ctx.config.seed * 10 + seed,
                                      log_every=max(1, e.steps)),
             landmarks=lms, val=val)
