@@ -149,22 +149,24 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
     val = (to_u8(te.image), labels(te), te.landmarks)
     del tr, te
     crop = EYE_BAND if e.crop == "eye_band" else (0.0, 1.0, 0.0, 1.0)
+    extra_subjects = e.synthetic_subjects
+    if extra_subjects > 0 and ctx.config.data.root:
+        ctx.log("[estimator] synthetic_subjects ignored: data.root is an external dataset")
+        extra_subjects = 0
     outs, summary = {}, {}
     for k, (name, path_given, seed) in enumerate((("loss", e.loss_path, 1), ("eval", e.eval_path, 2))):
         if path_given:
             continue
         images, targets, lms = tr_images, tr_labels, tr_lms
-        if e.synthetic_subjects > 0 and ctx.config.data.root:
-            ctx.log("[estimator] synthetic_subjects ignored: data.root is an external dataset")
-        elif e.synthetic_subjects > 0:
+        if extra_subjects > 0:
             from train.data.generate import estimator_images
 
             # Disjoint seed ranges: far above the data stage's subject seeds (seed * 100003 + index) and
             # different for the two estimators, which must stay independent.
             base = ctx.config.data.seed * 100003 + 50_000 + 10_000 * k
-            extra, extra_labels, extra_lms = estimator_images(range(base, base + e.synthetic_subjects), n_frames=e.synthetic_frames,
-                                                   cameras_per_frame=e.cameras_per_frame, res=res, seed=seed,
-                                                   log=ctx.log)
+            extra, extra_labels, extra_lms = estimator_images(
+                range(base, base + extra_subjects), n_frames=e.synthetic_frames,
+                cameras_per_frame=e.cameras_per_frame, res=res, seed=seed, log=ctx.log)
             images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
             lms = torch.cat([lms, extra_lms])
         model, hist = train_gaze_estimator(
