@@ -38,6 +38,11 @@ RIG_RADIUS = 1.0
 LIGHT_JITTER = 0.6  # default spread of the per-frame light direction (see sample_frames)
 
 
+def rgb_to_u8(rgb: np.ndarray) -> np.ndarray:
+    """Rendered float RGB in [0, 1] -> uint8, rounded: how every stored or estimator image is quantized."""
+    return np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)
+
+
 @contextlib.contextmanager
 def _torch_threads(n: int):
     # Per-vertex shape maths is tiny; torch's thread pool only adds contention (10x slower under load).
@@ -97,7 +102,7 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
             chunks.append(out)
         out = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
     u8 = lambda m: (m.astype(np.uint8) * 255)  # noqa: E731
-    rgb8 = np.clip(np.rint(out["rgb"] * 255), 0, 255).astype(np.uint8)
+    rgb8 = rgb_to_u8(out["rgb"])
     n = len(rgb8)
     rows = {
         "face_patch": np.ascontiguousarray(rgb8[..., ::-1]),  # BGR, as the ETH-XGaze files
@@ -201,7 +206,7 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
                 cams = frame_cameras(subject, fr["pose"][i], [rig[j] for j in sel], res)
                 out = render_views(subject, fr["gaze"][i], fr["pose"][i], fr["expression"][i], cams,
                                    light_dirs=fr["light"][i])
-                images.append(np.clip(np.rint(out["rgb"] * 255), 0, 255).astype(np.uint8))
+                images.append(rgb_to_u8(out["rgb"]))
                 labels.append(np.concatenate([out["pitchyaw_cam"], out["face_head_pose"]], 1))
                 landmarks.append(out["landmarks_2d"])
             if log is not None:

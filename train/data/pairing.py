@@ -116,6 +116,7 @@ class SyntheticRedirectionPairs(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict:
         from train.data.dataset import resize_image
+        from train.data.generate import rgb_to_u8
         from train.data.synthetic import render_views
 
         a, b = (int(x) for x in self.pairs[i])
@@ -136,7 +137,7 @@ class SyntheticRedirectionPairs(torch.utils.data.Dataset):
         res = self.data.res or H
         t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))  # noqa: E731
         # Quantize like the stored images so input and target share one pipeline.
-        rgb = np.clip(np.rint(out["rgb"][0] * 255), 0, 255) / 255.0
+        rgb = rgb_to_u8(out["rgb"][0]) / 255.0
         target = {"image": t(resize_image(rgb.astype(np.float32), res).transpose(2, 0, 1))}
         for m in ("head_mask", "left_eye_mask", "right_eye_mask"):
             target[m] = t(resize_image(out[m][0].astype(np.float32), res)[None])
