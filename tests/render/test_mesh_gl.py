@@ -332,3 +332,57 @@ def test_renders_survive_another_current_context():
     late.release()
     np.testing.assert_array_equal(ras.render(v, f, view, K)["mask"], before["mask"])
     ras.release()
+
+
+def _square(x0: float):
+    """A flat square in the plane z = 3 whose left edge sits at camera x = x0 (right edge far off-image)."""
+    v = np.array([[x0, -5, 3], [5, -5, 3], [5, 5, 3], [x0, 5, 3]], np.float32)
+    return v, np.array([[0, 1, 2], [0, 2, 3]], np.int64)
+
+
+def test_supersample_keeps_discrete_buffers_and_antialiases_edges():
+    v, f = cube(0.4)
+    r = mesh_gl.MeshRasterizer(48, 40)
+    K = intrinsics(60.0, 60.0, 24.0, 20.0).numpy()
+    view = look_at(torch.tensor([1.5, -0.5, -2.0]), torch.zeros(3)).numpy()
+    one = r.render(v, f, view, K, ambient=0.5)
+    ss = r.render(v, f, view, K, ambient=0.5, supersample=3)
+    for key in ("mask", "tri_id"):  # the centre sample is the s = 1 sample
+        np.testing.assert_array_equal(one[key], ss[key])
+    for key in ("depth", "normals"):  # same sample, interpolated on a finer raster: equal to rounding
+        np.testing.assert_allclose(one[key], ss[key], atol=1e-5)
+    assert ss["rgb"].shape == one["rgb"].shape and ss["rgb"].dtype == np.float32
+    # Pixels whose 3 x 3 neighbourhood is all background or all one face are unchanged; silhouette pixels blend.
+    from scipy import ndimage
+
+    ids = one["tri_id"]
+    flat = (ndimage.minimum_filter(ids, 3) == ndimage.maximum_filter(ids, 3))
+    np.testing.assert_allclose(ss["rgb"][flat & ~one["mask"]], 1.0)
+    edge = one["mask"] ^ ndimage.binary_erosion(one["mask"])
+    assert np.abs(ss["rgb"][edge] - one["rgb"][edge]).max() > 0.05
+    r.release()
+
+
+def test_supersample_coverage_follows_a_subpixel_edge():
+    """A black square's edge moved by a third of a pixel changes the edge pixel by a third of the contrast."""
+    r = mesh_gl.MeshRasterizer(16, 8)
+    K = intrinsics(30.0, 30.0, 8.0, 4.0).numpy()  # 1 px = 0.1 world units at z = 3
+    col = np.zeros((4, 3), np.float32)
+    vals = []
+    for shift in (0.0, 1 / 3, 2 / 3):
+        x0 = (8.0 + shift - 8.0) / 10.0  # left edge at pixel x = 8 + shift
+        out = r.render(*_square(x0), np.eye(4, dtype=np.float32), K, colors=col, ambient=1.0, supersample=3)
+        vals.append(float(out["rgb"][4, 8, 0]))  # pixel column 8 spans x in [8, 9)
+    # Covered fraction of column 8 is 1, 2/3, 1/3 -> white fraction 0, 1/3, 2/3.
+    np.testing.assert_allclose(vals, [0.0, 1 / 3, 2 / 3], atol=1e-5)
+    r.release()
+
+
+@pytest.mark.parametrize("bad", [0, 2, -1, 1.5, True])
+def test_supersample_must_be_odd_positive_int(bad):
+    v, f = cube()
+    r = mesh_gl.MeshRasterizer(16, 16)
+    view, K = frontal_camera()
+    with pytest.raises(ToolkitError, match="supersample"):
+        r.render(v, f, view, K, supersample=bad)
+    r.release()

@@ -138,6 +138,8 @@ class SyntheticRedirectionPairs(torch.utils.data.Dataset):
         t = lambda x: torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))  # noqa: E731
         # Quantize like the stored images so input and target share one pipeline.
         rgb = rgb_to_u8(out["rgb"][0]) / 255.0
+        if self.data.composite:  # as GazeDataset does the input: white outside the (centre-sample) head mask
+            rgb = np.where(out["head_mask"][0][..., None], rgb, 1.0)
         target = {"image": t(resize_image(rgb.astype(np.float32), res).transpose(2, 0, 1))}
         for m in ("head_mask", "left_eye_mask", "right_eye_mask"):
             target[m] = t(resize_image(out[m][0].astype(np.float32), res)[None])

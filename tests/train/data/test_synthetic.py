@@ -8,6 +8,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 
 from tests.train.data.conftest import needs_gl
 from toolkit.errors import ToolkitError
@@ -183,9 +184,12 @@ def test_masks_match_the_silhouette(subject_file, subject):
             if len(xs) > 3:
                 c = r["facial_landmarks"][i, lo:lo + 6].mean(0)
                 assert np.hypot(xs.mean() + 0.5 - c[0], ys.mean() + 0.5 - c[1]) < 0.03 * W + 2
-    # The images are white outside the head mask (rendered on white) and not white inside.
+    # The images are white outside the head mask (rendered on white; anti-aliasing only touches pixels next to
+    # the silhouette) and not white inside.
     img = r["face_patch"][8].astype(float)
-    assert (img[r["head_mask"][8] == 0] == 255).all()
+    near = ndimage.binary_dilation(r["head_mask"][8] > 0)
+    assert (img[~near] == 255).all()
+    assert (img[near & (r["head_mask"][8] == 0)] < 255).any()
     assert img[r["head_mask"][8] > 0].mean() < 230
 
 
