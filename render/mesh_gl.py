@@ -168,7 +168,7 @@ class MeshRasterizer:
         self.prog = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         self._fbo = None
         self._targets: list = []
-        self._ss_fbo = None  # (size, framebuffer, targets, depth) of the last supersampled size
+        self._ss_fbo = None  # (size, framebuffer, colour, depth) of the last supersampled size
         self.width = self.height = 0
         self.resize(width, height)
 
@@ -219,8 +219,8 @@ class MeshRasterizer:
             supersample: odd s >= 1. s > 1 rasterizes s x s samples per pixel and box-filters ``rgb`` (composited
                 on ``background`` first), i.e. anti-aliases edges the way a camera's pixel integrates light;
                 sub-pixel detail such as an iris edge then moves the pixel values continuously. The discrete
-                outputs (``mask``, ``depth``, ``normals``, ``tri_id``) are the centre sample of each pixel, which
-                is exactly the sample an s = 1 render takes, so they do not change with s.
+                outputs (``mask``, ``depth``, ``normals``, ``tri_id``) come from a second, plain pass: exactly
+                those of an s = 1 render.
 
         Returns:
             dict of numpy arrays: ``rgb`` [H, W, 3] float32, ``mask`` [H, W] bool, ``depth`` [H, W] float32
@@ -347,23 +347,35 @@ class MeshRasterizer:
                 gl_tex.repeat_x = gl_tex.repeat_y = False
                 gl_tex.use(location=0)
                 self.prog["u_tex"].value = 0
-            fbo = self._fbo if ss == 1 else self._supersample_fbo(ss)
-            fw, fh = self.width * ss, self.height * ss
-            fbo.use()
-            ctx.viewport = (0, 0, fw, fh)
             ctx.scissor = None  # the shared context may hold a preview pass's scissor box
             ctx.disable(ctx.CULL_FACE | ctx.BLEND)
             ctx.enable(ctx.DEPTH_TEST)
+
+            def draw(fbo, K: np.ndarray, w: int, h: int, clear=(0.0, 0.0, 0.0, 0.0)) -> None:
+                fbo.use()
+                ctx.viewport = (0, 0, w, h)
+                P = opengl_projection(torch.from_numpy(K), w, h, near, far).numpy()
+                self.prog["u_proj"].write(np.ascontiguousarray(P.T, dtype=np.float32).tobytes())
+                fbo.clear(*clear, depth=1.0)
+                vao.render(ctx.TRIANGLES)
+
             for c in range(C):
                 self.prog["u_view"].write(np.ascontiguousarray(views[c].T).tobytes())  # GL is column-major
-                # Pixel-edge convention (x = 0 is the left edge): s x s samples per pixel is K scaled by s.
-                Kc = Kn[c] * np.array([[ss], [ss], [1]], np.float32)
-                P = opengl_projection(torch.from_numpy(Kc), fw, fh, near, far).numpy()
-                self.prog["u_proj"].write(np.ascontiguousarray(P.T, dtype=np.float32).tobytes())
                 self.prog["u_light"].value = tuple(float(x) for x in lights[c])
-                fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-                vao.render(ctx.TRIANGLES)
-                results.append(self._read_back(fbo, bg, ss))
+                rgb_aa = None
+                if ss > 1:
+                    # Pixel-edge convention (x = 0 is the left edge): s x s samples per pixel is K scaled by s.
+                    fbo = self._supersample_fbo(ss)
+                    # Cleared to the background, so every sample is already composited on it.
+                    draw(fbo, Kn[c] * np.array([[ss], [ss], [1]], np.float32), self.width * ss, self.height * ss,
+                         clear=(*(float(x) for x in bg), 0.0))
+                    rgb_aa = self._read_supersampled(fbo, ss)
+                # The discrete buffers come from a plain pass: the exact samples of an s = 1 render.
+                draw(self._fbo, Kn[c], self.width, self.height)
+                out = self._read_back(bg)
+                if rgb_aa is not None:
+                    out["rgb"] = rgb_aa
+                results.append(out)
         finally:
             vao.release()
             vbo.release()
@@ -374,37 +386,36 @@ class MeshRasterizer:
         return results
 
     def _supersample_fbo(self, ss: int):
-        """A framebuffer ``ss`` times this rasterizer's size, kept until the next :meth:`resize`."""
+        """An RGBA + depth framebuffer ``ss`` times this rasterizer's size, kept until the size changes."""
         size = (self.width * ss, self.height * ss)
         if self._ss_fbo is None or self._ss_fbo[0] != size:
             self._release_supersample()
-            targets = [self.ctx.texture(size, 4, dtype="f4") for _ in range(3)]
-            depth = self.ctx.depth_renderbuffer(size)
-            self._ss_fbo = (size, self.ctx.framebuffer(color_attachments=targets, depth_attachment=depth), targets, depth)
+            color, depth = self.ctx.texture(size, 4, dtype="f4"), self.ctx.depth_renderbuffer(size)
+            # One colour attachment: the shader's normal/id outputs have no buffer there and are dropped.
+            self._ss_fbo = (size, self.ctx.framebuffer(color_attachments=[color], depth_attachment=depth), color, depth)
         return self._ss_fbo[1]
 
     def _release_supersample(self) -> None:
         if self._ss_fbo is not None:
-            _, fbo, targets, depth = self._ss_fbo
-            for obj in (fbo, depth, *targets):
+            for obj in self._ss_fbo[1:]:
                 obj.release()
             self._ss_fbo = None
 
-    def _read_back(self, fbo, bg: np.ndarray, ss: int = 1) -> dict[str, np.ndarray]:
+    def _read_supersampled(self, fbo, ss: int) -> np.ndarray:
+        """[H, W, 3] box filter of the s x s samples of each pixel (drawn on a background-cleared target)."""
+        H, W = self.height, self.width
+        fine = np.frombuffer(fbo.read(components=3, dtype="f4"), np.float32).reshape(H, ss, W, ss, 3)
+        return fine.sum(axis=(1, 3), dtype=np.float32) / np.float32(ss * ss)
+
+    def _read_back(self, bg: np.ndarray) -> dict[str, np.ndarray]:
         H, W = self.height, self.width
 
         def read(i):
-            return np.frombuffer(fbo.read(components=4, attachment=i, dtype="f4"), np.float32).reshape(H * ss, W * ss, 4)
+            return np.frombuffer(self._fbo.read(components=4, attachment=i, dtype="f4"), np.float32).reshape(H, W, 4)
 
         rgba, nd, ids = read(0), read(1), read(2)
-        if ss > 1:
-            drawn = rgba[..., 3:] > 0.5
-            fine = np.where(drawn, rgba[..., :3], bg[None, None, :])
-            rgb_aa = fine.reshape(H, ss, W, ss, 3).sum(axis=(1, 3), dtype=np.float32) / np.float32(ss * ss)
-            c = ss // 2  # the centre sample sits where an s = 1 render samples the pixel
-            rgba, nd, ids = rgba[c::ss, c::ss], nd[c::ss, c::ss], ids[c::ss, c::ss]
         mask = rgba[..., 3] > 0.5
-        rgb = rgb_aa if ss > 1 else np.where(mask[..., None], rgba[..., :3], bg[None, None, :]).astype(np.float32)
+        rgb = np.where(mask[..., None], rgba[..., :3], bg[None, None, :]).astype(np.float32)
         normals = np.where(mask[..., None], nd[..., :3], 0.0).astype(np.float32)
         depth = np.where(mask, nd[..., 3], 0.0).astype(np.float32)
         tri_id = np.where(mask, np.rint(ids[..., 0]).astype(np.int64) - 1, -1).astype(np.int32)
