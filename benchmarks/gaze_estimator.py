@@ -27,9 +27,9 @@ from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot, ti
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.rotations import angular_error_deg  # noqa: E402
 from train.gaze_estimator import (  # noqa: E402
-    EYE_CHANNELS,
     GazeEstimatorConfig,
     GazeEstimatorTrainConfig,
+    eye_config,
     train_gaze_estimator,
 )
 
@@ -86,6 +86,10 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--input-size", type=int, default=64, help="face mode: input width")
+    ap.add_argument("--res", type=int, default=128, help="face-crop size of the rendered images (eyes mode: "
+                    "train.gaze_estimator.eye_config(res), the estimator stage's design at that size)")
+    ap.add_argument("--landmark-noise", type=float, default=GazeEstimatorTrainConfig.landmark_noise,
+                    help="training jitter of the landmarks, pixels")
     ap.add_argument("--log-every", type=int, default=250)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for <mode>.safetensors")
@@ -99,19 +103,19 @@ def main(argv=None) -> int:
     from train.data.generate import estimator_images
 
     t0 = time.perf_counter()
-    train = estimator_images(range(TRAIN_SEEDS, TRAIN_SEEDS + a.subjects), n_frames=a.frames, seed=0)
+    train = estimator_images(range(TRAIN_SEEDS, TRAIN_SEEDS + a.subjects), n_frames=a.frames, seed=0, res=a.res)
     if a.data:
         test, source = load_split(a.data, "test"), f"held-out split of {a.data}"
     else:
-        test = estimator_images(range(TEST_SEEDS, TEST_SEEDS + a.test_subjects), n_frames=30, seed=1)
+        test = estimator_images(range(TEST_SEEDS, TEST_SEEDS + a.test_subjects), n_frames=30, seed=1, res=a.res)
         source = f"{a.test_subjects} held-out procedural subjects"
     print(f"data: {len(train[0])} training images ({a.subjects} subjects x {a.frames} gazes x 2 cameras), "
           f"{len(test[0])} test images ({source}), {train[0].shape[-1]}px, made in {time.perf_counter() - t0:.0f} s")
     rows, series = [], {}
     for mode in modes:
-        cfg = GazeEstimatorConfig(eyes=True, channels=EYE_CHANNELS) if mode == "eyes" else \
-            GazeEstimatorConfig(input_size=a.input_size)
-        tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every)
+        cfg = eye_config(a.res) if mode == "eyes" else GazeEstimatorConfig(input_size=a.input_size)
+        tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every,
+                                      landmark_noise=a.landmark_noise)
         start, stamps = time.perf_counter(), []
 
         def progress(step, rec, st=stamps, t0=start, mode=mode):

@@ -70,6 +70,21 @@ every view of the synthetic rig (measured from the eye landmarks 36-47 over all 
 EYE_CHANNELS = (32, 64, 96)
 """stride-2 stages of the eye-patch design (a 24 x 36 patch pair: three halvings leave 3 x 5)."""
 
+
+def eye_config(image_size: int) -> GazeEstimatorConfig:
+    """The eye-patch design for face crops of ``image_size`` pixels.
+
+    The patch keeps ~1.5 samples per image pixel across the eye (24 x 36 at 128², doubling with each doubling
+    of the image), and each doubling adds a stride-2 stage (128 channels) so the last map stays 3 x 5.
+    A fixed 24 x 36 patch would undersample larger images: the iris position, the very thing being read,
+    would be no more precise at 512² than at 128².
+    """
+    if image_size < 16:
+        raise ToolkitError(f"eye_config: image size must be >= 16 pixels, got {image_size}")
+    doublings = max(0, round(math.log2(image_size / 128)))
+    k = 2 ** doublings
+    return GazeEstimatorConfig(eyes=True, eye_patch=(24 * k, 36 * k), channels=EYE_CHANNELS + (128,) * doublings)
+
 LEFT_EYE, RIGHT_EYE = slice(36, 42), slice(42, 48)  # iBUG-68 indices; "left" = image-left (GazeGaussian)
 
 

@@ -133,9 +133,9 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
     from train.gaussian_stage import load_split
     from train.gaze_estimator import (
         EYE_BAND,
-        EYE_CHANNELS,
         GazeEstimatorConfig,
         GazeEstimatorTrainConfig,
+        eye_config,
         train_gaze_estimator,
     )
 
@@ -170,8 +170,7 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
             images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
             lms = torch.cat([lms, extra_lms])
         model, hist = train_gaze_estimator(
-            images, targets, GazeEstimatorConfig(input_size=e.input_size, crop=crop, eyes=e.crop == "eyes",
-                                              channels=EYE_CHANNELS if e.crop == "eyes" else GazeEstimatorConfig.channels),
+            images, targets, eye_config(res) if e.crop == "eyes" else GazeEstimatorConfig(input_size=e.input_size, crop=crop),
             GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=ctx.config.seed * 10 + seed,
                                      log_every=max(1, e.steps)),
             landmarks=lms, val=val)

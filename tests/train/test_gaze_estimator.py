@@ -160,3 +160,105 @@ def test_head_frame_output_is_composed_exactly():
     torch.testing.assert_close(out[:, :2], head_to_camera_gaze(parts[:, :2], parts[:, 2:]))
     direct = GazeEstimator(GazeEstimatorConfig(input_size=32, channels=(8, 16, 16), hidden=32, head_frame=False)).eval()
     assert torch.equal(direct(x), direct.forward_parts(x))
+
+
+# ----------------------------------------------------------------------------- eye-patch design
+def _eye_landmarks(B: int, W: int, roll: float = 0.0, scale: float = 1.0) -> torch.Tensor:
+    """68 landmarks with the two eyes (36-41, 42-47) as 6-point ellipses, the rest on a ring, rolled about the centre."""
+    lm = torch.zeros(B, 68, 2)
+    t = torch.linspace(0, 2 * math.pi, 6 + 1)[:-1]
+    eye = torch.stack([-torch.cos(t) * 6, torch.sin(t) * 2.5], -1)  # point 0 / 3 = outer / inner corner
+    lm[:, 36:42] = eye + torch.tensor([-14.0, -6.0])
+    lm[:, 42:48] = eye + torch.tensor([14.0, -6.0])
+    other = torch.cat([torch.arange(36), torch.arange(48, 68)])
+    ring = torch.linspace(0, 2 * math.pi, len(other) + 1)[:-1]
+    lm[:, other] = torch.stack([torch.cos(ring) * 40, torch.sin(ring) * 45], -1)
+    c, s = math.cos(roll), math.sin(roll)
+    R = torch.tensor([[c, -s], [s, c]])
+    return (lm * scale) @ R.T + W / 2
+
+
+def _draw_eye_dots(lm: torch.Tensor, W: int) -> torch.Tensor:
+    """White images with a dark Gaussian dot 2 px right of each eye's centre (in the eye's own frame)."""
+    yy, xx = torch.meshgrid(torch.arange(W) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    img = torch.ones(lm.shape[0], 3, W, W)
+    for sl in (slice(36, 42), slice(42, 48)):
+        p = lm[:, sl]
+        axis = p[:, 3] - p[:, 0]
+        u = axis / axis.norm(dim=-1, keepdim=True)
+        dot = p.mean(1) + 2.0 * u * axis.norm(dim=-1, keepdim=True) / 12
+        d2 = (xx - dot[:, 0, None, None]) ** 2 + (yy - dot[:, 1, None, None]) ** 2
+        img = img - 0.8 * torch.exp(-d2 / (2 * (axis.norm(dim=-1) / 12)[:, None, None] ** 2)).unsqueeze(1)
+    return img.clamp(0, 1)
+
+
+def test_eye_patches_follow_the_eyes_through_roll_and_scale():
+    from train.gaze_estimator import eye_patches
+
+    W = 128
+    base = _eye_landmarks(1, W)
+    ref = eye_patches(_draw_eye_dots(base, W), base)
+    assert ref.shape == (1, 6, 24, 36)
+    for roll, scale in ((0.5, 1.0), (-0.9, 1.0), (0.0, 1.5), (0.3, 0.8)):
+        lm = _eye_landmarks(1, W, roll, scale)
+        got = eye_patches(_draw_eye_dots(lm, W), lm)
+        assert float((got - ref).abs().mean()) < 0.01, (roll, scale)
+    # The patch is not blind: the same image cut 3 px lower in the left eye moves that eye's dot.
+    moved = base.clone()
+    moved[:, 36:42, 1] += 3.0
+    diff = (eye_patches(_draw_eye_dots(base, W), moved) - ref).abs()
+    assert float(diff[:, :3].amax()) > 0.3 and float(diff[:, 3:].amax()) == 0.0
+
+
+def test_eye_patches_are_differentiable_and_finite_for_degenerate_landmarks():
+    from train.gaze_estimator import eye_patches
+
+    img = torch.rand(2, 3, 64, 64, requires_grad=True)
+    lm = torch.full((2, 68, 2), 32.0, requires_grad=True)  # every landmark on one point: width clamps to 2 px
+    out = eye_patches(img, lm)
+    assert torch.isfinite(out).all()
+    out.sum().backward()
+    assert torch.isfinite(img.grad).all() and float(img.grad.abs().sum()) > 0 and torch.isfinite(lm.grad).all()
+    far = torch.full((2, 68, 2), 1e6)  # far outside: border padding, still finite
+    assert torch.isfinite(eye_patches(img.detach(), far)).all()
+    with pytest.raises(ToolkitError, match="landmarks"):
+        eye_patches(img, torch.zeros(2, 5, 2))
+
+
+@pytest.mark.parametrize("size,patch,stages", [(128, (24, 36), 3), (64, (24, 36), 3), (256, (48, 72), 4),
+                                               (512, (96, 144), 5)])
+def test_eye_config_scales_the_patch_with_the_image(size, patch, stages):
+    from train.gaze_estimator import eye_config
+
+    cfg = eye_config(size)
+    assert cfg.eyes and tuple(cfg.eye_patch) == patch and len(cfg.channels) == stages
+    model = GazeEstimator(GazeEstimatorConfig(**{**cfg.__dict__, "hidden": 16,
+                                                 "channels": tuple(8 for _ in cfg.channels)}))
+    lm = _eye_landmarks(2, size, scale=size / 128)
+    feats = model.blocks(model.stem(torch.zeros(2, 6, *patch)))
+    assert feats.shape[2:] == (3, 5)  # the same final map at every size
+    assert model(torch.rand(2, 3, size, size), lm).shape == (2, 4)
+    with pytest.raises(ToolkitError, match="image size"):
+        eye_config(8)
+
+
+def test_eye_estimator_needs_landmarks_trains_and_round_trips(tmp_path):
+    from train.gaze_estimator import eye_config
+
+    cfg = GazeEstimatorConfig(**{**eye_config(64).__dict__, "channels": (8, 8, 8), "hidden": 16})
+    lm = _eye_landmarks(8, 64, scale=0.5)
+    x = _draw_eye_dots(lm, 64)
+    y = (torch.rand(8, 4) - 0.5) * 0.5
+    model, hist = train_gaze_estimator(x, y, cfg, GazeEstimatorTrainConfig(steps=3, batch_size=4, log_every=3),
+                                       landmarks=lm, val=(x, y, lm))
+    assert math.isfinite(hist[-1]["val_gaze_deg"])
+    with pytest.raises(ToolkitError, match="landmarks"):
+        model(x)
+    with pytest.raises(ToolkitError, match="landmarks"):
+        train_gaze_estimator(x, y, cfg, GazeEstimatorTrainConfig(steps=1, batch_size=4))
+    with pytest.raises(ToolkitError, match="landmarks"):
+        train_gaze_estimator(x, y, cfg, GazeEstimatorTrainConfig(steps=1, batch_size=4), landmarks=lm[:, :60])
+    model.save(tmp_path / "eyes.safetensors")
+    back = GazeEstimator.load(tmp_path / "eyes.safetensors")
+    assert back.config.eye_patch == cfg.eye_patch and back.config.eyes
+    torch.testing.assert_close(back(x, lm), model.eval()(x, lm))
