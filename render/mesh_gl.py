@@ -389,6 +389,10 @@ class MeshRasterizer:
         """An RGBA + depth framebuffer ``ss`` times this rasterizer's size, kept until the size changes."""
         size = (self.width * ss, self.height * ss)
         if self._ss_fbo is None or self._ss_fbo[0] != size:
+            limit = int(self.ctx.info.get("GL_MAX_TEXTURE_SIZE", 8192))
+            if max(size) > limit:
+                raise ToolkitError(f"supersample: {self.width}x{self.height} at {ss}x{ss} samples needs a {size[0]}x{size[1]} "
+                                   f"target, above this GL's limit of {limit}; use a smaller supersample")
             self._release_supersample()
             color, depth = self.ctx.texture(size, 4, dtype="f4"), self.ctx.depth_renderbuffer(size)
             # One colour attachment: the shader's normal/id outputs have no buffer there and are dropped.

@@ -384,3 +384,13 @@ def test_supersample_must_be_odd_positive_int(bad):
     with pytest.raises(ToolkitError, match="supersample"):
         r.render(v, f, view, K, supersample=bad)
     r.release()
+
+
+def test_supersample_beyond_the_gl_texture_limit_is_a_clear_error(monkeypatch):
+    v, f = cube()
+    r = mesh_gl.MeshRasterizer(64, 48)
+    view, K = frontal_camera()
+    monkeypatch.setitem(r.ctx.info, "GL_MAX_TEXTURE_SIZE", 128)  # moderngl caches info as a dict
+    with pytest.raises(ToolkitError, match="supersample.*192x144.*limit of 128"):
+        r.render(v, f, view, K, supersample=3)
+    r.release()
