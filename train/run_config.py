@@ -59,7 +59,7 @@ class CodecStageConfig:
     """latent codec: the project's small KL autoencoder, Stable Diffusion's VAE (local path), or pixels."""
     sd_vae_path: str = ""
     """local diffusers AutoencoderKL folder (kind=sd-vae)."""
-    steps: int = 400
+    steps: int = 320
     base_channels: int = 16
     downsample: int = 4
     """spatial reduction of the latent (SD's VAE is 8)."""
@@ -72,7 +72,7 @@ class EstimatorStageConfig:
     """a trained gaze estimator for the gaze loss (safetensors); empty: train one."""
     eval_path: str = ""
     """an independently trained estimator for evaluation; empty: train one (another seed)."""
-    steps: int = 1200
+    steps: int = 1000
     input_size: int = 64
     """width the estimator's input region is resized to (face and eye_band inputs)."""
     batch: int = 64
@@ -80,7 +80,7 @@ class EstimatorStageConfig:
     """what the estimators read: two eye patches cut at the eye landmarks plus the landmark layout
     (``GazeEstimatorConfig.eyes``), the whole normalized face crop, or the fixed band holding both eyes
     (``train.gaze_estimator.EYE_BAND``)."""
-    synthetic_subjects: int = 24
+    synthetic_subjects: int = 20
     """extra procedural subjects rendered for each estimator's training only (synthetic runs; ignored with
     data.root): many gazes, few cameras each. Seeds are disjoint from the data stage's subjects and
     between the two estimators, so neither sees a held-out subject or the other's training subjects."""
@@ -110,7 +110,7 @@ class GaussianStageConfig:
     weak_weight: float = 0.5
     sampler_mode: Literal["uniform", "biased_center", "mixed"] = "mixed"
     sampler_range_deg: float = 35.0
-    steps: int = 400
+    steps: int = 320
     batch: int = 4
     lr: float = 2e-3
     renderer_lr: float = 5e-4
