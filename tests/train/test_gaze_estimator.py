@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -232,8 +233,7 @@ def test_eye_config_scales_the_patch_with_the_image(size, patch, stages):
 
     cfg = eye_config(size)
     assert cfg.eyes and tuple(cfg.eye_patch) == patch and len(cfg.channels) == stages
-    model = GazeEstimator(GazeEstimatorConfig(**{**cfg.__dict__, "hidden": 16,
-                                                 "channels": tuple(8 for _ in cfg.channels)}))
+    model = GazeEstimator(dataclasses.replace(cfg, hidden=16, channels=tuple(8 for _ in cfg.channels)))
     lm = _eye_landmarks(2, size, scale=size / 128)
     feats = model.blocks(model.stem(torch.zeros(2, 6, *patch)))
     assert feats.shape[2:] == (3, 5)  # the same final map at every size
@@ -245,7 +245,7 @@ def test_eye_config_scales_the_patch_with_the_image(size, patch, stages):
 def test_eye_estimator_needs_landmarks_trains_and_round_trips(tmp_path):
     from train.gaze_estimator import eye_config
 
-    cfg = GazeEstimatorConfig(**{**eye_config(64).__dict__, "channels": (8, 8, 8), "hidden": 16})
+    cfg = dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16)
     lm = _eye_landmarks(8, 64, scale=0.5)
     x = _draw_eye_dots(lm, 64)
     y = (torch.rand(8, 4) - 0.5) * 0.5
