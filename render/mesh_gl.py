@@ -166,9 +166,8 @@ class MeshRasterizer:
         self.ctx = ctx if ctx is not None else shared_context()
         make_current(self.ctx)
         self.prog = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
-        self._fbo = None
-        self._targets: list = []
-        self._ss_fbo = None  # (size, framebuffer, colour, depth) of the last supersampled size
+        self._fbo, self._fbo_objects = None, []
+        self._ss_fbo, self._ss_objects = None, []  # framebuffer (and its GL objects) of the last supersampled size
         self.width = self.height = 0
         self.resize(width, height)
 
@@ -180,20 +179,23 @@ class MeshRasterizer:
         if (width, height) == (self.width, self.height):
             return
         self.release_framebuffer()
-        size = (width, height)
-        self._targets = [self.ctx.texture(size, 4, dtype="f4") for _ in range(3)]
-        self._depth = self.ctx.depth_renderbuffer(size)
-        self._fbo = self.ctx.framebuffer(color_attachments=self._targets, depth_attachment=self._depth)
+        # Colour, normal + depth and triangle-id targets (the fragment shader's three outputs).
+        self._fbo, self._fbo_objects = self._float_framebuffer((width, height), 3)
         self.width, self.height = width, height
+
+    def _float_framebuffer(self, size: tuple[int, int], n_colour: int):
+        """(framebuffer, [its GL objects]) with ``n_colour`` float RGBA targets and a depth buffer."""
+        colour = [self.ctx.texture(size, 4, dtype="f4") for _ in range(n_colour)]
+        depth = self.ctx.depth_renderbuffer(size)
+        fbo = self.ctx.framebuffer(color_attachments=colour, depth_attachment=depth)
+        return fbo, [fbo, depth, *colour]
 
     def release_framebuffer(self) -> None:
         self._release_supersample()
         if self._fbo is not None:
-            self._fbo.release()
-            self._depth.release()
-            for t in self._targets:
-                t.release()
-            self._fbo, self._targets = None, []
+            for obj in self._fbo_objects:
+                obj.release()
+            self._fbo, self._fbo_objects = None, []
             self.width = self.height = 0
 
     def release(self) -> None:
@@ -388,22 +390,20 @@ class MeshRasterizer:
     def _supersample_fbo(self, ss: int):
         """An RGBA + depth framebuffer ``ss`` times this rasterizer's size, kept until the size changes."""
         size = (self.width * ss, self.height * ss)
-        if self._ss_fbo is None or self._ss_fbo[0] != size:
+        if self._ss_fbo is None or self._ss_fbo.size != size:
             limit = int(self.ctx.info.get("GL_MAX_TEXTURE_SIZE", 8192))
             if max(size) > limit:
                 raise ToolkitError(f"supersample: {self.width}x{self.height} at {ss}x{ss} samples needs a {size[0]}x{size[1]} "
                                    f"target, above this GL's limit of {limit}; use a smaller supersample")
             self._release_supersample()
-            color, depth = self.ctx.texture(size, 4, dtype="f4"), self.ctx.depth_renderbuffer(size)
             # One colour attachment: the shader's normal/id outputs have no buffer there and are dropped.
-            self._ss_fbo = (size, self.ctx.framebuffer(color_attachments=[color], depth_attachment=depth), color, depth)
-        return self._ss_fbo[1]
+            self._ss_fbo, self._ss_objects = self._float_framebuffer(size, 1)
+        return self._ss_fbo
 
     def _release_supersample(self) -> None:
-        if self._ss_fbo is not None:
-            for obj in self._ss_fbo[1:]:
-                obj.release()
-            self._ss_fbo = None
+        for obj in self._ss_objects:
+            obj.release()
+        self._ss_fbo, self._ss_objects = None, []
 
     def _read_supersampled(self, fbo, ss: int) -> np.ndarray:
         """[H, W, 3] box filter of the s x s samples of each pixel (drawn on a background-cleared target)."""
