@@ -43,6 +43,11 @@ def rgb_to_u8(rgb: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)
 
 
+def _check_res(res: int) -> None:
+    if not 16 <= res <= 2048:
+        raise ToolkitError(f"res must be in [16, 2048], got {res}")
+
+
 @contextlib.contextmanager
 def _torch_threads(n: int):
     # Per-vertex shape maths is tiny; torch's thread pool only adds contention (10x slower under load).
@@ -84,8 +89,7 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
     """Render one subject: returns (rows, subject_arrays, attrs) ready for ``write_subject_h5``."""
     if n_frames < 1:
         raise ToolkitError(f"n_frames must be >= 1, got {n_frames}")
-    if not 16 <= res <= 2048:
-        raise ToolkitError(f"res must be in [16, 2048], got {res}")
+    _check_res(res)
     seed = params.seed if seed is None else seed
     rig = rig or eth_xgaze_rig(radius=RIG_RADIUS)
     with _torch_threads(1):
@@ -194,6 +198,7 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
         raise ToolkitError(f"cameras_per_frame must be in [1, {len(rig)}], got {cameras_per_frame}")
     if n_frames < 1:
         raise ToolkitError(f"n_frames must be >= 1, got {n_frames}")
+    _check_res(res)
     images, labels, landmarks = [], [], []
     t0 = time.perf_counter()
     with _torch_threads(1):

@@ -279,6 +279,8 @@ def test_estimator_images_many_gazes_few_cameras_deterministic():
     assert not torch.equal(imgs, other)
     with pytest.raises(ToolkitError, match="cameras_per_frame"):
         estimator_images([3], n_frames=1, cameras_per_frame=19)
+    with pytest.raises(ToolkitError, match="res must be"):
+        estimator_images([3], n_frames=1, res=8)
 
 
 def test_light_jitter_zero_is_one_frontal_light():
