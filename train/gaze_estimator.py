@@ -214,11 +214,20 @@ class GazeEstimator(nn.Module):
         if landmarks is None:
             raise ToolkitError("GazeEstimator: this estimator reads eye patches and needs the images' landmarks "
                                "([B, 68, 2] pixels)")
+        return self.from_eye_inputs(*self.eye_inputs(images, landmarks))
+
+    def eye_inputs(self, images: torch.Tensor, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """What an eye-patch estimator reads: ([B, 6, h, w] eye patches in [0, 1], [B, 136] landmark layout
+        in [-1, 1] of the image). Split out so training can augment the small patches, not the whole image."""
         landmarks = landmarks.to(images.device, images.dtype)
-        x = (eye_patches(images, landmarks, self.input_hw) - 0.5) / 0.25
         H, W = images.shape[2:]
         layout = (landmarks / landmarks.new_tensor([W, H]) * 2 - 1).flatten(1)
-        return self.head(torch.cat([self.blocks(self.stem(x)).flatten(1), self.layout(layout)], 1))
+        return eye_patches(images, landmarks, self.input_hw), layout
+
+    def from_eye_inputs(self, patches: torch.Tensor, layout: torch.Tensor) -> torch.Tensor:
+        """:meth:`eye_inputs` -> [B, 4], the outputs of :meth:`forward_parts`."""
+        x = self.blocks(self.stem((patches - 0.5) / 0.25)).flatten(1)
+        return self.head(torch.cat([x, self.layout(layout)], 1))
 
     def compose(self, parts: torch.Tensor) -> torch.Tensor:
         """:meth:`forward_parts` outputs -> [B, 4] (camera-frame gaze, head pose)."""
@@ -311,6 +320,34 @@ class GazeEstimatorTrainConfig:
     log_every: int = 250
 
 
+def jitter_photometric(images: torch.Tensor, cfg: GazeEstimatorTrainConfig, g: torch.Generator) -> torch.Tensor:
+    """Per-sample brightness and contrast jitter plus Gaussian noise, [B, C, H, W] -> same (not clamped)."""
+    B, dev = images.shape[0], images.device
+    b = (torch.rand(B, 1, 1, 1, generator=g) * 2 - 1).to(dev) * cfg.brightness
+    c = 1 + (torch.rand(B, 1, 1, 1, generator=g) * 2 - 1).to(dev) * cfg.contrast
+    mean = images.mean(dim=(1, 2, 3), keepdim=True)
+    x = (images - mean) * c + mean + b
+    return x + torch.randn(x.shape, generator=g).to(dev) * cfg.noise
+
+
+def augment_eye_inputs(images: torch.Tensor, landmarks: torch.Tensor, model: "GazeEstimator",
+                       cfg: GazeEstimatorTrainConfig, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The eye-patch estimator's augmentation, done on what it reads: ``model.eye_inputs`` of the images at
+    landmarks jittered by ``landmark_noise`` pixels, photometric jitter on the patches, and a per-sample
+    integer shift of up to ``max_shift`` on the layout.
+
+    Equivalent to :func:`augment_batch` on the whole image (an integer shift of image and landmarks
+    together leaves the patches unchanged and moves only the layout) at a tenth of the pixels."""
+    B, _, H, W = images.shape
+    lm = landmarks + torch.randn(landmarks.shape, generator=g).to(landmarks.device) * cfg.landmark_noise
+    patches, layout = model.eye_inputs(images, lm)
+    ms = int(round(cfg.max_shift * min(H, W)))
+    if ms > 0:
+        shift = torch.randint(-ms, ms + 1, (B, 1, 2), generator=g).to(layout)
+        layout = layout + (shift * layout.new_tensor([2 / W, 2 / H])).repeat(1, 68, 1).flatten(1)
+    return jitter_photometric(patches, cfg, g).clamp(0, 1), layout
+
+
 def augment_batch(images: torch.Tensor, cfg: GazeEstimatorTrainConfig, g: torch.Generator,
                   landmarks: torch.Tensor | None = None):
     """Light photometric jitter, Gaussian noise and a small integer shift (edge-replicated), [B, 3, H, W].
@@ -318,12 +355,7 @@ def augment_batch(images: torch.Tensor, cfg: GazeEstimatorTrainConfig, g: torch.
     With ``landmarks`` [B, 68, 2] returns ``(images, landmarks)``, the landmarks moved with the shift and
     jittered by ``landmark_noise`` pixels (a detector's noise on real data)."""
     B, _, H, W = images.shape
-    dev = images.device
-    b = (torch.rand(B, 1, 1, 1, generator=g) * 2 - 1).to(dev) * cfg.brightness
-    c = 1 + (torch.rand(B, 1, 1, 1, generator=g) * 2 - 1).to(dev) * cfg.contrast
-    mean = images.mean(dim=(1, 2, 3), keepdim=True)
-    x = (images - mean) * c + mean + b
-    x = x + torch.randn(x.shape, generator=g).to(dev) * cfg.noise
+    x = jitter_photometric(images, cfg, g)
     ms = int(round(cfg.max_shift * min(H, W)))
     if ms > 0:
         dx, dy = (int(v) for v in torch.randint(-ms, ms + 1, (2,), generator=g))
@@ -405,9 +437,11 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         x = _to_float(images[idx]).to(device)
         y = labels[idx].float().to(device)
         lm = landmarks[idx].float().to(device) if landmarks is not None else None
-        if tc.augment:
-            x, lm = augment_batch(x, tc, g, lm) if lm is not None else (augment_batch(x, tc, g), None)
-        parts = model.forward_parts(x, lm)
+        if model.config.eyes:
+            eye_in = augment_eye_inputs(x, lm, model, tc, g) if tc.augment else model.eye_inputs(x, lm)
+            parts = model.from_eye_inputs(*eye_in)
+        else:
+            parts = model.forward_parts(augment_batch(x, tc, g) if tc.augment else x)
         pred = model.compose(parts)
         if tc.loss_space == "vectors":
             pv = torch.cat([pitchyaw_to_vector(pred[:, :2]), pitchyaw_to_vector(pred[:, 2:])], -1)

@@ -262,3 +262,29 @@ def test_eye_estimator_needs_landmarks_trains_and_round_trips(tmp_path):
     back = GazeEstimator.load(tmp_path / "eyes.safetensors")
     assert back.config.eye_patch == cfg.eye_patch and back.config.eyes
     torch.testing.assert_close(back(x, lm), model.eval()(x, lm))
+
+
+def test_eye_augmentation_on_the_patches_matches_augmenting_the_image():
+    """An integer shift of image and landmarks together leaves the patches as they were and moves the layout:
+    augment_eye_inputs does exactly that on the small patches. Photometric jitter stays per sample."""
+    from train.gaze_estimator import augment_batch, augment_eye_inputs, eye_config
+
+    model = GazeEstimator(dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16))
+    lm = _eye_landmarks(4, 64, scale=0.5)
+    x = _draw_eye_dots(lm, 64)
+    still = GazeEstimatorTrainConfig(brightness=0, contrast=0, noise=0, landmark_noise=0, max_shift=0.1)
+    patches, layout = model.eye_inputs(x, lm)
+    shifted, lm_s = augment_batch(x, still, torch.Generator().manual_seed(3), lm)
+    p_img, l_img = model.eye_inputs(shifted, lm_s)
+    assert not torch.equal(l_img, layout)  # the draw did shift
+    torch.testing.assert_close(p_img, patches)  # the eyes sit far from the replicated border
+    p_aug, l_aug = augment_eye_inputs(x, lm, model, still, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(p_aug, patches)
+    moved = (l_aug - layout).view(4, 68, 2) * 32  # layout units -> pixels of the 64 px image
+    assert torch.equal(moved, moved[:, :1].expand_as(moved))  # one rigid shift per sample
+    assert float(moved.abs().max()) <= round(0.1 * 64) + 1e-4 and len(set(moved[:, 0, 0].tolist())) > 1
+    # Photometric jitter on the patches: per sample, bounded, reproducible from the generator.
+    loud = dataclasses.replace(still, brightness=0.2, contrast=0.2, noise=0.05, max_shift=0.0)
+    a, _ = augment_eye_inputs(x, lm, model, loud, torch.Generator().manual_seed(5))
+    b, _ = augment_eye_inputs(x, lm, model, loud, torch.Generator().manual_seed(5))
+    assert torch.equal(a, b) and not torch.equal(a, patches) and 0 <= float(a.min()) and float(a.max()) <= 1
