@@ -87,6 +87,34 @@ def eye_config(image_size: int) -> GazeEstimatorConfig:
 
 LEFT_EYE, RIGHT_EYE = slice(36, 42), slice(42, 48)  # iBUG-68 indices; "left" = image-left (GazeGaussian)
 
+IBUG_MIRROR = (tuple(range(16, -1, -1)) + tuple(range(26, 16, -1)) + (27, 28, 29, 30) + (35, 34, 33, 32, 31)
+               + (45, 44, 43, 42, 47, 46, 39, 38, 37, 36, 41, 40)
+               + (54, 53, 52, 51, 50, 49, 48, 59, 58, 57, 56, 55) + (64, 63, 62, 61, 60, 67, 66, 65))
+"""iBUG-68 index of each landmark's left-right counterpart (jaw, brows, nose base, eyes and lips swap sides)."""
+
+
+def mirror_faces(images: torch.Tensor, labels: torch.Tensor, landmarks: torch.Tensor | None = None,
+                 which: torch.Tensor | None = None):
+    """Mirror normalized face crops left-right, with their labels and landmarks.
+
+    Args:
+        images: [B, C, H, W]; labels: [B, 4] (gaze pitch, yaw, head pitch, yaw), camera frame;
+        landmarks: [B, 68, 2] pixels or None; which: [B] bool, the samples to mirror (default all).
+    Returns:
+        (images, labels, landmarks) with the chosen samples mirrored. The normalized camera's principal point
+        is the image centre, so the mirror is x -> W - x in the camera frame: both yaws change sign, pitches
+        stay, and the head-frame gaze mirrors the same way (``normalized_head_rotation`` of the mirrored pose
+        is M R M, M = diag(-1, 1, 1)). Landmarks swap with their counterparts (``IBUG_MIRROR``).
+    """
+    B, _, H, W = images.shape
+    which = torch.ones(B, dtype=torch.bool, device=images.device) if which is None else which.to(images.device)
+    images = torch.where(which[:, None, None, None], images.flip(-1), images)
+    labels = torch.where(which[:, None], labels * labels.new_tensor([1.0, -1.0, 1.0, -1.0]), labels)
+    if landmarks is not None:
+        m = landmarks[:, list(IBUG_MIRROR)] * landmarks.new_tensor([-1.0, 1.0]) + landmarks.new_tensor([W, 0.0])
+        landmarks = torch.where(which[:, None, None], m, landmarks)
+    return images, labels, landmarks
+
 
 def eye_patches(images: torch.Tensor, landmarks: torch.Tensor, size: tuple[int, int] = (24, 36)) -> torch.Tensor:
     """Cut both eyes out of face images, differentiably (bilinear ``grid_sample``).
@@ -316,6 +344,8 @@ class GazeEstimatorTrainConfig:
     """largest random translation, as a fraction of the image size (labels are unchanged by a small shift)."""
     landmark_noise: float = 0.3
     """standard deviation (pixels) of the jitter added to the landmarks of eye-patch estimators."""
+    mirror: float = 0.0
+    """probability of mirroring a training sample left-right (:func:`mirror_faces`: labels follow exactly)."""
     seed: int = 0
     log_every: int = 250
 
@@ -437,6 +467,8 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         x = _to_float(images[idx]).to(device)
         y = labels[idx].float().to(device)
         lm = landmarks[idx].float().to(device) if landmarks is not None else None
+        if tc.augment and tc.mirror > 0:
+            x, y, lm = mirror_faces(x, y, lm, torch.rand(len(idx), generator=g) < tc.mirror)
         if model.config.eyes:
             eye_in = augment_eye_inputs(x, lm, model, tc, g) if tc.augment else model.eye_inputs(x, lm)
             parts = model.from_eye_inputs(*eye_in)

@@ -249,7 +249,8 @@ def test_eye_estimator_needs_landmarks_trains_and_round_trips(tmp_path):
     lm = _eye_landmarks(8, 64, scale=0.5)
     x = _draw_eye_dots(lm, 64)
     y = (torch.rand(8, 4) - 0.5) * 0.5
-    model, hist = train_gaze_estimator(x, y, cfg, GazeEstimatorTrainConfig(steps=3, batch_size=4, log_every=3),
+    model, hist = train_gaze_estimator(x, y, cfg, GazeEstimatorTrainConfig(steps=3, batch_size=4, log_every=3,
+                                                                            mirror=0.5),
                                        landmarks=lm, val=(x, y, lm))
     assert math.isfinite(hist[-1]["val_gaze_deg"])
     with pytest.raises(ToolkitError, match="landmarks"):
@@ -288,3 +289,38 @@ def test_eye_augmentation_on_the_patches_matches_augmenting_the_image():
     a, _ = augment_eye_inputs(x, lm, model, loud, torch.Generator().manual_seed(5))
     b, _ = augment_eye_inputs(x, lm, model, loud, torch.Generator().manual_seed(5))
     assert torch.equal(a, b) and not torch.equal(a, patches) and 0 <= float(a.min()) and float(a.max()) <= 1
+
+
+def test_mirrored_face_is_the_mirrored_scene_with_exact_labels():
+    """mirror_faces of a render equals the render of the mirrored scene (symmetric subject, mirrored pose, gaze,
+    light and rig camera): pixels, landmarks and all four labels."""
+    import numpy as np
+
+    from toolkit.cameras import eth_xgaze_rig
+    from train.data.generate import RIG_RADIUS, frame_cameras
+    from train.data.synthetic import SubjectParams, build_subject, render_views
+    from train.gaze_estimator import IBUG_MIRROR, mirror_faces
+
+    assert sorted(IBUG_MIRROR) == list(range(68)) and all(IBUG_MIRROR[IBUG_MIRROR[i]] == i for i in range(68))
+    rig = eth_xgaze_rig(radius=RIG_RADIUS)
+    centres = np.stack([c.center.numpy() for c in rig])
+    twin = int(np.argmin(np.linalg.norm(centres - centres[1] * [-1, 1, 1], axis=1)))
+    subject = build_subject(SubjectParams())  # the neutral identity is left-right symmetric
+
+    def shot(s: float, cam: int):
+        pose = np.array([0.0, 0.2 * s, 0.0, 0.0, 0.0, 0.0], np.float32)
+        out = render_views(subject, [0.2, 0.3 * s], pose, [0, 0, 0, 0.2], frame_cameras(subject, pose, [rig[cam]], 64),
+                           light_dirs=[0.3 * s, 0.1, -1.0])
+        return (torch.from_numpy(out["rgb"]).permute(0, 3, 1, 2),
+                torch.from_numpy(np.concatenate([out["pitchyaw_cam"], out["face_head_pose"]], 1)).float(),
+                torch.from_numpy(out["landmarks_2d"]).float())
+
+    (xa, ya, la), (xb, yb, lb) = shot(1.0, 1), shot(-1.0, twin)
+    assert float((xa - xb).abs().mean()) > 0.05  # the two scenes do differ
+    xm, ym, lmm = mirror_faces(xa, ya, la)
+    assert float((xm - xb).abs().mean()) < 1e-3
+    torch.testing.assert_close(ym, yb, atol=1e-5, rtol=0)
+    torch.testing.assert_close(lmm, lb, atol=1e-3, rtol=0)
+    # Only the chosen samples move.
+    x2, y2, l2 = mirror_faces(torch.cat([xa, xa]), torch.cat([ya, ya]), torch.cat([la, la]), torch.tensor([False, True]))
+    assert torch.equal(x2[0], xa[0]) and torch.equal(y2[0], ya[0]) and torch.equal(l2[1], lmm[0])
