@@ -56,6 +56,9 @@ class GazeEstimatorConfig:
     an eye is ~12 px wide: a whole-face CNN does not learn to find and read it, a patch at the eye does."""
     eye_patch: tuple[int, int] = (24, 36)
     """(height, width) of each resampled eye patch; the patch spans 1.2 x 2 eye widths (corner to corner)."""
+    mirror_average: bool = False
+    """at inference (``forward``), also read the left-right mirrored image (:func:`mirror_faces`) and average
+    the two directions: the network's left-right biases cancel, at twice the cost."""
     head_frame: bool = True
     """predict gaze in the head frame plus the head pose, and compose the camera-frame gaze exactly
     (``toolkit.rotations.normalized_head_rotation``): the eyes' appearance in their sockets then maps to one
@@ -93,15 +96,19 @@ IBUG_MIRROR = (tuple(range(16, -1, -1)) + tuple(range(26, 16, -1)) + (27, 28, 29
 """iBUG-68 index of each landmark's left-right counterpart (jaw, brows, nose base, eyes and lips swap sides)."""
 
 
-def mirror_faces(images: torch.Tensor, labels: torch.Tensor, landmarks: torch.Tensor | None = None,
+MIRROR_SIGNS = (1.0, -1.0, 1.0, -1.0)
+"""What a left-right mirror does to (gaze pitch, yaw, head pitch, yaw): both yaws change sign."""
+
+
+def mirror_faces(images: torch.Tensor, labels: torch.Tensor | None = None, landmarks: torch.Tensor | None = None,
                  which: torch.Tensor | None = None):
     """Mirror normalized face crops left-right, with their labels and landmarks.
 
     Args:
-        images: [B, C, H, W]; labels: [B, 4] (gaze pitch, yaw, head pitch, yaw), camera frame;
+        images: [B, C, H, W]; labels: [B, 4] (gaze pitch, yaw, head pitch, yaw), camera frame, or None;
         landmarks: [B, 68, 2] pixels or None; which: [B] bool, the samples to mirror (default all).
     Returns:
-        (images, labels, landmarks) with the chosen samples mirrored. The normalized camera's principal point
+        (images, labels, landmarks) with the chosen samples mirrored (None stays None). The normalized camera's principal point
         is the image centre, so the mirror is x -> W - x in the camera frame: both yaws change sign, pitches
         stay, and the head-frame gaze mirrors the same way (``normalized_head_rotation`` of the mirrored pose
         is M R M, M = diag(-1, 1, 1)). Landmarks swap with their counterparts (``IBUG_MIRROR``).
@@ -109,7 +116,8 @@ def mirror_faces(images: torch.Tensor, labels: torch.Tensor, landmarks: torch.Te
     B, _, H, W = images.shape
     which = torch.ones(B, dtype=torch.bool, device=images.device) if which is None else which.to(images.device)
     images = torch.where(which[:, None, None, None], images.flip(-1), images)
-    labels = torch.where(which[:, None], labels * labels.new_tensor([1.0, -1.0, 1.0, -1.0]), labels)
+    if labels is not None:
+        labels = torch.where(which[:, None], labels * labels.new_tensor(MIRROR_SIGNS), labels)
     if landmarks is not None:
         m = landmarks[:, list(IBUG_MIRROR)] * landmarks.new_tensor([-1.0, 1.0]) + landmarks.new_tensor([W, 0.0])
         landmarks = torch.where(which[:, None, None], m, landmarks)
@@ -147,6 +155,13 @@ def eye_patches(images: torch.Tensor, landmarks: torch.Tensor, size: tuple[int, 
         grid = F.affine_grid(theta.to(images.dtype), [B, C, h, w], align_corners=False)
         out.append(F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=False))
     return torch.cat(out, 1)
+
+
+def mean_direction(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """[B, 2] (pitch, yaw) x 2 -> [B, 2]: the direction halfway between (``a`` where they are opposite)."""
+    va, vb = pitchyaw_to_vector(a), pitchyaw_to_vector(b)
+    s = va + vb
+    return vector_to_pitchyaw(torch.where(s.norm(dim=-1, keepdim=True) > 1e-6, s, va))
 
 
 def head_to_camera_gaze(gaze_head: torch.Tensor, head_pose: torch.Tensor) -> torch.Tensor:
@@ -264,7 +279,18 @@ class GazeEstimator(nn.Module):
         return torch.cat([head_to_camera_gaze(parts[:, :2], parts[:, 2:]), parts[:, 2:]], 1)
 
     def forward(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
-        return self.compose(self.forward_parts(images, landmarks))
+        """[B, 3, H, W] (+ [B, 68, 2] landmarks for eye-patch estimators) -> [B, 4] camera-frame gaze, head pose."""
+        if not self.config.mirror_average:
+            return self.compose(self.forward_parts(images, landmarks))
+        self._check_images(images)
+        B = images.shape[0]
+        if landmarks is not None:
+            landmarks = landmarks.to(images.device, images.dtype)
+        mirrored, _, lm_m = mirror_faces(images, None, landmarks)
+        both = self.compose(self.forward_parts(torch.cat([images, mirrored]),
+                                               None if landmarks is None else torch.cat([landmarks, lm_m])))
+        plain, back = both[:B], both[B:] * both.new_tensor(MIRROR_SIGNS)
+        return torch.cat([mean_direction(plain[:, :2], back[:, :2]), mean_direction(plain[:, 2:], back[:, 2:])], 1)
 
     def gaze(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
         """[B, 3, H, W] -> [B, 2] gaze (pitch, yaw)."""

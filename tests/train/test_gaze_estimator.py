@@ -324,3 +324,33 @@ def test_mirrored_face_is_the_mirrored_scene_with_exact_labels():
     # Only the chosen samples move.
     x2, y2, l2 = mirror_faces(torch.cat([xa, xa]), torch.cat([ya, ya]), torch.cat([la, la]), torch.tensor([False, True]))
     assert torch.equal(x2[0], xa[0]) and torch.equal(y2[0], ya[0]) and torch.equal(l2[1], lmm[0])
+
+
+@pytest.mark.parametrize("eyes", [False, True])
+def test_mirror_average_makes_the_estimator_mirror_equivariant(eyes, tmp_path):
+    from train.gaze_estimator import MIRROR_SIGNS, eye_config, mean_direction, mirror_faces
+
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16) if eyes else TINY
+    lm = _eye_landmarks(3, 64, roll=0.2, scale=0.5)
+    x = torch.rand(3, 3, 64, 64)
+    xm, _, lmm = mirror_faces(x, None, lm)
+    signs = torch.tensor(MIRROR_SIGNS)
+    plain = GazeEstimator(cfg).eval()
+    assert not torch.allclose(plain(xm, lmm) * signs, plain(x, lm), atol=1e-4)  # a plain network is not
+    avg = GazeEstimator(dataclasses.replace(cfg, mirror_average=True))
+    avg.load_state_dict(plain.state_dict())
+    avg.eval()
+    out = avg(x, lm)
+    torch.testing.assert_close(avg(xm, lmm) * signs, out, atol=1e-5, rtol=0)
+    expected = torch.cat([mean_direction(plain(x, lm)[:, :2], plain(xm, lmm)[:, :2] * signs[:2]),
+                          mean_direction(plain(x, lm)[:, 2:], plain(xm, lmm)[:, 2:] * signs[2:])], 1)
+    torch.testing.assert_close(out, expected, atol=1e-5, rtol=0)
+    xg = x.clone().requires_grad_(True)
+    avg(xg, lm).sum().backward()
+    assert torch.isfinite(xg.grad).all() and float(xg.grad.abs().sum()) > 0
+    avg.save(tmp_path / "avg.safetensors")
+    assert GazeEstimator.load(tmp_path / "avg.safetensors").config.mirror_average
+    # Opposite directions have no halfway direction: the first one is kept, finite.
+    a = torch.tensor([[0.1, 0.2]])
+    torch.testing.assert_close(mean_direction(a, torch.tensor([[-0.1, 0.2 - math.pi]])), a)
