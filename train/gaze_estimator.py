@@ -58,7 +58,8 @@ class GazeEstimatorConfig:
     """(height, width) of each resampled eye patch; the patch spans 1.2 x 2 eye widths (corner to corner)."""
     mirror_average: bool = False
     """at inference (``forward``), also read the left-right mirrored image (:func:`mirror_faces`) and average
-    the two directions: the network's left-right biases cancel, at twice the cost."""
+    the two directions: the network's left-right biases cancel, at twice the cost (held-out error of the eye
+    design 4.0° -> 3.7°). :func:`eye_config` turns it on."""
     head_frame: bool = True
     """predict gaze in the head frame plus the head pose, and compose the camera-frame gaze exactly
     (``toolkit.rotations.normalized_head_rotation``): the eyes' appearance in their sockets then maps to one
@@ -86,7 +87,8 @@ def eye_config(image_size: int) -> GazeEstimatorConfig:
         raise ToolkitError(f"eye_config: image size must be >= 16 pixels, got {image_size}")
     doublings = max(0, round(math.log2(image_size / 128)))
     k = 2 ** doublings
-    return GazeEstimatorConfig(eyes=True, eye_patch=(24 * k, 36 * k), channels=EYE_CHANNELS + (128,) * doublings)
+    return GazeEstimatorConfig(eyes=True, eye_patch=(24 * k, 36 * k), channels=EYE_CHANNELS + (128,) * doublings,
+                               mirror_average=True)
 
 LEFT_EYE, RIGHT_EYE = slice(36, 42), slice(42, 48)  # iBUG-68 indices; "left" = image-left (GazeGaussian)
 
@@ -370,8 +372,9 @@ class GazeEstimatorTrainConfig:
     """largest random translation, as a fraction of the image size (labels are unchanged by a small shift)."""
     landmark_noise: float = 0.3
     """standard deviation (pixels) of the jitter added to the landmarks of eye-patch estimators."""
-    mirror: float = 0.0
-    """probability of mirroring a training sample left-right (:func:`mirror_faces`: labels follow exactly)."""
+    mirror: float = 0.5
+    """probability of mirroring a training sample left-right (:func:`mirror_faces`: labels follow exactly).
+    Held-out error of the eye design, 240 subjects x 32 frames, 3000 steps: 4.3° without, 4.0° with."""
     seed: int = 0
     log_every: int = 250
 

@@ -19,6 +19,7 @@ before any work. Launch with ``torchrun --nproc_per_node N -m train.run ...`` fo
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -169,8 +170,9 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
                 cameras_per_frame=e.cameras_per_frame, res=res, seed=seed, log=ctx.log)
             images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
             lms = torch.cat([lms, extra_lms])
+        design = eye_config(res) if e.crop == "eyes" else GazeEstimatorConfig(input_size=e.input_size, crop=crop)
         model, hist = train_gaze_estimator(
-            images, targets, eye_config(res) if e.crop == "eyes" else GazeEstimatorConfig(input_size=e.input_size, crop=crop),
+            images, targets, dataclasses.replace(design, mirror_average=e.mirror_average),
             GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=ctx.config.seed * 10 + seed,
                                      log_every=max(1, e.steps)),
             landmarks=lms, val=val)

@@ -90,6 +90,9 @@ class EstimatorStageConfig:
     96 x 40 frames (the same number of images) reached 4.3° (6000 steps; benchmarks/gaze_estimator.py)."""
     cameras_per_frame: int = 2
     """rig cameras drawn at random per extra frame."""
+    mirror_average: bool = True
+    """estimators also read the mirrored image and average (``GazeEstimatorConfig.mirror_average``); training
+    mirrors half the samples either way (``GazeEstimatorTrainConfig.mirror``)."""
 
 
 @dataclass

@@ -232,7 +232,7 @@ def test_eye_config_scales_the_patch_with_the_image(size, patch, stages):
     from train.gaze_estimator import eye_config
 
     cfg = eye_config(size)
-    assert cfg.eyes and tuple(cfg.eye_patch) == patch and len(cfg.channels) == stages
+    assert cfg.eyes and cfg.mirror_average and tuple(cfg.eye_patch) == patch and len(cfg.channels) == stages
     model = GazeEstimator(dataclasses.replace(cfg, hidden=16, channels=tuple(8 for _ in cfg.channels)))
     lm = _eye_landmarks(2, size, scale=size / 128)
     feats = model.blocks(model.stem(torch.zeros(2, 6, *patch)))
@@ -336,7 +336,7 @@ def test_mirror_average_makes_the_estimator_mirror_equivariant(eyes, tmp_path):
     x = torch.rand(3, 3, 64, 64)
     xm, _, lmm = mirror_faces(x, None, lm)
     signs = torch.tensor(MIRROR_SIGNS)
-    plain = GazeEstimator(cfg).eval()
+    plain = GazeEstimator(dataclasses.replace(cfg, mirror_average=False)).eval()
     assert not torch.allclose(plain(xm, lmm) * signs, plain(x, lm), atol=1e-4)  # a plain network is not
     avg = GazeEstimator(dataclasses.replace(cfg, mirror_average=True))
     avg.load_state_dict(plain.state_dict())
