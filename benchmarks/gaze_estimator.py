@@ -14,6 +14,7 @@ error binned by how far the head is turned from the camera, the inference throug
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -90,6 +91,10 @@ def main(argv=None) -> int:
                     "train.gaze_estimator.eye_config(res), the estimator stage's design at that size)")
     ap.add_argument("--landmark-noise", type=float, default=GazeEstimatorTrainConfig.landmark_noise,
                     help="training jitter of the landmarks, pixels")
+    ap.add_argument("--mirror", type=float, default=GazeEstimatorTrainConfig.mirror,
+                    help="probability of mirroring a training sample left-right")
+    ap.add_argument("--no-mirror-average", action="store_true",
+                    help="predict from the image alone (default: average with its mirror)")
     ap.add_argument("--log-every", type=int, default=250)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for <mode>.safetensors")
@@ -114,8 +119,9 @@ def main(argv=None) -> int:
     rows, series = [], {}
     for mode in modes:
         cfg = eye_config(a.res) if mode == "eyes" else GazeEstimatorConfig(input_size=a.input_size)
+        cfg = dataclasses.replace(cfg, mirror_average=not a.no_mirror_average)
         tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every,
-                                      landmark_noise=a.landmark_noise)
+                                      landmark_noise=a.landmark_noise, mirror=a.mirror)
         start, stamps = time.perf_counter(), []
 
         def progress(step, rec, st=stamps, t0=start, mode=mode):

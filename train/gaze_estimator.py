@@ -476,6 +476,8 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         _check_landmarks(val[2] if len(val) > 2 else None, val[0].shape[0], needs, "val")
     if tc.loss_space not in ("vectors", "angles"):
         raise ToolkitError(f"GazeEstimatorTrainConfig.loss_space: expected 'vectors' or 'angles', got {tc.loss_space!r}")
+    if not 0.0 <= tc.mirror <= 1.0:
+        raise ToolkitError(f"GazeEstimatorTrainConfig.mirror: expected a probability in [0, 1], got {tc.mirror}")
     if tc.steps < 1 or tc.batch_size < 1:
         raise ToolkitError(f"GazeEstimatorTrainConfig: steps and batch_size must be >= 1, got {tc.steps}, {tc.batch_size}")
     torch.manual_seed(tc.seed)

@@ -143,6 +143,8 @@ def test_trainer_rejects_bad_data():
     assert math.isfinite(hist[-1]["loss"])
     with pytest.raises(ToolkitError, match="steps"):
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 4), TINY, GazeEstimatorTrainConfig(steps=0))
+    with pytest.raises(ToolkitError, match="mirror"):
+        train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 4), TINY, GazeEstimatorTrainConfig(mirror=1.5))
 
 
 def test_head_frame_output_is_composed_exactly():
