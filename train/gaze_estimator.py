@@ -110,10 +110,11 @@ def mirror_faces(images: torch.Tensor, labels: torch.Tensor | None = None, landm
         images: [B, C, H, W]; labels: [B, 4] (gaze pitch, yaw, head pitch, yaw), camera frame, or None;
         landmarks: [B, 68, 2] pixels or None; which: [B] bool, the samples to mirror (default all).
     Returns:
-        (images, labels, landmarks) with the chosen samples mirrored (None stays None). The normalized camera's principal point
-        is the image centre, so the mirror is x -> W - x in the camera frame: both yaws change sign, pitches
-        stay, and the head-frame gaze mirrors the same way (``normalized_head_rotation`` of the mirrored pose
-        is M R M, M = diag(-1, 1, 1)). Landmarks swap with their counterparts (``IBUG_MIRROR``).
+        (images, labels, landmarks) with the chosen samples mirrored (None stays None). The normalized
+        camera's principal point is the image centre, so the mirror is x -> W - x in the camera frame: both
+        yaws change sign, pitches stay, and the head-frame gaze mirrors the same way
+        (``normalized_head_rotation`` of the mirrored pose is M R M, M = diag(-1, 1, 1)). Landmarks swap
+        with their counterparts (``IBUG_MIRROR``).
     """
     B, _, H, W = images.shape
     which = torch.ones(B, dtype=torch.bool, device=images.device) if which is None else which.to(images.device)
