@@ -85,9 +85,9 @@ class EstimatorStageConfig:
     data.root): many gazes, few cameras each. Seeds are disjoint from the data stage's subjects and
     between the two estimators, so neither sees a held-out subject or the other's training subjects."""
     synthetic_frames: int = 20
-    """random (gaze, pose, expression) frames per extra subject. Faces, not gazes, are what the estimator runs
-    short of: trained on 32 subjects x 120 frames it fits its own images to 2.9° but held-out faces to 4.9°;
-    96 x 40 frames (the same number of images) reached 4.3° (6000 steps; benchmarks/gaze_estimator.py)."""
+    """random (gaze, pose, expression) frames per extra subject. Faces matter more than gazes per face: trained
+    on 32 subjects x 120 frames the estimator fits its own images to 2.9° but held-out faces to 4.9°; with
+    more faces that gap closes, and training steps become the limit (docs/model.md)."""
     cameras_per_frame: int = 2
     """rig cameras drawn at random per extra frame."""
     mirror_average: bool = True
