@@ -91,7 +91,8 @@ class EstimatorStageConfig:
     cameras_per_frame: int = 2
     """rig cameras drawn at random per extra frame."""
     mirror_average: bool = True
-    """estimators also read the mirrored image and average (``GazeEstimatorConfig.mirror_average``); training
+    """the estimators this stage trains also read the mirrored image and average
+    (``GazeEstimatorConfig.mirror_average``; checkpoints given by path keep their own setting). Training
     mirrors half the samples either way (``GazeEstimatorTrainConfig.mirror``)."""
 
 

@@ -356,3 +356,15 @@ def test_mirror_average_makes_the_estimator_mirror_equivariant(eyes, tmp_path):
     # Opposite directions have no halfway direction: the first one is kept, finite.
     a = torch.tensor([[0.1, 0.2]])
     torch.testing.assert_close(mean_direction(a, torch.tensor([[-0.1, 0.2 - math.pi]])), a)
+
+
+def test_mirror_average_rejects_bad_landmarks_clearly_and_face_designs_ignore_them():
+    from train.gaze_estimator import eye_config
+
+    eyes = GazeEstimator(dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16))
+    x = torch.rand(4, 3, 64, 64)
+    for bad in (None, _eye_landmarks(3, 64, scale=0.5), _eye_landmarks(1, 64, scale=0.5), torch.zeros(4, 5, 2)):
+        with pytest.raises(ToolkitError, match="landmarks"):
+            eyes(x, bad)
+    face = GazeEstimator(dataclasses.replace(TINY, mirror_average=True)).eval()
+    torch.testing.assert_close(face(x, torch.zeros(4, 5)), face(x))
