@@ -116,8 +116,8 @@ class BaselineRenderer(nn.Module):
 
     def training_forward(self, feats: torch.Tensor, shape_code: torch.Tensor, target: torch.Tensor, *,
                          gaze: torch.Tensor | None = None, pose: torch.Tensor | None = None,
-                         generator: torch.Generator | None = None) -> RenderOutput:
-        image = self.forward(feats, shape_code)
+                         generator: torch.Generator | None = None, t: torch.Tensor | None = None) -> RenderOutput:
+        image = self.forward(feats, shape_code)  # no diffusion: ``t`` has nothing to set
         if target.shape != image.shape:
             raise ToolkitError(f"BaselineRenderer target: expected {list(image.shape)}, got {list(target.shape)}")
         return RenderOutput(image=image, aux_loss=image.new_zeros(()))

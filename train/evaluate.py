@@ -103,13 +103,12 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     """Tune a copy of the shape code on the input image (its own gaze) for ``steps`` steps; weights stay frozen."""
     code = batch["code"].clone().requires_grad_(True)
     opt = torch.optim.Adam([code], lr=lr)
-    t = _last_t(renderer, code.shape[0], code.device)
-    extra = {} if t is None else {"t": t}  # diffusion renderers: the one-step path the evaluation renders with
+    t = _last_t(renderer, code.shape[0], code.device)  # diffusion renderers: the one-step path evaluation renders
     for _ in range(steps):
         maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], res, res,
                      renders=("head",))
         img = renderer.training_forward(maps["head"], code, input_image, gaze=batch["in_gaze_head"],
-                                        pose=batch["in_pose"], **extra).image
+                                        pose=batch["in_pose"], t=t).image
         loss = ((composite_on_white(img, mask) - composite_on_white(input_image, mask)).abs()).mean()
         # Gradient for the code alone: the weights get none (nor a stale .grad), and their kernels are skipped.
         (code.grad,) = torch.autograd.grad(loss, [code])

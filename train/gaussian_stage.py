@@ -112,10 +112,7 @@ class GaussianTrainer:
     def _render(self, b, gaze, target, g, t=None):
         R = self.data.res
         maps = self.model(b["code"], b["pose"], gaze, b["viewmat"], b["K"], R, R, renders=("head",))
-        kw = {"gaze": gaze, "pose": b["pose"]}
-        if t is not None:
-            kw["t"] = t
-        out = self.renderer.training_forward(maps["head"], b["code"], target, generator=g, **kw)
+        out = self.renderer.training_forward(maps["head"], b["code"], target, gaze=gaze, pose=b["pose"], generator=g, t=t)
         return maps, out
 
     def step(self, step: int, g: torch.Generator) -> dict[str, torch.Tensor]:

@@ -4,9 +4,10 @@ A renderer turns the splatted feature map of the two-stream Gaussian model into 
 
 * ``render(feats [B, F, h, w], shape_code [B, 144], *, gaze=None, pose=None, steps=None, seed=0)``
   -> image ``[B, 3, h * upscale, w * upscale]`` in [0, 1] (clamped) -- inference;
-* ``training_forward(feats, shape_code, target [B, 3, H, W], *, gaze=None, pose=None, generator=None)``
+* ``training_forward(feats, shape_code, target [B, 3, H, W], *, gaze=None, pose=None, generator=None, t=None)``
   -> :class:`RenderOutput` with the differentiable image the image/gaze losses compare (unclamped, [0, 1]
   scale) and the renderer's own auxiliary loss (the diffusion loss for the DiT, 0 for the baseline).
+  ``t`` [B] fixes the diffusion timesteps (None: sampled); renderers without diffusion ignore it.
 
 :class:`DiTRenderer`: encode the target with the frozen codec, noise it at a random timestep, run the DiT
 with the features and codes, take the x0 estimate, decode it (training); at inference run DDIM from seeded
@@ -67,7 +68,7 @@ class Renderer(Protocol):
 
     def training_forward(self, feats: torch.Tensor, shape_code: torch.Tensor, target: torch.Tensor, *,
                          gaze: torch.Tensor | None = None, pose: torch.Tensor | None = None,
-                         generator: torch.Generator | None = None) -> RenderOutput: ...
+                         generator: torch.Generator | None = None, t: torch.Tensor | None = None) -> RenderOutput: ...
 
 
 def check_render_inputs(feats: torch.Tensor, shape_code: torch.Tensor, feature_channels: int, shape_dim: int) -> None:
