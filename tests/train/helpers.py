@@ -43,3 +43,34 @@ def fit_renderer(renderer, feats: torch.Tensor, code: torch.Tensor, target: torc
         opt.step()
     with torch.no_grad():
         return float((renderer.render(feats, code) - target).abs().mean())
+
+
+def one_frame_subject_file(directory, subject_seed: int, frame_seed: int, res: int = 64):
+    """A synthetic subject file (1 frame x 18 rig cameras) in ``directory``; skips the calling test where no
+    headless EGL OpenGL context exists."""
+    import pytest
+
+    from render.mesh_gl import shared_context
+    from toolkit.errors import ToolkitError
+    from train.data.format import write_subject_h5
+    from train.data.generate import generate_subject
+    from train.data.synthetic import SubjectParams
+
+    try:
+        shared_context()
+    except ToolkitError:
+        pytest.skip("no headless EGL OpenGL context")
+    rows, subj, attrs = generate_subject(SubjectParams.sample(subject_seed), n_frames=1, res=res, seed=frame_seed)
+    return write_subject_h5(directory / "subject0000.h5", rows, subject=subj, attrs=attrs)
+
+
+def untrained_eval_parts():
+    """(model on the procedural head, U-Net baseline renderer, whole-face gaze estimator), untrained, seeded:
+    what ``train.evaluate`` needs, in eval mode."""
+    from toolkit.procedural import demo_head_scene
+    from train.gaze_estimator import GazeEstimator, GazeEstimatorConfig
+    from train.renderer import make_renderer
+
+    torch.manual_seed(0)
+    model = GaussianModel.from_scene(demo_head_scene(300), GaussianModelConfig(hidden=16)).eval()
+    return model, make_renderer("baseline").eval(), GazeEstimator(GazeEstimatorConfig(input_size=32)).eval()

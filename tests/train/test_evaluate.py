@@ -6,41 +6,19 @@ import math
 import pytest
 import torch
 
-from toolkit.errors import ToolkitError
+from tests.train.helpers import one_frame_subject_file, untrained_eval_parts
 
 
 @pytest.fixture(scope="module")
 def subject_file(tmp_path_factory):
-    from render.mesh_gl import shared_context
-
-    try:
-        shared_context()
-    except ToolkitError:
-        pytest.skip("no headless EGL OpenGL context")
-    from train.data.format import write_subject_h5
-    from train.data.generate import generate_subject
-    from train.data.synthetic import SubjectParams
-
-    rows, subj, attrs = generate_subject(SubjectParams.sample(5), n_frames=1, res=64, seed=2)
-    return write_subject_h5(tmp_path_factory.mktemp("eval") / "subject0000.h5", rows, subject=subj, attrs=attrs)
-
-
-def _parts():
-    from toolkit.procedural import demo_head_scene
-    from train.gaussian_model import GaussianModel, GaussianModelConfig
-    from train.gaze_estimator import GazeEstimator, GazeEstimatorConfig
-    from train.renderer import make_renderer
-
-    torch.manual_seed(0)
-    model = GaussianModel.from_scene(demo_head_scene(300), GaussianModelConfig(hidden=16)).eval()
-    return model, make_renderer("baseline").eval(), GazeEstimator(GazeEstimatorConfig(input_size=32))
+    return one_frame_subject_file(tmp_path_factory.mktemp("eval"), subject_seed=5, frame_seed=2)
 
 
 def test_test_time_fit_lowers_the_input_error_and_keeps_the_weights(subject_file):
     from train.data.pairing import SyntheticRedirectionPairs
     from train.evaluate import composite_on_white, test_time_fit
 
-    model, renderer, _ = _parts()
+    model, renderer, _ = untrained_eval_parts()
     pairs = SyntheticRedirectionPairs(subject_file, res=64, seed=0)
     items = [pairs[i] for i in range(3)]
     st = lambda k: torch.stack([torch.as_tensor(it["input"][k]) for it in items]).float()  # noqa: E731
@@ -66,7 +44,7 @@ def test_test_time_fit_lowers_the_input_error_and_keeps_the_weights(subject_file
 def test_evaluate_with_fitting_reports_the_rendering_throughput(subject_file):
     from train.evaluate import evaluate
 
-    model, renderer, est = _parts()
+    model, renderer, est = untrained_eval_parts()
     out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, tta_steps=2,
                    log=lambda s: None)
     m = out["metrics"]

