@@ -259,10 +259,15 @@ class GazeEstimator(nn.Module):
         if not self.config.eyes:
             return self.head(self.blocks(self.stem(self.preprocess(images))).flatten(1))
         self._check_images(images)
-        if landmarks is None:
-            raise ToolkitError("GazeEstimator: this estimator reads eye patches and needs the images' landmarks "
-                               "([B, 68, 2] pixels)")
-        return self.from_eye_inputs(*self.eye_inputs(images, landmarks))
+        return self.from_eye_inputs(*self.eye_inputs(images, self._eye_landmarks(images, landmarks)))
+
+    def _eye_landmarks(self, images: torch.Tensor, landmarks: torch.Tensor | None) -> torch.Tensor:
+        """The [B, 68, 2] landmarks an eye-patch estimator needs, on the images' device and dtype, or ToolkitError."""
+        B = images.shape[0]
+        if landmarks is None or tuple(landmarks.shape) != (B, 68, 2):
+            raise ToolkitError(f"GazeEstimator: this estimator reads eye patches and needs the images' landmarks "
+                               f"[B={B}, 68, 2] pixels, got {None if landmarks is None else list(landmarks.shape)}")
+        return landmarks.to(images.device, images.dtype)
 
     def eye_inputs(self, images: torch.Tensor, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """What an eye-patch estimator reads: ([B, 6, h, w] eye patches in [0, 1], [B, 136] landmark layout
@@ -289,13 +294,8 @@ class GazeEstimator(nn.Module):
             return self.compose(self.forward_parts(images, landmarks))
         self._check_images(images)
         B = images.shape[0]
-        if not self.config.eyes:
-            landmarks = None  # whole-face designs ignore them
-        elif landmarks is None or tuple(landmarks.shape) != (B, 68, 2):
-            raise ToolkitError(f"GazeEstimator: this estimator reads eye patches and needs the images' landmarks "
-                               f"[B={B}, 68, 2] pixels, got {None if landmarks is None else list(landmarks.shape)}")
-        else:
-            landmarks = landmarks.to(images.device, images.dtype)
+        # Whole-face designs ignore landmarks; eye designs check them before the batch doubles.
+        landmarks = self._eye_landmarks(images, landmarks) if self.config.eyes else None
         mirrored, _, lm_m = mirror_faces(images, None, landmarks)
         both = self.compose(self.forward_parts(torch.cat([images, mirrored]),
                                                None if landmarks is None else torch.cat([landmarks, lm_m])))
