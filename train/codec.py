@@ -225,10 +225,12 @@ def kl_divergence(mean: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
 def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = None, *, steps: int = 1000,
                       batch_size: int = 16, lr: float = 1e-3, seed: int = 0,
                       log: Callable[[int, dict[str, float]], None] | None = None,
-                      model: KLAutoencoder | None = None) -> tuple[KLAutoencoder, list[float]]:
+                      model: KLAutoencoder | None = None,
+                      pixel_weights: torch.Tensor | None = None) -> tuple[KLAutoencoder, list[float]]:
     """Train a :class:`KLAutoencoder` on ``images [N, 3, H, W]`` in [0, 1]; return it frozen and the losses.
 
-    Loss: L1 reconstruction + ``kl_weight`` * KL, Adam. Afterwards ``scale_factor`` is set to 1 / std of the
+    Loss: L1 reconstruction (weighted by ``pixel_weights [N, 1, H, W]`` >= 0 when given, normalized by the
+    batch's total weight: see :func:`eye_weights`) + ``kl_weight`` * KL, Adam. Afterwards ``scale_factor`` is set to 1 / std of the
     posterior means over (up to 256 of) the images (std floored at 1e-3), so encoded latents have unit variance for the diffusion.
     Pass ``model`` to continue training an existing one. Deterministic given ``seed`` (on CPU).
     """
@@ -236,6 +238,10 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
         raise ToolkitError(f"train_autoencoder images: expected [N>0, 3, H, W] in [0, 1], got {list(images.shape)}")
     if not torch.isfinite(images).all():
         raise ToolkitError("train_autoencoder images: contain NaN or infinite values")
+    if pixel_weights is not None and (pixel_weights.shape != (images.shape[0], 1, *images.shape[2:])
+                                      or not torch.isfinite(pixel_weights).all() or bool((pixel_weights < 0).any())):
+        raise ToolkitError(f"train_autoencoder pixel_weights: expected finite weights >= 0 of shape "
+                           f"{[images.shape[0], 1, *images.shape[2:]]}, got {list(pixel_weights.shape)}")
     if steps < 0 or batch_size < 1:
         raise ToolkitError(f"train_autoencoder: expected steps >= 0 and batch_size >= 1, got {steps}, {batch_size}")
     g = torch.Generator().manual_seed(seed)
@@ -253,7 +259,11 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
         mean, logvar = model.moments(x)
         z = mean + torch.randn(mean.shape, generator=g).to(device) * (0.5 * logvar).exp()
         recon = (model.decoder(z) + 1) * 0.5
-        rec = F.l1_loss(recon, x)
+        if pixel_weights is None:
+            rec = F.l1_loss(recon, x)
+        else:
+            w = pixel_weights[idx].to(device)
+            rec = ((recon - x).abs() * w).sum() / (3 * w.sum()).clamp_min(1e-8)
         loss = rec + model.config.kl_weight * kl_divergence(mean, logvar)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -267,6 +277,13 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
         std = torch.cat([model.moments(sample[i:i + 32])[0] for i in range(0, sample.shape[0], 32)]).std()
         model.scale_factor.fill_(float(1.0 / std.clamp(min=1e-3)) if torch.isfinite(std) else 1.0)
     return model.freeze(), history
+
+
+def eye_weights(eye_masks: torch.Tensor, eye_weight: float, dilate: int = 2) -> torch.Tensor:
+    """Per-pixel reconstruction weights ``1 + eye_weight * eyes`` [N, 1, H, W] from eye masks [N, 1, H, W] in
+    [0, 1], the masks dilated by ``dilate`` pixels (max-pool) so the lids and the eye's outline count too."""
+    eyes = F.max_pool2d(eye_masks.float(), 2 * dilate + 1, stride=1, padding=dilate) if dilate > 0 else eye_masks.float()
+    return 1.0 + eye_weight * eyes
 
 
 def save_autoencoder(path: str | Path, model: KLAutoencoder, info: dict | None = None) -> None:

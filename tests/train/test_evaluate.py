@@ -49,3 +49,75 @@ def test_evaluate_with_fitting_reports_the_rendering_throughput(subject_file):
                    log=lambda s: None)
     m = out["metrics"]
     assert m["pairs"] == 3 and math.isfinite(m["psnr"]) and m["images_per_s"] > 0
+
+
+def _renderer(kind):
+    from train.codec import AutoencoderConfig, KLAutoencoder
+    from train.renderer import make_renderer
+
+    torch.manual_seed(1)
+    if kind == "baseline":
+        return make_renderer("baseline").eval()
+    codec = KLAutoencoder(AutoencoderConfig(downsample=4, base_channels=8))
+    return make_renderer("dit", codec, output_size=64).eval()
+
+
+@pytest.mark.parametrize("kind", ["baseline", "dit"])
+def test_fitting_weights_changes_them_in_place_and_restored_weights_puts_them_back(subject_file, kind):
+    from train.data.pairing import SyntheticRedirectionPairs
+    from train.evaluate import composite_on_white, restored_weights, test_time_fit
+
+    model, _, _ = untrained_eval_parts()
+    renderer = _renderer(kind)
+    it = SyntheticRedirectionPairs(subject_file, res=64, seed=0)[0]["input"]
+    a = lambda k: torch.as_tensor(it[k]).float()[None]  # noqa: E731
+    batch = {"code": a("latent_code"), "in_pose": a("pose"), "in_viewmat": a("viewmat"), "K": a("K"),
+             "in_gaze_head": a("pitchyaw_head")}
+    image, mask = a("image"), a("head_mask")
+    before = {k: v.clone() for k, v in {**model.state_dict(), **renderer.state_dict()}.items()}
+
+    def input_error(code):
+        with torch.no_grad():
+            maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], 64, 64,
+                         renders=("head",))
+            out = renderer.render(maps["head"], code, gaze=batch["in_gaze_head"], pose=batch["in_pose"])
+        return float((composite_on_white(out, mask) - composite_on_white(image, mask)).abs().mean())
+
+    start = input_error(batch["code"])
+    code_only = input_error(test_time_fit(model, renderer, batch, image, mask, 64, steps=15))
+    with restored_weights(model, renderer):
+        fitted = test_time_fit(model, renderer, batch, image, mask, 64, steps=15, weights=("features", "renderer"))
+        changed = {**model.state_dict(), **renderer.state_dict()}
+        assert not torch.equal(changed["face_features"], before["face_features"])
+        net = [k for k in renderer.state_dict() if kind == "baseline" or k.startswith("dit.")]
+        assert any(not torch.equal(changed[k], before[k]) for k in net)
+        assert all(torch.equal(changed[k], before[k]) for k in before if k.startswith("codec."))  # frozen
+        assert all(p.grad is None for p in [*model.parameters(), *renderer.parameters()])
+        with_weights = input_error(fitted)
+    # More freedom fits the input image better than the code alone (which cannot move the untrained DiT's
+    # output at all: the deformation field's zero-initialized last layer passes the code no gradient).
+    assert code_only <= start and with_weights < code_only
+    after = {**model.state_dict(), **renderer.state_dict()}
+    assert all(torch.equal(after[k], v) for k, v in before.items())
+
+
+def test_unknown_fitting_group_is_a_clear_error(subject_file):
+    from toolkit.errors import ToolkitError
+    from train.evaluate import fitted_weights
+
+    model, renderer, _ = untrained_eval_parts()
+    with pytest.raises(ToolkitError, match="unknown weight group 'geometry'"):
+        fitted_weights(model, renderer, ["geometry"])
+
+
+def test_evaluate_fitting_weights_per_pair_leaves_the_model_as_it_was(subject_file):
+    from train.evaluate import evaluate
+
+    model, renderer, est = untrained_eval_parts()
+    before = {k: v.clone() for k, v in {**model.state_dict(), **renderer.state_dict()}.items()}
+    out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=2, tta_steps=2,
+                   tta_weights=("features", "renderer"), log=lambda s: None)
+    m = out["metrics"]
+    assert m["pairs"] == 2 and math.isfinite(m["psnr"]) and m["images_per_s"] > 0
+    after = {**model.state_dict(), **renderer.state_dict()}
+    assert all(torch.equal(after[k], v) for k, v in before.items())
