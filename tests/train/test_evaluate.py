@@ -121,3 +121,35 @@ def test_evaluate_fitting_weights_per_pair_leaves_the_model_as_it_was(subject_fi
     assert m["pairs"] == 2 and math.isfinite(m["psnr"]) and m["images_per_s"] > 0
     after = {**model.state_dict(), **renderer.state_dict()}
     assert all(torch.equal(after[k], v) for k, v in before.items())
+
+
+def test_face_only_mask_removes_the_dilated_eyes():
+    from train.evaluate import face_only_mask
+
+    head = torch.ones(1, 1, 9, 9)
+    eyes = torch.zeros(1, 1, 9, 9)
+    eyes[0, 0, 4, 4] = 1
+    m = face_only_mask(head, eyes, dilate=1)
+    assert float(m.sum()) == 81 - 9 and m[0, 0, 3:6, 3:6].eq(0).all()
+
+
+def test_fitting_ignores_what_the_input_shows_inside_the_mask_hole(subject_file):
+    """The eyes are cut out of the fitting region: the input's eye pixels (its own gaze) cannot pull the fit."""
+    from train.data.pairing import SyntheticRedirectionPairs
+    from train.evaluate import face_only_mask, restored_weights, test_time_fit
+
+    model, renderer, _ = untrained_eval_parts()
+    it = SyntheticRedirectionPairs(subject_file, res=64, seed=0)[0]["input"]
+    a = lambda k: torch.as_tensor(it[k]).float()[None]  # noqa: E731
+    batch = {"code": a("latent_code"), "in_pose": a("pose"), "in_viewmat": a("viewmat"), "K": a("K"),
+             "in_gaze_head": a("pitchyaw_head")}
+    eyes = (a("left_eye_mask") + a("right_eye_mask")).clamp(0, 1)
+    assert eyes.sum() > 0
+    mask = face_only_mask(a("head_mask"), eyes)
+    image = a("image")
+    scrambled = torch.where(mask > 0, image, torch.rand_like(image))
+    fits = []
+    for img in (image, scrambled):
+        with restored_weights(model, renderer):
+            fits.append(test_time_fit(model, renderer, batch, img, mask, 64, steps=3, weights=("features",)))
+    assert torch.equal(fits[0], fits[1])
