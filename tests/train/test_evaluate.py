@@ -14,25 +14,38 @@ def subject_file(tmp_path_factory):
     return one_frame_subject_file(tmp_path_factory.mktemp("eval"), subject_seed=5, frame_seed=2)
 
 
-def test_test_time_fit_lowers_the_input_error_and_keeps_the_weights(subject_file):
+def _inputs(subject_file, n: int):
+    """(batch, image, head mask, eye mask) of the inputs of the first ``n`` pairs, at 64²."""
     from train.data.pairing import SyntheticRedirectionPairs
-    from train.evaluate import composite_on_white, test_time_fit
 
-    model, renderer, _ = untrained_eval_parts()
     pairs = SyntheticRedirectionPairs(subject_file, res=64, seed=0)
-    items = [pairs[i] for i in range(3)]
-    st = lambda k: torch.stack([torch.as_tensor(it["input"][k]) for it in items]).float()  # noqa: E731
+    items = [pairs[i]["input"] for i in range(n)]
+    st = lambda k: torch.stack([torch.as_tensor(it[k]) for it in items]).float()  # noqa: E731
     batch = {"code": st("latent_code"), "in_pose": st("pose"), "in_viewmat": st("viewmat"), "K": st("K"),
              "in_gaze_head": st("pitchyaw_head")}
-    image, mask = st("image"), st("head_mask")
+    return batch, st("image"), st("head_mask"), (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)
+
+
+def _input_error(model, renderer, batch, image, mask, code) -> float:
+    """L1 on white of the one-step render with ``code`` against the input image."""
+    from train.evaluate import composite_on_white
+
+    with torch.no_grad():
+        maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], 64, 64,
+                     renders=("head",))
+        out = renderer.render(maps["head"], code, gaze=batch["in_gaze_head"], pose=batch["in_pose"])
+    return float((composite_on_white(out, mask) - composite_on_white(image, mask)).abs().mean())
+
+
+def test_test_time_fit_lowers_the_input_error_and_keeps_the_weights(subject_file):
+    from train.evaluate import test_time_fit
+
+    model, renderer, _ = untrained_eval_parts()
+    batch, image, mask, _ = _inputs(subject_file, 3)
     weights = {k: v.clone() for k, v in {**model.state_dict(), **renderer.state_dict()}.items()}
 
     def input_error(code):
-        with torch.no_grad():
-            maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], 64, 64,
-                         renders=("head",))
-            out = renderer.render(maps["head"], code, gaze=batch["in_gaze_head"], pose=batch["in_pose"])
-        return float((composite_on_white(out, mask) - composite_on_white(image, mask)).abs().mean())
+        return _input_error(model, renderer, batch, image, mask, code)
 
     fitted = test_time_fit(model, renderer, batch, image, mask, 64, steps=15)
     assert torch.isfinite(fitted).all() and not torch.equal(fitted, batch["code"])
@@ -64,24 +77,15 @@ def _renderer(kind):
 
 @pytest.mark.parametrize("kind", ["baseline", "dit"])
 def test_fitting_weights_changes_them_in_place_and_restored_weights_puts_them_back(subject_file, kind):
-    from train.data.pairing import SyntheticRedirectionPairs
-    from train.evaluate import composite_on_white, restored_weights, test_time_fit
+    from train.evaluate import restored_weights, test_time_fit
 
     model, _, _ = untrained_eval_parts()
     renderer = _renderer(kind)
-    it = SyntheticRedirectionPairs(subject_file, res=64, seed=0)[0]["input"]
-    a = lambda k: torch.as_tensor(it[k]).float()[None]  # noqa: E731
-    batch = {"code": a("latent_code"), "in_pose": a("pose"), "in_viewmat": a("viewmat"), "K": a("K"),
-             "in_gaze_head": a("pitchyaw_head")}
-    image, mask = a("image"), a("head_mask")
+    batch, image, mask, _ = _inputs(subject_file, 1)
     before = {k: v.clone() for k, v in {**model.state_dict(), **renderer.state_dict()}.items()}
 
     def input_error(code):
-        with torch.no_grad():
-            maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], 64, 64,
-                         renders=("head",))
-            out = renderer.render(maps["head"], code, gaze=batch["in_gaze_head"], pose=batch["in_pose"])
-        return float((composite_on_white(out, mask) - composite_on_white(image, mask)).abs().mean())
+        return _input_error(model, renderer, batch, image, mask, code)
 
     start = input_error(batch["code"])
     code_only = input_error(test_time_fit(model, renderer, batch, image, mask, 64, steps=15))
@@ -135,18 +139,12 @@ def test_face_only_mask_removes_the_dilated_eyes():
 
 def test_fitting_ignores_what_the_input_shows_inside_the_mask_hole(subject_file):
     """The eyes are cut out of the fitting region: the input's eye pixels (its own gaze) cannot pull the fit."""
-    from train.data.pairing import SyntheticRedirectionPairs
     from train.evaluate import face_only_mask, restored_weights, test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
-    it = SyntheticRedirectionPairs(subject_file, res=64, seed=0)[0]["input"]
-    a = lambda k: torch.as_tensor(it[k]).float()[None]  # noqa: E731
-    batch = {"code": a("latent_code"), "in_pose": a("pose"), "in_viewmat": a("viewmat"), "K": a("K"),
-             "in_gaze_head": a("pitchyaw_head")}
-    eyes = (a("left_eye_mask") + a("right_eye_mask")).clamp(0, 1)
+    batch, image, head, eyes = _inputs(subject_file, 1)
     assert eyes.sum() > 0
-    mask = face_only_mask(a("head_mask"), eyes)
-    image = a("image")
+    mask = face_only_mask(head, eyes)
     scrambled = torch.where(mask > 0, image, torch.rand_like(image))
     fits = []
     for img in (image, scrambled):
