@@ -259,7 +259,7 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
     """Train the stage for ``budget_s`` seconds of training time; evaluate every ``eval_every_s``."""
     from train import run
     from train.evaluate import evaluate
-    from train.gaussian_stage import GaussianTrainer, load_split
+    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split
     from train.loop import train_loop
 
     sub = with_overrides(ctx, overrides)
@@ -268,6 +268,8 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
     torch.manual_seed(cfg.seed)
     model, renderer = run._gaussian_modules(sub, device)
     data = load_split(run._split(sub, "train"), "all", cfg.data.res)
+    if g.rgb_init:
+        init_rgb(model, data, device)
     trainer = GaussianTrainer(g, model, renderer, run._estimator(sub, "loss", device), data, device, g.steps)
     est = run._estimator(sub, "eval", device)
     params = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": g.lr},

@@ -212,7 +212,7 @@ def _gaussian_modules(ctx: RunContext, device):
 def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     from train.checkpoint import CheckpointManager, save_training_checkpoint
     from train.distributed import cleanup, init_distributed
-    from train.gaussian_stage import GaussianTrainer, load_split
+    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split
     from train.loop import MetricsLogger, train_loop
 
     cfg = ctx.config
@@ -223,11 +223,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     model, renderer = _gaussian_modules(ctx, device)
     data = load_split(_split(ctx, "train"), "all", cfg.data.res)
     if g.rgb_init:
-        from train.rgb_init import init_rgb_from_images
-
-        seen = init_rgb_from_images(model, data.image.to(device), data.head.to(device), data.code.to(device),
-                                    data.pose.to(device), data.gaze_head.to(device), data.viewmat.to(device),
-                                    data.K.to(device))
+        seen = init_rgb(model, data, device)
         ctx.log(f"[gaussian] RGB channels initialized from the training images ({100 * seen:.0f}% of the Gaussians seen)")
     trainer = GaussianTrainer(g, model, renderer, _estimator(ctx, "loss", device), data, device, g.steps)
     params = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": g.lr},
