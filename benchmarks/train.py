@@ -269,7 +269,7 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
     model, renderer = run._gaussian_modules(sub, device)
     data = load_split(run._split(sub, "train"), "all", cfg.data.res)
     if g.rgb_init:
-        init_rgb(model, data, device)
+        init_rgb(model, data)
     trainer = GaussianTrainer(g, model, renderer, run._estimator(sub, "loss", device), data, device, g.steps)
     est = run._estimator(sub, "eval", device)
     params = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": g.lr},

@@ -238,10 +238,12 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
         raise ToolkitError(f"train_autoencoder images: expected [N>0, 3, H, W] in [0, 1], got {list(images.shape)}")
     if not torch.isfinite(images).all():
         raise ToolkitError("train_autoencoder images: contain NaN or infinite values")
-    if pixel_weights is not None and (pixel_weights.shape != (images.shape[0], 1, *images.shape[2:])
-                                      or not torch.isfinite(pixel_weights).all() or bool((pixel_weights < 0).any())):
-        raise ToolkitError(f"train_autoencoder pixel_weights: expected finite weights >= 0 of shape "
-                           f"{[images.shape[0], 1, *images.shape[2:]]}, got {list(pixel_weights.shape)}")
+    if pixel_weights is not None:
+        if pixel_weights.shape != (images.shape[0], 1, *images.shape[2:]):
+            raise ToolkitError(f"train_autoencoder pixel_weights: expected shape {[images.shape[0], 1, *images.shape[2:]]}, "
+                               f"got {list(pixel_weights.shape)}")
+        if not torch.isfinite(pixel_weights).all() or bool((pixel_weights < 0).any()):
+            raise ToolkitError("train_autoencoder pixel_weights: expected finite weights >= 0 (found NaN, inf or < 0)")
     if steps < 0 or batch_size < 1:
         raise ToolkitError(f"train_autoencoder: expected steps >= 0 and batch_size >= 1, got {steps}, {batch_size}")
     g = torch.Generator().manual_seed(seed)

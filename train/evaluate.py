@@ -3,7 +3,7 @@
 Per test subject, input rows are paired with target rows (a fixed permutation; a pairing file for real
 data). The model renders with the **target's** camera, head pose and codes and the target's head-frame gaze
 (synthetic targets are exact: the generator re-renders the input's view with the target gaze). Optional
-test-time fitting tunes the shape code -- and optionally the Gaussians' colour features and the renderer --
+test-time fitting tunes the shape code -- and optionally the Gaussians' features and the renderer --
 on the face region of the input image for ``tta_steps`` steps, restarting from the restored weights for every
 pair. Metrics on a white background outside the head mask: gaze and head-pose error (degrees, the
 *evaluation* estimator on render vs target), PSNR, SSIM; LPIPS / FID / identity similarity when their
@@ -102,24 +102,28 @@ def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, step
 
 
 TTA_WEIGHT_GROUPS = ("features", "renderer")
-"""Weights test-time fitting may tune besides the code: the Gaussians' colour features (face and eyes) and
-the neural renderer (the DiT; the baseline's whole network). The frozen codec, the deformation and eye
-rotation fields and the Gaussians' geometry are never fitted."""
+"""Weights test-time fitting may tune besides the code: the Gaussians' canonical features (all channels, face
+and eyes; channels 0..2 are the RGB) and the neural renderer (the DiT; the baseline's whole network). The
+frozen codec, the deformation and eye rotation fields and the Gaussians' geometry are never fitted."""
 
 
 def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
-    """The parameters of the named ``TTA_WEIGHT_GROUPS`` (a ToolkitError for an unknown name)."""
+    """The parameters of the named ``TTA_WEIGHT_GROUPS``, each group once (a ToolkitError for an unknown name
+    or a group whose weights are all frozen)."""
     from toolkit.errors import ToolkitError
 
     params: list[torch.nn.Parameter] = []
-    for g in groups:
+    for g in dict.fromkeys(groups):
         if g == "features":
-            params += [model.face_features, model.eye_features]
+            group = [model.face_features, model.eye_features]
         elif g == "renderer":
-            net = getattr(renderer, "dit", renderer)  # the DiT's codec stays frozen
-            params += [p for p in net.parameters() if p.requires_grad]
+            group = list(getattr(renderer, "dit", renderer).parameters())  # the DiT's codec stays frozen
         else:
             raise ToolkitError(f"test-time fitting: unknown weight group {g!r}, expected some of {list(TTA_WEIGHT_GROUPS)}")
+        group = [p for p in group if p.requires_grad]
+        if not group:
+            raise ToolkitError(f"test-time fitting: the {g!r} weights are all frozen (requires_grad=False)")
+        params += group
     return params
 
 
@@ -152,6 +156,15 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     fitted = [code] + feats + net
     t = _last_t(renderer, code.shape[0], code.device)  # diffusion renderers: the one-step path evaluation renders
     target = composite_on_white(input_image, mask)
+    try:
+        _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t)
+    finally:
+        for p in fitted[1:]:  # no .grad left on the weights, even when a step raised
+            p.grad = None
+    return code.detach()
+
+
+def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t) -> None:
     for _ in range(steps):
         # A fresh face stream every step: an unchanged code (a zero gradient) would otherwise hit the cache and
         # reuse the previous step's freed graph.
@@ -167,9 +180,6 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
         for p, g in zip(fitted, torch.autograd.grad(loss, fitted, allow_unused=True)):
             p.grad = g
         opt.step()
-    for p in fitted[1:]:
-        p.grad = None
-    return code.detach()
 
 
 @contextmanager
@@ -202,8 +212,13 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     (eye-patch estimators read them, whole-face ones ignore them).
 
     Test-time fitting (``tta_steps`` > 0, :func:`test_time_fit`) tunes the code of all pairs of a subject at
-    once; with ``tta_weights`` it fits and renders one pair at a time, each from the restored weights."""
+    once; with ``tta_weights`` it fits and renders one pair at a time, each from the restored weights (the
+    throughput is then that of batch-1 renders)."""
+    from toolkit.errors import ToolkitError
     from train.data.pairing import SyntheticRedirectionPairs
+
+    if tta_steps > 0 and "renderer" in tta_weights and not tta_renderer_lr > 0:
+        raise ToolkitError(f"eval.tta_renderer_lr: expected a learning rate > 0, got {tta_renderer_lr}")
 
     model.eval()
     renderer.eval()

@@ -75,14 +75,13 @@ def load_split(files: list[Path], split: str, res: int) -> TrainBatchData:
                           landmarks=st("landmarks"))
 
 
-def init_rgb(model: GaussianModel, data: TrainBatchData, device: torch.device | str) -> float:
-    """Start the model's RGB channels from the training images (:mod:`train.rgb_init`); returns the
-    fraction of Gaussians some image saw."""
+def init_rgb(model: GaussianModel, data: TrainBatchData) -> float:
+    """Start the model's RGB channels from the training images (:mod:`train.rgb_init`; the images used move
+    to the model's device); returns the fraction of Gaussians some image saw."""
     from train.rgb_init import init_rgb_from_images
 
-    t = lambda x: x.to(device)  # noqa: E731
-    return init_rgb_from_images(model, t(data.image), t(data.head), t(data.code), t(data.pose), t(data.gaze_head),
-                                t(data.viewmat), t(data.K))
+    return init_rgb_from_images(model, data.image, data.head, data.code, data.pose, data.gaze_head, data.viewmat,
+                                data.K)
 
 
 def region_masks(b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -71,10 +71,12 @@ def rgb_from_images(model, images: torch.Tensor, masks: torch.Tensor, code: torc
 @torch.no_grad()
 def init_rgb_from_images(model, images, masks, code, pose, gaze, viewmats, Ks, *, max_images: int = 64) -> float:
     """Set channels 0..2 of the face and eye features to :func:`rgb_from_images` of (up to ``max_images``,
-    evenly spaced) images; returns the fraction of Gaussians some image saw."""
+    evenly spaced) images, which may stay on the CPU; returns the fraction of Gaussians some image saw."""
     n = images.shape[0]
     idx = torch.linspace(0, n - 1, min(n, max_images)).round().long().unique()
-    out = rgb_from_images(model, images[idx], masks[idx], code[idx], pose[idx], gaze[idx], viewmats[idx], Ks[idx])
+    dev = model.face_features.device
+    pick = lambda x: x[idx.to(x.device)].to(dev)  # noqa: E731  (the subset only goes to the model's device)
+    out = rgb_from_images(model, *(pick(x) for x in (images, masks, code, pose, gaze, viewmats, Ks)))
     model.face_features[:, :3] = out["face"].to(model.face_features)
     model.eye_features[:, :3] = out["eyes"].to(model.eye_features)
     model.clear_cache()

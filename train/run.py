@@ -223,7 +223,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     model, renderer = _gaussian_modules(ctx, device)
     data = load_split(_split(ctx, "train"), "all", cfg.data.res)
     if g.rgb_init:
-        seen = init_rgb(model, data, device)
+        seen = init_rgb(model, data)
         ctx.log(f"[gaussian] RGB channels initialized from the training images ({100 * seen:.0f}% of the Gaussians seen)")
     trainer = GaussianTrainer(g, model, renderer, _estimator(ctx, "loss", device), data, device, g.steps)
     params = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": g.lr},
@@ -268,12 +268,20 @@ def load_trained(ctx: RunContext, device):
     return model.eval(), renderer.eval()
 
 
+def _check_values(cfg: RunConfig) -> None:
+    """Values the type check cannot catch, before any work."""
+    if not cfg.codec.eye_weight >= 0:
+        raise ToolkitError(f"config key 'codec.eye_weight': expected a weight >= 0, got {cfg.codec.eye_weight}")
+    if not cfg.eval.tta_renderer_lr > 0:
+        raise ToolkitError(f"config key 'eval.tta_renderer_lr': expected a learning rate > 0, got {cfg.eval.tta_renderer_lr}")
+
+
 def _fitting(e) -> str:
     """How the eval fitted each input, for the report."""
     if e.tta_steps <= 0:
         return "none"
     return f"{e.tta_steps} steps of the shape code" + "".join(
-        {"features": ", the Gaussians' colour features", "renderer": ", the renderer"}[w] for w in e.tta_weights)
+        {"features": ", the Gaussians' features", "renderer": ", the renderer"}[w] for w in dict.fromkeys(e.tta_weights))
 
 
 def stage_eval(ctx: RunContext) -> dict[str, str]:
@@ -362,6 +370,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     _device(cfg)  # fail early on an impossible device
+    _check_values(cfg)
     run_dir = Path(args.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     save_yaml_config(cfg, run_dir / "config.yaml")

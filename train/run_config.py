@@ -146,8 +146,8 @@ class EvalConfig:
     """test-time fitting steps on the input image (0 disables), restarted per pair from the restored weights
     (GazeNeRF protocol: held-out subjects are identities the model never saw). Measurements: docs/evaluation.md."""
     tta_weights: tuple[Literal["features", "renderer"], ...] = ("features", "renderer")
-    """weights fitted with the shape code: the Gaussians' colour features and the neural renderer (pairs are
-    then fitted one at a time); () fits the code alone, all pairs of a subject in one batch."""
+    """weights fitted with the shape code: the Gaussians' features (all channels) and the neural renderer (pairs
+    are then fitted one at a time); () fits the code alone, all pairs of a subject in one batch."""
     tta_renderer_lr: float = 1e-3
     """Adam learning rate of the renderer's weights in test-time fitting (code and features: 1e-2)."""
     pairing_file: str = ""

@@ -167,8 +167,10 @@ def test_bad_inputs():
         AutoencoderConfig(downsample=6).validate()
     with pytest.raises(ToolkitError, match="NaN"):
         train_autoencoder(torch.full((2, 3, 8, 8), float("nan")), TINY, steps=1)
-    for bad in (torch.ones(2, 1, 8, 4), torch.full((2, 1, 8, 8), -1.0), torch.full((2, 1, 8, 8), float("inf"))):
-        with pytest.raises(ToolkitError, match="pixel_weights"):
+    for bad, msg in ((torch.ones(2, 1, 8, 4), "pixel_weights: expected shape"),
+                     (torch.full((2, 1, 8, 8), -1.0), "pixel_weights: expected finite weights >= 0"),
+                     (torch.full((2, 1, 8, 8), float("inf")), "pixel_weights: expected finite weights >= 0")):
+        with pytest.raises(ToolkitError, match=msg):
             train_autoencoder(torch.rand(2, 3, 8, 8), TINY, steps=1, pixel_weights=bad)
 
 

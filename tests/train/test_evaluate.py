@@ -112,6 +112,30 @@ def test_unknown_fitting_group_is_a_clear_error(subject_file):
     model, renderer, _ = untrained_eval_parts()
     with pytest.raises(ToolkitError, match="unknown weight group 'geometry'"):
         fitted_weights(model, renderer, ["geometry"])
+    assert len(fitted_weights(model, renderer, ["features", "features"])) == 2  # each group once
+    renderer.requires_grad_(False)
+    with pytest.raises(ToolkitError, match="'renderer' weights are all frozen"):
+        fitted_weights(model, renderer, ["renderer"])
+
+
+def test_failed_fit_leaves_no_gradients_on_the_weights(subject_file):
+    from train.evaluate import restored_weights, test_time_fit
+
+    model, renderer, _ = untrained_eval_parts()
+    batch, image, mask, _ = _inputs(subject_file, 1)
+    calls = {"n": 0}
+    forward = renderer.training_forward
+
+    def failing(*a, **k):  # the second step raises
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RuntimeError("boom")
+        return forward(*a, **k)
+
+    renderer.training_forward = failing
+    with restored_weights(model, renderer), pytest.raises(RuntimeError, match="boom"):
+        test_time_fit(model, renderer, batch, image, mask, 64, steps=3, weights=("features", "renderer"))
+    assert all(p.grad is None for p in [*model.parameters(), *renderer.parameters()])
 
 
 def test_evaluate_fitting_weights_per_pair_leaves_the_model_as_it_was(subject_file):

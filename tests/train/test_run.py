@@ -59,6 +59,8 @@ def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, cap
         ("gaussian.steps=many", "'gaussian.steps': expected an integer"),
         ("gaussian.renderer=gan", "'gaussian.renderer': expected one of"),
         ("colour=red", "unknown config key 'colour'"),
+        ("codec.eye_weight=-1", "'codec.eye_weight': expected a weight >= 0"),
+        ("eval.tta_renderer_lr=0", "'eval.tta_renderer_lr': expected a learning rate > 0"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
