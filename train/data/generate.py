@@ -198,6 +198,9 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
         raise ToolkitError(f"cameras_per_frame must be in [1, {len(rig)}], got {cameras_per_frame}")
     if n_frames < 1:
         raise ToolkitError(f"n_frames must be >= 1, got {n_frames}")
+    subject_seeds = list(subject_seeds)
+    if not subject_seeds:
+        raise ToolkitError("estimator_images: no subject seeds given (expected at least one)")
     _check_res(res)
     images, labels, landmarks = [], [], []
     t0 = time.perf_counter()

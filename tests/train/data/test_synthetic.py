@@ -281,6 +281,8 @@ def test_estimator_images_many_gazes_few_cameras_deterministic():
         estimator_images([3], n_frames=1, cameras_per_frame=19)
     with pytest.raises(ToolkitError, match="res must be"):
         estimator_images([3], n_frames=1, res=8)
+    with pytest.raises(ToolkitError, match="no subject seeds"):
+        estimator_images(range(5, 5), n_frames=1)
 
 
 def test_light_jitter_zero_is_one_frontal_light():
