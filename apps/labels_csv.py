@@ -213,6 +213,12 @@ def head_rotation(pitch_yaw_roll: torch.Tensor) -> torch.Tensor:
     return normalized_head_rotation(pitch_yaw_roll[:, :2]) @ so3_exp(roll)
 
 
+def visible_eyes(face_alpha: torch.Tensor, eyes_alpha: torch.Tensor) -> torch.Tensor:
+    """[..., H, W] splatted alphas -> [..., H, W] float mask of the visible eyeball: covered by the eye
+    Gaussians where the face layer (lids, socket) is open."""
+    return ((eyes_alpha > 0.5) & (face_alpha < 0.5)).float()
+
+
 class LabelsCsvSource:
     """Rows of a labels CSV as dataset-like items for the redirect app (see the module docstring)."""
 
@@ -278,7 +284,7 @@ class LabelsCsvSource:
         Rows without a code get one by test-time fitting on their image (``fit_steps`` steps from the zero
         code, the mean of the synthetic codes); rows without a mask use the model's splatted silhouette.
         """
-        from train.evaluate import test_time_fit
+        from train.evaluate import face_only_mask, test_time_fit
 
         geo = {k: v.to(device) for k, v in self.geometry(idx).items()}
         rows = [self.rows[i] for i in idx]
@@ -296,9 +302,12 @@ class LabelsCsvSource:
         user_masks = [self._mask(r) for r in rows]
         fit = [i for i, r in enumerate(rows) if r.code is None]
         if fit and fit_steps > 0:
-            head_a, _, _ = silhouettes(code)
-            mask = torch.stack([m.to(device) if m is not None else (head_a[i] > 0.5).float()
+            head_a, face_a, eyes_a = silhouettes(code)
+            head = torch.stack([m.to(device) if m is not None else (head_a[i] > 0.5).float()
                                 for i, m in enumerate(user_masks)])
+            # Compare the face only, as the evaluation does: the image's eyes show its own gaze, which the
+            # code must not learn (the redirected rows would copy it).
+            mask = face_only_mask(head, visible_eyes(face_a, eyes_a))
             image = torch.stack([self._image(r) for r in rows]).to(device)
             sel = torch.tensor(fit, device=device)
             batch = {"code": code[sel], "in_pose": geo["pose"][sel], "in_gaze_head": geo["gaze_head"][sel],
@@ -310,8 +319,7 @@ class LabelsCsvSource:
         out = []
         for i in range(len(rows)):
             head = user_masks[i] if user_masks[i] is not None else (head_a[i].cpu() > 0.5).float()
-            # Visible eyeball: covered by the eye Gaussians where the face layer (lids, socket) is open.
-            eyes = ((eyes_a[i].cpu() > 0.5) & (face_a[i].cpu() < 0.5)).float()[0]
+            eyes = visible_eyes(face_a[i], eyes_a[i]).cpu()[0]
             uvw = (self.landmarks_head @ R[i].T + t[i]) @ geo["K"][i].cpu().T
             uv = uvw[:, :2] / uvw[:, 2:].clamp_min(1e-6)
             # Split the eye pixels by the nearer projected eye (iBUG 36-41 = image-left eye, 42-47 = right).

@@ -221,3 +221,32 @@ def test_focal_and_distance_defaults_and_columns(crops, tmp_path):
     assert math.isclose(rows[0].focal, 64 * 0.6 / 0.26)
     with pytest.raises(ToolkitError, match="--focal must be a positive number"):
         read_labels(p, focal=-1.0)
+
+
+def test_code_fitting_compares_the_face_not_the_eyes(tiny_trained_run, crops, tmp_path, monkeypatch):
+    """The row without a code is fitted on its image outside its (dilated) visible eyes: they show the
+    image's own gaze, which the code must not learn."""
+    import torch.nn.functional as F
+
+    import train.evaluate as evaluate
+
+    folder, _ = crops
+    seen = []
+    real_fit = evaluate.test_time_fit
+
+    def spy(model, renderer, batch, image, mask, res, steps, **kw):
+        with torch.no_grad():
+            maps = model(batch["code"], batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"],
+                         res, res, renders=("head", "face", "eyes"))
+        up = lambda a: F.interpolate(a, size=(res, res), mode="bilinear", align_corners=False)  # noqa: E731
+        eyes = (up(maps["eyes_alpha"]) > 0.5) & (up(maps["face_alpha"]) < 0.5)
+        seen.append((mask.clone(), eyes, up(maps["head_alpha"]) > 0.5))
+        return real_fit(model, renderer, batch, image, mask, res, steps, **kw)
+
+    monkeypatch.setattr(evaluate, "test_time_fit", spy)
+    assert redirect.main([str(tiny_trained_run), str(folder / "labels.csv"), str(tmp_path / "o.h5"),
+                          "--gazes", "grid:1x1:0", "--batch", "3", "--fit-steps", "1"]) == 0
+    (mask, eyes, head), = seen
+    assert mask.shape == eyes.shape == (1, 1, 64, 64)  # only row 1 has no code
+    assert eyes.sum() > 0 and (mask[eyes] == 0).all()
+    assert (mask <= head.float()).all() and mask.sum() > 0.5 * head.sum() - 4 * eyes.sum()
