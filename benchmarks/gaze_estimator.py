@@ -5,7 +5,8 @@ two random rig cameras per gaze, 128² normalized face crops); the held-out subj
 ``--data DIR`` evaluates on the held-out split of a dataset written by ``python -m train.data synth`` instead.
 Designs (``--modes``): ``eyes`` (eye patches cut at the landmarks + landmark layout; the default of the
 estimator stage) and ``face`` (the whole face crop). Prints the run-time-against-error table, the held-out
-error binned by how far the head is turned from the camera, the inference throughput, and writes
+error binned by how far the head is turned from the camera and (procedural test subjects) by how much iris
+the better-seen eye shows, the inference throughput, and writes
 ``out/benchmarks/gaze_estimator.png``. ``--save DIR`` writes each trained estimator as ``<mode>.safetensors``.
 
     .venv/bin/python benchmarks/gaze_estimator.py --subjects 32 --frames 120 --steps 3000
@@ -76,6 +77,22 @@ def error_by_view(pred: torch.Tensor, labels: torch.Tensor, edges=(20, 40, 60, 9
     return rows
 
 
+def error_by_iris(pred: torch.Tensor, labels: torch.Tensor, iris: torch.Tensor, edges=(1, 10, 10**9)) -> list[dict]:
+    """Held-out gaze error binned by the visible iris pixels of the better-seen eye ([N, 2] counts): with no
+    iris in view the gaze cannot be read from the eyes at all."""
+    err = angular_error_deg(pred[:, :2], labels[:, :2].float())
+    seen = iris.max(1).values
+    rows, lo = [], 0
+    for hi in edges:
+        m = (seen >= lo) & (seen < hi)
+        if bool(m.any()):
+            rows.append({"iris_px_best_eye": f"[{lo}, {hi})" if hi < 10**9 else f">= {lo}", "images": int(m.sum()),
+                         "mean_gaze_err_deg": float(err[m].mean()), "median_gaze_err_deg": float(err[m].median()),
+                         "share_of_mean": float(err[m].sum() / err.sum())})
+        lo = hi
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--subjects", type=int, default=32, help="procedural training subjects")
@@ -110,9 +127,10 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     train = estimator_images(range(TRAIN_SEEDS, TRAIN_SEEDS + a.subjects), n_frames=a.frames, seed=0, res=a.res)
     if a.data:
-        test, source = load_split(a.data, "test"), f"held-out split of {a.data}"
+        test, source, iris = load_split(a.data, "test"), f"held-out split of {a.data}", None
     else:
-        test = estimator_images(range(TEST_SEEDS, TEST_SEEDS + a.test_subjects), n_frames=30, seed=1, res=a.res)
+        *test, iris = estimator_images(range(TEST_SEEDS, TEST_SEEDS + a.test_subjects), n_frames=30, seed=1,
+                                       res=a.res, iris_pixels=True)
         source = f"{a.test_subjects} held-out procedural subjects"
     print(f"data: {len(train[0])} training images ({a.subjects} subjects x {a.frames} gazes x 2 cameras), "
           f"{len(test[0])} test images ({source}), {train[0].shape[-1]}px, made in {time.perf_counter() - t0:.0f} s")
@@ -137,7 +155,10 @@ def main(argv=None) -> int:
         if a.save:
             model.save(Path(a.save) / f"{mode}.safetensors",
                        {"steps": a.steps, "data": source, "heldout_gaze_deg": hist[-1]["val_gaze_deg"]})
-        print(format_table(error_by_view(predict(model, test[0], test[2]), test[1])))
+        pred = predict(model, test[0], test[2])
+        print(format_table(error_by_view(pred, test[1])))
+        if iris is not None:
+            print(format_table(error_by_iris(pred, test[1], iris)))
         x, lm = test[0][: a.batch].float() / 255, test[2][: a.batch]
         with torch.no_grad():
             sec = timeit(lambda m=model, x=x, lm=lm: m(x, lm), repeats=5)

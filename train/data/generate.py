@@ -178,7 +178,7 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
 
 
 def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2, res: int = 128,
-                     seed: int = 0, log=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                     seed: int = 0, log=None, iris_pixels: bool = False) -> tuple[torch.Tensor, ...]:
     """Training images for a gaze estimator: many gazes per subject, few rig cameras per gaze.
 
     The subject files of :func:`synth_dataset` show each (gaze, pose, expression) frame to all 18 cameras,
@@ -191,7 +191,9 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
     Returns:
         images [N, 3, res, res] uint8 RGB, labels [N, 4] float32 radians: camera-frame gaze (pitch, yaw)
         then camera-frame head pose (pitch, yaw), landmarks [N, 68, 2] float32 pixels;
-        N = len(subject_seeds) · n_frames · cameras_per_frame.
+        N = len(subject_seeds) · n_frames · cameras_per_frame; with ``iris_pixels`` also [N, 2] int64, the
+        visible iris + pupil pixels of the image-left and image-right eye (how readable each eye is: 0 when
+        the lids, the nose or the view hide it).
     """
     rig = eth_xgaze_rig(radius=RIG_RADIUS)
     if not 1 <= cameras_per_frame <= len(rig):
@@ -202,7 +204,7 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
     if not subject_seeds:
         raise ToolkitError("estimator_images: no subject seeds given (expected at least one)")
     _check_res(res)
-    images, labels, landmarks = [], [], []
+    images, labels, landmarks, iris = [], [], [], []
     t0 = time.perf_counter()
     with _torch_threads(1):
         for k, s in enumerate(subject_seeds):
@@ -217,9 +219,14 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
                 images.append(rgb_to_u8(out["rgb"]))
                 labels.append(np.concatenate([out["pitchyaw_cam"], out["face_head_pose"]], 1))
                 landmarks.append(out["landmarks_2d"])
+                if iris_pixels:
+                    seen = out["eye_region"] >= 1  # iris or pupil
+                    iris.append(np.stack([(seen & out["left_eye_mask"]).sum((1, 2)),
+                                          (seen & out["right_eye_mask"]).sum((1, 2))], 1))
             if log is not None:
                 done = (k + 1) * n_frames * cameras_per_frame
                 log(f"estimator images: subject {k + 1}/{len(subject_seeds)}, {done / (time.perf_counter() - t0):.0f} images/s")
     img = torch.from_numpy(np.concatenate(images)).permute(0, 3, 1, 2).contiguous()
-    return (img, torch.from_numpy(np.concatenate(labels).astype(np.float32)),
-            torch.from_numpy(np.concatenate(landmarks).astype(np.float32)))
+    out = (img, torch.from_numpy(np.concatenate(labels).astype(np.float32)),
+           torch.from_numpy(np.concatenate(landmarks).astype(np.float32)))
+    return out + (torch.from_numpy(np.concatenate(iris).astype(np.int64)),) if iris_pixels else out

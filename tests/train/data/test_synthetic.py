@@ -273,8 +273,12 @@ def test_estimator_images_many_gazes_few_cameras_deterministic():
     assert torch.isfinite(labels).all() and float(labels.abs().max()) <= math.pi
     # Each frame's two cameras see one gaze from two directions: different camera-frame labels.
     assert not torch.allclose(labels[0], labels[1])
-    again, labels2, _ = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1)
+    again, labels2, _, iris = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1,
+                                               iris_pixels=True)
     assert torch.equal(imgs, again) and torch.equal(labels, labels2)
+    # Visible iris pixels per eye: counts, some eye seen somewhere, never more than a small eye area.
+    assert iris.shape == (12, 2) and iris.dtype == torch.int64
+    assert int(iris.min()) >= 0 and 0 < int(iris.max()) < 32 * 32 // 20
     other, _, _ = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=2)
     assert not torch.equal(imgs, other)
     with pytest.raises(ToolkitError, match="cameras_per_frame"):
