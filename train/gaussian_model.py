@@ -70,6 +70,13 @@ class GaussianModelConfig:
     max_feature_delta: float = 1.0
     max_eye_residual: float = 0.35
     """bound (radians per axis-angle component) of the learned residual eye rotation."""
+    eyes_follow_face: bool = False
+    """translate each eyeball (its Gaussians and its rotation centre) by the face field's displacement of its
+    socket: the softmax(-d² / 2σ²)-weighted mean Δposition of the face Gaussians at canonical distance d from
+    the eye centre (σ = ``socket_sigma_m``). The canonical eyes sit where the geometry subject's eyes were;
+    with this the eyes of another identity move with the lids and sockets the code puts on its face, and a
+    fit of the face region alone (eyes masked out) still places them."""
+    socket_sigma_m: float = 0.01
     render_scale: float = 0.25
     num_images: int = 0
     """> 0 adds per-training-image learnable codes and camera offsets (auto-decoder)."""
@@ -105,6 +112,12 @@ class GaussianModel(nn.Module):
         self.register_buffer("norm_center", center)
         self.register_buffer("norm_scale", (all_means - center).norm(dim=-1).max().clamp_min(1e-6))
         self.units_per_metre = float(units_per_metre)
+        if cfg.socket_sigma_m <= 0:
+            raise ToolkitError(f"GaussianModelConfig.socket_sigma_m: expected > 0 metres, got {cfg.socket_sigma_m}")
+        d2 = torch.cdist(eye_centers.float(), face["means"].float()).square()  # [2, Nf]
+        sigma = cfg.socket_sigma_m * self.units_per_metre
+        # softmax: well defined however far the nearest face Gaussian is (no empty neighbourhood).
+        self.register_buffer("socket_weights", torch.softmax(-d2 / (2 * sigma ** 2), dim=-1))
         self.face_field = FaceDeformationField(cfg.feature_dim, cfg.code_dim, cfg.pose_dim, cfg.hidden, cfg.depth,
                                                cfg.pos_freqs, cfg.pose_freqs)
         self.eye_field = EyeRotationField(cfg.code_dim, cfg.hidden, cfg.depth, cfg.gaze_freqs, cfg.max_eye_residual)
@@ -248,10 +261,16 @@ class GaussianModel(nn.Module):
             self._face_cache = (key, code.detach().clone(), pose.detach().clone(), out)
         return out
 
-    def eye_stream(self, code: torch.Tensor, gaze: torch.Tensor) -> dict[str, torch.Tensor]:
+    def socket_shift(self, face: dict[str, torch.Tensor]) -> torch.Tensor:
+        """[B, 2, 3] head-frame displacement of each eye socket (left, right) by the deformed face stream
+        ``face`` (:meth:`face_stream` output): the ``socket_weights``-weighted mean Δposition."""
+        return torch.einsum("en,bnc->bec", self.socket_weights, face["means"] - self.face_means)
+
+    def eye_stream(self, code: torch.Tensor, gaze: torch.Tensor, shift: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Eye Gaussians rotated per eye about their own centres, head frame.
 
-        code [B, C], gaze [B, 2] -> {"means" [B, Ne, 3], "quats" [B, Ne, 4], "scales" [B, Ne, 3],
+        code [B, C], gaze [B, 2], shift [B, 2, 3] or None (a translation per eye, applied after the rotation
+        with the centre: :meth:`socket_shift`) -> {"means" [B, Ne, 3], "quats" [B, Ne, 4], "scales" [B, Ne, 3],
         "opacities" [B, Ne], "features" [B, Ne, D], "rotations" [B, 2, 3, 3] (left, right)}.
         """
         B = code.shape[0]
@@ -259,6 +278,8 @@ class GaussianModel(nn.Module):
         Rg = R[:, self.eye_side]  # [B, Ne, 3, 3]: each Gaussian takes its own eye's rotation
         c = self.eye_centers[self.eye_side]  # [Ne, 3]: ... and its own eye's centre
         means = torch.einsum("bnij,bnj->bni", Rg, (self.eye_means - c).expand(B, -1, -1)) + c
+        if shift is not None:
+            means = means + shift.to(means.dtype)[:, self.eye_side]
         quats = matrix_to_quat(R)[:, self.eye_side]  # eye Gaussians are isotropic: canonical rotation = identity
         ne = self.num_eye
         scales = torch.exp(self.eye_log_scales)[None, :, None].expand(B, ne, 3)
@@ -272,8 +293,14 @@ class GaussianModel(nn.Module):
         """Both streams after the rigid head transform (world frame): {"face": {...}, "eyes": {...}}."""
         self._check_inputs(code, pose, gaze)
         code = self.effective_code(code, image_index)
-        return {"face": self._posed(self.face_stream(code, pose), pose),
-                "eyes": self._posed(self.eye_stream(code, gaze), pose)}
+        face = self.face_stream(code, pose)
+        return {"face": self._posed(face, pose), "eyes": self._posed(self._eyes(code, gaze, face), pose)}
+
+    def _eyes(self, code: torch.Tensor, gaze: torch.Tensor, face: dict[str, torch.Tensor] | None) -> dict[str, torch.Tensor]:
+        """The eye stream, moved with the sockets of ``face`` when ``config.eyes_follow_face``."""
+        if not self.config.eyes_follow_face:
+            return self.eye_stream(code, gaze)
+        return self.eye_stream(code, gaze, self.socket_shift(face))
 
     # ------------------------------------------------------------------ rendering
     def _rasterize(self):
@@ -325,10 +352,12 @@ class GaussianModel(nn.Module):
         ce = self.effective_code(code, image_index)
         # Evaluate only the streams some requested render needs.
         g = {}
+        # Eyes that follow the face need the face stream (cached) even for an eyes-only render.
+        face = self.face_stream(ce, pose) if need_face or self.config.eyes_follow_face else None
         if need_face:
-            g["face"] = self._posed(self.face_stream(ce, pose), pose)
+            g["face"] = self._posed(face, pose)
         if need_eyes:
-            g["eyes"] = self._posed(self.eye_stream(ce, gaze), pose)
+            g["eyes"] = self._posed(self._eyes(ce, gaze, face), pose)
         bg = torch.zeros(self.config.feature_dim, device=vm.device)
         bg[:3] = 1.0
         out: dict[str, torch.Tensor] = {}
@@ -388,6 +417,8 @@ class GaussianModel(nn.Module):
         eyes["side"] = state["eye_side"]
         model = cls(GaussianModelConfig(**raw), face, eyes, state["eye_centers"], state["landmarks"],
                     float(info.get("units_per_metre", 1.0)), rasterizer)
+        # Checkpoints written before socket_weights existed: the buffer recomputed from their means.
+        state.setdefault("socket_weights", model.socket_weights)
         try:
             model.load_state_dict(state)
         except RuntimeError as e:

@@ -133,6 +133,9 @@ class GaussianStageConfig:
     lambda_ssim: float = 0.2
     diffusion_weight: float = 1.0
     gaussians_hidden: int = 64
+    eyes_follow_face: bool = False
+    """move each eyeball with its socket as the face field deforms the face
+    (``GaussianModelConfig.eyes_follow_face``), so the eyes follow the identity the code describes."""
     ckpt_every: int = 100
     log_every: int = 10
     grad_clip: float = 1.0

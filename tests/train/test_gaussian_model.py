@@ -317,3 +317,59 @@ def test_checkpoint_round_trip(tmp_path):
         GaussianModel.load(tmp_path / "other.safetensors")
     with pytest.raises(ToolkitError, match="no such"):
         GaussianModel.load(tmp_path / "missing.safetensors")
+
+
+def test_eyes_follow_the_socket_the_face_field_moves():
+    scene = demo_head_scene(600)
+    plain, follow = small_model(scene), small_model(scene, eyes_follow_face=True)
+    code, pose, gaze, viewmats, Ks = model_inputs(2)
+    # A face field that moves each face Gaussian by its own offset: the left half by t_l, the right by t_r.
+    t_l, t_r = torch.tensor([0.004, -0.002, 0.001]), torch.tensor([-0.003, 0.001, 0.002])
+    real = follow.face_stream
+
+    def shifted(c, p):
+        out = dict(real(c, p))
+        right = (follow.face_means[:, 0] > 0).float()[:, None]
+        out["means"] = (follow.face_means + (1 - right) * t_l + right * t_r).expand(c.shape[0], -1, -1)
+        return out
+
+    follow.face_stream = shifted
+    a = plain.gaussians(code, pose, gaze)["eyes"]["means"]
+    b = follow.gaussians(code, pose, gaze)["eyes"]["means"]
+    # Each eye translates rigidly by its socket's displacement (the weights sit on its own side: the other
+    # side's share is ~1e-4, so ~1e-6 m of leakage).
+    for side, t in ((0, t_l), (1, t_r)):
+        sel = follow.eye_side == side
+        assert torch.allclose(b[:, sel] - a[:, sel], t.expand(2, int(sel.sum()), 3), atol=1e-5)
+    assert torch.allclose(follow.socket_weights.sum(-1), torch.ones(2))
+
+
+def test_eye_pixels_train_the_face_field_only_when_eyes_follow():
+    scene = demo_head_scene(600)
+    grads = {}
+    for flag in (False, True):
+        model = small_model(scene, eyes_follow_face=flag)
+        torch.nn.init.normal_(model.face_field.expr_mlp.last.weight, std=0.1)  # not the zero-initialized field
+        code, pose, gaze, viewmats, Ks = model_inputs(1)
+        out = model(code * 50, pose, gaze, viewmats, Ks, 64, 64, renders=("eyes",))  # huge code: still finite
+        assert torch.isfinite(out["eyes"]).all()
+        out["eyes"][:, :3].sum().backward()
+        g = model.face_field.expr_mlp.last.weight.grad
+        grads[flag] = 0.0 if g is None else float(g.abs().sum())
+        assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+    assert grads[False] == 0.0 and grads[True] > 0.0
+    with pytest.raises(ToolkitError, match="socket_sigma_m"):
+        small_model(scene, socket_sigma_m=0.0)
+
+
+def test_checkpoint_without_socket_weights_still_loads(tmp_path):
+    from toolkit.io import load_checkpoint, save_checkpoint
+
+    model = small_model(demo_head_scene(600), eyes_follow_face=True)
+    model.save(tmp_path / "new.safetensors")
+    state, info = load_checkpoint(tmp_path / "new.safetensors")
+    del state["socket_weights"]
+    info["config"] = {k: v for k, v in info["config"].items() if k not in ("eyes_follow_face", "socket_sigma_m")}
+    save_checkpoint(tmp_path / "old.safetensors", state, info)
+    old = GaussianModel.load(tmp_path / "old.safetensors")
+    assert not old.config.eyes_follow_face and torch.allclose(old.socket_weights, model.socket_weights)
