@@ -61,10 +61,12 @@ class GazeEstimatorConfig:
     reads the left-right mirrored image (:func:`mirror_faces`) and averages the two directions: the network's
     left-right biases cancel, at twice the cost (held-out error of the eye design 4.0° -> 3.7°). The
     estimator's own training steps read one image each. :func:`eye_config` turns it on."""
-    head_frame: bool = True
-    """predict gaze in the head frame plus the head pose, and compose the camera-frame gaze exactly
-    (``toolkit.rotations.normalized_head_rotation``): the eyes' appearance in their sockets then maps to one
-    output instead of being entangled with the view. False: regress camera-frame gaze directly."""
+    head_frame: bool = False
+    """True: predict gaze in the head frame plus the head pose, and compose the camera-frame gaze exactly
+    (``toolkit.rotations.normalized_head_rotation``). False (default): regress the camera-frame gaze directly.
+    An iris's offset in the image reads the gaze relative to the camera; composing a head-frame gaze with a
+    head-pose estimate adds that estimate's error, which is large exactly where the view is extreme (eye
+    design, 128², 3000 steps: held-out 3.84° composed against 3.40° direct, worst image 68° against 24°)."""
 
 
 EYE_BAND = (0.3, 0.62, 0.24, 0.76)
