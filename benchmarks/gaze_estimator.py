@@ -110,8 +110,8 @@ def main(argv=None) -> int:
                     help="training jitter of the landmarks, pixels")
     ap.add_argument("--mirror", type=float, default=GazeEstimatorTrainConfig.mirror,
                     help="probability of mirroring a training sample left-right")
-    ap.add_argument("--head-frame", action="store_true",
-                    help="predict head-frame gaze + head pose and compose (default: camera-frame gaze directly)")
+    ap.add_argument("--camera-frame", action="store_true",
+                    help="regress the camera-frame gaze directly (default: head-frame gaze + head pose, composed)")
     ap.add_argument("--no-mirror-average", action="store_true",
                     help="predict from the image alone (default: average with its mirror)")
     ap.add_argument("--log-every", type=int, default=250)
@@ -139,7 +139,7 @@ def main(argv=None) -> int:
     rows, series = [], {}
     for mode in modes:
         cfg = eye_config(a.res) if mode == "eyes" else GazeEstimatorConfig(input_size=a.input_size)
-        cfg = dataclasses.replace(cfg, mirror_average=not a.no_mirror_average, head_frame=a.head_frame)
+        cfg = dataclasses.replace(cfg, mirror_average=not a.no_mirror_average, head_frame=not a.camera_frame)
         tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every,
                                       landmark_noise=a.landmark_noise, mirror=a.mirror)
         start, stamps = time.perf_counter(), []

@@ -156,13 +156,13 @@ def test_head_frame_output_is_composed_exactly():
     back = camera_to_head_gaze(head_to_camera_gaze(gh, hp), hp)
     assert float(angular_error_deg(back, gh).max()) < 1e-2
     torch.testing.assert_close(head_to_camera_gaze(gh, torch.zeros_like(hp)), gh, atol=1e-5, rtol=0)
-    model = GazeEstimator(dataclasses.replace(TINY, head_frame=True)).eval()
+    model = GazeEstimator(TINY).eval()
     x = torch.rand(4, 3, 32, 32)
     parts, out = model.forward_parts(x), model(x)
     torch.testing.assert_close(out[:, 2:], parts[:, 2:])
     torch.testing.assert_close(out[:, :2], head_to_camera_gaze(parts[:, :2], parts[:, 2:]))
-    direct = GazeEstimator(TINY).eval()  # the default regresses the camera-frame gaze directly
-    assert not TINY.head_frame and torch.equal(direct(x), direct.forward_parts(x))
+    direct = GazeEstimator(dataclasses.replace(TINY, head_frame=False)).eval()
+    assert TINY.head_frame and torch.equal(direct(x), direct.forward_parts(x))
 
 
 # ----------------------------------------------------------------------------- eye-patch design
