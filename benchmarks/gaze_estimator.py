@@ -61,17 +61,28 @@ def predict(model, images: torch.Tensor, landmarks: torch.Tensor) -> torch.Tenso
                       for i in range(0, len(images), 256)])
 
 
+def _error_rows(err: torch.Tensor, values: torch.Tensor, edges, name: str, label, share: bool = False) -> list[dict]:
+    """One row per non-empty bin [lo, hi) of ``values`` (lo starting at 0): image count, mean and median of
+    ``err`` (and with ``share`` the bin's share of the summed error); ``label(lo, hi)`` names the bin in
+    column ``name``."""
+    rows, lo = [], 0
+    for hi in edges:
+        m = (values >= lo) & (values < hi)
+        if bool(m.any()):
+            row = {name: label(lo, hi), "images": int(m.sum()), "mean_gaze_err_deg": float(err[m].mean()),
+                   "median_gaze_err_deg": float(err[m].median())}
+            if share:
+                row["share_of_mean"] = float(err[m].sum() / err.sum())
+            rows.append(row)
+        lo = hi
+    return rows
+
+
 def error_by_view(pred: torch.Tensor, labels: torch.Tensor, edges=(20, 40, 60, 90)) -> list[dict]:
     """Held-out gaze error binned by the head's angle from the camera axis (one eye hides far off-axis)."""
     err = angular_error_deg(pred[:, :2], labels[:, :2].float())
     off = angular_error_deg(labels[:, 2:].float(), torch.zeros_like(labels[:, 2:]).float())
-    rows, lo = [], 0.0
-    for hi in edges:
-        m = (off >= lo) & (off < hi)
-        if bool(m.any()):
-            rows.append({"head_off_axis_deg": f"[{lo:g}, {hi:g})", "images": int(m.sum()),
-                         "mean_gaze_err_deg": float(err[m].mean()), "median_gaze_err_deg": float(err[m].median())})
-        lo = hi
+    rows = _error_rows(err, off, edges, "head_off_axis_deg", lambda lo, hi: f"[{lo:g}, {hi:g})")
     rows.append({"head_off_axis_deg": "all", "images": len(err), "mean_gaze_err_deg": float(err.mean()),
                  "median_gaze_err_deg": float(err.median())})
     return rows
@@ -81,16 +92,8 @@ def error_by_iris(pred: torch.Tensor, labels: torch.Tensor, iris: torch.Tensor, 
     """Held-out gaze error binned by the visible iris pixels of the better-seen eye ([N, 2] counts): with no
     iris in view the gaze cannot be read from the eyes at all."""
     err = angular_error_deg(pred[:, :2], labels[:, :2].float())
-    seen = iris.max(1).values
-    rows, lo = [], 0
-    for hi in edges:
-        m = (seen >= lo) & (seen < hi)
-        if bool(m.any()):
-            rows.append({"iris_px_best_eye": f"[{lo}, {hi})" if hi < 10**9 else f">= {lo}", "images": int(m.sum()),
-                         "mean_gaze_err_deg": float(err[m].mean()), "median_gaze_err_deg": float(err[m].median()),
-                         "share_of_mean": float(err[m].sum() / err.sum())})
-        lo = hi
-    return rows
+    return _error_rows(err, iris.max(1).values, edges, "iris_px_best_eye",
+                       lambda lo, hi: f"[{lo}, {hi})" if hi < 10**9 else f">= {lo}", share=True)
 
 
 def main(argv=None) -> int:
