@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import sys
 import time
 from pathlib import Path
@@ -35,7 +36,7 @@ from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.io import atomic_write_json, atomic_write_text  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
-from train.stages import RunContext, Stage, run_stages  # noqa: E402
+from train.stages import RunContext, Stage, finished_stages, run_stages  # noqa: E402
 
 STAGE_NAMES = ("data", "geometry", "codec", "estimator", "gaussian", "eval")
 
@@ -212,7 +213,7 @@ def _gaussian_modules(ctx: RunContext, device):
 def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     from train.checkpoint import CheckpointManager, save_training_checkpoint
     from train.distributed import cleanup, init_distributed
-    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split
+    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, optimizer_groups
     from train.loop import MetricsLogger, train_loop
 
     cfg = ctx.config
@@ -226,9 +227,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
         seen = init_rgb(model, data)
         ctx.log(f"[gaussian] RGB channels initialized from the training images ({100 * seen:.0f}% of the Gaussians seen)")
     trainer = GaussianTrainer(g, model, renderer, _estimator(ctx, "loss", device), data, device, g.steps)
-    params = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": g.lr},
-              {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": g.renderer_lr}]
-    opt = torch.optim.Adam(params)
+    opt = torch.optim.Adam(optimizer_groups(model, renderer, g))
     stage_dir = ctx.run_dir / "gaussian"
     mgr = CheckpointManager(stage_dir / "checkpoints")
     if ctx.resume and mgr.latest() is not None:
@@ -252,9 +251,15 @@ def open_run(run_dir: str | Path) -> RunContext:
     if not (run_dir / "config.yaml").is_file():
         raise ToolkitError(f"{run_dir}: not a run directory (no config.yaml); train one with python -m train.run")
     ctx = RunContext(run_dir, load_yaml_config(RunConfig, run_dir / "config.yaml"), log=lambda m: None)
-    run_stages(STAGES, [], ctx)
+    stale = finished_stages(STAGES, ctx)
     if "gaussian" not in ctx.outputs:
         raise ToolkitError(f"{run_dir}: stage 'gaussian' has not finished; there is no trained model")
+    if stale:
+        # A finished model stays usable after config.yaml was edited or the toolkit added config fields;
+        # python -m train.run would re-run these stages.
+        logging.getLogger(__name__).warning(
+            "%s: stage(s) %s ran under a different config than config.yaml now gives; using their outputs as they are",
+            run_dir, ", ".join(stale))
     return ctx
 
 

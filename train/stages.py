@@ -100,3 +100,24 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
         ctx.outputs[stage.name] = outputs
         status[stage.name] = "ran"
     return status
+
+
+def finished_stages(stages: list[Stage], ctx: RunContext) -> list[str]:
+    """Read the outputs of every stage that finished in ``ctx.run_dir`` into ``ctx.outputs``, whether or not
+    its fingerprint still matches the config; returns the names of those that do not (stale: the config, or a
+    config field added by a newer version of the toolkit, changed since they ran).
+
+    For *using* a finished run (redirect, preview): what a stage wrote is what the run has, even when
+    :func:`run_stages` would re-run it."""
+    prints: dict[str, str] = {}
+    stale = []
+    for stage in stages:
+        prints[stage.name] = fp = fingerprint(stage, ctx.config, prints)
+        rec_path = _record_path(ctx.run_dir, stage.name)
+        record = json.loads(rec_path.read_text()) if rec_path.exists() else None
+        if record is None or not all((ctx.run_dir / p).exists() for p in record.get("outputs", {}).values()):
+            continue
+        ctx.outputs[stage.name] = record["outputs"]
+        if record.get("fingerprint") != fp:
+            stale.append(stage.name)
+    return stale

@@ -149,3 +149,19 @@ def test_preview_opens_a_trained_run(tiny_run, tmp_path):
     assert (tmp_path / "sweep.png").exists() and len(info["gazes"]) == 2
     with pytest.raises(ToolkitError, match=r"a trained run directory \(with config.yaml\)"):
         load_scene(str(tmp_path))
+
+
+def test_open_run_uses_a_run_finished_under_an_older_config(tiny_run, tmp_path, caplog):
+    """A finished model must still open when its stages' fingerprints no longer match config.yaml (edited
+    since, or hashed by an older toolkit whose config lacked a field), with a warning naming them."""
+    import re
+
+    d = tmp_path / "old"
+    shutil.copytree(tiny_run, d)
+    text = (d / "config.yaml").read_text()
+    edited = re.sub(r"(?m)^  ckpt_every: (\d+)$", lambda m: f"  ckpt_every: {int(m.group(1)) + 1}", text, count=1)
+    assert edited != text
+    (d / "config.yaml").write_text(edited)
+    ctx = run.open_run(d)
+    assert ctx.path("gaussian", "checkpoint").exists()
+    assert "gaussian" in caplog.text and "different config" in caplog.text

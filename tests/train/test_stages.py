@@ -3,7 +3,7 @@ from dataclasses import dataclass, field
 import pytest
 
 from toolkit import ToolkitError
-from train.stages import RunContext, Stage, run_stages
+from train.stages import RunContext, Stage, finished_stages, run_stages
 
 
 @dataclass
@@ -52,3 +52,16 @@ def test_missing_dependency_and_unknown_stage(tmp_path):
         run_stages(_stages([]), ["second"], RunContext(tmp_path, Cfg(), log=lambda m: None))
     with pytest.raises(ToolkitError, match="unknown stage"):
         run_stages(_stages([]), ["third"], RunContext(tmp_path, Cfg(), log=lambda m: None))
+
+
+def test_finished_stages_reads_stale_outputs_and_names_them(tmp_path):
+    """Using a finished run (redirect, preview) must not need the config to be byte-identical to the one it
+    ran under: a config field a newer toolkit adds changes every fingerprint."""
+    run_stages(_stages([]), ["first", "second"], RunContext(tmp_path, Cfg(), log=lambda m: None))
+    ctx = RunContext(tmp_path, Cfg(b=6), log=lambda m: None)
+    assert finished_stages(_stages([]), ctx) == ["second"]
+    assert ctx.path("second", "out").read_text() == "15"  # what it wrote, unchanged
+    assert finished_stages(_stages([]), RunContext(tmp_path, Cfg(), log=lambda m: None)) == []
+    (tmp_path / "second.txt").unlink()  # an output that is gone: not finished
+    ctx = RunContext(tmp_path, Cfg(), log=lambda m: None)
+    assert finished_stages(_stages([]), ctx) == [] and set(ctx.outputs) == {"first"}
