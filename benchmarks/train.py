@@ -259,7 +259,7 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
     """Train the stage for ``budget_s`` seconds of training time; evaluate every ``eval_every_s``."""
     from train import run
     from train.evaluate import evaluate
-    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split
+    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, optimizer_groups
     from train.loop import train_loop
 
     sub = with_overrides(ctx, overrides)
@@ -272,9 +272,7 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
         init_rgb(model, data)
     trainer = GaussianTrainer(g, model, renderer, run._estimator(sub, "loss", device), data, device, g.steps)
     est = run._estimator(sub, "eval", device)
-    params = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": g.lr},
-              {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": g.renderer_lr}]
-    opt = torch.optim.Adam(params)
+    opt = torch.optim.Adam(optimizer_groups(model, renderer, g))
     points: list[dict] = []
     now = time.process_time if args.clock == "cpu" else time.perf_counter
     clock = {"train": 0.0, "since": now(), "next_eval": 0.0}

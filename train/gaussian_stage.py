@@ -169,5 +169,25 @@ def build_model(scene_path: Path, cfg: GaussianStageConfig, device) -> GaussianM
     return GaussianModel.from_scene(scene, mcfg, landmarks=landmarks).to(device)
 
 
+CANONICAL_MEANS = ("face_means", "eye_means")
+
+
+def optimizer_groups(model: GaussianModel, renderer: torch.nn.Module, cfg: GaussianStageConfig) -> list[dict]:
+    """Adam parameter groups: the canonical Gaussian centres at ``cfg.means_lr`` × the head radius
+    (``model.norm_scale``), every other model weight at ``cfg.lr``, the renderer at ``cfg.renderer_lr``.
+
+    Why the centres get their own rate: Adam moves every weight by about its learning rate per step whatever
+    the gradient's size, and the centres are in scene units (metres). At ``cfg.lr`` = 2e-3 a centre can walk
+    2 mm per step -- 64 cm over the demo's 320 steps -- and noisy gradients through the renderer scatter the
+    head into floaters. 3D Gaussian Splatting likewise trains positions at 1.6e-4 × the scene extent."""
+    centres = [p for n, p in model.named_parameters() if n in CANONICAL_MEANS and p.requires_grad]
+    others = [p for n, p in model.named_parameters() if n not in CANONICAL_MEANS and p.requires_grad]
+    groups = [{"params": others, "lr": cfg.lr},
+              {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": cfg.renderer_lr}]
+    if centres:
+        groups.append({"params": centres, "lr": cfg.means_lr * float(model.norm_scale)})
+    return [g for g in groups if g["params"]]
+
+
 def describe(terms: dict[str, Any]) -> str:
     return ", ".join(f"{k}={float(v):.4g}" for k, v in terms.items())

@@ -126,6 +126,10 @@ class GaussianStageConfig:
     steps: int = 320
     batch: int = 4
     lr: float = 2e-3
+    """Adam learning rate of the Gaussian model's weights (fields, features, scales, opacities, rotations)."""
+    means_lr: float = 1.6e-4
+    """learning rate of the canonical Gaussian centres, as a fraction of the head's radius per step (3DGS's
+    position rate relative to the scene extent; see ``train.gaussian_stage.optimizer_groups``)."""
     renderer_lr: float = 5e-4
     lambda_rgb: float = 1.0
     """low-resolution RGB supervision of the splatted feature maps' first three channels."""
