@@ -50,6 +50,15 @@ def _record_path(run_dir: Path, name: str) -> Path:
     return run_dir / "stages" / f"{name}.json"
 
 
+def _finished_record(run_dir: Path, name: str) -> dict | None:
+    """The stage's record when it finished and every output it wrote still exists, else None."""
+    rec_path = _record_path(run_dir, name)
+    record = json.loads(rec_path.read_text()) if rec_path.exists() else None
+    if record is None or not all((run_dir / p).exists() for p in record.get("outputs", {}).values()):
+        return None
+    return record
+
+
 def fingerprint(stage: Stage, cfg: Any, upstream: dict[str, str]) -> str:
     parts = [stage.name, config_hash(stage.config(cfg))] + [f"{d}:{upstream[d]}" for d in stage.depends]
     return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
@@ -72,12 +81,8 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
             raise ToolkitError(f"stage '{stage.name}' depends on unknown stage(s) {missing_dep}")
         fp = fingerprint(stage, ctx.config, prints)
         prints[stage.name] = fp
-        rec_path = _record_path(ctx.run_dir, stage.name)
-        record = json.loads(rec_path.read_text()) if rec_path.exists() else None
-        up_to_date = (
-            record is not None and record.get("fingerprint") == fp
-            and all((ctx.run_dir / p).exists() for p in record.get("outputs", {}).values())
-        )
+        record = _finished_record(ctx.run_dir, stage.name)
+        up_to_date = record is not None and record.get("fingerprint") == fp
         if stage.name not in selected:
             if up_to_date:
                 ctx.outputs[stage.name] = record["outputs"]
@@ -96,7 +101,8 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
         for k, p in outputs.items():
             if not (ctx.run_dir / p).exists():
                 raise ToolkitError(f"stage '{stage.name}' did not write its output {k} ({p})")
-        atomic_write_json(rec_path, {"fingerprint": fp, "outputs": outputs, "seconds": time.perf_counter() - t0})
+        atomic_write_json(_record_path(ctx.run_dir, stage.name),
+                          {"fingerprint": fp, "outputs": outputs, "seconds": time.perf_counter() - t0})
         ctx.outputs[stage.name] = outputs
         status[stage.name] = "ran"
     return status
@@ -113,9 +119,8 @@ def finished_stages(stages: list[Stage], ctx: RunContext) -> list[str]:
     stale = []
     for stage in stages:
         prints[stage.name] = fp = fingerprint(stage, ctx.config, prints)
-        rec_path = _record_path(ctx.run_dir, stage.name)
-        record = json.loads(rec_path.read_text()) if rec_path.exists() else None
-        if record is None or not all((ctx.run_dir / p).exists() for p in record.get("outputs", {}).values()):
+        record = _finished_record(ctx.run_dir, stage.name)
+        if record is None:
             continue
         ctx.outputs[stage.name] = record["outputs"]
         if record.get("fingerprint") != fp:
