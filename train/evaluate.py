@@ -101,10 +101,14 @@ def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, step
     return renderer.render(maps["head"], batch["code"], gaze=batch["gaze_head"], pose=batch["pose"])
 
 
-TTA_WEIGHT_GROUPS = ("features", "renderer")
-"""Weights test-time fitting may tune besides the code: the Gaussians' canonical features (all channels, face
-and eyes; channels 0..2 are the RGB) and the neural renderer (the DiT; the baseline's whole network). The
-frozen codec, the deformation and eye rotation fields and the Gaussians' geometry are never fitted."""
+TTA_WEIGHT_GROUPS = ("features", "eye_features", "renderer")
+"""Weights test-time fitting may tune besides the code: the face Gaussians' canonical features (all channels;
+0..2 are the RGB), the eye Gaussians' features, and the neural renderer (the DiT; the baseline's whole network).
+The frozen codec, the deformation and eye rotation fields and the Gaussians' geometry are never fitted.
+
+The fitting loss cuts the input's eyes out (:func:`face_only_mask`), so it never checks what the eye
+Gaussians' features draw: fitting them only lets the eyes drift (session 7, demo run: held-out gaze 24.4°
+with them, 20.5° without, PSNR 28.78 / 28.82 dB). They are a group of their own, off by default."""
 
 
 def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
@@ -115,7 +119,9 @@ def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
     params: list[torch.nn.Parameter] = []
     for g in dict.fromkeys(groups):
         if g == "features":
-            group = [model.face_features, model.eye_features]
+            group = [model.face_features]
+        elif g == "eye_features":
+            group = [model.eye_features]
         elif g == "renderer":
             group = list(getattr(renderer, "dit", renderer).parameters())  # the DiT's codec stays frozen
         else:
@@ -154,7 +160,7 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     if "renderer" in weights and not renderer_lr > 0:
         raise ToolkitError(f"test-time fitting: expected a renderer learning rate > 0, got {renderer_lr}")
     code = batch["code"].clone().requires_grad_(True)
-    feats = fitted_weights(model, renderer, [g for g in weights if g == "features"])
+    feats = fitted_weights(model, renderer, [g for g in weights if g in ("features", "eye_features")])
     net = fitted_weights(model, renderer, [g for g in weights if g == "renderer"])
     groups = [{"params": [code] + feats, "lr": lr}] + ([{"params": net, "lr": renderer_lr}] if net else [])
     opt = torch.optim.Adam(groups)

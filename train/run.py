@@ -286,7 +286,8 @@ def _fitting(e) -> str:
     if e.tta_steps <= 0:
         return "none"
     return f"{e.tta_steps} steps of the shape code" + "".join(
-        {"features": ", the Gaussians' features", "renderer": ", the renderer"}[w] for w in dict.fromkeys(e.tta_weights))
+        {"features": ", the face Gaussians' features", "eye_features": ", the eye Gaussians' features",
+         "renderer": ", the renderer"}[w] for w in dict.fromkeys(e.tta_weights))
 
 
 def stage_eval(ctx: RunContext) -> dict[str, str]:

@@ -155,9 +155,10 @@ class EvalConfig:
     tta_steps: int = 20
     """test-time fitting steps on the input image (0 disables), restarted per pair from the restored weights
     (GazeNeRF protocol: held-out subjects are identities the model never saw). Measurements: docs/evaluation.md."""
-    tta_weights: tuple[Literal["features", "renderer"], ...] = ("features", "renderer")
-    """weights fitted with the shape code: the Gaussians' features (all channels) and the neural renderer (pairs
-    are then fitted one at a time); () fits the code alone, all pairs of a subject in one batch."""
+    tta_weights: tuple[Literal["features", "eye_features", "renderer"], ...] = ("features", "renderer")
+    """weights fitted with the shape code: the face Gaussians' features (all channels), the eye Gaussians'
+    features (off: the fitting loss never sees the eyes), the neural renderer (pairs are then fitted one at a
+    time); () fits the code alone, all pairs of a subject in one batch."""
     tta_renderer_lr: float = 1e-3
     """Adam learning rate of the renderer's weights in test-time fitting (code and features: 1e-2)."""
     pairing_file: str = ""

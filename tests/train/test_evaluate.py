@@ -93,6 +93,8 @@ def test_fitting_weights_changes_them_in_place_and_restored_weights_puts_them_ba
         fitted = test_time_fit(model, renderer, batch, image, mask, 64, steps=15, weights=("features", "renderer"))
         changed = {**model.state_dict(), **renderer.state_dict()}
         assert not torch.equal(changed["face_features"], before["face_features"])
+        # The loss never sees the eyes: their features are fitted only when asked for.
+        assert torch.equal(changed["eye_features"], before["eye_features"])
         net = [k for k in renderer.state_dict() if kind == "baseline" or k.startswith("dit.")]
         assert any(not torch.equal(changed[k], before[k]) for k in net)
         assert all(torch.equal(changed[k], before[k]) for k in before if k.startswith("codec."))  # frozen
@@ -112,7 +114,8 @@ def test_unknown_fitting_group_is_a_clear_error(subject_file):
     model, renderer, _ = untrained_eval_parts()
     with pytest.raises(ToolkitError, match="unknown weight group 'geometry'"):
         fitted_weights(model, renderer, ["geometry"])
-    assert len(fitted_weights(model, renderer, ["features", "features"])) == 2  # each group once
+    assert fitted_weights(model, renderer, ["features", "features"]) == [model.face_features]  # each group once
+    assert fitted_weights(model, renderer, ["eye_features"]) == [model.eye_features]
     renderer.requires_grad_(False)
     with pytest.raises(ToolkitError, match="'renderer' weights are all frozen"):
         fitted_weights(model, renderer, ["renderer"])
