@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError, run_cli
@@ -67,16 +68,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def most_frontal(head_poses: Sequence) -> int:
-    """Index of the smallest head rotation, |pitch| + |yaw| (the camera-frame head pose of each row): the
-    sweep's view. Row 0 of a synthetic subject is a rig camera far below the chin, where no eye shows."""
-    if len(head_poses) == 0:
+def most_frontal(head_poses) -> int:
+    """Index of the smallest head rotation, |pitch| + |yaw|, in ``head_poses`` [N, 2] (the camera-frame head
+    pose of each row): the sweep's view. Row 0 of a synthetic subject is a rig camera far below the chin,
+    where no eye shows."""
+    poses = torch.as_tensor(np.asarray(head_poses, dtype=np.float32))
+    if poses.numel() == 0:
         raise ToolkitError("demo: the held-out subject has no rows to sweep")
-    return int(torch.stack([torch.as_tensor(p, dtype=torch.float32).abs().sum() for p in head_poses]).argmin())
+    return int(poses.abs().sum(-1).argmin())
 
 
 def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     """Train and evaluate on synthetic data, then sweep and redirect a held-out subject."""
+    import h5py
+
     from apps import redirect
     from apps.preview import write_contact_sheet, write_video
     from train import run
@@ -92,8 +97,9 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     cfg = ctx.config
     test_file = run._split(ctx, "test")[0]
     model, renderer = run.load_trained(ctx, "cpu")
-    ds = GazeDataset([test_file], res=cfg.data.res)
-    item = ds[most_frontal([ds[i]["face_head_pose"] for i in range(len(ds))])]
+    with h5py.File(test_file, "r") as f:  # the labels alone: no image needs decoding to choose the view
+        row = most_frontal(f["face_head_pose"][:])
+    item = GazeDataset([test_file], res=cfg.data.res)[row]
     n = cfg.eval.sweep_frames
     t = torch.linspace(0, 2 * torch.pi, n + 1)[:-1]
     gazes = torch.stack([0.35 * torch.sin(t), 0.45 * torch.cos(t)], -1)  # a circle of ±20° pitch, ±26° yaw

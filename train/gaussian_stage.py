@@ -183,9 +183,8 @@ def optimizer_groups(model: GaussianModel, renderer: torch.nn.Module, cfg: Gauss
     centres = [p for n, p in model.named_parameters() if n in CANONICAL_MEANS and p.requires_grad]
     others = [p for n, p in model.named_parameters() if n not in CANONICAL_MEANS and p.requires_grad]
     groups = [{"params": others, "lr": cfg.lr},
-              {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": cfg.renderer_lr}]
-    if centres:
-        groups.append({"params": centres, "lr": cfg.means_lr * float(model.norm_scale)})
+              {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": cfg.renderer_lr},
+              {"params": centres, "lr": cfg.means_lr * float(model.norm_scale)}]
     return [g for g in groups if g["params"]]
 
 
