@@ -75,7 +75,7 @@ def rasterize(
     sh_degree: int | None = None,
     return_depth: bool = False,
     check_finite: bool = True,
-    chunk: int = 32,
+    chunk: int | None = None,
     max_elements: int = 1 << 21,
     alpha_min: float = ALPHA_MIN,
     t_min: float = T_MIN,
@@ -88,7 +88,8 @@ def rasterize(
             each camera as max(SH + 0.5, 0).
         viewmats [C, 4, 4] world-to-camera, Ks [C, 3, 3] pixels, width / height in pixels.
         backgrounds [C, D] (or [D]), default zeros.
-        tile_size: square tile edge in pixels; chunk: Gaussians per tile per round; max_elements bounds
+        tile_size: square tile edge in pixels; chunk: Gaussians per tile per round (None: ``render._raster.auto_chunk``, longer
+            on small images where per-round overhead dominates); max_elements bounds
             tiles x chunk x pixels per batched step (peak memory); alpha_min / t_min: the 1/255 and 1e-4
             thresholds (knobs for benchmarking; the defaults are the reference).
         check_finite: raise ToolkitError on NaN/inf inputs (one check per call).
@@ -121,7 +122,7 @@ def rasterize(
         _check_shape("backgrounds", backgrounds, (C, D))
     if int(width) < 1 or int(height) < 1:
         raise ToolkitError(f"rasterize: width and height must be >= 1, got {width}x{height}")
-    if int(tile_size) < 1 or int(chunk) < 1:
+    if int(tile_size) < 1 or (chunk is not None and int(chunk) < 1):
         raise ToolkitError(f"rasterize: tile_size and chunk must be >= 1, got {tile_size}, {chunk}")
     if not 0 < alpha_min < ALPHA_MAX or not 0 <= t_min < 1:
         raise ToolkitError(f"rasterize: need 0 < alpha_min < {ALPHA_MAX} and 0 <= t_min < 1")
@@ -143,7 +144,7 @@ def rasterize(
     else:
         colors = features.to(means.device, dtype)
     opac = opacities.to(dtype)
-    cfg = RasterConfig(chunk=int(chunk), max_elements=int(max_elements), alpha_min=float(alpha_min),
+    cfg = RasterConfig(chunk=None if chunk is None else int(chunk), max_elements=int(max_elements), alpha_min=float(alpha_min),
                        t_min=float(t_min))
     counters = dict(visible=0, intersections=0, candidate_intersections=0, tiles_skipped=0, tiles_terminated=0,
                     pixels_terminated=0, rounds=0)

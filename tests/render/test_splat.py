@@ -105,7 +105,7 @@ def test_multi_camera_and_per_camera_features():
 
 
 @pytest.mark.parametrize("kw", [dict(tile_size=16), dict(tile_size=5, chunk=3), dict(chunk=2, max_elements=1024),
-                                dict(tile_size=1, chunk=64)])
+                                dict(tile_size=1, chunk=64), dict(chunk=32)])
 def test_knobs_do_not_change_the_result(kw):
     means, quats, scales, opac, feats = ref.random_cloud(120, 3, seed=5, dtype=torch.float64)
     V, K = ref.camera(36, 28, dtype=torch.float64)
@@ -118,6 +118,19 @@ def test_knobs_do_not_change_the_result(kw):
     gb = torch.autograd.grad((b * b).sum() + bb.sum(), (means, feats))
     for x, y in zip(ga, gb):
         assert torch.allclose(x, y, atol=1e-10)
+
+
+def test_auto_chunk_takes_fewer_rounds_on_small_images():
+    """The default chunk grows on images with few tiles (fewer rounds, same pixels); big images keep 32."""
+    from render._raster import MIN_CHUNK, auto_chunk
+
+    means, quats, scales, opac, feats = ref.random_cloud(400, 3, seed=7)
+    V, K = ref.camera(32, 32)
+    auto, _, meta_auto = rasterize(means, quats, scales, opac, feats, V, K, 32, 32)
+    fixed, _, meta_fixed = rasterize(means, quats, scales, opac, feats, V, K, 32, 32, chunk=MIN_CHUNK)
+    assert meta_auto["counters"]["rounds"] < meta_fixed["counters"]["rounds"]
+    assert torch.allclose(auto, fixed, atol=1e-6)
+    assert auto_chunk(16, 64) == 256 and auto_chunk(1024, 64) == MIN_CHUNK and auto_chunk(0, 64) >= MIN_CHUNK
 
 
 def test_return_depth_is_weighted_camera_depth():
