@@ -203,6 +203,16 @@ def main(argv=None) -> int:
                         ylabel="fwd+bwd seconds", title="render.splat knob trade-offs (labels in the table)",
                         logx=True)
         print(f"wrote {png}")
+
+        # The training splat is small (the demo's 128^2 output splats at 32^2): there the chunk sets the
+        # number of rounds, and the default (auto) chunk grows to keep rounds large.
+        small = dict(base, n=6000, res=32)
+        chunks = [dict(chunk=c) for c in ((32, 256) if a.quick else (16, 32, 64, 128, 256, 512))]
+        print("\n## chunk on a small image (head 6k, 32^2, D=32; error vs the default, auto chunk)")
+        crows = run_all([dict(small, kw=k, ref_default=True) for k in [{}] + chunks])
+        for r, k in zip(crows, [dict(chunk="auto")] + chunks):
+            r["knob"] = f"chunk={k['chunk']}"
+        print(format_table(crows, ["knob", "fwd_s", "fwd_bwd_s", "rounds", "max_err"]))
     print(f"load average after: {os.getloadavg()}")
     return 0
 
