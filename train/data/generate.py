@@ -178,7 +178,7 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
 
 
 def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2, res: int = 128,
-                     seed: int = 0, log=None, iris_pixels: bool = False) -> tuple[torch.Tensor, ...]:
+                     seed: int = 0, log=None, iris_pixels: bool = False, workers: int = 1) -> tuple[torch.Tensor, ...]:
     """Training images for a gaze estimator: many gazes per subject, few rig cameras per gaze.
 
     The subject files of :func:`synth_dataset` show each (gaze, pose, expression) frame to all 18 cameras,
@@ -188,6 +188,8 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
 
     Args:
         subject_seeds: seeds for :meth:`SubjectParams.sample` (keep them disjoint from any evaluation subjects).
+        workers: processes rendering contiguous runs of subjects at once (the renderer is single-threaded;
+            the images and their order do not depend on it).
     Returns:
         images [N, 3, res, res] uint8 RGB, labels [N, 4] float32 radians: camera-frame gaze (pitch, yaw)
         then camera-frame head pose (pitch, yaw), landmarks [N, 68, 2] float32 pixels;
@@ -195,22 +197,54 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
         visible iris + pupil pixels of the image-left and image-right eye (how readable each eye is: 0 when
         the lids, the nose or the view hide it).
     """
-    rig = eth_xgaze_rig(radius=RIG_RADIUS)
-    if not 1 <= cameras_per_frame <= len(rig):
-        raise ToolkitError(f"cameras_per_frame must be in [1, {len(rig)}], got {cameras_per_frame}")
+    n_cams = len(eth_xgaze_rig(radius=RIG_RADIUS))
+    if not 1 <= cameras_per_frame <= n_cams:
+        raise ToolkitError(f"cameras_per_frame must be in [1, {n_cams}], got {cameras_per_frame}")
     if n_frames < 1:
         raise ToolkitError(f"n_frames must be >= 1, got {n_frames}")
-    subject_seeds = list(subject_seeds)
+    subject_seeds = [int(s) for s in subject_seeds]
     if not subject_seeds:
         raise ToolkitError("estimator_images: no subject seeds given (expected at least one)")
     _check_res(res)
+    if workers < 1:
+        raise ToolkitError(f"estimator_images: workers must be >= 1, got {workers}")
+    args = dict(n_frames=n_frames, cameras_per_frame=cameras_per_frame, res=res, seed=seed, iris_pixels=iris_pixels)
+    t0 = time.perf_counter()
+    workers = min(workers, len(subject_seeds))
+    if workers == 1:
+        parts = [_estimator_subjects(subject_seeds, log=log, **args)]
+    else:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+
+        runs = [r.tolist() for r in np.array_split(np.asarray(subject_seeds), workers)]
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+            futures = [ex.submit(_estimator_subjects, r, **args) for r in runs]
+            parts, done = [], 0
+            for r, f in zip(runs, futures):
+                parts.append(f.result())
+                done += len(r)
+                if log is not None:
+                    n = done * n_frames * cameras_per_frame
+                    log(f"estimator images: subject {done}/{len(subject_seeds)}, {n / (time.perf_counter() - t0):.0f} images/s "
+                        f"({workers} processes)")
+    cat = [np.concatenate([p[k] for p in parts]) for k in range(len(parts[0]))]
+    img = torch.from_numpy(cat[0]).permute(0, 3, 1, 2).contiguous()
+    out = (img, torch.from_numpy(cat[1].astype(np.float32)), torch.from_numpy(cat[2].astype(np.float32)))
+    return out + (torch.from_numpy(cat[3].astype(np.int64)),) if iris_pixels else out
+
+
+def _estimator_subjects(subject_seeds: list[int], *, n_frames: int, cameras_per_frame: int, res: int, seed: int,
+                        iris_pixels: bool, log=None) -> list[np.ndarray]:
+    """:func:`estimator_images` for a run of subjects, in one process: [images u8 NHWC, labels, landmarks(, iris)]."""
+    rig = eth_xgaze_rig(radius=RIG_RADIUS)
     images, labels, landmarks, iris = [], [], [], []
     t0 = time.perf_counter()
     with _torch_threads(1):
         for k, s in enumerate(subject_seeds):
-            subject = build_subject(SubjectParams.sample(int(s)))
-            fr = sample_frames(int(s) + seed * 7919, n_frames)
-            rng = np.random.default_rng([int(s), seed, 23])
+            subject = build_subject(SubjectParams.sample(s))
+            fr = sample_frames(s + seed * 7919, n_frames)
+            rng = np.random.default_rng([s, seed, 23])
             for i in range(n_frames):
                 sel = rng.choice(len(rig), cameras_per_frame, replace=False)
                 cams = frame_cameras(subject, fr["pose"][i], [rig[j] for j in sel], res)
@@ -226,7 +260,5 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
             if log is not None:
                 done = (k + 1) * n_frames * cameras_per_frame
                 log(f"estimator images: subject {k + 1}/{len(subject_seeds)}, {done / (time.perf_counter() - t0):.0f} images/s")
-    img = torch.from_numpy(np.concatenate(images)).permute(0, 3, 1, 2).contiguous()
-    out = (img, torch.from_numpy(np.concatenate(labels).astype(np.float32)),
-           torch.from_numpy(np.concatenate(landmarks).astype(np.float32)))
-    return out + (torch.from_numpy(np.concatenate(iris).astype(np.int64)),) if iris_pixels else out
+    arrays = [np.concatenate(images), np.concatenate(labels), np.concatenate(landmarks)]
+    return arrays + [np.concatenate(iris)] if iris_pixels else arrays

@@ -273,9 +273,10 @@ def test_estimator_images_many_gazes_few_cameras_deterministic():
     assert torch.isfinite(labels).all() and float(labels.abs().max()) <= math.pi
     # Each frame's two cameras see one gaze from two directions: different camera-frame labels.
     assert not torch.allclose(labels[0], labels[1])
-    again, labels2, _, iris = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1,
-                                               iris_pixels=True)
-    assert torch.equal(imgs, again) and torch.equal(labels, labels2)
+    # Two processes, one subject each: the same images in the same order.
+    again, labels2, lms2, iris = estimator_images([3, 4], n_frames=3, cameras_per_frame=2, res=32, seed=1,
+                                                  iris_pixels=True, workers=2)
+    assert torch.equal(imgs, again) and torch.equal(labels, labels2) and torch.equal(lms, lms2)
     # Visible iris pixels per eye: counts, some eye seen somewhere, never more than a small eye area.
     assert iris.shape == (12, 2) and iris.dtype == torch.int64
     assert int(iris.min()) >= 0 and 0 < int(iris.max()) < 32 * 32 // 20
@@ -287,6 +288,8 @@ def test_estimator_images_many_gazes_few_cameras_deterministic():
         estimator_images([3], n_frames=1, res=8)
     with pytest.raises(ToolkitError, match="no subject seeds"):
         estimator_images(range(5, 5), n_frames=1)
+    with pytest.raises(ToolkitError, match="workers"):
+        estimator_images([3], n_frames=1, workers=0)
 
 
 def test_light_jitter_zero_is_one_frontal_light():
