@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
@@ -120,6 +121,8 @@ def main(argv=None) -> int:
     ap.add_argument("--log-every", type=int, default=250)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for <mode>.safetensors")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                    help="processes rendering the procedural subjects (the images do not depend on it)")
     a = ap.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
@@ -130,12 +133,13 @@ def main(argv=None) -> int:
     from train.data.generate import estimator_images
 
     t0 = time.perf_counter()
-    train = estimator_images(range(TRAIN_SEEDS, TRAIN_SEEDS + a.subjects), n_frames=a.frames, seed=0, res=a.res)
+    train = estimator_images(range(TRAIN_SEEDS, TRAIN_SEEDS + a.subjects), n_frames=a.frames, seed=0, res=a.res,
+                             workers=a.workers)
     if a.data:
         test, source, iris = load_split(a.data, "test"), f"held-out split of {a.data}", None
     else:
         *test, iris = estimator_images(range(TEST_SEEDS, TEST_SEEDS + a.test_subjects), n_frames=30, seed=1,
-                                       res=a.res, iris_pixels=True)
+                                       res=a.res, iris_pixels=True, workers=a.workers)
         source = f"{a.test_subjects} held-out procedural subjects"
     print(f"data: {len(train[0])} training images ({a.subjects} subjects x {a.frames} gazes x 2 cameras), "
           f"{len(test[0])} test images ({source}), {train[0].shape[-1]}px, made in {time.perf_counter() - t0:.0f} s")
