@@ -53,7 +53,7 @@ def auto_chunk(active_tiles: int, pixels_per_tile: int) -> int:
     """Gaussians per tile per round when none is given: at least ``MIN_CHUNK``, and long enough that a round
     covers ``ROUND_ELEMENTS`` (tile, Gaussian, pixel) triples. Each round costs ~20 small tensor ops whatever
     its size, so on a small image (few tiles) short chunks are all overhead: at 32x32 with 6000 Gaussians,
-    chunk 32 takes 94 ms per forward + backward and the auto chunk (256) 45 ms. Images with >= 128 tiles of
+    chunk 32 takes 94 ms per forward + backward and the auto chunk (256) 50 ms. Images with >= 128 tiles of
     8x8 keep ``MIN_CHUNK``."""
     return max(MIN_CHUNK, ROUND_ELEMENTS // max(1, active_tiles * pixels_per_tile))
 
