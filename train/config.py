@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import re
 import types
 import typing
 from pathlib import Path
@@ -39,6 +40,9 @@ def to_dict(cfg: Any) -> dict[str, Any]:
 
 def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+_EXPONENT_ONLY = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
 
 
 def _coerce(value: Any, tp: Any, key: str) -> Any:
@@ -90,6 +94,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
             raise ToolkitError(f"config key '{key}': expected an integer, got {value!r}")
         return value
     if tp is float:
+        if isinstance(value, str) and _EXPONENT_ONLY.fullmatch(value.strip()):
+            value = float(value)  # PyYAML (YAML 1.1) reads "4e-3", with no dot, as a string
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ToolkitError(f"config key '{key}': expected a number, got {value!r}")
         return float(value)

@@ -33,6 +33,19 @@ def test_yaml_round_trip(tmp_path):
     assert to_dict(cfg)["inner"]["steps"] == 10
 
 
+def test_exponent_without_a_dot_is_a_float(tmp_path):
+    """PyYAML follows YAML 1.1, where 4e-3 (no dot) is a string; float fields accept it anyway."""
+    assert apply_overrides(Outer(), ["inner.lr=4e-3"]).inner.lr == 0.004
+    assert apply_overrides(Outer(), ["inner.lr=-1E+2"]).inner.lr == -100.0
+    (tmp_path / "c.yaml").write_text("inner:\n  lr: 1e-3\n")
+    assert load_yaml_config(Outer, tmp_path / "c.yaml").inner.lr == 0.001
+    for bad in ("4e-3x", "e-3", "4e"):
+        with pytest.raises(ToolkitError, match="'inner.lr': expected a number"):
+            apply_overrides(Outer(), [f"inner.lr={bad}"])
+    with pytest.raises(ToolkitError, match="expected an integer"):  # ints stay strict
+        apply_overrides(Outer(), ["inner.steps=1e3"])
+
+
 @pytest.mark.parametrize(
     "override,msg",
     [
