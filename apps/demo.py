@@ -72,10 +72,10 @@ def most_frontal(head_poses) -> int:
     """Index of the smallest head rotation, |pitch| + |yaw|, in ``head_poses`` [N, 2] (the camera-frame head
     pose of each row): the sweep's view. Row 0 of a synthetic subject is a rig camera far below the chin,
     where no eye shows."""
-    poses = torch.as_tensor(np.asarray(head_poses, dtype=np.float32))
-    if poses.numel() == 0:
+    poses = np.asarray(head_poses, dtype=np.float32)
+    if poses.size == 0:
         raise ToolkitError("demo: the held-out subject has no rows to sweep")
-    return int(poses.abs().sum(-1).argmin())
+    return int(np.abs(poses).sum(-1).argmin())
 
 
 def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:

@@ -170,7 +170,7 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
             extra, extra_labels, extra_lms = estimator_images(
                 range(base, base + extra_subjects), n_frames=e.synthetic_frames,
                 cameras_per_frame=e.cameras_per_frame, res=res, seed=seed, log=ctx.log,
-                workers=max(1, torch.get_num_threads()))
+                workers=torch.get_num_threads())
             images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
             lms = torch.cat([lms, extra_lms])
         design = eye_config(res) if e.crop == "eyes" else GazeEstimatorConfig(input_size=e.input_size, crop=crop)
