@@ -24,7 +24,9 @@ setup: sysdeps $(STAMP)
 sysdeps:
 	@bash scripts/sysdeps.sh
 
+# The install takes ~3 GB (the CPU torch alone ~1 GB unpacked) plus pip's unpacking room in TMPDIR.
 $(STAMP):
+	@bash scripts/check_disk.sh 4000 $(abspath $(VENV)) $${TMPDIR:-/tmp}
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip setuptools wheel
 	# torch first, from the pinned spec, so nothing below can pull a CUDA build.

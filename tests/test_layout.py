@@ -76,3 +76,14 @@ def test_demo_writes_scene_files(tmp_path):
     assert r.returncode == 0 and (tmp_path / "again.safetensors").exists()
     r = _run("-m", "apps.demo", "--out", str(tmp_path), "--gaussians", "3")
     assert r.returncode == 2 and r.stderr.startswith("error: --gaussians")
+
+
+def test_install_disk_check_names_the_folder_and_the_shortfall(tmp_path):
+    script = ROOT / "scripts" / "check_disk.sh"
+    missing = tmp_path / "not" / "yet" / ".venv"  # checked at its nearest existing parent
+    ok = subprocess.run(["bash", str(script), "1", str(missing)], capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    short = subprocess.run(["bash", str(script), str(10**12), str(missing)], capture_output=True, text=True)
+    assert short.returncode == 1
+    lines = short.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(missing) in lines[0] and f"{tmp_path} has" in lines[0], short.stderr
