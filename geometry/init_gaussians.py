@@ -48,6 +48,12 @@ class InitConfig:
     """A point is on the eyeball shell when | |p - c| - r | < tolerance x r."""
     min_eye_points: int = 32
     """Eyes with fewer mesh points are topped up with samples on the eyeball's front cap."""
+    eye_points: int = 0
+    """> 0: each eye is exactly this many Gaussians spread evenly (Fibonacci lattice) over its eyeball's front
+    cap of half-angle ``eye_cap_deg``; the mesh points on that eye's shell are dropped. A mesh samples the
+    eyes as sparsely as the cheeks (~40 points per eye from 6000 on a head), too coarse to carry an iris
+    and a pupil; gaze can only be read off an eyeball whose colours resolve them."""
+    eye_cap_deg: float = 60.0
     seed: int = 0
 
 
@@ -95,6 +101,16 @@ def _front_cap(center: torch.Tensor, radius: float, n: int, g: torch.Generator, 
     return center + radius * d
 
 
+def _fibonacci_cap(center: torch.Tensor, radius: float, n: int, cap_deg: float) -> torch.Tensor:
+    """``n`` points spread evenly over the cap within ``cap_deg`` of the eyeball's front (-z), deterministic."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    cos_t = 1 - (i / n) * (1 - np.cos(np.radians(cap_deg)))  # equal-area steps in cos(theta)
+    ang = i * np.pi * (3 - np.sqrt(5))  # golden-angle turns
+    sin_t = torch.sqrt((1 - cos_t**2).clamp_min(0))
+    d = torch.stack([sin_t * torch.cos(ang), sin_t * torch.sin(ang), -cos_t], -1).float()
+    return center + radius * d
+
+
 def _anisotropic_scales(p: torch.Tensor, k: int = 3) -> torch.Tensor:
     from scipy.spatial import cKDTree
 
@@ -116,6 +132,9 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
     landmarks = torch.as_tensor(landmarks, dtype=torch.float32)
     if landmarks.shape != (68, 3) or not bool(torch.isfinite(landmarks).all()):
         raise ToolkitError(f"init_gaussians: landmarks must be finite [68, 3] (iBUG order), got {list(landmarks.shape)}")
+    if cfg.eye_points < 0 or 0 < cfg.eye_points < 4 or not 0 < cfg.eye_cap_deg <= 180:
+        raise ToolkitError(f"init_gaussians: eye_points must be 0 or >= 4 and eye_cap_deg in (0, 180], got "
+                           f"{cfg.eye_points} and {cfg.eye_cap_deg}")
     g = torch.Generator().manual_seed(cfg.seed)
     verts = verts.detach().float()
     if cfg.n_points is None:
@@ -127,6 +146,7 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
 
     part = torch.full((pts.shape[0],), PART_FACE, dtype=torch.int8)
     eyes_meta, extra = {}, []
+    drop = torch.zeros(pts.shape[0], dtype=torch.bool)  # mesh points replaced by the eye_points caps
     dist_to_eye = []
     for ids in (LEFT_EYE, RIGHT_EYE):
         dist_to_eye.append((pts - landmarks[ids].mean(0)).norm(dim=-1))
@@ -139,11 +159,16 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
         near = (pts - landmarks[ids].mean(0)).norm(dim=-1) < 0.6 * width
         in_front = ((pts - c) @ INWARD) < 0
         sel = on_shell & near & in_front & mine
-        part[sel] = pid
-        n_have = int(sel.sum())
-        if n_have < cfg.min_eye_points:
-            extra.append((_front_cap(c, r, cfg.min_eye_points - n_have, g), pid))
+        if cfg.eye_points > 0:
+            drop |= sel
+            extra.append((_fibonacci_cap(c, r, cfg.eye_points, cfg.eye_cap_deg), pid))
+        else:
+            part[sel] = pid
+            n_have = int(sel.sum())
+            if n_have < cfg.min_eye_points:
+                extra.append((_front_cap(c, r, cfg.min_eye_points - n_have, g), pid))
         eyes_meta[name] = {"center": [float(x) for x in c], "radius": r, "part": pid, "fit": eye["fit"]}
+    pts, part = pts[~drop], part[~drop]
     for p, pid in extra:
         pts = torch.cat([pts, p])
         part = torch.cat([part, torch.full((p.shape[0],), pid, dtype=torch.int8)])

@@ -165,7 +165,8 @@ def build_model(scene_path: Path, cfg: GaussianStageConfig, device) -> GaussianM
     scene = GaussianScene.load(scene_path)
     landmarks = scene.metadata.get("landmarks")
     landmarks = None if landmarks is None else torch.tensor(landmarks, dtype=torch.float32)
-    mcfg = GaussianModelConfig(hidden=cfg.gaussians_hidden, eyes_follow_face=cfg.eyes_follow_face)
+    mcfg = GaussianModelConfig(hidden=cfg.gaussians_hidden, eyes_follow_face=cfg.eyes_follow_face,
+                               render_scale=1.0 / cfg.feature_upscale)
     return GaussianModel.from_scene(scene, mcfg, landmarks=landmarks).to(device)
 
 

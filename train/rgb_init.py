@@ -26,20 +26,22 @@ _EPS = 1e-8
 
 
 def rgb_from_images(model, images: torch.Tensor, masks: torch.Tensor, code: torch.Tensor, pose: torch.Tensor,
-                    gaze: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -> dict[str, torch.Tensor]:
+                    gaze: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
+                    render_scale: float | None = None) -> dict[str, torch.Tensor]:
     """Blending-weighted mean colours of the model's Gaussians over the images.
 
     Args:
         model: :class:`train.gaussian_model.GaussianModel`.
         images [B, 3, H, W] in [0, 1]; masks [B, 1, H, W] head masks; code [B, 144]; pose [B, 6];
         gaze [B, 2] head frame; viewmats [B, 4, 4]; Ks [B, 3, 3] for the H x W images.
+        render_scale: the resolution to read the images at, as a fraction of H x W (default: the model's).
     Returns:
         {"face": [Nf, 3], "eyes": [Ne, 3]} colours and {"face_weight": [Nf], "eyes_weight": [Ne]} summed weights
         (0: never seen; such Gaussians get the mean colour of the seen ones).
     """
     B, _, H, W = images.shape
-    w = max(1, round(W * model.config.render_scale))
-    h = max(1, round(H * model.config.render_scale))
+    scale = model.config.render_scale if render_scale is None else render_scale
+    w, h = max(1, round(W * scale)), max(1, round(H * scale))
     small = F.interpolate(images.float(), size=(h, w), mode="area")
     small_mask = F.interpolate(masks.float(), size=(h, w), mode="area")
     Ks_r = resize_intrinsics(Ks.float(), W, H, w, h)
@@ -71,14 +73,20 @@ def rgb_from_images(model, images: torch.Tensor, masks: torch.Tensor, code: torc
 @torch.no_grad()
 def init_rgb_from_images(model, images, masks, code, pose, gaze, viewmats, Ks, *, max_images: int = 64) -> float:
     """Set channels 0..2 of the face and eye features to :func:`rgb_from_images` of (up to ``max_images``,
-    evenly spaced) images, which may stay on the CPU; returns the fraction of Gaussians some image saw."""
+    evenly spaced) images, which may stay on the CPU; returns the fraction of Gaussians some image saw.
+
+    The eye Gaussians' colours are read at the images' full resolution: at the model's 1/4 an eye is ~3 pixels
+    wide and its iris less than one, so every eye Gaussian would get the same sclera-iris-lid mixture."""
     n = images.shape[0]
     idx = torch.linspace(0, n - 1, min(n, max_images)).round().long().unique()
     dev = model.face_features.device
     pick = lambda x: x[idx.to(x.device)].to(dev)  # noqa: E731  (the subset only goes to the model's device)
-    out = rgb_from_images(model, *(pick(x) for x in (images, masks, code, pose, gaze, viewmats, Ks)))
+    args = [pick(x) for x in (images, masks, code, pose, gaze, viewmats, Ks)]
+    out = rgb_from_images(model, *args)
+    eyes = out if model.config.render_scale == 1 else rgb_from_images(model, *args, render_scale=1.0)
     model.face_features[:, :3] = out["face"].to(model.face_features)
-    model.eye_features[:, :3] = out["eyes"].to(model.eye_features)
+    model.eye_features[:, :3] = eyes["eyes"].to(model.eye_features)
+    out["eyes_weight"] = eyes["eyes_weight"]
     model.clear_cache()
     seen = torch.cat([out["face_weight"], out["eyes_weight"]]) > 1e-4
     return float(seen.float().mean())

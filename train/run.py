@@ -97,7 +97,8 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     data = read_subject(src)
     verts, faces = load_mesh(out / "neutral_mesh.ply")
     net = SDFNet.load(out / "sdf.safetensors")
-    scene = init_gaussians(verts, faces, data["landmarks"], net, InitConfig(n_points=g.gaussians, seed=ctx.config.seed))
+    scene = init_gaussians(verts, faces, data["landmarks"], net, InitConfig(n_points=g.gaussians, eye_points=g.eye_gaussians,
+                                                                          seed=ctx.config.seed))
     scene.metadata["landmarks"] = data["landmarks"].tolist()
     scene.save(out / "gaussians.safetensors")
     return {"scene": "geometry/gaussians.safetensors", "mesh": "geometry/neutral_mesh.ply", "fit": "geometry/fit.json"}
@@ -202,7 +203,7 @@ def _renderer(ctx: RunContext, device):
     g = ctx.config.gaussian
     codec = _load_codec(ctx, device) if g.renderer == "dit" else None
     return make_renderer("dit" if g.renderer == "dit" else "baseline", codec, model=g.dit_model,
-                         output_size=ctx.config.data.res, residual=g.residual).to(device)
+                         output_size=ctx.config.data.res, upscale=g.feature_upscale, residual=g.residual).to(device)
 
 
 def _gaussian_modules(ctx: RunContext, device):
@@ -276,6 +277,10 @@ def load_trained(ctx: RunContext, device):
 
 def _check_values(cfg: RunConfig) -> None:
     """Values the type check cannot catch, before any work."""
+    u = cfg.gaussian.feature_upscale
+    if u < 1 or u & (u - 1) or cfg.data.res % u:
+        raise ToolkitError(f"config key 'gaussian.feature_upscale': expected a power of two dividing data.res="
+                           f"{cfg.data.res}, got {u}")
     if not cfg.codec.eye_weight >= 0:
         raise ToolkitError(f"config key 'codec.eye_weight': expected a weight >= 0, got {cfg.codec.eye_weight}")
     if not cfg.eval.tta_renderer_lr > 0:

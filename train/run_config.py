@@ -49,6 +49,9 @@ class GeometryStageConfig:
     """labelled sample points (visual-hull signed distances) the fit draws from."""
     gaussians: int = 6000
     """Gaussians sampled on the neutral mesh (face + eyes)."""
+    eye_gaussians: int = 0
+    """> 0: each eye gets this many Gaussians evenly over its eyeball's front cap instead of the mesh's few
+    (``geometry.init_gaussians.InitConfig.eye_points``)."""
     subject: int = 0
     """index of the training subject whose views define the neutral mesh."""
 
@@ -140,6 +143,9 @@ class GaussianStageConfig:
     lambda_ssim: float = 0.2
     diffusion_weight: float = 1.0
     gaussians_hidden: int = 64
+    feature_upscale: int = 4
+    """output size / splatted feature-map size, a power of two (GazeGaussian: 4, so a 128² output splats 32²
+    maps, where an eye is ~3 px wide; 2 splats 64²)."""
     eyes_follow_face: bool = False
     """move each eyeball with its socket as the face field deforms the face
     (``GaussianModelConfig.eyes_follow_face``), so the eyes follow the identity the code describes."""

@@ -103,3 +103,32 @@ def test_duplicate_vertices_give_finite_positive_scales(subject):
     scene = init_gaussians(v2, f2, lmk)
     s = scene.scales
     assert torch.isfinite(s).all() and float(s.min()) > 1e-5
+
+
+def test_dense_eyes_cover_the_front_cap_evenly(subject):
+    v, f, lmk, _, _ = subject
+    sparse = init_gaussians(v, f, lmk, config=InitConfig(n_points=3000))
+    cfg = InitConfig(n_points=3000, eye_points=300, eye_cap_deg=60.0)
+    scene = init_gaussians(v, f, lmk, config=cfg)
+    eyes = scene.metadata["eyes"]
+    # The mesh's eye points are replaced, the face keeps all of its own.
+    n_face = int((sparse.part == PART_FACE).sum())
+    assert int((scene.part == PART_FACE).sum()) == n_face and scene.num_gaussians == n_face + 2 * 300
+    for name in ("left", "right"):
+        m = scene.part == eyes[name]["part"]
+        assert int(m.sum()) == 300
+        c, r = torch.tensor(eyes[name]["center"]), eyes[name]["radius"]
+        d = scene.means[m] - c
+        torch.testing.assert_close(d.norm(dim=-1), torch.full((300,), r), atol=1e-6, rtol=1e-5)
+        cos_front = -d[:, 2] / d.norm(dim=-1)  # the eye looks towards -z
+        assert float(cos_front.min()) >= np.cos(np.radians(60.0)) - 1e-5
+        # Even: equal-area halves of the cap hold half the points each, and the spacing varies little.
+        half = 1 - 0.5 * (1 - np.cos(np.radians(60.0)))
+        assert abs(int((cos_front > half).sum()) - 150) <= 2
+        nn = torch.cdist(d, d).fill_diagonal_(float("inf")).min(1).values
+        assert float(nn.max() / nn.min()) < 3.0
+        assert torch.allclose(scene.scales[m], scene.scales[m][:, :1].expand(-1, 3))
+    with pytest.raises(ToolkitError, match="eye_points"):
+        init_gaussians(v, f, lmk, config=InitConfig(eye_points=2))
+    with pytest.raises(ToolkitError, match="eye_cap_deg"):
+        init_gaussians(v, f, lmk, config=InitConfig(eye_points=10, eye_cap_deg=0))

@@ -80,3 +80,33 @@ def test_extreme_images_give_finite_colours_in_range():
         out = rgb_from_images(model, images, alpha, *views)
         for k in ("face", "eyes"):
             assert torch.isfinite(out[k]).all() and out[k].min() >= 0 and out[k].max() <= 1
+
+
+def test_eye_colours_are_read_at_full_resolution():
+    """At the model's 1/4 resolution an eye is a few pixels and every eye Gaussian gets the same mixture; the
+    initializer reads the eyes at the images' own resolution, where their own colours show."""
+    import dataclasses
+    import math
+
+    scene = demo_head_scene(600)
+    truth, model = small_model(scene), small_model(scene)
+    with torch.no_grad():  # small eye Gaussians (the demo scene's are ~half an eyeball wide)
+        for m in (truth, model):
+            m.eye_log_scales.fill_(math.log(0.0015))
+    with torch.no_grad():  # a dark iris within 30 degrees of each eyeball's front, white sclera around it
+        d = truth.eye_means - truth.eye_centers[truth.eye_side.long()]
+        iris = (-d[:, 2] / d.norm(dim=-1)) > 0.866
+        truth.eye_features[:, :3] = torch.where(iris[:, None], 0.1, 0.9)
+    truth.config = dataclasses.replace(truth.config, render_scale=1.0)
+    views = _views()
+    with torch.no_grad():
+        maps = truth(*views, 128, 128, renders=("head",))
+    images, alpha = maps["rgb"], maps["head_alpha"]
+    assert model.config.render_scale < 1
+    quarter = rgb_from_images(model, images, alpha, *views)
+    init_rgb_from_images(model, images, alpha, *views)
+    full = rgb_from_images(model, images, alpha, *views, render_scale=1.0)
+    seen = full["eyes_weight"] > 1e-4
+    contrast = lambda rgb: float(rgb[seen & ~iris].mean() - rgb[seen & iris].mean())  # noqa: E731
+    assert contrast(model.eye_features[:, :3]) > 2 * contrast(quarter["eyes"]) > 0  # measured: 0.095 and 0.027
+    torch.testing.assert_close(model.eye_features[:, :3], full["eyes"])
