@@ -132,3 +132,13 @@ def test_dense_eyes_cover_the_front_cap_evenly(subject):
         init_gaussians(v, f, lmk, config=InitConfig(eye_points=2))
     with pytest.raises(ToolkitError, match="eye_cap_deg"):
         init_gaussians(v, f, lmk, config=InitConfig(eye_points=10, eye_cap_deg=0))
+
+
+@pytest.mark.parametrize("n,cap", [(4, 180.0), (2000, 1.0)])
+def test_dense_eyes_extremes_give_finite_positive_scales(subject, n, cap):
+    v, f, lmk, _, _ = subject
+    scene = init_gaussians(v, f, lmk, config=InitConfig(n_points=1500, eye_points=n, eye_cap_deg=cap))
+    for pid in (PART_LEFT_EYE, PART_RIGHT_EYE):
+        assert int((scene.part == pid).sum()) == n
+    assert bool(torch.isfinite(scene.means).all()) and bool(torch.isfinite(scene.scales).all())
+    assert float(scene.scales.min()) > 0
