@@ -209,9 +209,10 @@ def paper_trainer(ctx, device, n_gaussians: int, batch: int):
     g = replace(p.gaussian, batch=batch)
     res = p.data.res
     torch.manual_seed(0)
-    model = GaussianModel.from_scene(demo_head_scene(n_gaussians), GaussianModelConfig(hidden=g.gaussians_hidden)).to(device)
+    mcfg = GaussianModelConfig(hidden=g.gaussians_hidden, render_scale=1.0 / g.feature_upscale)
+    model = GaussianModel.from_scene(demo_head_scene(n_gaussians), mcfg).to(device)
     codec = KLAutoencoder(AutoencoderConfig(downsample=p.codec.downsample, base_channels=p.codec.base_channels)).to(device)
-    renderer = make_renderer("dit", codec, model=g.dit_model, output_size=res).to(device)
+    renderer = make_renderer("dit", codec, model=g.dit_model, output_size=res, upscale=g.feature_upscale).to(device)
     est = GazeEstimator(GazeEstimatorConfig(input_size=p.estimator.input_size)).to(device)
     d = load_split(run._split(ctx, "train"), "all", ctx.config.data.res)
     n = min(len(d), 4 * batch)
@@ -220,7 +221,7 @@ def paper_trainer(ctx, device, n_gaussians: int, batch: int):
     data = TrainBatchData(image=up(d.image, "bilinear"), head=up(d.head, "nearest"), eyes=up(d.eyes, "nearest"),
                           code=d.code[:n], pose=d.pose[:n], gaze_head=d.gaze_head[:n], gaze_cam=d.gaze_cam[:n],
                           head_pose_cam=d.head_pose_cam[:n], viewmat=d.viewmat[:n],
-                          K=resize_intrinsics(d.K[:n], r0, r0, res, res))
+                          K=resize_intrinsics(d.K[:n], r0, r0, res, res), landmarks=d.landmarks[:n] * (res / r0))
     # The procedural head sits at the origin of its own frame like the geometry scene: the demo poses fit it.
     return GaussianTrainer(g, model, renderer, est, data, device, g.steps), n_gaussians
 
