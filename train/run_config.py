@@ -22,13 +22,14 @@ from toolkit.errors import ToolkitError
 class DataConfig:
     root: str = ""
     """folder of HDF5 subject files (docs/data.md); empty: generate the synthetic dataset into the run dir."""
-    subjects: int = 6
-    """synthetic subjects to generate (the last ``test_fraction`` are held out for evaluation)."""
+    subjects: int = 10
+    """synthetic subjects to generate (the last ``test_fraction`` are held out for evaluation). The demo's 8
+    training identities against 4 took its held-out gaze error from 14.5° to 10.2° (docs/model.md, session 9)."""
     frames: int = 4
     """synthetic frames per subject (each seen by the 18 rig cameras)."""
     res: int = 128
     """image resolution used for training and evaluation."""
-    test_fraction: float = 0.34
+    test_fraction: float = 0.2
     seed: int = 0
     light_jitter: float = 0.0
     """spread of the synthetic per-frame light direction. 0 (default): one frontal light, like the
