@@ -92,23 +92,25 @@ def fit_eyeball(points: torch.Tensor, eye_lmk: torch.Tensor, cfg: InitConfig) ->
     return {"center": prior_c, "radius": torch.tensor(r_prior), "fit": f"prior ({cand.shape[0]} points in the lids)"}
 
 
-def _front_cap(center: torch.Tensor, radius: float, n: int, g: torch.Generator, cap_deg: float = 40.0) -> torch.Tensor:
-    u = torch.rand(n, generator=g)
-    cos_t = 1 - u * (1 - np.cos(np.radians(cap_deg)))
-    ang = torch.rand(n, generator=g) * 2 * np.pi
-    sin_t = torch.sqrt((1 - cos_t**2).clamp_min(0))
-    d = torch.stack([sin_t * torch.cos(ang), sin_t * torch.sin(ang), -cos_t], -1)
-    return center + radius * d
-
-
-def _fibonacci_cap(center: torch.Tensor, radius: float, n: int, cap_deg: float) -> torch.Tensor:
-    """``n`` points spread evenly over the cap within ``cap_deg`` of the eyeball's front (-z), deterministic."""
-    i = torch.arange(n, dtype=torch.float64) + 0.5
-    cos_t = 1 - (i / n) * (1 - np.cos(np.radians(cap_deg)))  # equal-area steps in cos(theta)
-    ang = i * np.pi * (3 - np.sqrt(5))  # golden-angle turns
+def _cap_points(center: torch.Tensor, radius: float, cap_fraction: torch.Tensor, ang: torch.Tensor,
+                cap_deg: float) -> torch.Tensor:
+    """Points on the eyeball's front (-z) cap of half-angle ``cap_deg``: ``cap_fraction`` in [0, 1] is the
+    share of the cap's area nearer the front (equal steps are equal areas), ``ang`` the turn about the axis."""
+    cos_t = 1 - cap_fraction * (1 - np.cos(np.radians(cap_deg)))
     sin_t = torch.sqrt((1 - cos_t**2).clamp_min(0))
     d = torch.stack([sin_t * torch.cos(ang), sin_t * torch.sin(ang), -cos_t], -1).float()
     return center + radius * d
+
+
+def _front_cap(center: torch.Tensor, radius: float, n: int, g: torch.Generator, cap_deg: float = 40.0) -> torch.Tensor:
+    u = torch.rand(n, generator=g)
+    return _cap_points(center, radius, u, torch.rand(n, generator=g) * 2 * np.pi, cap_deg)
+
+
+def _fibonacci_cap(center: torch.Tensor, radius: float, n: int, cap_deg: float) -> torch.Tensor:
+    """``n`` points spread evenly over the front cap (a Fibonacci lattice: golden-angle turns), deterministic."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    return _cap_points(center, radius, i / n, i * np.pi * (3 - np.sqrt(5)), cap_deg)
 
 
 def _anisotropic_scales(p: torch.Tensor, k: int = 3) -> torch.Tensor:
