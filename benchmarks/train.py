@@ -199,8 +199,8 @@ def paper_trainer(ctx, device, n_gaussians: int, batch: int):
     from toolkit.procedural import demo_head_scene
     from train import run
     from train.codec import AutoencoderConfig, KLAutoencoder
-    from train.gaussian_model import GaussianModel, GaussianModelConfig
-    from train.gaussian_stage import GaussianTrainer, TrainBatchData, load_split
+    from train.gaussian_model import GaussianModel
+    from train.gaussian_stage import GaussianTrainer, TrainBatchData, load_split, model_config
     from train.gaze_estimator import GazeEstimator, GazeEstimatorConfig
     from train.renderer import make_renderer
     from train.run_config import paper_preset
@@ -209,8 +209,7 @@ def paper_trainer(ctx, device, n_gaussians: int, batch: int):
     g = replace(p.gaussian, batch=batch)
     res = p.data.res
     torch.manual_seed(0)
-    mcfg = GaussianModelConfig(hidden=g.gaussians_hidden, render_scale=1.0 / g.feature_upscale)
-    model = GaussianModel.from_scene(demo_head_scene(n_gaussians), mcfg).to(device)
+    model = GaussianModel.from_scene(demo_head_scene(n_gaussians), model_config(g)).to(device)
     codec = KLAutoencoder(AutoencoderConfig(downsample=p.codec.downsample, base_channels=p.codec.base_channels)).to(device)
     renderer = make_renderer("dit", codec, model=g.dit_model, output_size=res, upscale=g.feature_upscale).to(device)
     est = GazeEstimator(GazeEstimatorConfig(input_size=p.estimator.input_size)).to(device)

@@ -165,9 +165,13 @@ def build_model(scene_path: Path, cfg: GaussianStageConfig, device) -> GaussianM
     scene = GaussianScene.load(scene_path)
     landmarks = scene.metadata.get("landmarks")
     landmarks = None if landmarks is None else torch.tensor(landmarks, dtype=torch.float32)
-    mcfg = GaussianModelConfig(hidden=cfg.gaussians_hidden, eyes_follow_face=cfg.eyes_follow_face,
+    return GaussianModel.from_scene(scene, model_config(cfg), landmarks=landmarks).to(device)
+
+
+def model_config(cfg: GaussianStageConfig) -> GaussianModelConfig:
+    """The two-stream model's configuration that the stage's options set."""
+    return GaussianModelConfig(hidden=cfg.gaussians_hidden, eyes_follow_face=cfg.eyes_follow_face,
                                render_scale=1.0 / cfg.feature_upscale)
-    return GaussianModel.from_scene(scene, mcfg, landmarks=landmarks).to(device)
 
 
 CANONICAL_MEANS = ("face_means", "eye_means")
