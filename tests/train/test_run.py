@@ -111,23 +111,24 @@ def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path):
     assert weights and all(torch.equal(a[k], b[k]) for k in weights)
 
 
-@pytest.mark.parametrize("renderer", ["dit", "unet"])
-def test_feature_upscale_2_splats_half_size_maps(tiny_run, tmp_path, renderer):
+@pytest.mark.parametrize("renderer,upscale", [("dit", 2), ("unet", 2), ("dit", 4)])
+def test_feature_upscale_sets_the_splat_size(tiny_run, tmp_path, renderer, upscale):
     d = tmp_path / renderer
     shutil.copytree(tiny_run, d)
-    over = [f"gaussian.renderer={renderer}", "gaussian.feature_upscale=2", "gaussian.steps=2", "eval.pairs_per_subject=1"]
+    over = [f"gaussian.renderer={renderer}", f"gaussian.feature_upscale={upscale}", "gaussian.steps=2",
+            "eval.pairs_per_subject=1"]
     assert run.main([*TINY, "--run-dir", str(d), "--stages", "gaussian,eval", *over]) == 0
     ctx = run.open_run(d)
     model, renderer_ = run.load_trained(ctx, "cpu")
     res = ctx.config.data.res
-    assert renderer_.upscale == 2 and model.config.render_scale == 0.5
+    assert renderer_.upscale == upscale and model.config.render_scale == 1 / upscale
     vm = torch.eye(4)[None].clone()
     vm[0, 2, 3] = 1.0  # the head 1 m in front of the camera
     K = torch.tensor([[[2.0 * res, 0, res / 2], [0, 2.0 * res, res / 2], [0, 0, 1]]])
     with torch.no_grad():
         maps = model(torch.zeros(1, 144), torch.zeros(1, 6), torch.zeros(1, 2), vm, K, res, res, renders=("head",))
         image = renderer_.render(maps["head"], torch.zeros(1, 144))
-    assert maps["head"].shape[-2:] == (res // 2, res // 2) and image.shape[-2:] == (res, res)
+    assert maps["head"].shape[-2:] == (res // upscale, res // upscale) and image.shape[-2:] == (res, res)
     m = json.loads((d / "metrics.json").read_text())["metrics"]
     assert m["psnr"] == m["psnr"] and m["gaze_error_deg"] == m["gaze_error_deg"]
 
