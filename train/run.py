@@ -281,6 +281,9 @@ def _check_values(cfg: RunConfig) -> None:
     if u < 1 or u & (u - 1) or cfg.data.res % u:
         raise ToolkitError(f"config key 'gaussian.feature_upscale': expected a power of two dividing data.res="
                            f"{cfg.data.res}, got {u}")
+    if cfg.geometry.eye_gaussians < 0 or 0 < cfg.geometry.eye_gaussians < 4:
+        raise ToolkitError(f"config key 'geometry.eye_gaussians': expected 0 (the mesh's eye points) or >= 4, "
+                           f"got {cfg.geometry.eye_gaussians}")
     if not cfg.codec.eye_weight >= 0:
         raise ToolkitError(f"config key 'codec.eye_weight': expected a weight >= 0, got {cfg.codec.eye_weight}")
     if not cfg.eval.tta_renderer_lr > 0:
