@@ -17,7 +17,7 @@ import functools
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -213,8 +213,15 @@ def _last_t(renderer, B: int, device) -> torch.Tensor | None:
 
 def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
              sampling_steps: int = 1, tta_steps: int = 0, tta_weights: tuple[str, ...] = (),
-             tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print) -> dict[str, Any]:
-    """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure}.
+             tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
+             references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None) -> dict[str, Any]:
+    """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure,
+    "references": {name: metrics}}.
+
+    ``references`` ({name: fn}, fn: targets [B, 3, H, W] -> images in [0, 1]) are scored exactly like the
+    renders (same pairs, masks, estimator and metrics), e.g. the target through the renderer's codec: the
+    best a render decoded by that codec can score, and how much of the gaze error the ruler itself adds
+    (:func:`reference_transforms`).
 
     ``metrics["images_per_s"]`` is the rendering throughput: the renders at the target gaze over their own
     time (test-time fitting and the metrics are not counted).
@@ -231,6 +238,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     renderer.eval()
     estimator.eval()
     gaze_err, head_err, psnrs, ssims, reals, fakes = [], [], [], [], [], []
+    ref_scores: dict[str, dict[str, list[float]]] = {name: {} for name in references or {}}
     per_subject, examples = [], None
     n_images, total_render_time = 0, 0.0
     for f in test_files:
@@ -257,6 +265,14 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         ge = angular_error_deg(e_out[:, :2], e_tgt[:, :2])
         he = angular_error_deg(e_out[:, 2:4], e_tgt[:, 2:4])
         p, s = psnr(out_w, tgt_w), ssim(out_w, tgt_w)
+        for name, fn in (references or {}).items():
+            with torch.no_grad():
+                ref_w = composite_on_white(fn(tgt).clamp(0, 1), mask)
+                e_ref = estimator(ref_w, lm)
+            for key, vals in (("gaze_error_deg", angular_error_deg(e_ref[:, :2], e_tgt[:, :2])),
+                              ("head_pose_error_deg", angular_error_deg(e_ref[:, 2:4], e_tgt[:, 2:4])),
+                              ("psnr", psnr(ref_w, tgt_w)), ("ssim", ssim(ref_w, tgt_w))):
+                ref_scores[name].setdefault(key, []).extend(vals.tolist())
         gaze_err += ge.tolist()
         head_err += he.tolist()
         psnrs += p.tolist()
@@ -272,11 +288,33 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
             examples = {"input": composite_on_white(inp, mask_in).cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
     metrics = {
         "gaze_error_deg": summarize(gaze_err), "head_pose_error_deg": summarize(head_err),
+        # The mean is the protocol's; the median shows how much of it a few pairs make (side views where the
+        # target looks far away from the camera and the estimator barely sees an iris).
+        "gaze_error_median_deg": float(np.median(gaze_err)) if gaze_err else None,
         "psnr": summarize(psnrs), "ssim": summarize(ssims), "lpips": None,
         "fid": _fid(torch.cat(reals), torch.cat(fakes), log) if reals else None, "identity_similarity": None,
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
-    return {"metrics": metrics, "per_subject": per_subject, "examples": examples}
+    references_out = {name: {k: summarize(v) for k, v in sc.items()} for name, sc in ref_scores.items()}
+    return {"metrics": metrics, "per_subject": per_subject, "examples": examples, "references": references_out}
+
+
+def reference_transforms(renderer) -> dict[str, Callable[[torch.Tensor], torch.Tensor]]:
+    """The references :func:`evaluate` scores beside the renders, to read the gaze error against:
+
+    - ``"target at half resolution"``: the target area-downsampled 2x and bilinearly upsampled -- the same
+      eyes, only softer. Its gaze error is what the evaluation estimator adds for softness alone.
+    - ``"target through the codec"`` (latent renderers): the target encoded and decoded by the renderer's
+      frozen codec -- the best any latent of that codec can show."""
+    def half_res(x: torch.Tensor) -> torch.Tensor:
+        small = F.interpolate(x, scale_factor=0.5, mode="area")
+        return F.interpolate(small, size=x.shape[-2:], mode="bilinear", align_corners=False)
+
+    refs: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {"target at half resolution": half_res}
+    codec = getattr(renderer, "codec", None)
+    if codec is not None:
+        refs["target through the codec"] = lambda x: codec.decode(codec.encode(x)).float()
+    return refs
 
 
 def _fit_and_render(model, renderer, batch, inp, mask_in, res, sampling_steps, tta_steps, tta_weights,

@@ -62,6 +62,28 @@ def test_evaluate_with_fitting_reports_the_rendering_throughput(subject_file):
                    log=lambda s: None)
     m = out["metrics"]
     assert m["pairs"] == 3 and math.isfinite(m["psnr"]) and m["images_per_s"] > 0
+    assert 0 <= m["gaze_error_median_deg"] <= 180 and math.isfinite(m["gaze_error_deg"])
+
+
+def test_references_are_scored_like_the_renders_and_the_identity_scores_perfectly(subject_file):
+    from train.evaluate import evaluate, reference_transforms
+
+    model, renderer, est = untrained_eval_parts()
+    refs = {"identity": lambda x: x, "dark": lambda x: x * 0.5, **reference_transforms(renderer)}
+    out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None,
+                   references=refs)
+    r = out["references"]
+    assert set(r) == {"identity", "dark", "target at half resolution"}  # the U-Net has no codec
+    assert r["identity"]["gaze_error_deg"] < 1e-2 and r["identity"]["head_pose_error_deg"] < 1e-2
+    assert r["identity"]["psnr"] > 60 and r["identity"]["ssim"] > 0.999
+    assert r["dark"]["psnr"] < r["target at half resolution"]["psnr"] < r["identity"]["psnr"]
+    assert all(math.isfinite(v) for m in r.values() for v in m.values())
+    assert evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=1,
+                    log=lambda s: None)["references"] == {}
+    dit = _renderer("dit")
+    assert set(reference_transforms(dit)) == {"target at half resolution", "target through the codec"}
+    x = torch.rand(2, 3, 64, 64)
+    assert reference_transforms(dit)["target through the codec"](x).shape == x.shape
 
 
 def _renderer(kind):

@@ -18,6 +18,7 @@ from train.gaze_estimator import (
     GazeEstimatorConfig,
     GazeEstimatorTrainConfig,
     evaluate_gaze_estimator,
+    random_blur,
     train_gaze_estimator,
 )
 
@@ -145,6 +146,35 @@ def test_trainer_rejects_bad_data():
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 4), TINY, GazeEstimatorTrainConfig(steps=0))
     with pytest.raises(ToolkitError, match="mirror"):
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 4), TINY, GazeEstimatorTrainConfig(mirror=1.5))
+    for bad in ({"blur_prob": 1.5}, {"blur_prob": -0.1}, {"blur_sigma": -1.0}):
+        with pytest.raises(ToolkitError, match="blur"):
+            train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 4), TINY, GazeEstimatorTrainConfig(**bad))
+
+
+def test_random_blur_keeps_mean_and_edges_and_skips_unchosen_images():
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(6, 3, 24, 20, generator=g)
+    assert torch.equal(random_blur(x, 0.0, 1.2, g), x) and torch.equal(random_blur(x, 1.0, 0.0, g), x)
+    y = random_blur(x, 1.0, 1.5, torch.Generator().manual_seed(1))
+    assert y.shape == x.shape and torch.isfinite(y).all()
+    assert (y - x).abs().mean() > 0.02  # noise images lose contrast when blurred
+    assert y.std() < x.std()
+    const = torch.full((2, 3, 16, 16), 0.3)  # a flat image (and its replicated border) stays flat
+    assert torch.allclose(random_blur(const, 1.0, 2.0, g), const, atol=1e-6)
+    # A step edge: blurring spreads it symmetrically (the mean is kept away from the border).
+    step = torch.zeros(1, 1, 1, 32).expand(1, 1, 8, 32).clone()
+    step[..., 16:] = 1.0
+    b = random_blur(step, 1.0, 2.0, torch.Generator().manual_seed(2))
+    assert torch.allclose(b[..., 4:28].mean(), step[..., 4:28].mean(), atol=1e-5)
+    # prob 0.5: some images of a batch are untouched, the others changed, independently per image.
+    z = random_blur(x.repeat(8, 1, 1, 1), 0.5, 1.2, torch.Generator().manual_seed(3))
+    same = ((z - x.repeat(8, 1, 1, 1)).flatten(1).abs().amax(1) == 0)
+    assert 0 < int(same.sum()) < 48
+    # Gradients flow, and extreme inputs stay finite.
+    big = (torch.rand(2, 3, 16, 16) * 1e6).requires_grad_(True)
+    out = random_blur(big, 1.0, 3.0, torch.Generator().manual_seed(4))
+    out.sum().backward()
+    assert torch.isfinite(out).all() and torch.isfinite(big.grad).all()
 
 
 def test_head_frame_output_is_composed_exactly():

@@ -33,6 +33,11 @@ def test_all_stages_write_their_outputs(tiny_run):
     report = (tiny_run / "report.md").read_text()
     assert "| Method | Gaze" in report and "n/a" in report
     assert "estimator's own held-out error" in report
+    assert "Median gaze error over the pairs: " in report and m["gaze_error_median_deg"] >= 0
+    # The references the renders are read against: scored, in the table and in metrics.json.
+    assert "*reference: target at half resolution*" in report and "*reference: target through the codec*" in report
+    refs = json.loads((tiny_run / "metrics.json").read_text())["references"]
+    assert refs["target through the codec"]["gaze_error_deg"] >= 0 and refs["target at half resolution"]["psnr"] > 0
     # Each estimator trained on the run's training split plus its own extra synthetic subject.
     est = json.loads((tiny_run / "estimators.json").read_text())
     n_split = 18  # tiny preset: one training subject x one frame x 18 rig cameras
