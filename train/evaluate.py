@@ -219,8 +219,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     "references": {name: metrics}}.
 
     ``references`` ({name: fn}, fn: targets [B, 3, H, W] -> images in [0, 1]) are scored exactly like the
-    renders (same pairs, masks, estimator and metrics), e.g. the target through the renderer's codec: the
-    best a render decoded by that codec can score, and how much of the gaze error the ruler itself adds
+    renders (same pairs, masks, estimator and metrics), e.g. the target through the renderer's codec: what
+    a render decoded by that codec can hardly beat, and how much of the gaze error the ruler itself adds
     (:func:`reference_transforms`).
 
     ``metrics["images_per_s"]`` is the rendering throughput: the renders at the target gaze over their own
@@ -305,7 +305,7 @@ def reference_transforms(renderer) -> dict[str, Callable[[torch.Tensor], torch.T
     - ``"target at half resolution"``: the target area-downsampled 2x and bilinearly upsampled -- the same
       eyes, only softer. Its gaze error is what the evaluation estimator adds for softness alone.
     - ``"target through the codec"`` (latent renderers): the target encoded and decoded by the renderer's
-      frozen codec -- the best any latent of that codec can show."""
+      frozen codec -- the codec's own reconstruction, which a render decoded by it can hardly beat."""
     def half_res(x: torch.Tensor) -> torch.Tensor:
         small = F.interpolate(x, scale_factor=0.5, mode="area")
         return F.interpolate(small, size=x.shape[-2:], mode="bilinear", align_corners=False)

@@ -306,7 +306,7 @@ def _fmt_deg(v) -> str:
 REFERENCES_NOTE = (
     "The *reference* rows score the ground-truth target itself, altered, with the same pairs, masks and "
     "estimator: at half resolution (the same eyes, softer: the gaze error the estimator adds for softness "
-    "alone) and, for latent renderers, through the frozen codec (the best a decoded render can show).\n\n")
+    "alone) and, for latent renderers, through the frozen codec (its own reconstruction, which a decoded render can hardly beat).\n\n")
 
 
 def stage_eval(ctx: RunContext) -> dict[str, str]:
