@@ -286,6 +286,11 @@ def _check_values(cfg: RunConfig) -> None:
                            f"got {cfg.geometry.eye_gaussians}")
     if not cfg.codec.eye_weight >= 0:
         raise ToolkitError(f"config key 'codec.eye_weight': expected a weight >= 0, got {cfg.codec.eye_weight}")
+    e = cfg.estimator
+    if not 0.0 <= e.blur_prob <= 1.0:
+        raise ToolkitError(f"config key 'estimator.blur_prob': expected a probability in [0, 1], got {e.blur_prob}")
+    if not e.blur_sigma >= 0:
+        raise ToolkitError(f"config key 'estimator.blur_sigma': expected a width >= 0 (pixels), got {e.blur_sigma}")
     if not cfg.eval.tta_renderer_lr > 0:
         raise ToolkitError(f"config key 'eval.tta_renderer_lr': expected a learning rate > 0, got {cfg.eval.tta_renderer_lr}")
 

@@ -68,6 +68,8 @@ def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, cap
         ("eval.tta_renderer_lr=0", "'eval.tta_renderer_lr': expected a learning rate > 0"),
         ("gaussian.feature_upscale=3", "'gaussian.feature_upscale': expected a power of two"),
         ("geometry.eye_gaussians=2", "'geometry.eye_gaussians': expected 0"),
+        ("estimator.blur_prob=1.5", "'estimator.blur_prob': expected a probability"),
+        ("estimator.blur_sigma=-1", "'estimator.blur_sigma': expected a width >= 0"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
