@@ -211,6 +211,15 @@ def _last_t(renderer, B: int, device) -> torch.Tensor | None:
     return None if diff is None else torch.full((B,), diff.num_timesteps - 1, device=device)
 
 
+def _pair_scores(img_w: torch.Tensor, e_img: torch.Tensor, tgt_w: torch.Tensor, e_tgt: torch.Tensor
+                 ) -> dict[str, torch.Tensor]:
+    """Per-pair [B] gaze and head-pose errors (degrees, between the estimator's readings ``e_img`` and ``e_tgt``
+    [B, 4]), PSNR and SSIM of the images ``img_w`` against ``tgt_w`` [B, 3, H, W], both on white."""
+    return {"gaze_error_deg": angular_error_deg(e_img[:, :2], e_tgt[:, :2]),
+            "head_pose_error_deg": angular_error_deg(e_img[:, 2:4], e_tgt[:, 2:4]),
+            "psnr": psnr(img_w, tgt_w), "ssim": ssim(img_w, tgt_w)}
+
+
 def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
              sampling_steps: int = 1, tta_steps: int = 0, tta_weights: tuple[str, ...] = (),
              tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
@@ -262,16 +271,12 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         lm = st("landmarks")  # the target is the input's view: same landmarks
         with torch.no_grad():  # eye-patch estimators read the landmarks (render and target share the view)
             e_out, e_tgt = estimator(out_w, lm), estimator(tgt_w, lm)
-        ge = angular_error_deg(e_out[:, :2], e_tgt[:, :2])
-        he = angular_error_deg(e_out[:, 2:4], e_tgt[:, 2:4])
-        p, s = psnr(out_w, tgt_w), ssim(out_w, tgt_w)
+        ge, he, p, s = _pair_scores(out_w, e_out, tgt_w, e_tgt).values()
         for name, fn in (references or {}).items():
             with torch.no_grad():
                 ref_w = composite_on_white(fn(tgt).clamp(0, 1), mask)
                 e_ref = estimator(ref_w, lm)
-            for key, vals in (("gaze_error_deg", angular_error_deg(e_ref[:, :2], e_tgt[:, :2])),
-                              ("head_pose_error_deg", angular_error_deg(e_ref[:, 2:4], e_tgt[:, 2:4])),
-                              ("psnr", psnr(ref_w, tgt_w)), ("ssim", ssim(ref_w, tgt_w))):
+            for key, vals in _pair_scores(ref_w, e_ref, tgt_w, e_tgt).items():
                 ref_scores[name].setdefault(key, []).extend(vals.tolist())
         gaze_err += ge.tolist()
         head_err += he.tolist()
