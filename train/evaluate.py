@@ -211,6 +211,18 @@ def _last_t(renderer, B: int, device) -> torch.Tensor | None:
     return None if diff is None else torch.full((B,), diff.num_timesteps - 1, device=device)
 
 
+def spread_indices(total: int, n: int) -> list[int]:
+    """``n`` (<= ``total``) indices spread evenly over ``range(total)``, first and last included.
+
+    The evaluation takes its pairs this way rather than the first ``n``: a subject's pairs run through its input
+    rows in order (frame by frame, 18 cameras each), so the first ``n`` would all share one input frame."""
+    if not 0 <= n <= total:
+        raise ValueError(f"spread_indices: expected 0 <= n <= total, got n={n}, total={total}")
+    if n == 1:
+        return [0]
+    return [round(i * (total - 1) / (n - 1)) for i in range(n)]
+
+
 def _pair_scores(img_w: torch.Tensor, e_img: torch.Tensor, tgt_w: torch.Tensor, e_tgt: torch.Tensor
                  ) -> dict[str, torch.Tensor]:
     """Per-pair [B] gaze and head-pose errors (degrees, between the estimator's readings ``e_img`` and ``e_tgt``
@@ -253,7 +265,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     for f in test_files:
         pairs = SyntheticRedirectionPairs(f, res=res, seed=seed)
         n = min(pairs_per_subject, len(pairs))
-        items = [pairs[i] for i in range(n)]
+        items = [pairs[i] for i in spread_indices(len(pairs), n)]
         tgt = torch.stack([it["target"]["image"] for it in items]).to(device)
         inp = torch.stack([it["input"]["image"] for it in items]).to(device)
         mask = torch.stack([it["target"]["head_mask"] for it in items]).to(device)

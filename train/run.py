@@ -72,7 +72,8 @@ def stage_data(ctx: RunContext) -> dict[str, str]:
     from train.data.generate import synth_dataset
 
     synth_dataset(ctx.run_dir / "data", n_subjects=d.subjects, n_frames=d.frames, res=d.res, seed=d.seed,
-                  test_fraction=d.test_fraction, light_jitter=d.light_jitter, log=ctx.log)
+                  test_fraction=d.test_fraction, light_jitter=d.light_jitter, log=ctx.log,
+                  test_frames=d.test_frames or None)
     return {"dir": "data", "split": "data/split.json"}
 
 
@@ -286,6 +287,9 @@ def _check_values(cfg: RunConfig) -> None:
                            f"got {cfg.geometry.eye_gaussians}")
     if not cfg.codec.eye_weight >= 0:
         raise ToolkitError(f"config key 'codec.eye_weight': expected a weight >= 0, got {cfg.codec.eye_weight}")
+    if cfg.data.test_frames < 0:
+        raise ToolkitError(f"config key 'data.test_frames': expected 0 (as data.frames) or a frame count >= 1, "
+                           f"got {cfg.data.test_frames}")
     e = cfg.estimator
     if not 0.0 <= e.blur_prob <= 1.0:
         raise ToolkitError(f"config key 'estimator.blur_prob': expected a probability in [0, 1], got {e.blur_prob}")

@@ -212,3 +212,17 @@ def test_fitting_rejects_learning_rates_that_are_not_positive(subject_file):
         test_time_fit(model, renderer, batch, image, mask, 64, steps=1, lr=0.0)
     with pytest.raises(ToolkitError, match="renderer learning rate > 0, got -1"):
         test_time_fit(model, renderer, batch, image, mask, 64, steps=1, weights=("renderer",), renderer_lr=-1.0)
+
+
+def test_spread_indices_cover_the_pairs_evenly():
+    from train.evaluate import spread_indices
+
+    idx = spread_indices(72, 12)
+    assert idx[0] == 0 and idx[-1] == 71 and len(set(idx)) == 12 and idx == sorted(idx)
+    gaps = [b - a for a, b in zip(idx, idx[1:])]
+    assert max(gaps) - min(gaps) <= 1
+    # With 18 cameras per frame, the first 12 rows would all be frame 0; the spread reaches every input frame.
+    assert {i // 18 for i in idx} == {0, 1, 2, 3}
+    assert spread_indices(5, 5) == [0, 1, 2, 3, 4] and spread_indices(5, 1) == [0] and spread_indices(3, 0) == []
+    with pytest.raises(ValueError, match="n <= total"):
+        spread_indices(3, 4)

@@ -70,6 +70,7 @@ def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, cap
         ("geometry.eye_gaussians=2", "'geometry.eye_gaussians': expected 0"),
         ("estimator.blur_prob=1.5", "'estimator.blur_prob': expected a probability"),
         ("estimator.blur_sigma=-1", "'estimator.blur_sigma': expected a width >= 0"),
+        ("data.test_frames=-1", "'data.test_frames': expected 0"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):

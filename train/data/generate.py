@@ -152,24 +152,32 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
 
 
 def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int, res: int = 128, seed: int = 0,
-                  test_fraction: float = 0.25, light_jitter: float = LIGHT_JITTER, log=print) -> list[Path]:
-    """Write ``subject0000.h5`` ... plus ``split.json`` into ``out_dir``; returns the subject files."""
+                  test_fraction: float = 0.25, light_jitter: float = LIGHT_JITTER, log=print,
+                  test_frames: int | None = None) -> list[Path]:
+    """Write ``subject0000.h5`` ... plus ``split.json`` into ``out_dir``; returns the subject files.
+
+    The held-out subjects (the last ``test_fraction``) get ``test_frames`` frames each (default ``n_frames``):
+    every evaluation pair takes its target gaze from one of them, so they set how many distinct gazes the
+    gaze error is measured on."""
     if n_subjects < 1:
         raise ToolkitError(f"--subjects must be >= 1, got {n_subjects}")
+    if test_frames is not None and test_frames < 1:
+        raise ToolkitError(f"test_frames must be >= 1, got {test_frames}")
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ToolkitError(f"{out_dir}: exists and is not a directory")
     paths = []
     t0 = time.perf_counter()
     rig = eth_xgaze_rig(radius=RIG_RADIUS)
+    n_test = max(1, round(test_fraction * n_subjects)) if n_subjects > 1 else 0
     for s in range(n_subjects):
         params = SubjectParams.sample(seed * 100003 + s)
-        rows, subj, attrs = generate_subject(params, n_frames=n_frames, res=res, rig=rig, light_jitter=light_jitter)
+        frames = test_frames if test_frames is not None and s >= n_subjects - n_test else n_frames
+        rows, subj, attrs = generate_subject(params, n_frames=frames, res=res, rig=rig, light_jitter=light_jitter)
         p = write_subject_h5(out_dir / f"subject{s:04d}.h5", rows, subject=subj, attrs=attrs)
         paths.append(p)
         dt = time.perf_counter() - t0
         log(f"{p}: {len(rows['face_patch'])} images ({(s + 1) * len(rows['face_patch']) / dt:.1f} images/s)")
-    n_test = max(1, round(test_fraction * n_subjects)) if n_subjects > 1 else 0
     split = {"train": [p.name for p in paths[: n_subjects - n_test]], "test": [p.name for p in paths[n_subjects - n_test:]]}
     from toolkit.io import atomic_write_json
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import h5py
@@ -304,3 +305,21 @@ def test_light_jitter_zero_is_one_frontal_light():
     np.testing.assert_array_equal(sample_frames(5, 8, 0.0)["gaze"], sample_frames(5, 8, 0.6)["gaze"])
     with pytest.raises(ToolkitError, match="light_jitter"):
         sample_frames(5, 2, light_jitter=-1)
+
+
+@needs_gl
+def test_held_out_subjects_get_their_own_frame_count(tmp_path):
+    from train.data.generate import synth_dataset
+
+    paths = synth_dataset(tmp_path, n_subjects=2, n_frames=1, res=32, test_fraction=0.5, test_frames=2,
+                          log=lambda *a: None)
+    rows = []
+    for p in paths:
+        with h5py.File(p) as f:
+            rows.append(len(f["pitchyaw_head"]))
+            gazes = np.unique(np.asarray(f["pitchyaw_head"]), axis=0)
+        assert len(gazes) == rows[-1] // 18  # one gaze per frame, each seen by the 18 rig cameras
+    assert rows == [18, 36]
+    assert json.loads((tmp_path / "split.json").read_text()) == {"train": ["subject0000.h5"], "test": ["subject0001.h5"]}
+    with pytest.raises(ToolkitError, match="test_frames must be >= 1"):
+        synth_dataset(tmp_path / "bad", n_subjects=2, n_frames=1, res=32, test_frames=0, log=lambda *a: None)
