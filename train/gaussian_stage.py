@@ -93,11 +93,10 @@ class GaussianTrainer:
     """Holds the model, renderer and losses of the stage; ``step(step, generator)`` is the loop's step_fn."""
 
     def __init__(self, cfg: GaussianStageConfig, model: GaussianModel, renderer: torch.nn.Module,
-                 estimator: torch.nn.Module, data: TrainBatchData, device: torch.device, total_steps: int,
-                 onestep_fraction: float = 0.5):
+                 estimator: torch.nn.Module, data: TrainBatchData, device: torch.device, total_steps: int):
         self.cfg, self.model, self.renderer, self.data, self.device = cfg, model, renderer, data, device
         self.total_steps = total_steps
-        self.onestep_fraction = onestep_fraction
+        self.onestep_fraction = cfg.onestep_fraction
         self.image_loss = ImageLoss(ImageLossConfig(lambda_ssim=cfg.lambda_ssim, lambda_perceptual=0.0))
         self.gaze_loss = GazeLoss(estimator).to(device)
         self.ortho = OrthogonalityLoss(*model.orthogonality_layers()) if cfg.orthogonality else None

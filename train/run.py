@@ -287,6 +287,9 @@ def _check_values(cfg: RunConfig) -> None:
                            f"got {cfg.geometry.eye_gaussians}")
     if not cfg.codec.eye_weight >= 0:
         raise ToolkitError(f"config key 'codec.eye_weight': expected a weight >= 0, got {cfg.codec.eye_weight}")
+    if not 0.0 <= cfg.gaussian.onestep_fraction <= 1.0:
+        raise ToolkitError(f"config key 'gaussian.onestep_fraction': expected a share in [0, 1], "
+                           f"got {cfg.gaussian.onestep_fraction}")
     if cfg.data.test_frames < 0:
         raise ToolkitError(f"config key 'data.test_frames': expected 0 (as data.frames) or a frame count >= 1, "
                            f"got {cfg.data.test_frames}")

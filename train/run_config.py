@@ -132,6 +132,9 @@ class GaussianStageConfig:
     untrained renderer outputs the splat's own image); false: the plain latent DiT. See train/renderer.py."""
     sampling_steps: int = 1
     """DDIM steps at evaluation (1 = the deterministic one-step path)."""
+    onestep_fraction: float = 0.5
+    """DiT only: share of each training batch rendered at t = T - 1, the one-step path evaluation uses; the
+    rest at uniformly drawn diffusion times."""
     rgb_init: bool = True
     """start the Gaussians' RGB channels from the training images (train/rgb_init.py) instead of the geometry
     stage's SDF features (on the demo run: held-out splat PSNR 22.7 dB before any step, against 16.7 dB after

@@ -36,3 +36,20 @@ def test_centres_move_at_most_their_rate_per_step():
     opt.step()
     step = (model.face_means.detach() - before).abs().max()
     assert 0 < float(step) <= 1.0001e-4 * float(model.norm_scale)
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.5, 1.0])
+def test_onestep_fraction_sets_the_share_of_the_inference_timestep(fraction):
+    from types import SimpleNamespace
+
+    from train.gaussian_stage import GaussianTrainer
+
+    T = 1000
+    trainer = SimpleNamespace(renderer=SimpleNamespace(diffusion=SimpleNamespace(num_timesteps=T)),
+                              onestep_fraction=fraction, device=torch.device("cpu"))
+    t = GaussianTrainer._timesteps(trainer, 4000, torch.Generator().manual_seed(0))
+    share = float((t == T - 1).float().mean())
+    assert t.shape == (4000,) and int(t.min()) >= 0 and int(t.max()) <= T - 1
+    assert abs(share - fraction) < 0.03
+    # Without a diffusion (the U-Net baseline) there is no timestep.
+    assert GaussianTrainer._timesteps(SimpleNamespace(renderer=SimpleNamespace()), 4, torch.Generator()) is None

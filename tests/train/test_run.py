@@ -71,6 +71,7 @@ def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, cap
         ("estimator.blur_prob=1.5", "'estimator.blur_prob': expected a probability"),
         ("estimator.blur_sigma=-1", "'estimator.blur_sigma': expected a width >= 0"),
         ("data.test_frames=-1", "'data.test_frames': expected 0"),
+        ("gaussian.onestep_fraction=1.5", "'gaussian.onestep_fraction': expected a share in"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
