@@ -212,12 +212,14 @@ def _last_t(renderer, B: int, device) -> torch.Tensor | None:
 
 
 def spread_indices(total: int, n: int) -> list[int]:
-    """``n`` (<= ``total``) indices spread evenly over ``range(total)``, first and last included.
+    """``n`` (<= ``total``) indices spread evenly over ``range(total)``: the first and (for ``n`` >= 2) the last.
 
     The evaluation takes its pairs this way rather than the first ``n``: a subject's pairs run through its input
     rows in order (frame by frame, 18 cameras each), so the first ``n`` would all share one input frame."""
+    from toolkit.errors import ToolkitError
+
     if not 0 <= n <= total:
-        raise ValueError(f"spread_indices: expected 0 <= n <= total, got n={n}, total={total}")
+        raise ToolkitError(f"spread_indices: expected 0 <= n <= total, got n={n}, total={total}")
     if n == 1:
         return [0]
     return [round(i * (total - 1) / (n - 1)) for i in range(n)]

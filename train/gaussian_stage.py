@@ -96,7 +96,6 @@ class GaussianTrainer:
                  estimator: torch.nn.Module, data: TrainBatchData, device: torch.device, total_steps: int):
         self.cfg, self.model, self.renderer, self.data, self.device = cfg, model, renderer, data, device
         self.total_steps = total_steps
-        self.onestep_fraction = cfg.onestep_fraction
         self.image_loss = ImageLoss(ImageLossConfig(lambda_ssim=cfg.lambda_ssim, lambda_perceptual=0.0))
         self.gaze_loss = GazeLoss(estimator).to(device)
         self.ortho = OrthogonalityLoss(*model.orthogonality_layers()) if cfg.orthogonality else None
@@ -114,7 +113,7 @@ class GaussianTrainer:
             return None
         T = diff.num_timesteps
         t = torch.randint(0, T, (B,), generator=g)
-        onestep = torch.rand(B, generator=g) < self.onestep_fraction
+        onestep = torch.rand(B, generator=g) < self.cfg.onestep_fraction
         return torch.where(onestep, torch.full_like(t, T - 1), t).to(self.device)
 
     def _render(self, b, gaze, target, g, t=None):

@@ -290,9 +290,11 @@ def _check_values(cfg: RunConfig) -> None:
     if not 0.0 <= cfg.gaussian.onestep_fraction <= 1.0:
         raise ToolkitError(f"config key 'gaussian.onestep_fraction': expected a share in [0, 1], "
                            f"got {cfg.gaussian.onestep_fraction}")
-    if cfg.data.test_frames < 0:
-        raise ToolkitError(f"config key 'data.test_frames': expected 0 (as data.frames) or a frame count >= 1, "
+    if cfg.data.test_frames < 0 or cfg.data.test_frames % 2:
+        raise ToolkitError(f"config key 'data.test_frames': expected 0 (as data.frames) or an even frame count, "
                            f"got {cfg.data.test_frames}")
+    if not 0.0 <= cfg.data.test_fraction < 1.0:
+        raise ToolkitError(f"config key 'data.test_fraction': expected a share in [0, 1), got {cfg.data.test_fraction}")
     e = cfg.estimator
     if not 0.0 <= e.blur_prob <= 1.0:
         raise ToolkitError(f"config key 'estimator.blur_prob': expected a probability in [0, 1], got {e.blur_prob}")

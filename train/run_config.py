@@ -28,10 +28,11 @@ class DataConfig:
     frames: int = 4
     """synthetic frames per subject (each seen by the 18 rig cameras)."""
     test_frames: int = 8
-    """synthetic frames per held-out subject (0: ``frames``). Each evaluation pair takes its input from the
-    first half of a subject's rows and its target from the second, so the held-out frames set how many
-    distinct gaze redirections the gaze error averages over: with 4 frames the demo's 24 pairs saw 4, and one
-    of them made up more than half of the mean (docs/evaluation.md, session 11)."""
+    """synthetic frames per held-out subject: 0 (as ``frames``) or an even count. Each evaluation pair takes its
+    input from the first half of a subject's rows and its target from the second (an odd count would pair a
+    frame with itself), so the held-out frames set how many distinct redirections the gaze error averages
+    over: with 4 frames the demo's 24 pairs saw 4 distinct redirections, and one of them made up more than half
+    of the mean (docs/evaluation.md, session 11). Presets with more training frames set 0."""
     res: int = 128
     """image resolution used for training and evaluation."""
     test_fraction: float = 0.2

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from tests.train.helpers import one_frame_subject_file, untrained_eval_parts
+from toolkit.errors import ToolkitError
 
 
 @pytest.fixture(scope="module")
@@ -224,5 +225,22 @@ def test_spread_indices_cover_the_pairs_evenly():
     # With 18 cameras per frame, the first 12 rows would all be frame 0; the spread reaches every input frame.
     assert {i // 18 for i in idx} == {0, 1, 2, 3}
     assert spread_indices(5, 5) == [0, 1, 2, 3, 4] and spread_indices(5, 1) == [0] and spread_indices(3, 0) == []
-    with pytest.raises(ValueError, match="n <= total"):
+    with pytest.raises(ToolkitError, match="n <= total"):
         spread_indices(3, 4)
+
+
+def test_evaluate_takes_the_spread_pairs(subject_file, monkeypatch):
+    from train.data.pairing import SyntheticRedirectionPairs
+    from train.evaluate import evaluate, spread_indices
+
+    seen, get = [], SyntheticRedirectionPairs.__getitem__
+
+    def recording(self, i):
+        seen.append(i)
+        return get(self, i)
+
+    monkeypatch.setattr(SyntheticRedirectionPairs, "__getitem__", recording)
+    model, renderer, est = untrained_eval_parts()
+    evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None)
+    total = len(SyntheticRedirectionPairs(subject_file, res=64, seed=0))
+    assert total > 3 and seen == spread_indices(total, 3) and seen[-1] == total - 1

@@ -46,7 +46,7 @@ def test_onestep_fraction_sets_the_share_of_the_inference_timestep(fraction):
 
     T = 1000
     trainer = SimpleNamespace(renderer=SimpleNamespace(diffusion=SimpleNamespace(num_timesteps=T)),
-                              onestep_fraction=fraction, device=torch.device("cpu"))
+                              cfg=GaussianStageConfig(onestep_fraction=fraction), device=torch.device("cpu"))
     t = GaussianTrainer._timesteps(trainer, 4000, torch.Generator().manual_seed(0))
     share = float((t == T - 1).float().mean())
     assert t.shape == (4000,) and int(t.min()) >= 0 and int(t.max()) <= T - 1

@@ -71,6 +71,8 @@ def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, cap
         ("estimator.blur_prob=1.5", "'estimator.blur_prob': expected a probability"),
         ("estimator.blur_sigma=-1", "'estimator.blur_sigma': expected a width >= 0"),
         ("data.test_frames=-1", "'data.test_frames': expected 0"),
+        ("data.test_frames=3", "'data.test_frames': expected 0"),
+        ("data.test_fraction=1.5", "'data.test_fraction': expected a share"),
         ("gaussian.onestep_fraction=1.5", "'gaussian.onestep_fraction': expected a share in"),
     ],
 )
@@ -198,3 +200,16 @@ def test_open_run_uses_a_run_finished_under_an_older_config(tiny_run, tmp_path, 
     ctx = run.open_run(d)
     assert ctx.path("gaussian", "checkpoint").exists()
     assert "gaussian" in caplog.text and "different config" in caplog.text
+
+
+def test_data_stage_gives_the_held_out_subjects_their_frames(tmp_path):
+    d = tmp_path / "run"
+    assert run.main([*TINY, "--run-dir", str(d), "--stages", "data", "data.test_frames=2"]) == 0
+    from train.data.dataset import find_subject_files, split_files
+
+    rows = {}
+    for split in ("train", "test"):
+        for p in split_files(find_subject_files([d / "data"]), split):
+            with h5py.File(p) as f:
+                rows[split] = len(f["pitchyaw_head"])
+    assert rows == {"train": 18, "test": 36}  # tiny preset: 1 frame per training subject, 18 cameras

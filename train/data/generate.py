@@ -156,9 +156,10 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
                   test_frames: int | None = None) -> list[Path]:
     """Write ``subject0000.h5`` ... plus ``split.json`` into ``out_dir``; returns the subject files.
 
-    The held-out subjects (the last ``test_fraction``) get ``test_frames`` frames each (default ``n_frames``):
-    every evaluation pair takes its target gaze from one of them, so they set how many distinct gazes the
-    gaze error is measured on."""
+    The held-out subjects (the last ``test_fraction``) get ``test_frames`` frames each (default ``n_frames``).
+    Evaluation pairs take their input from the first half of a subject's rows and their target from the second
+    half (``train.data.pairing.synthetic_pairs``), so ``test_frames`` sets how many distinct redirections the
+    gaze error averages over."""
     if n_subjects < 1:
         raise ToolkitError(f"--subjects must be >= 1, got {n_subjects}")
     if test_frames is not None and test_frames < 1:
@@ -166,7 +167,7 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ToolkitError(f"{out_dir}: exists and is not a directory")
-    paths = []
+    paths, n_images = [], 0
     t0 = time.perf_counter()
     rig = eth_xgaze_rig(radius=RIG_RADIUS)
     n_test = max(1, round(test_fraction * n_subjects)) if n_subjects > 1 else 0
@@ -176,8 +177,8 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
         rows, subj, attrs = generate_subject(params, n_frames=frames, res=res, rig=rig, light_jitter=light_jitter)
         p = write_subject_h5(out_dir / f"subject{s:04d}.h5", rows, subject=subj, attrs=attrs)
         paths.append(p)
-        dt = time.perf_counter() - t0
-        log(f"{p}: {len(rows['face_patch'])} images ({(s + 1) * len(rows['face_patch']) / dt:.1f} images/s)")
+        n_images += len(rows["face_patch"])
+        log(f"{p}: {len(rows['face_patch'])} images ({n_images / (time.perf_counter() - t0):.1f} images/s)")
     split = {"train": [p.name for p in paths[: n_subjects - n_test]], "test": [p.name for p in paths[n_subjects - n_test:]]}
     from toolkit.io import atomic_write_json
 
