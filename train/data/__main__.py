@@ -94,13 +94,18 @@ def contact_sheet(dataset, indices: Sequence[int], out: Path, *, tile: int = 160
 
 
 def cmd_synth(a) -> int:
+    import h5py
+
     from train.data.generate import synth_dataset
 
     t0 = time.perf_counter()
     paths = synth_dataset(a.out, n_subjects=a.subjects, n_frames=a.frames, res=a.res, seed=a.seed,
-                          light_jitter=a.light_jitter)
+                          light_jitter=a.light_jitter, test_frames=a.test_frames)
     dt = time.perf_counter() - t0
-    n = a.subjects * a.frames * 18
+    n = 0
+    for p in paths:
+        with h5py.File(p, "r") as f:
+            n += len(f["pitchyaw_head"])
     print(f"wrote {len(paths)} subjects ({n} images at {a.res}x{a.res}) to {a.out} in {dt:.1f} s "
           f"({n / dt:.1f} images/s)")
     return 0
@@ -130,6 +135,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     s = sub.add_parser("synth", help="write synthetic subject files (HDF5) and split.json")
     s.add_argument("--subjects", type=int, default=8)
     s.add_argument("--frames", type=int, default=10, help="random gaze/pose/expression frames per subject")
+    s.add_argument("--test-frames", type=int, default=None,
+                   help="frames per held-out subject (the last quarter; default: --frames)")
     s.add_argument("--res", type=int, default=128, help="face-patch resolution (512 matches ETH-XGaze)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--light-jitter", type=float, default=0.6,

@@ -18,8 +18,10 @@ ROOT = Path(__file__).resolve().parents[3]
 @needs_gl
 def test_synth_then_inspect(tmp_path, capsys):
     out = tmp_path / "synth"
-    assert run_cli(main, ["synth", "--subjects", "2", "--frames", "1", "--res", "48", "--out", str(out)]) == 0
+    assert run_cli(main, ["synth", "--subjects", "2", "--frames", "1", "--test-frames", "2", "--res", "48",
+                          "--out", str(out)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["split.json", "subject0000.h5", "subject0001.h5"]
+    assert "wrote 2 subjects (54 images at 48x48)" in capsys.readouterr().out  # 18 + 36: the held-out one has 2 frames
     assert run_cli(main, ["inspect", str(out), "--n", "8", "--tile", "64"]) == 0
     text = capsys.readouterr().out
     assert "subject0001.h5" in text and "| images |" in text and "contact sheet" in text
