@@ -42,6 +42,12 @@ def find_subject_files(paths: str | os.PathLike | Sequence[str | os.PathLike]) -
     return files
 
 
+def held_out_count(n_subjects: int, test_fraction: float) -> int:
+    """How many of ``n_subjects`` (the last ones) are held out: ``test_fraction`` of them, at least one when
+    there are two or more. The one rule for :func:`split_files` and the ``split.json`` the generator writes."""
+    return max(1, round(test_fraction * n_subjects)) if n_subjects > 1 else 0
+
+
 def split_files(files: list[Path], split: str, split_file: str | os.PathLike | None = None,
                 test_fraction: float = 0.25) -> list[Path]:
     """Select a split. ``split.json`` ({"train": [names], "test": [names]}) beside the files (or
@@ -65,7 +71,7 @@ def split_files(files: list[Path], split: str, split_file: str | os.PathLike | N
     if split_file:
         raise ToolkitError(f"{sf}: no such split file")
     files = sorted(files)
-    n_test = max(1, round(test_fraction * len(files))) if len(files) > 1 else 0
+    n_test = held_out_count(len(files), test_fraction)
     chosen = files[len(files) - n_test:] if split == "test" else files[: len(files) - n_test]
     if not chosen:
         raise ToolkitError(f"split '{split}' is empty for {len(files)} file(s); pass a split file")

@@ -17,6 +17,7 @@ import torch
 
 from toolkit.cameras import Camera, eth_xgaze_rig
 from toolkit.errors import ToolkitError
+from train.data.dataset import held_out_count
 from train.data.format import write_subject_h5
 from train.data.synthetic import (
     EXPRESSION_NAMES,
@@ -170,7 +171,7 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
     paths, n_images = [], 0
     t0 = time.perf_counter()
     rig = eth_xgaze_rig(radius=RIG_RADIUS)
-    n_test = max(1, round(test_fraction * n_subjects)) if n_subjects > 1 else 0
+    n_test = held_out_count(n_subjects, test_fraction)
     for s in range(n_subjects):
         params = SubjectParams.sample(seed * 100003 + s)
         frames = test_frames if test_frames is not None and s >= n_subjects - n_test else n_frames
