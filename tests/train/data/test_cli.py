@@ -41,7 +41,8 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     bad.write_bytes(b"garbage")
     for args in (["inspect", str(tmp_path / "missing.h5")], ["inspect", str(bad)],
                  ["synth", "--subjects", "0", "--out", str(tmp_path / "o")],
-                 ["synth", "--subjects", "1", "--frames", "1", "--light-jitter", "-1", "--out", str(tmp_path / "l")]):
+                 ["synth", "--subjects", "1", "--frames", "1", "--light-jitter", "-1", "--out", str(tmp_path / "l")],
+                 ["synth", "--subjects", "2", "--frames", "1", "--test-frames", "0", "--out", str(tmp_path / "t")]):
         assert run_cli(main, args) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and err.count("\n") == 1, err
