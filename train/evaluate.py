@@ -237,9 +237,15 @@ def _pair_scores(img_w: torch.Tensor, e_img: torch.Tensor, tgt_w: torch.Tensor, 
 def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
              sampling_steps: int = 1, tta_steps: int = 0, tta_weights: tuple[str, ...] = (),
              tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
-             references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None) -> dict[str, Any]:
+             references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
+             own_gaze_row: bool = False) -> dict[str, Any]:
     """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure,
-    "references": {name: metrics}}.
+    "references": {name: metrics}} and, with ``own_gaze_row``, "own_gaze": metrics.
+
+    ``own_gaze_row``: also render every pair, from the same fitted state, at its *input's* view and gaze
+    (:func:`own_gaze_batch`) and score that against the input image (its mask and landmarks) -- the error of
+    reproducing the held-out face with no redirection. Next to the main row it splits the gaze error into what
+    the model gets wrong about the new face and what the redirection adds. Not counted in ``images_per_s``.
 
     ``references`` ({name: fn}, fn: targets [B, 3, H, W] -> images in [0, 1]) are scored exactly like the
     renders (same pairs, masks, estimator and metrics), e.g. the target through the renderer's codec: what
@@ -262,6 +268,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     estimator.eval()
     gaze_err, head_err, psnrs, ssims, reals, fakes = [], [], [], [], [], []
     ref_scores: dict[str, dict[str, list[float]]] = {name: {} for name in references or {}}
+    own_scores: dict[str, list[float]] = {}
     per_subject, examples = [], None
     n_images, total_render_time = 0, 0.0
     for f in test_files:
@@ -277,8 +284,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
                  "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
                  "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat")}
-        out, render_time = _fit_and_render(model, renderer, batch, inp, fit_mask, res, sampling_steps, tta_steps,
-                                           tta_weights, tta_renderer_lr)
+        out, render_time, own = _fit_and_render(model, renderer, batch, inp, fit_mask, res, sampling_steps, tta_steps,
+                                                tta_weights, tta_renderer_lr, own_gaze=own_gaze_row)
         n_images += out.shape[0]
         total_render_time += render_time
         out_w, tgt_w = composite_on_white(out, mask), composite_on_white(tgt, mask)
@@ -292,6 +299,12 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
                 e_ref = estimator(ref_w, lm)
             for key, vals in _pair_scores(ref_w, e_ref, tgt_w, e_tgt).items():
                 ref_scores[name].setdefault(key, []).extend(vals.tolist())
+        if own is not None:  # scored against the input itself, in the input's mask
+            inp_w, own_w = composite_on_white(inp, mask_in), composite_on_white(own, mask_in)
+            with torch.no_grad():
+                e_own, e_inp = estimator(own_w, lm), estimator(inp_w, lm)
+            for key, vals in _pair_scores(own_w, e_own, inp_w, e_inp).items():
+                own_scores.setdefault(key, []).extend(vals.tolist())
         gaze_err += ge.tolist()
         head_err += he.tolist()
         psnrs += p.tolist()
@@ -315,7 +328,10 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
     references_out = {name: {k: summarize(v) for k, v in sc.items()} for name, sc in ref_scores.items()}
-    return {"metrics": metrics, "per_subject": per_subject, "examples": examples, "references": references_out}
+    out = {"metrics": metrics, "per_subject": per_subject, "examples": examples, "references": references_out}
+    if own_gaze_row:
+        out["own_gaze"] = {k: summarize(v) for k, v in own_scores.items()}
+    return out
 
 
 def reference_transforms(renderer) -> dict[str, Callable[[torch.Tensor], torch.Tensor]]:
@@ -337,8 +353,9 @@ def reference_transforms(renderer) -> dict[str, Callable[[torch.Tensor], torch.T
 
 
 def _fit_and_render(model, renderer, batch, inp, mask_in, res, sampling_steps, tta_steps, tta_weights,
-                    tta_renderer_lr) -> tuple[torch.Tensor, float]:
-    """Renders at the target gaze after the optional fitting, and the seconds spent rendering alone."""
+                    tta_renderer_lr, own_gaze: bool = False) -> tuple[torch.Tensor, float, torch.Tensor | None]:
+    """Renders at the target gaze after the optional fitting, the seconds spent rendering them alone, and with
+    ``own_gaze`` the same fitted state rendered at the *input's* view and gaze (:func:`own_gaze_batch`; else None)."""
     def fit(b, image, mask):
         with torch.enable_grad():
             return test_time_fit(model, renderer, b, image, mask, res, tta_steps, weights=tta_weights,
@@ -347,21 +364,30 @@ def _fit_and_render(model, renderer, batch, inp, mask_in, res, sampling_steps, t
     def timed_render(b):
         ts = time.perf_counter()
         out = render_pairs(model, renderer, b, res, sampling_steps)
-        return out, time.perf_counter() - ts
+        seconds = time.perf_counter() - ts
+        own = render_pairs(model, renderer, own_gaze_batch(b), res, sampling_steps) if own_gaze else None
+        return out, seconds, own
 
     if tta_steps > 0 and tta_weights:  # fitted weights are per pair: one pair at a time
-        outs, seconds = [], 0.0
+        outs, owns, seconds = [], [], 0.0
         for i in range(inp.shape[0]):
             b = {k: v[i:i + 1] for k, v in batch.items()}
             with restored_weights(model, renderer):
                 b["code"] = fit(b, inp[i:i + 1], mask_in[i:i + 1])
-                out, dt = timed_render(b)
+                out, dt, own = timed_render(b)
             outs.append(out)
+            owns.append(own)
             seconds += dt
-        return torch.cat(outs), seconds
+        return torch.cat(outs), seconds, torch.cat(owns) if own_gaze else None
     if tta_steps > 0:  # the code alone: all pairs of the subject in one batch
         batch = {**batch, "code": fit(batch, inp, mask_in)}
     return timed_render(batch)
+
+
+def own_gaze_batch(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The pairs' render batch turned back on their inputs: the input's head pose, camera and head-frame gaze
+    (same code and intrinsics). Rendering it asks the model to reproduce the input, with no redirection."""
+    return {**batch, "pose": batch["in_pose"], "viewmat": batch["in_viewmat"], "gaze_head": batch["in_gaze_head"]}
 
 
 def image_grid(rows: list[torch.Tensor], labels: list[str] | None = None) -> np.ndarray:

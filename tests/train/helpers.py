@@ -45,9 +45,9 @@ def fit_renderer(renderer, feats: torch.Tensor, code: torch.Tensor, target: torc
         return float((renderer.render(feats, code) - target).abs().mean())
 
 
-def one_frame_subject_file(directory, subject_seed: int, frame_seed: int, res: int = 64):
-    """A synthetic subject file (1 frame x 18 rig cameras) in ``directory``; skips the calling test where no
-    headless EGL OpenGL context exists."""
+def one_frame_subject_file(directory, subject_seed: int, frame_seed: int, res: int = 64, n_frames: int = 1):
+    """A synthetic subject file (``n_frames`` frames x 18 rig cameras) in ``directory``; skips the calling test
+    where no headless EGL OpenGL context exists."""
     import pytest
 
     from render.mesh_gl import shared_context
@@ -60,7 +60,7 @@ def one_frame_subject_file(directory, subject_seed: int, frame_seed: int, res: i
         shared_context()
     except ToolkitError:
         pytest.skip("no headless EGL OpenGL context")
-    rows, subj, attrs = generate_subject(SubjectParams.sample(subject_seed), n_frames=1, res=res, seed=frame_seed)
+    rows, subj, attrs = generate_subject(SubjectParams.sample(subject_seed), n_frames=n_frames, res=res, seed=frame_seed)
     return write_subject_h5(directory / "subject0000.h5", rows, subject=subj, attrs=attrs)
 
 

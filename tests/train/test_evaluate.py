@@ -244,3 +244,51 @@ def test_evaluate_takes_the_spread_pairs(subject_file, monkeypatch):
     evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None)
     total = len(SyntheticRedirectionPairs(subject_file, res=64, seed=0))
     assert total > 3 and seen == spread_indices(total, 3) and seen[-1] == total - 1
+
+
+def test_own_gaze_batch_turns_the_render_back_on_the_input():
+    from train.evaluate import own_gaze_batch
+
+    b = {k: torch.full((2, 3), float(i)) for i, k in enumerate(
+        ("code", "pose", "viewmat", "K", "gaze_head", "in_pose", "in_viewmat", "in_gaze_head"))}
+    own = own_gaze_batch(b)
+    assert own["pose"] is b["in_pose"] and own["viewmat"] is b["in_viewmat"] and own["gaze_head"] is b["in_gaze_head"]
+    assert own["code"] is b["code"] and own["K"] is b["K"] and b["gaze_head"][0, 0] == 4  # the input batch is untouched
+
+
+@pytest.fixture(scope="module")
+def two_frame_file(tmp_path_factory):
+    """Two frames: every pair's target has another gaze than its input."""
+    return one_frame_subject_file(tmp_path_factory.mktemp("eval2"), subject_seed=6, frame_seed=3, n_frames=2)
+
+
+@pytest.mark.parametrize("tta_weights", [(), ("features",)])
+def test_own_gaze_row_scores_the_input_rendered_at_its_own_gaze(two_frame_file, monkeypatch, tta_weights):
+    """A stand-in model that reproduces exactly the input at the input's view and gaze (and a grey face
+    elsewhere): the own-gaze row must score perfectly against the input, in both fitting paths, while the
+    main row (the same stand-in at the target's gaze) does not."""
+    import train.evaluate as ev
+    from train.data.pairing import SyntheticRedirectionPairs
+
+    pairs = SyntheticRedirectionPairs(two_frame_file, res=64, seed=0)
+    items = [pairs[i]["input"] for i in ev.spread_indices(len(pairs), 3)]
+    key = lambda gaze, viewmat: (tuple(gaze.tolist()), tuple(viewmat.flatten().tolist()))  # noqa: E731
+    shown = {key(torch.as_tensor(it["pitchyaw_head"]).float(), torch.as_tensor(it["viewmat"]).float()):
+             torch.as_tensor(it["image"]).float() for it in items}
+    calls = []
+
+    def fake_render(model, renderer, batch, res, steps):
+        calls.append(batch["gaze_head"].shape[0])
+        grey = torch.full((3, res, res), 0.5)
+        return torch.stack([shown.get(key(g, v), grey) for g, v in zip(batch["gaze_head"], batch["viewmat"])])
+
+    monkeypatch.setattr(ev, "render_pairs", fake_render)
+    model, renderer, est = untrained_eval_parts()
+    out = ev.evaluate(model, renderer, est, [two_frame_file], res=64, pairs_per_subject=3, tta_steps=1,
+                      tta_weights=tta_weights, log=lambda s: None, own_gaze_row=True)
+    own, main = out["own_gaze"], out["metrics"]
+    assert own["psnr"] > 60 and own["ssim"] > 0.999 and own["gaze_error_deg"] < 1e-2
+    assert main["psnr"] < 40
+    assert sum(calls) == 6  # three renders at the target gaze, three at the input's
+    assert "own_gaze" not in ev.evaluate(model, renderer, est, [two_frame_file], res=64, pairs_per_subject=1,
+                                         log=lambda s: None)

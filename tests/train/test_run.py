@@ -36,6 +36,9 @@ def test_all_stages_write_their_outputs(tiny_run):
     assert "Median gaze error over the pairs: " in report and m["gaze_error_median_deg"] >= 0
     # The references the renders are read against: scored, in the table and in metrics.json.
     assert "*reference: target at half resolution*" in report and "*reference: target through the codec*" in report
+    assert "*diagnostic: the input re-rendered at its own gaze*" in report
+    own = json.loads((tiny_run / "metrics.json").read_text())["own_gaze"]
+    assert 0 <= own["gaze_error_deg"] <= 180 and own["psnr"] > 0
     refs = json.loads((tiny_run / "metrics.json").read_text())["references"]
     assert refs["target through the codec"]["gaze_error_deg"] >= 0 and refs["target at half resolution"]["psnr"] > 0
     # Each estimator trained on the run's training split plus its own extra synthetic subject.
