@@ -339,15 +339,18 @@ def reference_transforms(renderer) -> dict[str, Callable[[torch.Tensor], torch.T
 
     - ``"target at half resolution"``: the target area-downsampled 2x and bilinearly upsampled -- the same
       eyes, only softer. Its gaze error is what the evaluation estimator adds for softness alone.
-    - ``"target through the codec"`` (latent renderers): the target encoded and decoded by the renderer's
-      frozen codec -- the codec's own reconstruction, which a render decoded by it can hardly beat."""
+    - ``"target through the codec"`` (latent renderers; not in pixel space, where it is the target itself):
+      the target encoded and decoded by the renderer's frozen codec -- the codec's own reconstruction, which a
+      render decoded by it can hardly beat."""
     def half_res(x: torch.Tensor) -> torch.Tensor:
         small = F.interpolate(x, scale_factor=0.5, mode="area")
         return F.interpolate(small, size=x.shape[-2:], mode="bilinear", align_corners=False)
 
+    from train.codec import PixelCodec
+
     refs: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {"target at half resolution": half_res}
     codec = getattr(renderer, "codec", None)
-    if codec is not None:
+    if codec is not None and not isinstance(codec, PixelCodec):  # the pixel "codec" is the identity: nothing to read
         refs["target through the codec"] = lambda x: codec.decode(codec.encode(x)).float()
     return refs
 

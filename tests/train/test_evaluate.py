@@ -85,6 +85,12 @@ def test_references_are_scored_like_the_renders_and_the_identity_scores_perfectl
     assert set(reference_transforms(dit)) == {"target at half resolution", "target through the codec"}
     x = torch.rand(2, 3, 64, 64)
     assert reference_transforms(dit)["target through the codec"](x).shape == x.shape
+    # In pixel space the "codec" is the identity: its row would read a perfect, meaningless score.
+    from train.codec import PixelCodec
+    from train.renderer import make_renderer
+
+    pixel_dit = make_renderer("dit", PixelCodec(), output_size=64, upscale=4)
+    assert set(reference_transforms(pixel_dit)) == {"target at half resolution"}
 
 
 def _renderer(kind):
