@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from toolkit.errors import ToolkitError
 from toolkit.rotations import angular_error_deg
 from train.metrics import composite_on_white, dilate_mask, psnr, ssim, summarize
 
@@ -46,8 +47,6 @@ def fid(real: torch.Tensor, fake: torch.Tensor, batch: int = 16, device="cpu") -
     for opencv-python, which would replace the headless OpenCV the project uses; it runs on that one).
     Few images give a biased, high-variance FID: compare values only at equal set sizes.
     """
-    from toolkit.errors import ToolkitError
-
     if real.shape[0] < 2 or fake.shape[0] < 2:
         raise ToolkitError(f"FID needs at least 2 images per set, got {real.shape[0]} and {fake.shape[0]}")
     helper = _fid_helper(str(device))
@@ -114,8 +113,6 @@ with them, 20.5° without, PSNR 28.78 / 28.82 dB). They are a group of their own
 def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
     """The parameters of the named ``TTA_WEIGHT_GROUPS``, each group once (a ToolkitError for an unknown name
     or a group whose weights are all frozen)."""
-    from toolkit.errors import ToolkitError
-
     params: list[torch.nn.Parameter] = []
     for g in dict.fromkeys(groups):
         if g == "features":
@@ -153,8 +150,6 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     ``renderer_lr`` -- so the caller restores them (:func:`restored_weights`); with no ``weights`` the
     model and renderer are untouched (the gradient is taken for the code alone). Returns the fitted code.
     """
-    from toolkit.errors import ToolkitError
-
     if not lr > 0:
         raise ToolkitError(f"test-time fitting: expected a learning rate > 0 (code, features), got {lr}")
     if "renderer" in weights and not renderer_lr > 0:
@@ -216,8 +211,6 @@ def spread_indices(total: int, n: int) -> list[int]:
 
     The evaluation takes its pairs this way rather than the first ``n``: a subject's pairs run through its input
     rows in order (frame by frame, 18 cameras each), so the first ``n`` would all share one input frame."""
-    from toolkit.errors import ToolkitError
-
     if not 0 <= n <= total:
         raise ToolkitError(f"spread_indices: expected 0 <= n <= total, got n={n}, total={total}")
     if n == 1:
