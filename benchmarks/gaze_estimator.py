@@ -58,7 +58,9 @@ def load_split(data: str, split: str) -> tuple[torch.Tensor, torch.Tensor, torch
 
 @torch.no_grad()
 def predict(model, images: torch.Tensor, landmarks: torch.Tensor) -> torch.Tensor:
-    return torch.cat([model(images[i:i + 256].float() / 255, landmarks[i:i + 256])
+    """[N, 4] predictions on the CPU; batches move to the model's device."""
+    dev = next(model.parameters()).device
+    return torch.cat([model(images[i:i + 256].to(dev).float() / 255, landmarks[i:i + 256].to(dev)).cpu()
                       for i in range(0, len(images), 256)])
 
 
@@ -121,6 +123,8 @@ def main(argv=None) -> int:
     ap.add_argument("--log-every", type=int, default=250)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for <mode>.safetensors")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
+                    help="where the estimators train and run (default: cuda when available)")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                     help="processes rendering the procedural subjects (the images do not depend on it)")
     a = ap.parse_args(argv)
@@ -156,7 +160,12 @@ def main(argv=None) -> int:
             print(f"  {mode} step {step}: {st[-1]:.0f} s, loss {rec['loss']:.4f}, held-out gaze "
                   f"{rec['val_gaze_deg']:.2f} deg, head {rec['val_head_deg']:.2f} deg", flush=True)
 
-        model, hist = train_gaze_estimator(train[0], train[1], cfg, tc, landmarks=train[2], val=test, callback=progress)
+        # The training set lives where the model trains (uint8: 7680 images at 256² are 1.5 GB), so a GPU step
+        # gathers its batch on the GPU instead of copying it from host memory.
+        on_dev = [t.to(a.device) for t in train]
+        model, hist = train_gaze_estimator(on_dev[0], on_dev[1], cfg, tc, landmarks=on_dev[2], val=test,
+                                           callback=progress, device=a.device)
+        del on_dev
         for rec, t in zip(hist, stamps):
             rows.append({"mode": mode, "step": rec["step"], "train_s": t, "loss": rec["loss"],
                          "heldout_gaze_deg": rec["val_gaze_deg"], "heldout_head_deg": rec["val_head_deg"]})
@@ -168,11 +177,11 @@ def main(argv=None) -> int:
         print(format_table(error_by_view(pred, test[1])))
         if iris is not None:
             print(format_table(error_by_iris(pred, test[1], iris)))
-        x, lm = test[0][: a.batch].float() / 255, test[2][: a.batch]
+        x, lm = test[0][: a.batch].to(a.device).float() / 255, test[2][: a.batch].to(a.device)
         with torch.no_grad():
-            sec = timeit(lambda m=model, x=x, lm=lm: m(x, lm), repeats=5)
+            sec = timeit(lambda m=model, x=x, lm=lm: m(x, lm), repeats=5, sync_cuda=x.is_cuda)
         print(f"{mode}: held-out gaze {hist[-1]['val_gaze_deg']:.2f} deg, head {hist[-1]['val_head_deg']:.2f} deg; "
-              f"inference {a.batch / sec:.0f} images/s (batch {a.batch}, {torch.get_num_threads()} threads)")
+              f"inference {a.batch / sec:.0f} images/s (batch {a.batch}, {a.device}, {torch.get_num_threads()} threads)")
     print(format_table(rows, ["mode", "step", "train_s", "loss", "heldout_gaze_deg", "heldout_head_deg"]))
     png = save_plot(OUT_DIR / "gaze_estimator.png", series, xlabel="training time (s)",
                     ylabel="held-out gaze error (deg)", title=f"gaze estimator, {source}", logy=True)

@@ -537,7 +537,7 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
             perm, pos = torch.randperm(n, generator=g), 0
         idx = perm[pos:pos + tc.batch_size]
         pos += tc.batch_size
-        x = _to_float(images[idx]).to(device)
+        x = _to_float(images[idx].to(device, non_blocking=True))  # uint8 travels: 4x fewer bytes than float
         y = labels[idx].float().to(device)
         lm = landmarks[idx].float().to(device) if landmarks is not None else None
         if tc.augment and tc.mirror > 0:
@@ -590,7 +590,7 @@ def evaluate_gaze_estimator(model: GazeEstimator, images: torch.Tensor, labels: 
     model.eval()
     g_err, h_err = [], []
     for i in range(0, images.shape[0], batch_size):
-        x = _to_float(images[i:i + batch_size]).to(device)
+        x = _to_float(images[i:i + batch_size].to(device))
         y = labels[i:i + batch_size].float().to(device)
         lm = landmarks[i:i + batch_size].float().to(device) if landmarks is not None else None
         p = model(x, lm)

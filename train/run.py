@@ -117,7 +117,8 @@ def stage_codec(ctx: RunContext) -> dict[str, str]:
     data = load_split(_split(ctx, "train"), "all", ctx.config.data.res)
     weights = eye_weights(data.eyes * data.head, c.eye_weight) if c.eye_weight > 0 else None
     model, hist = train_autoencoder(data.image, AutoencoderConfig(downsample=c.downsample, base_channels=c.base_channels),
-                                    steps=c.steps, batch_size=c.batch, seed=ctx.config.seed, pixel_weights=weights)
+                                    steps=c.steps, batch_size=c.batch, seed=ctx.config.seed, pixel_weights=weights,
+                                    device=_device(ctx.config))
     save_autoencoder(ctx.run_dir / "codec.safetensors", model, {"final_loss": hist[-1] if hist else None})
     ctx.log(f"[codec] autoencoder trained: final loss {hist[-1] if hist else float('nan'):.4f}")
     return {"codec": "codec.safetensors"}
@@ -180,7 +181,7 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
             images, targets, dataclasses.replace(design, mirror_average=e.mirror_average),
             GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=ctx.config.seed * 10 + seed,
                                      log_every=max(1, e.steps), blur_prob=e.blur_prob, blur_sigma=e.blur_sigma),
-            landmarks=lms, val=val)
+            landmarks=lms, val=val, device=_device(ctx.config))
         model.save(ctx.run_dir / f"estimator_{name}.safetensors", {"role": name, "train_images": len(images)})
         summary[name] = dict(hist[-1] if hist else {}, train_images=len(images))
         ctx.log(f"[estimator] {name}: {len(images)} training images, held-out gaze error "
