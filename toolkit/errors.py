@@ -14,12 +14,24 @@ class ToolkitError(Exception):
     """
 
 
+OUR_PACKAGES = ("toolkit", "render", "geometry", "train", "apps", "benchmarks")
+
+
 def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[str] | None = None) -> int:
-    """Run a CLI entry point; ``ToolkitError`` (and Ctrl-C) become one line on stderr, never a traceback."""
+    """Run a CLI entry point; ``ToolkitError``, a missing package and Ctrl-C become one line on stderr, never a
+    traceback."""
     try:
         code = main(argv)
     except ToolkitError as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as e:
+        if (e.name or "").split(".")[0] in OUR_PACKAGES:
+            raise  # a broken import of our own code is a bug, not a missing install
+        # Heavy dependencies (open3d, pymeshlab, trimesh, glfw) are imported lazily, inside the command that needs
+        # them, so a partial install fails here rather than at start-up.
+        print(f"error: this command needs the Python package {e.name!r}, which is not installed "
+              f"(`make setup` installs every dependency)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)

@@ -1,0 +1,32 @@
+"""The CLI wrapper: every expected failure is one line on stderr with a non-zero status."""
+
+import pytest
+
+from toolkit.errors import ToolkitError, run_cli
+
+
+def _raises(exc):
+    def main(argv):
+        raise exc
+
+    return main
+
+
+@pytest.mark.parametrize("exc, code, text", [
+    (ToolkitError("data.h5: field 'gaze' expected [N, 2]"), 2, "error: data.h5: field 'gaze' expected [N, 2]"),
+    (ModuleNotFoundError("No module named 'open3d'", name="open3d"), 2, "needs the Python package 'open3d'"),
+    (KeyboardInterrupt(), 130, "error: interrupted"),
+])
+def test_expected_failures_are_one_line(capsys, exc, code, text):
+    assert run_cli(_raises(exc), []) == code
+    err = capsys.readouterr().err
+    assert text in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_exit_codes_pass_through_and_bugs_still_raise():
+    assert run_cli(lambda argv: None, []) == 0
+    assert run_cli(lambda argv: 3, []) == 3
+    with pytest.raises(ValueError):  # a bug in our code is not hidden behind a one-line message
+        run_cli(_raises(ValueError("bug")), [])
+    with pytest.raises(ModuleNotFoundError):  # nor is a broken import of our own modules
+        run_cli(_raises(ModuleNotFoundError("No module named 'train.nope'", name="train.nope")), [])
