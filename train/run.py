@@ -311,7 +311,8 @@ def _fitting(e) -> str:
         return "none"
     return f"{e.tta_steps} steps of the shape code" + "".join(
         {"features": ", the face Gaussians' features", "eye_features": ", the eye Gaussians' features",
-         "renderer": ", the renderer"}[w] for w in dict.fromkeys(e.tta_weights))
+         "renderer": ", the renderer"}[w] for w in dict.fromkeys(e.tta_weights)) + (
+        ", compared on the input's whole head" if e.tta_region == "head" else ", compared on its face without the eyes")
 
 
 def _fmt_deg(v) -> str:
@@ -339,7 +340,8 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     res = evaluate(model, renderer, est, _split(ctx, "test"), res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
                    sampling_steps=cfg.gaussian.sampling_steps, tta_steps=cfg.eval.tta_steps,
                    tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,
-                   device=device, log=ctx.log, references=reference_transforms(renderer), own_gaze_row=True)
+                   device=device, log=ctx.log, references=reference_transforms(renderer), own_gaze_row=True,
+                   tta_region=cfg.eval.tta_region)
     name = f"DiT-Gaze ({cfg.gaussian.renderer})" if cfg.gaussian.renderer == "dit" else "GazeGaussian renderer (unet)"
     table = table1_markdown({name: res["metrics"], OWN_GAZE_ROW: res["own_gaze"],
                              **{f"*reference: {k}*": v for k, v in res["references"].items()}})

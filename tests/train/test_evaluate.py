@@ -298,3 +298,31 @@ def test_own_gaze_row_scores_the_input_rendered_at_its_own_gaze(two_frame_file, 
     assert sum(calls) == 6  # three renders at the target gaze, three at the input's
     assert "own_gaze" not in ev.evaluate(model, renderer, est, [two_frame_file], res=64, pairs_per_subject=1,
                                          log=lambda s: None)
+
+
+@pytest.mark.parametrize("region", ["head", "face"])
+def test_fitting_region_is_the_head_or_the_face_without_the_eyes(subject_file, monkeypatch, region):
+    """``tta_region``: the mask the fitting compares holds the input's eye pixels for "head" and none for "face"."""
+    import train.evaluate as ev
+
+    seen = []
+
+    def spy(model, renderer, batch, image, mask, *a, **k):
+        seen.append(mask.clone())
+        return batch["code"]
+
+    monkeypatch.setattr(ev, "test_time_fit", spy)
+    model, renderer, est = untrained_eval_parts()
+    ev.evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=2, tta_steps=1, log=lambda s: None,
+                tta_region=region)
+    _, _, head, eyes = _inputs(subject_file, 1)
+    mask = seen[0][:1]
+    inside_eyes = float((mask * eyes).sum())
+    assert eyes.sum() > 0 and mask.sum() > 0
+    if region == "head":
+        assert torch.equal(mask, head) and inside_eyes == float(eyes.sum())
+    else:
+        assert inside_eyes == 0 and float(mask.sum()) < float(head.sum())
+    with pytest.raises(ToolkitError, match="tta_region"):
+        ev.evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=1, log=lambda s: None,
+                    tta_region="eyes")
