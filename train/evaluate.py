@@ -112,8 +112,8 @@ default."""
 
 TTA_REGIONS = ("head", "face")
 """What test-time fitting compares: the input's whole head, or its face with the eyes cut out
-(:func:`face_only_mask`). Session 13, demo run, 40 fitting steps: the head gave held-out gaze 10.28° against
-11.38° for the face with the DiT renderer (PSNR 32.51 / 32.35 dB) and 8.04° against 8.16° with the U-Net
+(:func:`face_only_mask`). Session 13, demo run, 40 fitting steps: the head gave held-out gaze 10.34° against
+11.38° for the face with the DiT renderer (PSNR 32.52 / 32.35 dB) and 8.04° against 8.16° with the U-Net
 (32.96 / 32.90 dB): the eyes at the input's own gaze tell the fit more about a new face's eyes than they
 teach it the wrong gaze (docs/evaluation.md)."""
 

@@ -196,7 +196,7 @@ class EvalConfig:
     are then fitted one at a time); () fits the code alone, all pairs of a subject in one batch."""
     tta_region: Literal["head", "face"] = "head"
     """what test-time fitting compares: the input's whole head, or its face with the eyes cut out (the default
-    until session 13). Demo run, 40 steps, head / face: DiT gaze 10.28° / 11.38°, PSNR 32.51 / 32.35 dB; U-Net
+    until session 13). Demo run, 40 steps, head / face: DiT gaze 10.34° / 11.38°, PSNR 32.52 / 32.35 dB; U-Net
     8.04° / 8.16°, 32.96 / 32.90 dB (docs/evaluation.md)."""
     tta_renderer_lr: float = 1e-3
     """Adam learning rate of the renderer's weights in test-time fitting (code and features: 1e-2)."""
