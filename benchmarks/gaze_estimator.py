@@ -147,6 +147,9 @@ def main(argv=None) -> int:
         source = f"{a.test_subjects} held-out procedural subjects"
     print(f"data: {len(train[0])} training images ({a.subjects} subjects x {a.frames} gazes x 2 cameras), "
           f"{len(test[0])} test images ({source}), {train[0].shape[-1]}px, made in {time.perf_counter() - t0:.0f} s")
+    # The training set lives where the models train (uint8: 7680 images at 256² are 1.5 GB), copied there once for
+    # every mode, so a GPU step gathers its batch on the GPU instead of copying it from host memory.
+    train = [t.to(a.device) for t in train]
     rows, series = [], {}
     for mode in modes:
         cfg = eye_config(a.res) if mode == "eyes" else GazeEstimatorConfig(input_size=a.input_size)
@@ -160,12 +163,8 @@ def main(argv=None) -> int:
             print(f"  {mode} step {step}: {st[-1]:.0f} s, loss {rec['loss']:.4f}, held-out gaze "
                   f"{rec['val_gaze_deg']:.2f} deg, head {rec['val_head_deg']:.2f} deg", flush=True)
 
-        # The training set lives where the model trains (uint8: 7680 images at 256² are 1.5 GB), so a GPU step
-        # gathers its batch on the GPU instead of copying it from host memory.
-        on_dev = [t.to(a.device) for t in train]
-        model, hist = train_gaze_estimator(on_dev[0], on_dev[1], cfg, tc, landmarks=on_dev[2], val=test,
+        model, hist = train_gaze_estimator(train[0], train[1], cfg, tc, landmarks=train[2], val=test,
                                            callback=progress, device=a.device)
-        del on_dev
         for rec, t in zip(hist, stamps):
             rows.append({"mode": mode, "step": rec["step"], "train_s": t, "loss": rec["loss"],
                          "heldout_gaze_deg": rec["val_gaze_deg"], "heldout_head_deg": rec["val_head_deg"]})
