@@ -130,6 +130,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
+    if a.device.startswith("cuda") and not torch.cuda.is_available():
+        raise ToolkitError(f"--device {a.device}: CUDA is not available here; use --device cpu")
     modes = [m for m in a.modes.split(",") if m]
     if not modes or set(modes) - {"eyes", "face"}:
         raise ToolkitError(f"--modes: expected a comma list of eyes, face; got {a.modes!r}")

@@ -398,3 +398,13 @@ def test_mirror_average_rejects_bad_landmarks_clearly_and_face_designs_ignore_th
             eyes(x, bad)
     face = GazeEstimator(dataclasses.replace(TINY, mirror_average=True)).eval()
     torch.testing.assert_close(face(x, torch.zeros(4, 5)), face(x))
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
+def test_benchmark_cuda_device_without_cuda_is_one_line_error(capsys):
+    import benchmarks.gaze_estimator as bench
+    from toolkit.errors import run_cli
+
+    assert run_cli(bench.main, ["--device", "cuda"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--device cuda: CUDA is not available" in err
