@@ -7,7 +7,10 @@ Designs (``--modes``): ``eyes`` (eye patches cut at the landmarks + landmark lay
 estimator stage) and ``face`` (the whole face crop). Prints the run-time-against-error table, the held-out
 error binned by how far the head is turned from the camera and (procedural test subjects) by how much iris
 the better-seen eye shows, the inference throughput, and writes
-``out/benchmarks/gaze_estimator.png``. ``--save DIR`` writes each trained estimator as ``<mode>.safetensors``.
+``out/benchmarks/gaze_estimator.png``. ``--save DIR`` writes each trained estimator as ``<mode>.safetensors``. ``--cache DIR`` keeps the rendered
+procedural sets as safetensors, so several runs (in parallel on one GPU, say) render them once.
+``--budget-s`` sets the step count from a short timed probe instead of ``--steps``: the cosine schedule needs
+its length up front, and a run sharing a device cannot know its step time in advance.
 
     .venv/bin/python benchmarks/gaze_estimator.py --subjects 32 --frames 120 --steps 3000
 """
@@ -28,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot, timeit  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.io import load_tensors, save_tensors  # noqa: E402
 from toolkit.rotations import angular_error_deg  # noqa: E402
 from train.gaze_estimator import (  # noqa: E402
     GazeEstimatorConfig,
@@ -62,6 +66,42 @@ def predict(model, images: torch.Tensor, landmarks: torch.Tensor) -> torch.Tenso
     dev = next(model.parameters()).device
     return torch.cat([model(images[i:i + 256].to(dev).float() / 255, landmarks[i:i + 256].to(dev)).cpu()
                       for i in range(0, len(images), 256)])
+
+
+def procedural_set(seeds: range, *, n_frames: int, seed: int, res: int, workers: int, iris: bool,
+                   cache: str | None) -> list[torch.Tensor]:
+    """``estimator_images`` for these subjects, read from / written to ``cache`` when given (one
+    safetensors file per argument set; the images do not depend on ``workers``)."""
+    from train.data.generate import estimator_images
+
+    path = None
+    if cache:
+        path = Path(cache) / f"estimator_{seeds.start}_{len(seeds)}x{n_frames}_seed{seed}_{res}px.safetensors"
+        if path.exists():
+            tensors, _ = load_tensors(path)
+            return [tensors[k] for k in ("images", "labels", "landmarks", "iris")[:3 + iris]]
+    out = list(estimator_images(seeds, n_frames=n_frames, seed=seed, res=res, iris_pixels=iris, workers=workers))
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_tensors(path, dict(zip(("images", "labels", "landmarks", "iris"), out)))
+    return out
+
+
+def probe_step_s(train: list[torch.Tensor], cfg: GazeEstimatorConfig, tc: GazeEstimatorTrainConfig, device: str,
+                 steps: int = 40, skip: int = 10) -> float:
+    """Seconds per training step of this design, timed over steps ``skip``..``steps`` of a throwaway run (the
+    first steps pay for allocation and cuDNN's algorithm search)."""
+    stamps = []
+
+    def stamp(step, rec):
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        stamps.append(time.perf_counter())
+
+    probe = dataclasses.replace(tc, steps=steps, log_every=1)
+    train_gaze_estimator(train[0], train[1], cfg, probe, landmarks=train[2], device=device,
+                         callback=lambda step, rec: stamp(step, rec) if step in (skip, steps) else None)
+    return (stamps[1] - stamps[0]) / (steps - skip)
 
 
 def _error_rows(err: torch.Tensor, values: torch.Tensor, edges, name: str, label, share: bool = False) -> list[dict]:
@@ -107,7 +147,10 @@ def main(argv=None) -> int:
     ap.add_argument("--data", help="evaluate on this dataset's held-out split instead of procedural test subjects")
     ap.add_argument("--modes", default="eyes,face")
     ap.add_argument("--steps", type=int, default=3000)
+    ap.add_argument("--budget-s", type=float, help="training seconds per mode: the steps follow from a timed "
+                    "probe (overrides --steps)")
     ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--channels", help="comma list of stride-2 stage widths (default: the design's own)")
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--input-size", type=int, default=64, help="face mode: input width")
     ap.add_argument("--res", type=int, default=128, help="face-crop size of the rendered images (eyes mode: "
@@ -123,6 +166,7 @@ def main(argv=None) -> int:
     ap.add_argument("--log-every", type=int, default=250)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for <mode>.safetensors")
+    ap.add_argument("--cache", help="folder keeping the rendered procedural sets between runs")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
                     help="where the estimators train and run (default: cuda when available)")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
@@ -132,20 +176,27 @@ def main(argv=None) -> int:
         torch.set_num_threads(a.threads)
     if a.device.startswith("cuda") and not torch.cuda.is_available():
         raise ToolkitError(f"--device {a.device}: CUDA is not available here; use --device cpu")
+    torch.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest convolutions once
     modes = [m for m in a.modes.split(",") if m]
     if not modes or set(modes) - {"eyes", "face"}:
         raise ToolkitError(f"--modes: expected a comma list of eyes, face; got {a.modes!r}")
+    try:
+        channels = tuple(int(c) for c in a.channels.split(",")) if a.channels else None
+    except ValueError:
+        raise ToolkitError(f"--channels: expected a comma list of integers, got {a.channels!r}") from None
+    if channels is not None and (not channels or min(channels) < 1):
+        raise ToolkitError(f"--channels: expected positive widths, got {a.channels!r}")
+    if a.budget_s is not None and a.budget_s <= 0:
+        raise ToolkitError(f"--budget-s: expected a positive number of seconds, got {a.budget_s}")
     print(machine_info())
-    from train.data.generate import estimator_images
-
     t0 = time.perf_counter()
-    train = estimator_images(range(TRAIN_SEEDS, TRAIN_SEEDS + a.subjects), n_frames=a.frames, seed=0, res=a.res,
-                             workers=a.workers)
+    train = procedural_set(range(TRAIN_SEEDS, TRAIN_SEEDS + a.subjects), n_frames=a.frames, seed=0, res=a.res,
+                           workers=a.workers, iris=False, cache=a.cache)
     if a.data:
         test, source, iris = load_split(a.data, "test"), f"held-out split of {a.data}", None
     else:
-        *test, iris = estimator_images(range(TEST_SEEDS, TEST_SEEDS + a.test_subjects), n_frames=30, seed=1,
-                                       res=a.res, iris_pixels=True, workers=a.workers)
+        *test, iris = procedural_set(range(TEST_SEEDS, TEST_SEEDS + a.test_subjects), n_frames=30, seed=1,
+                                     res=a.res, workers=a.workers, iris=True, cache=a.cache)
         source = f"{a.test_subjects} held-out procedural subjects"
     print(f"data: {len(train[0])} training images ({a.subjects} subjects x {a.frames} gazes x 2 cameras), "
           f"{len(test[0])} test images ({source}), {train[0].shape[-1]}px, made in {time.perf_counter() - t0:.0f} s")
@@ -156,8 +207,14 @@ def main(argv=None) -> int:
     for mode in modes:
         cfg = eye_config(a.res) if mode == "eyes" else GazeEstimatorConfig(input_size=a.input_size)
         cfg = dataclasses.replace(cfg, mirror_average=not a.no_mirror_average, head_frame=not a.camera_frame)
+        if channels is not None:
+            cfg = dataclasses.replace(cfg, channels=channels)
         tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every,
                                       landmark_noise=a.landmark_noise, mirror=a.mirror)
+        if a.budget_s is not None:
+            step_s = probe_step_s(train, cfg, tc, a.device)
+            tc = dataclasses.replace(tc, steps=max(1, int(a.budget_s / step_s)))
+            print(f"{mode}: {1e3 * step_s:.1f} ms per step (probe) -> {tc.steps} steps in {a.budget_s:g} s", flush=True)
         start, stamps = time.perf_counter(), []
 
         def progress(step, rec, st=stamps, t0=start, mode=mode):
@@ -173,7 +230,7 @@ def main(argv=None) -> int:
         series[mode] = (stamps, [r["val_gaze_deg"] for r in hist])
         if a.save:
             model.save(Path(a.save) / f"{mode}.safetensors",
-                       {"steps": a.steps, "data": source, "heldout_gaze_deg": hist[-1]["val_gaze_deg"]})
+                       {"steps": tc.steps, "data": source, "heldout_gaze_deg": hist[-1]["val_gaze_deg"]})
         pred = predict(model, test[0], test[2])
         print(format_table(error_by_view(pred, test[1])))
         if iris is not None:

@@ -408,3 +408,32 @@ def test_benchmark_cuda_device_without_cuda_is_one_line_error(capsys):
     assert run_cli(bench.main, ["--device", "cuda"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--device cuda: CUDA is not available" in err
+
+
+def test_benchmark_cache_returns_the_rendered_set_and_probe_times_steps(tmp_path):
+    import benchmarks.gaze_estimator as bench
+    from train.gaze_estimator import eye_config
+
+    kw = dict(n_frames=2, seed=0, res=64, workers=1, iris=True, cache=str(tmp_path))
+    first = bench.procedural_set(range(7, 8), **kw)
+    assert len(list(tmp_path.iterdir())) == 1
+    again = bench.procedural_set(range(7, 8), **kw)  # read back from the cache
+    assert len(first) == len(again) == 4
+    for a, b in zip(first, again):
+        assert a.dtype == b.dtype and torch.equal(a, b)
+    cfg = dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16)
+    tc = GazeEstimatorTrainConfig(batch_size=2)
+    sec = bench.probe_step_s(first[:3], cfg, tc, "cpu", steps=4, skip=2)
+    assert 0 < sec < 60
+
+
+@pytest.mark.parametrize("argv, msg", [(["--channels", "8,x"], "--channels: expected a comma list"),
+                                       (["--channels", "8,0"], "--channels: expected positive"),
+                                       (["--budget-s", "0"], "--budget-s: expected a positive")])
+def test_benchmark_bad_options_are_one_line_errors(capsys, argv, msg):
+    import benchmarks.gaze_estimator as bench
+    from toolkit.errors import run_cli
+
+    assert run_cli(bench.main, argv + ["--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and msg in err
