@@ -4,7 +4,9 @@ Work is organised in *rounds*: in each round every still-active tile takes its n
 from its depth-sorted list (``chunk`` entries, more once few tiles are left), so one round is a handful of
 large batched tensor ops over [tiles, chunk, pixels-per-tile]. A tile leaves the sweep when its list is
 exhausted or when every one of its pixels has terminated (T (1 - alpha) <= T_MIN), so empty tiles and
-finished pixels cost nothing more.
+finished pixels cost nothing more. The tiles of all cameras of a call are swept together (``TileBins`` numbers
+them image after image), so a batch of C images takes the rounds of its longest tile list, not C times as
+many: on a GPU the cost is the number of kernel launches, which no longer grows with C.
 
 Memory-lean backward: nothing of size [pixels x Gaussians] is saved (only the final colour and T per pixel).
 The backward re-runs the same rounds (bit-identical alphas and transmittances, hence the same stops) and
@@ -83,7 +85,7 @@ class _Sweep:
                                 indexing="ij")
         col = (tx.reshape(-1, 1, 1) * ts + self.ar_t.view(1, 1, ts))
         row = (ty.reshape(-1, 1, 1) * ts + self.ar_t.view(1, ts, 1))
-        self.inside = ((col < width) & (row < height)).view(nt, P)
+        self.inside = ((col < width) & (row < height)).view(bins.tiles_per_image, P).repeat(bins.num_images, 1)
         self.done = ~self.inside
         self.log_amax = math.log(cfg.alpha_max)
         # threshold() keeps x > thr: the largest value below alpha_min (in this dtype) keeps alpha >= alpha_min.
@@ -98,7 +100,8 @@ class _Sweep:
         a round stays about as large as the first one: long-tailed tile lists then take few rounds."""
         bins, P = self.bins, self.bins.tile_size ** 2
         active = torch.nonzero(bins.counts > 0).flatten()
-        B0 = self.cfg.chunk or auto_chunk(active.numel(), P)
+        # The chunk of one image's share of the active tiles: batching images must not shorten it (more rounds).
+        B0 = self.cfg.chunk or auto_chunk(-(-active.numel() // bins.num_images), P)
         target = active.numel() * B0
         pos = 0
         while active.numel() > 0:
@@ -125,8 +128,9 @@ class _Sweep:
         idx = torch.where(idx < end[:, None], idx, torch.full_like(idx, bins.n_pairs))
         g = bins.gids.index_select(0, idx.view(-1))
         prm = table.index_select(0, g).view(nA, B, -1)
-        px = ((A % bins.tiles_x) * ts)[:, None] + self.ar_t[None, :]
-        py = (torch.div(A, bins.tiles_x, rounding_mode="floor") * ts)[:, None] + self.ar_t[None, :]
+        local = A % bins.tiles_per_image  # tile index inside its own image
+        px = ((local % bins.tiles_x) * ts)[:, None] + self.ar_t[None, :]
+        py = (torch.div(local, bins.tiles_x, rounding_mode="floor") * ts)[:, None] + self.ar_t[None, :]
         dx = (px.to(self.dtype) + 0.5)[:, None, :] - prm[..., 0, None]  # [nA, B, ts] per column
         dy = (py.to(self.dtype) + 0.5)[:, None, :] - prm[..., 1, None]  # [nA, B, ts] per row
         # log(o) - sigma split by row and column: two full-size passes before the exp.
@@ -173,20 +177,21 @@ class _Sweep:
 
 
 def to_tiles(img: torch.Tensor, bins: TileBins) -> torch.Tensor:
-    """[H, W, D] -> [tiles, D, ts*ts] (zero padded). Channels before pixels so the colour products are
+    """[C, H, W, D] -> [tiles, D, ts*ts] (zero padded). Channels before pixels so the colour products are
     plain [D, B] x [B, P] matmuls without transposed operands."""
-    H, W, D = img.shape
+    C, H, W, D = img.shape
     ts = bins.tile_size
-    pad = img.new_zeros(bins.tiles_y * ts, bins.tiles_x * ts, D)
-    pad[:H, :W] = img
-    return pad.view(bins.tiles_y, ts, bins.tiles_x, ts, D).permute(0, 2, 4, 1, 3).reshape(bins.num_tiles, D, ts * ts)
+    pad = img.new_zeros(C, bins.tiles_y * ts, bins.tiles_x * ts, D)
+    pad[:, :H, :W] = img
+    return (pad.view(C, bins.tiles_y, ts, bins.tiles_x, ts, D).permute(0, 1, 3, 5, 2, 4)
+            .reshape(bins.num_tiles, D, ts * ts))
 
 
 def from_tiles(t: torch.Tensor, bins: TileBins, width: int, height: int) -> torch.Tensor:
-    """[tiles, D, ts*ts] -> [H, W, D]."""
+    """[tiles, D, ts*ts] -> [C, H, W, D]."""
     ts, D = bins.tile_size, t.shape[1]
-    img = t.view(bins.tiles_y, bins.tiles_x, D, ts, ts).permute(0, 3, 1, 4, 2)
-    return img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, D)[:height, :width]
+    img = t.view(bins.num_images, bins.tiles_y, bins.tiles_x, D, ts, ts).permute(0, 1, 4, 2, 5, 3)
+    return img.reshape(bins.num_images, bins.tiles_y * ts, bins.tiles_x * ts, D)[:, :height, :width]
 
 
 _BASIS: dict = {}
@@ -202,8 +207,10 @@ def self_basis(ts: int, dtype, device) -> torch.Tensor:
 
 
 class RasterizeTiles(torch.autograd.Function):
-    """(means2d [M, 2], conics [M, 3], opacities [M], colors [M, D], background [D]) -> (image [H, W, D],
-    alpha [H, W, 1]); Gaussians must be sorted front to back and binned by ``render._tiles.bin_gaussians``."""
+    """(means2d [M, 2], conics [M, 3], opacities [M], colors [M, D], background [C, D]) -> (image [C, H, W, D],
+    alpha [C, H, W, 1]) for the C = ``bins.num_images`` images; each Gaussian is drawn into one image (its
+    2D parameters are that camera's), they are sorted front to back within each image and binned by
+    ``render._tiles.bin_gaussians``."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, background, bins, width, height, cfg, check_sigma, stats):
@@ -218,7 +225,8 @@ class RasterizeTiles(torch.autograd.Function):
             w, _ = sweep.transmit(A, alpha)
             cols_t = col_tab.index_select(0, g).view(A.numel(), B, D).transpose(1, 2).contiguous()
             acc.index_add_(0, A, torch.bmm(cols_t, w))
-        C_t = torch.addcmul(acc, sweep.T[:, None, :], background[None, :, None])
+        bg_t = background.repeat_interleave(bins.tiles_per_image, 0)  # [tiles, D]: each tile's image's background
+        C_t = torch.addcmul(acc, sweep.T[:, None, :], bg_t[:, :, None])
         image = from_tiles(C_t, bins, width, height)
         alpha_img = 1.0 - from_tiles(sweep.T[:, None, :], bins, width, height)
         stats.update(rounds=sweep.rounds_run, tiles_terminated=sweep.tiles_terminated,
@@ -233,15 +241,16 @@ class RasterizeTiles(torch.autograd.Function):
         bins, (width, height), cfg = ctx.bins, ctx.size, ctx.cfg
         dtype, device = colors.dtype, colors.device
         M, D = colors.shape
+        C = bins.num_images
         if grad_image is None:
-            grad_image = torch.zeros(height, width, D, dtype=dtype, device=device)
+            grad_image = torch.zeros(C, height, width, D, dtype=dtype, device=device)
         if grad_alpha is None:
-            grad_alpha = torch.zeros(height, width, 1, dtype=dtype, device=device)
+            grad_alpha = torch.zeros(C, height, width, 1, dtype=dtype, device=device)
         g_t = to_tiles(grad_image.to(dtype), bins)  # [nt, D, P]
         ga_t = to_tiles(grad_alpha.to(dtype), bins)[:, 0]  # [nt, P]
         Q = (C_t * g_t).sum(1)  # C . dL/dC per pixel: the colour behind the first Gaussian, projected
         gaT = ga_t * T_final  # alpha = 1 - T_final contributes dA/dalpha_i = T_final / (1 - alpha_i)
-        grad_bg = torch.einsum("tdp,tp->d", g_t, T_final)
+        grad_bg = torch.einsum("tdp,tp->td", g_t, T_final).view(C, bins.tiles_per_image, D).sum(1)
 
         table = _gaussian_table(means2d, conics, opacities, dtype)
         col_tab = torch.cat([colors, colors.new_zeros(1, D)], 0)

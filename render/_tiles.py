@@ -4,6 +4,10 @@ A Gaussian can only reach alpha >= 1/255 where sigma <= ln(255 o) (its "opacity 
 gets the tiles of that ellipse's bounding box, then every (Gaussian, tile) pair is tested exactly against
 the ellipse (minimum of the quadratic over the tile's pixel centres), so no work is spent on tiles a
 Gaussian cannot change. Culling is conservative by a tiny margin: the per-pixel test decides.
+
+Several images are binned at once: each Gaussian belongs to one image, and image i's tiles are numbered after
+those of images 0 .. i-1, so one sweep over all tiles renders every camera of a batch with the same few
+tensor ops (what keeps a GPU busy is the number of kernel launches, not their size).
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ class TileBins:
 
     gids [P + 1] int64 Gaussian index (into the depth-sorted visible set) of each pair, plus one sentinel
     pair at the end pointing at the dummy Gaussian ``num_gaussians`` (padding of partial chunks);
-    starts, counts [tiles] int64: each tile's slice of ``gids``. Tiles are row-major, ``tiles_x`` per row.
+    starts, counts [tiles] int64: each tile's slice of ``gids``. Tiles are row-major, ``tiles_x`` per row,
+    image after image (``num_images`` of them, ``tiles_per_image`` each).
     """
 
     tile_size: int
@@ -35,14 +40,19 @@ class TileBins:
     starts: torch.Tensor
     counts: torch.Tensor
     n_candidates: int  # pairs from the bounding boxes, before the exact ellipse test
+    num_images: int = 1
 
     @property
     def n_pairs(self) -> int:
         return int(self.gids.numel()) - 1
 
     @property
-    def num_tiles(self) -> int:
+    def tiles_per_image(self) -> int:
         return self.tiles_x * self.tiles_y
+
+    @property
+    def num_tiles(self) -> int:
+        return self.num_images * self.tiles_per_image
 
 
 def opacity_levels(opacities: torch.Tensor, alpha_min: float = ALPHA_MIN) -> torch.Tensor:
@@ -72,9 +82,10 @@ def _rect_min_sigma(a, b, c, xlo, xhi, ylo, yhi):
 _CANDIDATE_BUDGET = 1 << 21
 
 
-def _test_candidates(g0, g1, n_per, tx0, ty0, nx, means2d, conics, level_s, width, height, ts, tx_n):
+def _test_candidates(g0, g1, n_per, tx0, ty0, nx, means2d, conics, level_s, width, height, ts, tx_n, tile_base):
     """Expand Gaussians g0 .. g1 - 1 into their candidate tiles and keep the pairs whose opacity ellipse
-    reaches the tile's pixel centres -> (gid [K], tile_id [K]) in Gaussian order."""
+    reaches the tile's pixel centres -> (gid [K], tile_id [K]) in Gaussian order; ``tile_base`` [M] is the
+    first tile id of each Gaussian's image."""
     device = means2d.device
     n_sub = n_per[g0:g1]
     total = int(n_sub.sum())
@@ -93,19 +104,24 @@ def _test_candidates(g0, g1, n_per, tx0, ty0, nx, means2d, conics, level_s, widt
     cg = conics.index_select(0, gid)
     smin = _rect_min_sigma(cg[:, 0], cg[:, 1], cg[:, 2], x0 - mxg, x1 - mxg, y0 - myg, y1 - myg)
     keep = smin <= level_s.index_select(0, gid)
-    return gid[keep], (tile_y * tx_n + tile_x)[keep]
+    return gid[keep], (tile_base.index_select(0, gid) + tile_y * tx_n + tile_x)[keep]
 
 
 @torch.no_grad()
 def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, cov2d: torch.Tensor, opacities: torch.Tensor,
-                  width: int, height: int, tile_size: int, alpha_min: float = ALPHA_MIN) -> TileBins:
+                  width: int, height: int, tile_size: int, alpha_min: float = ALPHA_MIN, *,
+                  image_ids: torch.Tensor | None = None, num_images: int = 1) -> TileBins:
     """means2d [M, 2], conics [M, 3], cov2d [M, 3] (dilated xx, xy, yy), opacities [M], all for Gaussians
-    already sorted front to back -> TileBins. No Python loop over Gaussians or tiles (only over groups of
-    ~2M candidate pairs, to bound memory)."""
+    already sorted front to back within each image -> TileBins. ``image_ids`` [M] int64 (default all 0) says
+    which of ``num_images`` images (all ``width`` x ``height``) each Gaussian is drawn into. No Python loop
+    over Gaussians, tiles or images (only over groups of ~2M candidate pairs, to bound memory)."""
     device = means2d.device
     ts = int(tile_size)
     tx_n, ty_n = math.ceil(width / ts), math.ceil(height / ts)
     m = means2d.shape[0]
+    if image_ids is None:
+        image_ids = torch.zeros(m, dtype=torch.long, device=device)
+    tile_base = image_ids * (tx_n * ty_n)
     level = opacity_levels(opacities, alpha_min)
     level_s = level * (1 + _LEVEL_SLACK) + _LEVEL_SLACK
     lvl = level_s.clamp_min(0)
@@ -139,7 +155,7 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, cov2d: torch.Tens
         g1 = int(torch.searchsorted(cum, torch.tensor(before + _CANDIDATE_BUDGET, device=device), right=True))
         g1 = max(g1, g0 + 1)
         gid, tile_id = _test_candidates(g0, g1, n_per, tx0, ty0, nx, means2d, conics, level_s, width, height, ts,
-                                        tx_n)
+                                        tx_n, tile_base)
         gids_kept.append(gid)
         tiles_kept.append(tile_id)
         g0 = g1
@@ -149,8 +165,8 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, cov2d: torch.Tens
     # Pairs were generated in Gaussian (= depth) order, so a stable sort by tile keeps depth order inside tiles.
     tile_id, order = torch.sort(tile_id, stable=True)
     gid = gid.index_select(0, order)
-    counts = torch.bincount(tile_id, minlength=tx_n * ty_n)
+    counts = torch.bincount(tile_id, minlength=num_images * tx_n * ty_n)
     starts = torch.cumsum(counts, 0) - counts
     gids = torch.cat([gid, torch.full((1,), m, dtype=torch.long, device=device)])
     return TileBins(tile_size=ts, tiles_x=tx_n, tiles_y=ty_n, num_gaussians=m, gids=gids, starts=starts,
-                    counts=counts, n_candidates=n_cand)
+                    counts=counts, n_candidates=n_cand, num_images=int(num_images))

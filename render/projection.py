@@ -50,7 +50,8 @@ def project_gaussians(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
 ) -> Projection:
-    """Project Gaussians: means [N, 3], quats [N, 4] wxyz (any norm), scales [N, 3] activated,
+    """Project Gaussians: means [N, 3], quats [N, 4] wxyz (any norm), scales [N, 3] activated (one set seen
+    by every camera), or [C, N, ...] (camera c sees its own set c: a batch of posed heads),
     viewmats [C, 4, 4] world-to-camera (OpenCV axes), Ks [C, 3, 3] pixels.
 
     Conventions: Sigma = R S S^T R^T; cov2d = J W Sigma W^T J^T with the Jacobian J of the pinhole map taken
@@ -61,7 +62,8 @@ def project_gaussians(
     """
     R = viewmats[:, :3, :3]  # [C, 3, 3]
     t = viewmats[:, :3, 3]  # [C, 3]
-    means_c = torch.einsum("cij,nj->cni", R, means) + t[:, None, :]  # [C, N, 3]
+    per_camera = means.dim() == 3
+    means_c = torch.einsum("cij,cnj->cni" if per_camera else "cij,nj->cni", R, means) + t[:, None, :]  # [C, N, 3]
     x, y, z = means_c.unbind(-1)
 
     fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]  # [C, 1]
@@ -80,8 +82,8 @@ def project_gaussians(
     J = torch.stack([fx / zs, zero, -fx * tx / zs, zero, fy / zs, -fy * ty / zs], -1).view(*zs.shape, 2, 3)
 
     # cov2d = (J W R S)(J W R S)^T: built from a factor, so it is PSD to rounding for any scale.
-    M = quat_to_matrix(quats) * scales[:, None, :]  # [N, 3, 3] = R S
-    F = J @ torch.einsum("cij,njk->cnik", R, M)  # [C, N, 2, 3]
+    M = quat_to_matrix(quats) * scales[..., None, :]  # [(C,) N, 3, 3] = R S
+    F = J @ torch.einsum("cij,cnjk->cnik" if per_camera else "cij,njk->cnik", R, M)  # [C, N, 2, 3]
     f0, f1 = F[..., 0, :], F[..., 1, :]
     sxx = (f0 * f0).sum(-1) + eps2d
     sxy = (f0 * f1).sum(-1)

@@ -83,9 +83,11 @@ def rasterize(
     """Render N Gaussians into C cameras (conventions in the module docstring).
 
     Args:
-        means [N, 3], quats [N, 4] wxyz (any norm), scales [N, 3] activated, opacities [N] in [0, 1].
-        features [N, D] or per camera [C, N, D]; with ``sh_degree`` SH coefficients [N, K, D] evaluated toward
-            each camera as max(SH + 0.5, 0).
+        means [N, 3], quats [N, 4] wxyz (any norm), scales [N, 3] activated, opacities [N] in [0, 1]; or each
+            with a leading camera axis ([C, N, 3], [C, N, 4], [C, N, 3], [C, N]: camera c renders its own
+            Gaussian set c, e.g. a batch of differently posed heads, still in one call and one tile sweep).
+        features [N, D] or per camera [C, N, D] (per camera always, with per-camera Gaussians); with
+            ``sh_degree`` SH coefficients [N, K, D] evaluated toward each camera as max(SH + 0.5, 0).
         viewmats [C, 4, 4] world-to-camera, Ks [C, 3, 3] pixels, width / height in pixels.
         backgrounds [C, D] (or [D]), default zeros.
         tile_size: square tile edge in pixels; chunk: Gaussians per tile per round (None: ``render._raster.auto_chunk``, longer
@@ -97,18 +99,26 @@ def rasterize(
     Returns:
         render [C, H, W, D], alpha [C, H, W, 1], meta with radii [C, N, 2] int32 (0 = culled), means2d [C, N, 2],
         depths [C, N], conics [C, N, 3], ``depth`` [C, H, W, 1] when ``return_depth`` (sum z_i w_i; divide by
-        alpha for the expected depth) and ``counters`` (ints summed over cameras: visible, intersections,
-        candidate_intersections, tiles_skipped, tiles_terminated, pixels_terminated, rounds).
+        alpha for the expected depth) and ``counters`` (ints over all cameras: visible, intersections,
+        candidate_intersections, tiles_skipped, tiles_terminated, pixels_terminated, and rounds of the one
+        sweep that renders every camera's tiles together).
     """
-    _check_shape("means", means, (None, 3))
-    n = means.shape[0]
-    _check_shape("quats", quats, (n, 4))
-    _check_shape("scales", scales, (n, 3))
-    _check_shape("opacities", opacities, (n,))
     _check_shape("viewmats", viewmats, (None, 4, 4))
     C = viewmats.shape[0]
     _check_shape("Ks", Ks, (C, 3, 3))
-    if sh_degree is not None:
+    per_camera = isinstance(means, torch.Tensor) and means.dim() == 3
+    lead = (C,) if per_camera else ()
+    _check_shape("means", means, (*lead, None, 3))
+    n = means.shape[-2]
+    _check_shape("quats", quats, (*lead, n, 4))
+    _check_shape("scales", scales, (*lead, n, 3))
+    _check_shape("opacities", opacities, (*lead, n))
+    if per_camera and sh_degree is not None:
+        raise ToolkitError("rasterize: sh_degree needs one Gaussian set for all cameras (means [N, 3]); with "
+                           "per-camera means [C, N, 3] pass per-camera features [C, N, D]")
+    if per_camera:
+        _check_shape("features", features, (C, n, None))
+    elif sh_degree is not None:
         _check_shape("features (SH coefficients)", features, (n, None, None))
     elif features.dim() == 3:
         _check_shape("features", features, (C, n, None))
@@ -146,45 +156,40 @@ def rasterize(
     opac = opacities.to(dtype)
     cfg = RasterConfig(chunk=None if chunk is None else int(chunk), max_elements=int(max_elements), alpha_min=float(alpha_min),
                        t_min=float(t_min))
-    counters = dict(visible=0, intersections=0, candidate_intersections=0, tiles_skipped=0, tiles_terminated=0,
-                    pixels_terminated=0, rounds=0)
-    renders, alphas, depth_maps = [], [], []
-    for c in range(C):
-        with torch.no_grad():
-            vis = (proj.radii[c] > 0).all(-1) & (opac > cfg.alpha_min)
-            ids = torch.nonzero(vis).flatten()
-            ids = ids.index_select(0, torch.argsort(proj.depths[c].index_select(0, ids), stable=True))
-        m2d = proj.means2d[c].index_select(0, ids)
-        con = proj.conics[c].index_select(0, ids)
-        op = opac.index_select(0, ids)
-        col = (colors[c] if colors.dim() == 3 else colors).index_select(0, ids)
-        if return_depth:
-            col = torch.cat([col, proj.depths[c].index_select(0, ids)[:, None]], -1)
-        bg = backgrounds[c].to(means.device, dtype) if backgrounds is not None else colors.new_zeros(D)
-        if return_depth:
-            bg = torch.cat([bg, bg.new_zeros(1)])
-        with torch.no_grad():
-            bins = bin_gaussians(m2d.detach(), con.detach(), proj.cov2d[c].index_select(0, ids).detach(), op.detach(),
-                                 width, height, tile_size, cfg.alpha_min)
-            cd = con.detach()
-            thin = bool((cd[:, 1] ** 2 > _THIN_CORRELATION * cd[:, 0] * cd[:, 2]).any()) if ids.numel() else False
-        stats: dict[str, int] = {}
-        img, alpha = RasterizeTiles.apply(m2d, con, op, col, bg, bins, width, height, cfg, thin, stats)
-        renders.append(img[..., :D])
-        alphas.append(alpha)
-        if return_depth:
-            depth_maps.append(img[..., D:])
-        counters["visible"] += int(ids.numel())
-        counters["intersections"] += bins.n_pairs
-        counters["candidate_intersections"] += bins.n_candidates
-        counters["tiles_skipped"] += int((bins.counts == 0).sum())
-        for key in ("tiles_terminated", "pixels_terminated", "rounds"):
-            counters[key] += stats.get(key, 0)
+    # Every camera's visible Gaussians, depth-sorted per camera, in one list (camera after camera): one tile
+    # sweep then renders the whole batch, and no step below loops over cameras.
+    with torch.no_grad():
+        opac_c = opac if per_camera else opac[None].expand(C, n)  # [C, N]
+        vis = (proj.radii > 0).all(-1) & (opac_c > cfg.alpha_min)
+        order = torch.argsort(torch.where(vis, proj.depths, torch.full_like(proj.depths, float("inf"))), dim=1,
+                              stable=True)  # visible first, by depth, ties in index order
+        n_vis = vis.sum(1)
+        keep = torch.arange(n, device=means.device)[None, :] < n_vis[:, None]
+        cam = torch.arange(C, device=means.device)[:, None].expand(C, n)[keep]
+        ids = order[keep]
+    m2d = proj.means2d[cam, ids]
+    con = proj.conics[cam, ids]
+    op = opac[cam, ids] if per_camera else opac.index_select(0, ids)
+    col = colors[cam, ids] if colors.dim() == 3 else colors.index_select(0, ids)
+    if return_depth:
+        col = torch.cat([col, proj.depths[cam, ids][:, None]], -1)
+    bg = backgrounds.to(means.device, dtype) if backgrounds is not None else colors.new_zeros(C, D)
+    if return_depth:
+        bg = torch.cat([bg, bg.new_zeros(C, 1)], -1)
+    with torch.no_grad():
+        bins = bin_gaussians(m2d.detach(), con.detach(), proj.cov2d[cam, ids].detach(), op.detach(), width, height,
+                             tile_size, cfg.alpha_min, image_ids=cam, num_images=C)
+        cd = con.detach()
+        thin = bool((cd[:, 1] ** 2 > _THIN_CORRELATION * cd[:, 0] * cd[:, 2]).any()) if ids.numel() else False
+    stats: dict[str, int] = {}
+    img, alpha = RasterizeTiles.apply(m2d, con, op, col, bg, bins, width, height, cfg, thin, stats)
+    counters = dict(visible=int(ids.numel()), intersections=bins.n_pairs, candidate_intersections=bins.n_candidates,
+                    tiles_skipped=int((bins.counts == 0).sum()), **stats)
     meta: dict[str, Any] = dict(radii=proj.radii, means2d=proj.means2d, depths=proj.depths, conics=proj.conics,
                                 counters=counters, tile_size=int(tile_size))
     if return_depth:
-        meta["depth"] = torch.stack(depth_maps)
-    return torch.stack(renders), torch.stack(alphas), meta
+        meta["depth"] = img[..., D:]
+    return img[..., :D], alpha, meta
 
 
 def render_scene(scene, cameras, *, use_sh: bool | None = None, **kw) -> tuple[torch.Tensor, torch.Tensor, dict]:

@@ -363,18 +363,16 @@ class GaussianModel(nn.Module):
         out: dict[str, torch.Tensor] = {}
         for r in renders:
             parts = [g["face"], g["eyes"]] if r == "head" else [g[r]]
-            maps, alphas = [], []
-            for b in range(B):
-                cat = {k: torch.cat([p[k][b].float() for p in parts]) for k in ("means", "quats", "scales", "opacities", "features")}
-                # Splatting runs in float32 even under autocast: depth sorting, conics and transmittance
-                # products lose too much in bf16, and the splatter's kernels expect one dtype.
-                with torch.autocast(device_type=vm.device.type, enabled=False):
-                    img, alpha, _ = self._rasterize()(cat["means"], cat["quats"], cat["scales"], cat["opacities"],
-                                                      cat["features"], vm[b:b + 1], Ks_r[b:b + 1], w, h, backgrounds=bg)
-                maps.append(img[0].permute(2, 0, 1))
-                alphas.append(alpha[0].permute(2, 0, 1))
-            out[r] = torch.stack(maps)
-            out[r + "_alpha"] = torch.stack(alphas)
+            # Sample b's posed Gaussians go to camera b: the whole batch is one rasterize call (one tile sweep).
+            cat = {k: torch.cat([p[k].float() for p in parts], 1) for k in ("means", "quats", "scales", "opacities",
+                                                                             "features")}
+            # Splatting runs in float32 even under autocast: depth sorting, conics and transmittance
+            # products lose too much in bf16, and the splatter's kernels expect one dtype.
+            with torch.autocast(device_type=vm.device.type, enabled=False):
+                img, alpha, _ = self._rasterize()(cat["means"], cat["quats"], cat["scales"], cat["opacities"],
+                                                  cat["features"], vm, Ks_r, w, h, backgrounds=bg)
+            out[r] = img.permute(0, 3, 1, 2)
+            out[r + "_alpha"] = alpha.permute(0, 3, 1, 2)
         if "head" in out:
             out["rgb"] = out["head"][:, :3]
         return out
