@@ -9,7 +9,10 @@ cloud. Each configuration runs in a fresh subprocess so its peak RSS is its own.
 against a dense (every pixel x every Gaussian, pixel-chunked) reference where that costs at most
 ``--ref-budget`` pixel-Gaussian pairs, and the fraction of pixels that differ by more than 1e-5. A second
 table sweeps the knobs (tile size, chunk, alpha and T thresholds) on one scene, with the error against the
-default (reference) settings. Writes out/benchmarks/splat_grid.png and splat_knobs.png.
+default (reference) settings. A third compares one call for a batch of C cameras, each with its own posed
+head (``means [C, N, 3]``, as the gaussian stage renders a training batch), against C single-camera calls,
+with the largest difference between the two. Writes out/benchmarks/splat_grid.png, splat_knobs.png and
+splat_batch.png.
 """
 
 from __future__ import annotations
@@ -126,6 +129,43 @@ def run_config(cfg: dict) -> dict:
     return row
 
 
+def camera_batch_row(c: int, res: int, n: int, device: str, repeats: int = 5) -> dict:
+    """fwd+bwd seconds of one rasterize call over C cameras (camera c sees its own posed copy of the head,
+    turned by a few degrees) against C single-camera calls, and their largest difference."""
+    from render.splat import rasterize
+    from toolkit.procedural import demo_camera, demo_head_scene
+    from toolkit.rotations import matrix_to_quat, quat_multiply, so3_exp
+
+    s = demo_head_scene(n, seed=0)
+    g = torch.Generator().manual_seed(1)
+    R = so3_exp(torch.randn(c, 3, generator=g) * 0.1)  # [C, 3, 3] a different head pose per camera
+    means = torch.einsum("cij,nj->cni", R, s.means)
+    quats = quat_multiply(matrix_to_quat(R)[:, None].expand(c, n, 4), s.unit_quats[None].expand(c, n, 4))
+    cam = demo_camera(res, res)
+    t = [x.to(device) for x in (means, quats, s.scales[None].expand(c, n, 3), s.opacities[None].expand(c, n),
+                                torch.rand(c, n, 32, generator=g), cam.viewmat[None].expand(c, 4, 4),
+                                cam.K[None].expand(c, 3, 3))]
+    leaves = [x.clone().requires_grad_(True) for x in t[:5]]
+
+    def batched():
+        img, alpha, _ = rasterize(*leaves, t[5], t[6], res, res)
+        (img.square().sum() + alpha.sum()).backward()
+        return img.detach()
+
+    def looped():
+        imgs = []
+        for k in range(c):
+            img, alpha, _ = rasterize(*(x[k] for x in leaves), t[5][k:k + 1], t[6][k:k + 1], res, res)
+            (img.square().sum() + alpha.sum()).backward()
+            imgs.append(img.detach())
+        return torch.cat(imgs)
+
+    sync = device == "cuda"
+    err = float((batched() - looped()).abs().max())
+    return dict(device=device, cameras=c, res=res, N=n, one_call_s=timeit(batched, repeats=repeats, sync_cuda=sync),
+                per_camera_calls_s=timeit(looped, repeats=repeats, sync_cuda=sync), max_abs_diff=err)
+
+
 def run_all(cfgs: list[dict]) -> list[dict]:
     rows = []
     ctx = mp.get_context("spawn")
@@ -213,6 +253,24 @@ def main(argv=None) -> int:
         for r, k in zip(crows, [dict(chunk="auto")] + chunks):
             r["knob"] = f"chunk={k['chunk']}"
         print(format_table(crows, ["knob", "fwd_s", "fwd_bwd_s", "rounds", "max_err"]))
+
+    torch.set_num_threads(a.threads)
+    print("\n## camera batch (head 6k, D=32, fwd+bwd: one call with per-camera Gaussians vs one call per camera)")
+    brows = [camera_batch_row(c, r, 6000, dev) for dev in devices for r in ((32,) if a.quick else (32, 128))
+             for c in (1, 4, 8)]
+    for r in brows:
+        r["speedup"] = r["per_camera_calls_s"] / r["one_call_s"]
+    print(format_table(brows, ["device", "cameras", "res", "N", "one_call_s", "per_camera_calls_s", "speedup",
+                               "max_abs_diff"]))
+    series = {}
+    for r in brows:
+        for how in ("one_call_s", "per_camera_calls_s"):
+            xs, ys = series.setdefault(f"{r['device']} {r['res']}^2 {how[:-2].replace('_', ' ')}", ([], []))
+            xs.append(r["cameras"])
+            ys.append(r[how])
+    png = save_plot(OUT_DIR / "splat_batch.png", series, xlabel="cameras", ylabel="fwd+bwd seconds",
+                    title="render.splat: a batch of cameras in one call", logy=True)
+    print(f"wrote {png}")
     print(f"load average after: {os.getloadavg()}")
     return 0
 
