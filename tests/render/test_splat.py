@@ -358,3 +358,11 @@ def test_alpha_threshold_knob_matches_reference(alpha_min):
     rimg, ralpha = ref.render(means, quats, scales, opac, feats, V, K, 40, 30, alpha_min=alpha_min, t_min=1e-3)
     _agree(img, rimg)
     _agree(alpha, ralpha)
+
+
+def test_camera_batch_benchmark_row_compares_equal_renders():
+    from benchmarks.splat import camera_batch_row
+
+    row = camera_batch_row(2, 16, 300, "cpu", repeats=1)
+    assert row["cameras"] == 2 and row["one_call_s"] > 0 and row["per_camera_calls_s"] > 0
+    assert row["max_abs_diff"] < 1e-5
