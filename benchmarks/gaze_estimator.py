@@ -36,6 +36,7 @@ from toolkit.rotations import angular_error_deg  # noqa: E402
 from train.gaze_estimator import (  # noqa: E402
     GazeEstimatorConfig,
     GazeEstimatorTrainConfig,
+    evaluate_gaze_estimator,
     eye_config,
     train_gaze_estimator,
 )
@@ -88,7 +89,7 @@ def procedural_set(seeds: range, *, n_frames: int, seed: int, res: int, workers:
 
 
 def probe_step_s(train: list[torch.Tensor], cfg: GazeEstimatorConfig, tc: GazeEstimatorTrainConfig, device: str,
-                 steps: int = 40, skip: int = 10) -> float:
+                 steps: int = 40, skip: int = 10, init=None) -> float:
     """Seconds per training step of this design, timed over steps ``skip``..``steps`` of a throwaway run (the
     first steps pay for allocation and cuDNN's algorithm search)."""
     stamps = []
@@ -99,7 +100,7 @@ def probe_step_s(train: list[torch.Tensor], cfg: GazeEstimatorConfig, tc: GazeEs
         stamps.append(time.perf_counter())
 
     probe = dataclasses.replace(tc, steps=steps, log_every=1)
-    train_gaze_estimator(train[0], train[1], cfg, probe, landmarks=train[2], device=device,
+    train_gaze_estimator(train[0], train[1], cfg, probe, landmarks=train[2], device=device, init=init,
                          callback=lambda step, rec: stamp(step, rec) if step in (skip, steps) else None)
     return (stamps[1] - stamps[0]) / (steps - skip)
 
@@ -167,6 +168,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for <mode>.safetensors")
     ap.add_argument("--cache", help="folder keeping the rendered procedural sets between runs")
+    ap.add_argument("--init", help="fine-tune this saved estimator (its design replaces --modes, --camera-frame, "
+                    "--channels and --no-mirror-average; the rate schedule starts afresh)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
                     help="where the estimators train and run (default: cuda when available)")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
@@ -177,6 +180,12 @@ def main(argv=None) -> int:
     if a.device.startswith("cuda") and not torch.cuda.is_available():
         raise ToolkitError(f"--device {a.device}: CUDA is not available here; use --device cpu")
     torch.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest convolutions once
+    init = None
+    if a.init:
+        from train.gaze_estimator import GazeEstimator
+
+        init = GazeEstimator.load(a.init, frozen=False)
+        a.modes = "eyes" if init.config.eyes else "face"
     modes = [m for m in a.modes.split(",") if m]
     if not modes or set(modes) - {"eyes", "face"}:
         raise ToolkitError(f"--modes: expected a comma list of eyes, face; got {a.modes!r}")
@@ -209,10 +218,12 @@ def main(argv=None) -> int:
         cfg = dataclasses.replace(cfg, mirror_average=not a.no_mirror_average, head_frame=not a.camera_frame)
         if channels is not None:
             cfg = dataclasses.replace(cfg, channels=channels)
+        if init is not None:
+            cfg = init.config
         tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every,
                                       landmark_noise=a.landmark_noise, mirror=a.mirror)
         if a.budget_s is not None:
-            step_s = probe_step_s(train, cfg, tc, a.device)
+            step_s = probe_step_s(train, cfg, tc, a.device, init=init)
             tc = dataclasses.replace(tc, steps=max(1, int(a.budget_s / step_s)))
             print(f"{mode}: {1e3 * step_s:.1f} ms per step (probe) -> {tc.steps} steps in {a.budget_s:g} s", flush=True)
         start, stamps = time.perf_counter(), []
@@ -222,8 +233,12 @@ def main(argv=None) -> int:
             print(f"  {mode} step {step}: {st[-1]:.0f} s, loss {rec['loss']:.4f}, held-out gaze "
                   f"{rec['val_gaze_deg']:.2f} deg, head {rec['val_head_deg']:.2f} deg", flush=True)
 
+        if init is not None:
+            print(f"{mode}: starting from {a.init}: held-out gaze "
+                  f"{evaluate_gaze_estimator(init.to(a.device), *test, device=a.device)['val_gaze_deg']:.2f} deg",
+                  flush=True)
         model, hist = train_gaze_estimator(train[0], train[1], cfg, tc, landmarks=train[2], val=test,
-                                           callback=progress, device=a.device)
+                                           callback=progress, device=a.device, init=init)
         for rec, t in zip(hist, stamps):
             rows.append({"mode": mode, "step": rec["step"], "train_s": t, "loss": rec["loss"],
                          "heldout_gaze_deg": rec["val_gaze_deg"], "heldout_head_deg": rec["val_head_deg"]})

@@ -494,7 +494,7 @@ def _to_float(images: torch.Tensor) -> torch.Tensor:
 def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: GazeEstimatorConfig | None = None,
                          train_config: GazeEstimatorTrainConfig | None = None, *,
                          landmarks: torch.Tensor | None = None, val: tuple | None = None,
-                         device: str | torch.device = "cpu",
+                         device: str | torch.device = "cpu", init: GazeEstimator | None = None,
                          callback: Callable[[int, dict], None] | None = None) -> tuple[GazeEstimator, list[dict]]:
     """Train a :class:`GazeEstimator` on in-memory data.
 
@@ -503,6 +503,8 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
             head pitch, yaw in the normalized camera).
         landmarks: [N, 68, 2] pixels, required by eye-patch estimators (``config.eyes``).
         val: optional held-out (images, labels[, landmarks]) evaluated every ``log_every`` steps.
+        init: start from this estimator's weights (fine-tuning; the learning-rate schedule starts afresh); its
+            configuration must equal ``config``.
     Returns:
         (model in eval mode, history: list of {"step", "loss", ["val_gaze_deg", "val_head_deg"]}).
     """
@@ -525,6 +527,10 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
     torch.manual_seed(tc.seed)
     g = torch.Generator().manual_seed(tc.seed)
     model = GazeEstimator(config).to(device)
+    if init is not None:
+        if init.config != model.config:
+            raise ToolkitError(f"train_gaze_estimator: init has configuration {init.config}, expected {model.config}")
+        model.load_state_dict(init.state_dict())
     opt = torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, tc.steps) / tc.steps)))
     n = images.shape[0]

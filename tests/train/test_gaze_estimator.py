@@ -132,6 +132,20 @@ def test_trainer_learns_and_is_deterministic():
         assert torch.equal(a, b)
 
 
+def test_trainer_fine_tunes_from_init_weights():
+    imgs, labels, _ = drawn_face_dataset(64, 32, n_subjects=2, seed=0)
+    base, _ = train_gaze_estimator(imgs, labels, TINY, GazeEstimatorTrainConfig(steps=5, batch_size=8, seed=1))
+    # A vanishing rate keeps the init's weights (AdamW's decay is scaled by the rate too): they were used.
+    tc = GazeEstimatorTrainConfig(steps=2, batch_size=8, lr=1e-12, seed=2)
+    tuned, _ = train_gaze_estimator(imgs, labels, TINY, tc, init=base)
+    fresh, _ = train_gaze_estimator(imgs, labels, TINY, tc)
+    for a, b in zip(tuned.parameters(), base.parameters()):
+        torch.testing.assert_close(a, b)
+    assert any(not torch.allclose(b, c) for b, c in zip(base.parameters(), fresh.parameters()))
+    with pytest.raises(ToolkitError, match="init has configuration"):
+        train_gaze_estimator(imgs, labels, dataclasses.replace(TINY, hidden=16), tc, init=base)
+
+
 def test_trainer_rejects_bad_data():
     with pytest.raises(ToolkitError, match="labels"):
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 2), TINY)
@@ -437,3 +451,20 @@ def test_benchmark_bad_options_are_one_line_errors(capsys, argv, msg):
     assert run_cli(bench.main, argv + ["--device", "cpu"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and msg in err
+
+
+def test_benchmark_fine_tunes_a_saved_estimator(tmp_path, monkeypatch, capsys):
+    import benchmarks.gaze_estimator as bench
+    from train.gaze_estimator import eye_config
+
+    monkeypatch.setattr(bench, "OUT_DIR", tmp_path)  # the plot goes to tmp, not out/benchmarks
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16, head_frame=False)
+    GazeEstimator(cfg).save(tmp_path / "start.safetensors")
+    argv = ["--init", str(tmp_path / "start.safetensors"), "--subjects", "1", "--frames", "2", "--test-subjects", "1",
+            "--res", "64", "--steps", "2", "--batch", "4", "--workers", "1", "--device", "cpu",
+            "--cache", str(tmp_path / "cache"), "--save", str(tmp_path / "out")]
+    assert bench.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "eyes: starting from" in out and "face:" not in out
+    assert GazeEstimator.load(tmp_path / "out" / "eyes.safetensors").config == cfg
