@@ -126,7 +126,7 @@ def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path):
     assert weights and all(torch.equal(a[k], b[k]) for k in weights)
 
 
-@pytest.mark.parametrize("renderer,upscale", [("dit", 2), ("unet", 2), ("dit", 4)])
+@pytest.mark.parametrize("renderer,upscale", [("dit", 1), ("unet", 1), ("dit", 2), ("unet", 2), ("dit", 4)])
 def test_feature_upscale_sets_the_splat_size(tiny_run, tmp_path, renderer, upscale):
     d = tmp_path / renderer
     shutil.copytree(tiny_run, d)
