@@ -7,8 +7,9 @@ Designs (``--modes``): ``eyes`` (eye patches cut at the landmarks + landmark lay
 estimator stage) and ``face`` (the whole face crop). Prints the run-time-against-error table, the held-out
 error binned by how far the head is turned from the camera and (procedural test subjects) by how much iris
 the better-seen eye shows, the inference throughput, and writes
-``out/benchmarks/gaze_estimator.png``. ``--save DIR`` writes each trained estimator as ``<mode>.safetensors``. ``--cache DIR`` keeps the rendered
-procedural sets as safetensors, so several runs (in parallel on one GPU, say) render them once.
+``out/benchmarks/gaze_estimator.png``. ``--save DIR`` writes each trained estimator as ``<mode>.safetensors``.
+``--cache DIR`` keeps the rendered procedural sets as safetensors, so several runs (in parallel on one GPU,
+say) render them once.
 ``--budget-s`` sets the step count from a short timed probe instead of ``--steps``: the cosine schedule needs
 its length up front, and a run sharing a device cannot know its step time in advance.
 
@@ -42,6 +43,7 @@ from train.gaze_estimator import (  # noqa: E402
 )
 
 TRAIN_SEEDS, TEST_SEEDS = 200_000, 300_000  # disjoint subject-seed ranges
+SET_KEYS = ("images", "labels", "landmarks", "iris")  # estimator_images' outputs, in order (iris optional)
 
 
 def load_split(data: str, split: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -80,11 +82,11 @@ def procedural_set(seeds: range, *, n_frames: int, seed: int, res: int, workers:
         path = Path(cache) / f"estimator_{seeds.start}_{len(seeds)}x{n_frames}_seed{seed}_{res}px.safetensors"
         if path.exists():
             tensors, _ = load_tensors(path)
-            return [tensors[k] for k in ("images", "labels", "landmarks", "iris")[:3 + iris]]
+            return [tensors[k] for k in SET_KEYS[:3 + iris]]
     out = list(estimator_images(seeds, n_frames=n_frames, seed=seed, res=res, iris_pixels=iris, workers=workers))
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        save_tensors(path, dict(zip(("images", "labels", "landmarks", "iris"), out)))
+        save_tensors(path, dict(zip(SET_KEYS, out)))
     return out
 
 
@@ -95,13 +97,14 @@ def probe_step_s(train: list[torch.Tensor], cfg: GazeEstimatorConfig, tc: GazeEs
     stamps = []
 
     def stamp(step, rec):
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        stamps.append(time.perf_counter())
+        if step in (skip, steps):
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            stamps.append(time.perf_counter())
 
     probe = dataclasses.replace(tc, steps=steps, log_every=1)
     train_gaze_estimator(train[0], train[1], cfg, probe, landmarks=train[2], device=device, init=init,
-                         callback=lambda step, rec: stamp(step, rec) if step in (skip, steps) else None)
+                         callback=stamp)
     return (stamps[1] - stamps[0]) / (steps - skip)
 
 
@@ -214,12 +217,13 @@ def main(argv=None) -> int:
     train = [t.to(a.device) for t in train]
     rows, series = [], {}
     for mode in modes:
-        cfg = eye_config(a.res) if mode == "eyes" else GazeEstimatorConfig(input_size=a.input_size)
-        cfg = dataclasses.replace(cfg, mirror_average=not a.no_mirror_average, head_frame=not a.camera_frame)
-        if channels is not None:
-            cfg = dataclasses.replace(cfg, channels=channels)
         if init is not None:
             cfg = init.config
+        else:
+            cfg = eye_config(a.res) if mode == "eyes" else GazeEstimatorConfig(input_size=a.input_size)
+            cfg = dataclasses.replace(cfg, mirror_average=not a.no_mirror_average, head_frame=not a.camera_frame)
+            if channels is not None:
+                cfg = dataclasses.replace(cfg, channels=channels)
         tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every,
                                       landmark_noise=a.landmark_noise, mirror=a.mirror)
         if a.budget_s is not None:
