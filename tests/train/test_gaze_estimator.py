@@ -443,7 +443,8 @@ def test_benchmark_cache_returns_the_rendered_set_and_probe_times_steps(tmp_path
 
 @pytest.mark.parametrize("argv, msg", [(["--channels", "8,x"], "--channels: expected a comma list"),
                                        (["--channels", "8,0"], "--channels: expected positive"),
-                                       (["--budget-s", "0"], "--budget-s: expected a positive")])
+                                       (["--budget-s", "0"], "--budget-s: expected a positive"),
+                                       (["--init", "no/such/estimator.safetensors"], "no/such/estimator")])
 def test_benchmark_bad_options_are_one_line_errors(capsys, argv, msg):
     import benchmarks.gaze_estimator as bench
     from toolkit.errors import run_cli
