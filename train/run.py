@@ -303,6 +303,11 @@ def _check_values(cfg: RunConfig) -> None:
         raise ToolkitError(f"config key 'estimator.blur_sigma': expected a width >= 0 (pixels), got {e.blur_sigma}")
     if not cfg.eval.tta_renderer_lr > 0:
         raise ToolkitError(f"config key 'eval.tta_renderer_lr': expected a learning rate > 0, got {cfg.eval.tta_renderer_lr}")
+    if not cfg.eval.tta_gaze_weight >= 0:
+        raise ToolkitError(f"config key 'eval.tta_gaze_weight': expected a weight >= 0, got {cfg.eval.tta_gaze_weight}")
+    if cfg.eval.tta_gaze_weight > 0 and not cfg.eval.tta_gaze_terms:
+        raise ToolkitError("config key 'eval.tta_gaze_terms': expected at least one of target, own when "
+                           "eval.tta_gaze_weight > 0")
 
 
 def _fitting(e) -> str:
@@ -312,7 +317,9 @@ def _fitting(e) -> str:
     return f"{e.tta_steps} steps of the shape code" + "".join(
         {"features": ", the face Gaussians' features", "eye_features": ", the eye Gaussians' features",
          "renderer": ", the renderer"}[w] for w in dict.fromkeys(e.tta_weights)) + (
-        ", compared on the input's whole head" if e.tta_region == "head" else ", compared on its face without the eyes")
+        ", compared on the input's whole head" if e.tta_region == "head" else ", compared on its face without the eyes"
+    ) + (f", with the loss estimator's gaze term (weight {e.tta_gaze_weight:g}; {', '.join(e.tta_gaze_terms)})"
+         if e.tta_gaze_weight > 0 else "")
 
 
 def _fmt_deg(v) -> str:
@@ -337,11 +344,19 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     device = _device(cfg)
     model, renderer = load_trained(ctx, device)
     est = _estimator(ctx, "eval", device)
+    fit_gaze = None
+    if cfg.eval.tta_gaze_weight > 0 and cfg.eval.tta_steps > 0:
+        from train.evaluate import FitGaze
+        from train.losses import GazeLoss
+
+        # The loss estimator, never the evaluation one: the metric's ruler must not be what the fit optimizes.
+        fit_gaze = FitGaze(GazeLoss(_estimator(ctx, "loss", device)), cfg.eval.tta_gaze_weight,
+                           tuple(cfg.eval.tta_gaze_terms))
     res = evaluate(model, renderer, est, _split(ctx, "test"), res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
                    sampling_steps=cfg.gaussian.sampling_steps, tta_steps=cfg.eval.tta_steps,
                    tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,
                    device=device, log=ctx.log, references=reference_transforms(renderer), own_gaze_row=True,
-                   tta_region=cfg.eval.tta_region)
+                   tta_region=cfg.eval.tta_region, tta_gaze=fit_gaze)
     name = f"DiT-Gaze ({cfg.gaussian.renderer})" if cfg.gaussian.renderer == "dit" else "GazeGaussian renderer (unet)"
     table = table1_markdown({name: res["metrics"], OWN_GAZE_ROW: res["own_gaze"],
                              **{f"*reference: {k}*": v for k, v in res["references"].items()}})

@@ -202,6 +202,13 @@ class EvalConfig:
     8.04° / 8.16°, 32.96 / 32.90 dB (docs/evaluation.md)."""
     tta_renderer_lr: float = 1e-3
     """Adam learning rate of the renderer's weights in test-time fitting (code and features: 1e-2)."""
+    tta_gaze_weight: float = 0.0
+    """weight of a gaze term in test-time fitting (0 disables): the frozen *loss* estimator, never the evaluation
+    one, reads renders of the fitted input (``train.evaluate.FitGaze``), in degrees, like ``gaussian.lambda_gaze``."""
+    tta_gaze_terms: tuple[Literal["target", "own"], ...] = ("target",)
+    """what the gaze term reads: ``target``, one more render per step at the input's view turned to the pair's
+    target gaze, against that gaze (weak supervision at the gaze the pair is rendered at); ``own``, the fitting
+    render, against the estimator's reading of the input image."""
     pairing_file: str = ""
     """GazeNeRF pairing file for real data; synthetic data pairs deterministically."""
     sweep_frames: int = 9

@@ -326,3 +326,81 @@ def test_fitting_region_is_the_head_or_the_face_without_the_eyes(subject_file, m
     with pytest.raises(ToolkitError, match="tta_region"):
         ev.evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=1, log=lambda s: None,
                     tta_region="eyes")
+
+
+def _target_batch(two_frame_file, n: int):
+    """The first ``n`` pairs of the two-frame subject: the input batch plus each pair's target gaze and the
+    input's landmarks (what :class:`train.evaluate.FitGaze` reads)."""
+    from train.data.pairing import SyntheticRedirectionPairs
+
+    batch, image, mask, _ = _inputs(two_frame_file, n)
+    pairs = SyntheticRedirectionPairs(two_frame_file, res=64, seed=0)
+    batch["gaze_head"] = torch.stack([torch.as_tensor(pairs[i]["target"]["pitchyaw_head"]) for i in range(n)]).float()
+    batch["landmarks"] = torch.stack([torch.as_tensor(pairs[i]["input"]["landmarks"]) for i in range(n)]).float()
+    return batch, image, mask
+
+
+def _target_gaze_error(model, renderer, loss, batch, image, mask, code) -> float:
+    """The loss estimator's angle (degrees) between its reading of the render at the target gaze (input view)
+    and that gaze in the camera frame."""
+    from train.evaluate import FitGaze
+
+    with torch.no_grad():
+        term = FitGaze(loss, 1.0, ("target",)).term(model, renderer, batch, code, None, image, mask, 64, None)
+    return float(term)
+
+
+class _ColourGaze(torch.nn.Module):
+    """A stand-in loss estimator whose reading follows the image's mean colour (radians, pitch/yaw): unlike an
+    untrained CNN, it responds strongly to what the fit changes."""
+
+    def forward(self, images, landmarks=None):
+        rgb = images.mean((2, 3))
+        return torch.stack([rgb[:, 0] - rgb[:, 2], rgb[:, 1] - 0.5], 1)
+
+
+def test_gaze_term_fits_toward_the_target_gaze(two_frame_file):
+    """With the ``target`` term the fit lowers the loss estimator's error at the target gaze, well below where the
+    photometric fit alone leaves it."""
+    from train.evaluate import FitGaze, restored_weights, test_time_fit
+    from train.losses import GazeLoss
+
+    model, renderer, _ = untrained_eval_parts()
+    loss = GazeLoss(_ColourGaze())
+    batch, image, mask = _target_batch(two_frame_file, 2)
+    assert not torch.allclose(batch["gaze_head"], batch["in_gaze_head"])
+    before = _target_gaze_error(model, renderer, loss, batch, image, mask, batch["code"])
+    errors = {}
+    for name, gaze in (("plain", None), ("gaze", FitGaze(loss, 1.0))):
+        with restored_weights(model, renderer):
+            code = test_time_fit(model, renderer, batch, image, mask, 64, steps=10, lr=0.1, weights=("features",), gaze=gaze)
+            assert torch.isfinite(code).all()
+            errors[name] = _target_gaze_error(model, renderer, loss, batch, image, mask, code)
+    # Measured: 55.3° before, 50.1° after the photometric fit, 42.6° with the gaze term.
+    assert errors["gaze"] < errors["plain"] - 3 and errors["gaze"] < before - 5, (before, errors)
+
+
+def test_own_gaze_term_reaches_the_code_without_another_render(two_frame_file, monkeypatch):
+    """``own`` reads the fitting render itself: the model runs once per step, and the fitted code differs from
+    the photometric fit's."""
+    from train.evaluate import FitGaze, test_time_fit
+    from train.losses import GazeLoss
+
+    model, renderer, est = untrained_eval_parts()
+    batch, image, mask = _target_batch(two_frame_file, 2)
+    plain = test_time_fit(model, renderer, batch, image, mask, 64, steps=3)
+    calls = []
+    forward = type(model).forward
+    monkeypatch.setattr(type(model), "forward", lambda self, *a, **k: calls.append(1) or forward(self, *a, **k))
+    own = test_time_fit(model, renderer, batch, image, mask, 64, steps=3, gaze=FitGaze(GazeLoss(est), 1.0, ("own",)))
+    assert len(calls) == 3
+    assert torch.isfinite(own).all() and not torch.allclose(own, plain)
+
+
+def test_fit_gaze_rejects_bad_weights_and_terms():
+    from train.evaluate import FitGaze
+
+    for weight, terms, match in ((-1.0, ("target",), "weight must be >= 0"), (float("nan"), ("target",), "weight"),
+                                 (1.0, ("eyes",), "gaze terms must be some of"), (1.0, (), "gaze terms")):
+        with pytest.raises(ToolkitError, match=match):
+            FitGaze(None, weight, terms)

@@ -60,6 +60,34 @@ def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, cap
     assert status == {"eval": "ran"}
 
 
+def test_eval_gaze_term_fits_with_the_loss_estimator(tiny_run, tmp_path, capsys, monkeypatch):
+    """``eval.tta_gaze_weight`` > 0: test-time fitting reads the *loss* estimator (its weights, not the evaluation
+    one's), the metric still reads the evaluation estimator, and the report names the term."""
+    from safetensors.torch import load_file
+
+    import train.evaluate as ev
+
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d)
+    seen = []
+    term = ev.FitGaze.term
+
+    def spy(self, *a, **k):
+        seen.append(self)
+        return term(self, *a, **k)
+
+    monkeypatch.setattr(ev.FitGaze, "term", spy)
+    assert run.main([*TINY, "--run-dir", str(d), "--stages", "eval", "eval.tta_gaze_weight=0.01",
+                     "eval.tta_gaze_terms=[target,own]"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["stages"] == {"eval": "ran"}
+    assert seen and all(g.weight == 0.01 and g.terms == ("target", "own") for g in seen)
+    loss_w = load_file(d / "estimator_loss.safetensors")
+    fitted = seen[0].loss.estimator.state_dict()
+    key = next(k for k in fitted if k in loss_w and fitted[k].numel() > 1)
+    assert torch.equal(fitted[key], loss_w[key]) and not torch.equal(loss_w[key], load_file(d / "estimator_eval.safetensors")[key])
+    assert "with the loss estimator's gaze term (weight 0.01; target, own)" in (d / "report.md").read_text()
+
+
 @pytest.mark.parametrize(
     "override,msg",
     [
@@ -69,6 +97,8 @@ def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, cap
         ("colour=red", "unknown config key 'colour'"),
         ("codec.eye_weight=-1", "'codec.eye_weight': expected a weight >= 0"),
         ("eval.tta_renderer_lr=0", "'eval.tta_renderer_lr': expected a learning rate > 0"),
+        ("eval.tta_gaze_weight=-1", "'eval.tta_gaze_weight': expected a weight >= 0"),
+        ("eval.tta_gaze_terms=[eyes]", "'eval.tta_gaze_terms"),
         ("gaussian.feature_upscale=3", "'gaussian.feature_upscale': expected a power of two"),
         ("geometry.eye_gaussians=2", "'geometry.eye_gaussians': expected 0"),
         ("estimator.blur_prob=1.5", "'estimator.blur_prob': expected a probability"),
