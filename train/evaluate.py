@@ -182,7 +182,7 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
 
 
 def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t, gaze=None) -> None:
-    for _ in range(steps):
+    for step in range(steps):
         # A fresh face stream every step: an unchanged code (a zero gradient) would otherwise hit the cache and
         # reuse the previous step's freed graph.
         model.clear_cache()
@@ -193,7 +193,7 @@ def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, co
         small, small_mask = (F.interpolate(x, size=maps["head"].shape[-2:], mode="area") for x in (target, mask))
         loss = ((composite_on_white(img, mask) - target).abs().mean()
                 + (composite_on_white(maps["head"][:, :3], small_mask) - small).abs().mean())
-        if gaze is not None and gaze.weight > 0:
+        if gaze is not None and gaze.weight > 0 and (steps - 1 - step) % gaze.every == 0:
             loss = loss + gaze.weight * gaze.term(model, renderer, batch, code, img, input_image, mask, res, t)
         # Gradients for the fitted tensors alone: the other weights get none (nor a stale .grad).
         for p, g in zip(fitted, torch.autograd.grad(loss, fitted, allow_unused=True)):
@@ -212,15 +212,19 @@ class FitGaze:
     - ``"target"``: one more render, at the input's view with the pair's target head-frame gaze, against that
       gaze in the camera frame (the training stage's weak supervision, at the gaze the pair will be rendered at).
 
-    ``weight`` scales the mean angular error (degrees). Eye-patch estimators read ``batch["landmarks"]``
-    [B, 68, 2], the input's (the target shares the input's view)."""
+    ``weight`` scales the mean angular error (degrees); the term enters every ``every``-th fitting step, the
+    last one included (the ``target`` render doubles a step's cost). Eye-patch estimators read
+    ``batch["landmarks"]`` [B, 68, 2], the input's (the target shares the input's view)."""
     loss: Any
     weight: float
     terms: tuple[str, ...] = ("target",)
+    every: int = 1
 
     def __post_init__(self):
         if not self.weight >= 0:
             raise ToolkitError(f"test-time fitting: the gaze term's weight must be >= 0, got {self.weight}")
+        if not (isinstance(self.every, int) and self.every >= 1):
+            raise ToolkitError(f"test-time fitting: the gaze term's 'every' must be an integer >= 1, got {self.every!r}")
         unknown = [t for t in self.terms if t not in FIT_GAZE_TERMS]
         if unknown or not self.terms:
             raise ToolkitError(f"test-time fitting: gaze terms must be some of {list(FIT_GAZE_TERMS)}, got "

@@ -305,6 +305,8 @@ def _check_values(cfg: RunConfig) -> None:
         raise ToolkitError(f"config key 'eval.tta_renderer_lr': expected a learning rate > 0, got {cfg.eval.tta_renderer_lr}")
     if not cfg.eval.tta_gaze_weight >= 0:
         raise ToolkitError(f"config key 'eval.tta_gaze_weight': expected a weight >= 0, got {cfg.eval.tta_gaze_weight}")
+    if cfg.eval.tta_gaze_every < 1:
+        raise ToolkitError(f"config key 'eval.tta_gaze_every': expected a step count >= 1, got {cfg.eval.tta_gaze_every}")
     if cfg.eval.tta_gaze_weight > 0 and not cfg.eval.tta_gaze_terms:
         raise ToolkitError("config key 'eval.tta_gaze_terms': expected at least one of target, own when "
                            "eval.tta_gaze_weight > 0")
@@ -318,7 +320,8 @@ def _fitting(e) -> str:
         {"features": ", the face Gaussians' features", "eye_features": ", the eye Gaussians' features",
          "renderer": ", the renderer"}[w] for w in dict.fromkeys(e.tta_weights)) + (
         ", compared on the input's whole head" if e.tta_region == "head" else ", compared on its face without the eyes"
-    ) + (f", with the loss estimator's gaze term (weight {e.tta_gaze_weight:g}; {', '.join(e.tta_gaze_terms)})"
+    ) + (f", with the loss estimator's gaze term (weight {e.tta_gaze_weight:g}, "
+         f"{'every step' if e.tta_gaze_every == 1 else f'every {e.tta_gaze_every} steps'}; {', '.join(e.tta_gaze_terms)})"
          if e.tta_gaze_weight > 0 else "")
 
 
@@ -350,8 +353,14 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
         from train.losses import GazeLoss
 
         # The loss estimator, never the evaluation one: the metric's ruler must not be what the fit optimizes.
+        e = cfg.estimator
+        loss_file = Path(e.loss_path or ctx.path("estimator", "loss")).resolve()
+        if loss_file == Path(e.eval_path or ctx.path("estimator", "eval")).resolve():
+            raise ToolkitError(f"config key 'eval.tta_gaze_weight': the gaze term of the fit reads the loss estimator, "
+                               f"and {loss_file} is also the evaluation estimator; give another estimator.loss_path "
+                               f"or set eval.tta_gaze_weight=0")
         fit_gaze = FitGaze(GazeLoss(_estimator(ctx, "loss", device)), cfg.eval.tta_gaze_weight,
-                           tuple(cfg.eval.tta_gaze_terms))
+                           tuple(cfg.eval.tta_gaze_terms), every=cfg.eval.tta_gaze_every)
     res = evaluate(model, renderer, est, _split(ctx, "test"), res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
                    sampling_steps=cfg.gaussian.sampling_steps, tta_steps=cfg.eval.tta_steps,
                    tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,

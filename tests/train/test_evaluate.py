@@ -397,6 +397,24 @@ def test_own_gaze_term_reaches_the_code_without_another_render(two_frame_file, m
     assert torch.isfinite(own).all() and not torch.allclose(own, plain)
 
 
+@pytest.mark.parametrize("every,renders", [(1, 10), (2, 8), (3, 7), (5, 6)])
+def test_target_term_renders_once_more_on_every_kth_step_the_last_included(two_frame_file, monkeypatch, every,
+                                                                          renders):
+    """``every``: 5 steps, the turned render on steps 5, 5-k, ... only -- the model runs 5 + ceil(5 / k) times."""
+    from train.evaluate import FitGaze, test_time_fit
+    from train.losses import GazeLoss
+
+    model, renderer, est = untrained_eval_parts()
+    batch, image, mask = _target_batch(two_frame_file, 1)
+    gazes = []
+    forward = type(model).forward
+    monkeypatch.setattr(type(model), "forward",
+                        lambda self, code, pose, gaze, *a, **k: gazes.append(gaze.clone()) or forward(self, code, pose, gaze, *a, **k))
+    test_time_fit(model, renderer, batch, image, mask, 64, steps=5, gaze=FitGaze(GazeLoss(est), 1.0, every=every))
+    assert len(gazes) == renders
+    assert torch.equal(gazes[-1], batch["gaze_head"])  # the last step ends on the turned render
+
+
 def test_fit_gaze_rejects_bad_weights_and_terms():
     from train.evaluate import FitGaze
 
@@ -404,3 +422,6 @@ def test_fit_gaze_rejects_bad_weights_and_terms():
                                  (1.0, ("eyes",), "gaze terms must be some of"), (1.0, (), "gaze terms")):
         with pytest.raises(ToolkitError, match=match):
             FitGaze(None, weight, terms)
+    for every in (0, -1, 1.5):
+        with pytest.raises(ToolkitError, match="'every' must be an integer >= 1"):
+            FitGaze(None, 1.0, every=every)

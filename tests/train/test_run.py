@@ -78,14 +78,26 @@ def test_eval_gaze_term_fits_with_the_loss_estimator(tiny_run, tmp_path, capsys,
 
     monkeypatch.setattr(ev.FitGaze, "term", spy)
     assert run.main([*TINY, "--run-dir", str(d), "--stages", "eval", "eval.tta_gaze_weight=0.01",
-                     "eval.tta_gaze_terms=[target,own]"]) == 0
+                     "eval.tta_gaze_terms=[target,own]", "eval.tta_gaze_every=1"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["stages"] == {"eval": "ran"}
-    assert seen and all(g.weight == 0.01 and g.terms == ("target", "own") for g in seen)
+    assert seen and all(g.weight == 0.01 and g.terms == ("target", "own") and g.every == 1 for g in seen)
     loss_w = load_file(d / "estimator_loss.safetensors")
     fitted = seen[0].loss.estimator.state_dict()
     key = next(k for k in fitted if k in loss_w and fitted[k].numel() > 1)
     assert torch.equal(fitted[key], loss_w[key]) and not torch.equal(loss_w[key], load_file(d / "estimator_eval.safetensors")[key])
-    assert "with the loss estimator's gaze term (weight 0.01; target, own)" in (d / "report.md").read_text()
+    assert "with the loss estimator's gaze term (weight 0.01, every step; target, own)" in (d / "report.md").read_text()
+
+
+def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
+    """A loss estimator that is the evaluation estimator's file would let the fit optimize the metric's ruler."""
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d)
+    ctx = run.open_run(d)
+    ctx.config.estimator.loss_path = ctx.config.estimator.eval_path = str(d / "estimator_eval.safetensors")
+    with pytest.raises(ToolkitError, match="'eval.tta_gaze_weight'.*also the evaluation estimator"):
+        run.stage_eval(ctx)
+    ctx.config.eval.tta_gaze_weight = 0.0
+    assert run.stage_eval(ctx)
 
 
 @pytest.mark.parametrize(
@@ -99,6 +111,7 @@ def test_eval_gaze_term_fits_with_the_loss_estimator(tiny_run, tmp_path, capsys,
         ("eval.tta_renderer_lr=0", "'eval.tta_renderer_lr': expected a learning rate > 0"),
         ("eval.tta_gaze_weight=-1", "'eval.tta_gaze_weight': expected a weight >= 0"),
         ("eval.tta_gaze_terms=[eyes]", "'eval.tta_gaze_terms"),
+        ("eval.tta_gaze_every=0", "'eval.tta_gaze_every': expected a step count >= 1"),
         ("gaussian.feature_upscale=3", "'gaussian.feature_upscale': expected a power of two"),
         ("geometry.eye_gaussians=2", "'geometry.eye_gaussians': expected 0"),
         ("estimator.blur_prob=1.5", "'estimator.blur_prob': expected a probability"),
