@@ -159,7 +159,8 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     ``TTA_WEIGHT_GROUPS``) are tuned too, **in place** -- the Gaussian features at ``lr``, the renderer at
     ``renderer_lr`` -- so the caller restores them (:func:`restored_weights`); with no ``weights`` the
     model and renderer are untouched (the gradient is taken for the code alone). ``gaze`` (:class:`FitGaze`)
-    adds a gaze term read by the frozen loss estimator. Returns the fitted code.
+    adds a gaze term read by the frozen loss estimator (it needs ``batch["gaze_head"]`` and
+    ``batch["landmarks"]``). Returns the fitted code.
     """
     if not lr > 0:
         raise ToolkitError(f"test-time fitting: expected a learning rate > 0 (code, features), got {lr}")
@@ -212,9 +213,14 @@ class FitGaze:
     - ``"target"``: one more render, at the input's view with the pair's target head-frame gaze, against that
       gaze in the camera frame (the training stage's weak supervision, at the gaze the pair will be rendered at).
 
-    ``weight`` scales the mean angular error (degrees); the term enters every ``every``-th fitting step, the
-    last one included (the ``target`` render doubles a step's cost). Eye-patch estimators read
-    ``batch["landmarks"]`` [B, 68, 2], the input's (the target shares the input's view)."""
+    ``weight`` scales the angular errors (degrees; the sum of the terms' batch means); the term enters every
+    ``every``-th fitting step, the last one included (the ``target`` render doubles a step's cost). ``loss`` is
+    a :class:`train.losses.GazeLoss` around the loss estimator.
+
+    Reads from the fitting batch: ``batch["gaze_head"]`` [B, 2] (the target head-frame gaze), ``batch["landmarks"]``
+    [B, 68, 2] (the input's, for eye-patch estimators; the target shares the input's view) and, when present,
+    ``batch["in_head_mask"]`` [B, 1, H, W], the input's head mask: the estimator reads the renders composited on
+    white outside it, eyes included, whatever region the photometric fit compares (else the fitting mask)."""
     loss: Any
     weight: float
     terms: tuple[str, ...] = ("target",)
@@ -223,16 +229,21 @@ class FitGaze:
     def __post_init__(self):
         if not self.weight >= 0:
             raise ToolkitError(f"test-time fitting: the gaze term's weight must be >= 0, got {self.weight}")
-        if not (isinstance(self.every, int) and self.every >= 1):
+        if isinstance(self.every, bool) or not (isinstance(self.every, int) and self.every >= 1):
             raise ToolkitError(f"test-time fitting: the gaze term's 'every' must be an integer >= 1, got {self.every!r}")
         unknown = [t for t in self.terms if t not in FIT_GAZE_TERMS]
         if unknown or not self.terms:
             raise ToolkitError(f"test-time fitting: gaze terms must be some of {list(FIT_GAZE_TERMS)}, got "
                                f"{list(self.terms)}")
 
-    def term(self, model, renderer, batch, code, img, input_image, mask, res, t) -> torch.Tensor:
+    def term(self, model, renderer, batch: dict[str, torch.Tensor], code: torch.Tensor, img: torch.Tensor,
+             input_image: torch.Tensor, mask: torch.Tensor, res: int, t: torch.Tensor | None) -> torch.Tensor:
+        """[] degrees: ``img`` [B, 3, H, W] is the step's fitting render (``own``), ``input_image`` [B, 3, H, W]
+        the input, ``mask`` [B, 1, H, W] the fitting mask; ``code`` [B, C], ``res`` and ``t`` render the turned
+        view (``target``) exactly as the fitting render is made."""
         from train.losses import gaze_to_camera
 
+        mask = batch.get("in_head_mask", mask)
         total = code.new_zeros(())
         if "own" in self.terms:
             total = total + self.loss(composite_on_white(img, mask), target_image=composite_on_white(input_image, mask),
@@ -314,7 +325,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     Test-time fitting (``tta_steps`` > 0, :func:`test_time_fit`) tunes the code of all pairs of a subject at
     once; with ``tta_weights`` it fits and renders one pair at a time, each from the restored weights (the
     throughput is then that of batch-1 renders). ``tta_region`` (:data:`TTA_REGIONS`): what the fitting
-    compares, the input's whole head or its face without the eyes."""
+    compares, the input's whole head or its face without the eyes. ``tta_gaze`` (:class:`FitGaze`) adds a gaze
+    term to the fit, read by the loss estimator it holds (never ``estimator``)."""
     from train.data.pairing import SyntheticRedirectionPairs
 
     if tta_region not in TTA_REGIONS:
@@ -342,7 +354,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
                  "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
                  "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat"),
-                 "landmarks": st("landmarks")}
+                 "landmarks": st("landmarks"), "in_head_mask": mask_in}
         out, render_time, own = _fit_and_render(model, renderer, batch, inp, fit_mask, res, sampling_steps, tta_steps,
                                                 tta_weights, tta_renderer_lr, own_gaze=own_gaze_row, gaze=tta_gaze)
         n_images += out.shape[0]

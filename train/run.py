@@ -192,11 +192,16 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
     return outs
 
 
+def _estimator_file(ctx: RunContext, role: str) -> Path:
+    """The estimator file of ``role`` ("loss" or "eval"): the configured path, else the estimator stage's."""
+    given = ctx.config.estimator.loss_path if role == "loss" else ctx.config.estimator.eval_path
+    return Path(given) if given else ctx.path("estimator", role)
+
+
 def _estimator(ctx: RunContext, role: str, device):
     from train.gaze_estimator import GazeEstimator
 
-    given = ctx.config.estimator.loss_path if role == "loss" else ctx.config.estimator.eval_path
-    return GazeEstimator.load(given or ctx.path("estimator", role), device)
+    return GazeEstimator.load(_estimator_file(ctx, role), device)
 
 
 def _renderer(ctx: RunContext, device):
@@ -353,11 +358,11 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
         from train.losses import GazeLoss
 
         # The loss estimator, never the evaluation one: the metric's ruler must not be what the fit optimizes.
-        e = cfg.estimator
-        loss_file = Path(e.loss_path or ctx.path("estimator", "loss")).resolve()
-        if loss_file == Path(e.eval_path or ctx.path("estimator", "eval")).resolve():
+        loss_file, eval_file = (_estimator_file(ctx, r).resolve() for r in ("loss", "eval"))
+        if loss_file == eval_file or (loss_file.is_file() and eval_file.is_file()
+                                      and loss_file.read_bytes() == eval_file.read_bytes()):
             raise ToolkitError(f"config key 'eval.tta_gaze_weight': the gaze term of the fit reads the loss estimator, "
-                               f"and {loss_file} is also the evaluation estimator; give another estimator.loss_path "
+                               f"and {loss_file} is also the evaluation estimator ({eval_file}); give another estimator.loss_path "
                                f"or set eval.tta_gaze_weight=0")
         fit_gaze = FitGaze(GazeLoss(_estimator(ctx, "loss", device)), cfg.eval.tta_gaze_weight,
                            tuple(cfg.eval.tta_gaze_terms), every=cfg.eval.tta_gaze_every)

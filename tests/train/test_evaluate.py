@@ -425,3 +425,46 @@ def test_fit_gaze_rejects_bad_weights_and_terms():
     for every in (0, -1, 1.5):
         with pytest.raises(ToolkitError, match="'every' must be an integer >= 1"):
             FitGaze(None, 1.0, every=every)
+
+
+def test_target_gaze_in_the_camera_frame_matches_the_generator_label(two_frame_file):
+    """The turned render's label: the target's head-frame gaze through the input's view and head pose is the
+    generator's own camera-frame gaze of the target (the pair shares the input's view)."""
+    from toolkit.rotations import angular_error_deg, so3_exp
+    from train.data.pairing import SyntheticRedirectionPairs
+    from train.losses import gaze_to_camera
+
+    pairs = SyntheticRedirectionPairs(two_frame_file, res=64, seed=0)
+    items = [pairs[i] for i in range(4)]
+    st = lambda part, k: torch.stack([torch.as_tensor(it[part][k]) for it in items]).float()  # noqa: E731
+    R = st("input", "viewmat")[:, :3, :3] @ so3_exp(st("input", "pose")[:, :3])
+    cam = gaze_to_camera(st("target", "pitchyaw_head"), R)
+    assert float(angular_error_deg(cam, st("target", "pitchyaw_cam")).max()) < 0.01
+
+
+def test_gaze_term_reads_the_whole_head_whatever_region_the_fit_compares(two_frame_file):
+    """With ``batch["in_head_mask"]`` the estimator sees the renders inside the input's head mask even when the
+    fitting mask (here empty: everything white) leaves the eyes out."""
+    from train.evaluate import FitGaze
+
+    class Spy(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.images = []
+
+        def forward(self, render, target_image=None, target_gaze=None, landmarks=None):
+            self.images.append(render.detach())
+            return render.mean() * 0
+
+    model, renderer, _ = untrained_eval_parts()
+    batch, image, _ = _target_batch(two_frame_file, 1)
+    empty = torch.zeros_like(image[:, :1])
+    spy = Spy()
+    term = FitGaze(spy, 1.0, ("own", "target"))
+    with torch.no_grad():
+        term.term(model, renderer, batch, batch["code"], image, image, empty, 64, None)
+        assert all(bool((x == 1).all()) for x in spy.images)  # no head mask: the fitting mask, all white
+        spy.images.clear()
+        term.term(model, renderer, {**batch, "in_head_mask": torch.ones_like(empty)}, batch["code"], image, image,
+                  empty, 64, None)
+    assert len(spy.images) == 2 and all(bool((x != 1).any()) for x in spy.images)

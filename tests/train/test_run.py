@@ -81,10 +81,10 @@ def test_eval_gaze_term_fits_with_the_loss_estimator(tiny_run, tmp_path, capsys,
                      "eval.tta_gaze_terms=[target,own]", "eval.tta_gaze_every=1"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["stages"] == {"eval": "ran"}
     assert seen and all(g.weight == 0.01 and g.terms == ("target", "own") and g.every == 1 for g in seen)
-    loss_w = load_file(d / "estimator_loss.safetensors")
+    loss_w, eval_w = load_file(d / "estimator_loss.safetensors"), load_file(d / "estimator_eval.safetensors")
     fitted = seen[0].loss.estimator.state_dict()
-    key = next(k for k in fitted if k in loss_w and fitted[k].numel() > 1)
-    assert torch.equal(fitted[key], loss_w[key]) and not torch.equal(loss_w[key], load_file(d / "estimator_eval.safetensors")[key])
+    assert set(fitted) == set(loss_w) and all(torch.equal(fitted[k], loss_w[k]) for k in fitted)
+    assert any(not torch.equal(fitted[k], eval_w[k]) for k in fitted)
     assert "with the loss estimator's gaze term (weight 0.01, every step; target, own)" in (d / "report.md").read_text()
 
 
@@ -95,6 +95,11 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
     ctx = run.open_run(d)
     ctx.config.estimator.loss_path = ctx.config.estimator.eval_path = str(d / "estimator_eval.safetensors")
     with pytest.raises(ToolkitError, match="'eval.tta_gaze_weight'.*also the evaluation estimator"):
+        run.stage_eval(ctx)
+    copy = tmp_path / "copy_of_eval.safetensors"  # the same weights under another name
+    shutil.copyfile(d / "estimator_eval.safetensors", copy)
+    ctx.config.estimator.loss_path = str(copy)
+    with pytest.raises(ToolkitError, match="also the evaluation estimator"):
         run.stage_eval(ctx)
     ctx.config.eval.tta_gaze_weight = 0.0
     assert run.stage_eval(ctx)
