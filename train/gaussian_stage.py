@@ -24,10 +24,16 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from toolkit.rotations import so3_exp
 from train.gaussian_model import GaussianModel, GaussianModelConfig
 from train.gaze_sampler import GazeSampler, GazeSamplerConfig
-from train.losses import GazeLoss, ImageLoss, ImageLossConfig, OrthogonalityLoss, gaze_to_camera
+from train.losses import (
+    GazeLoss,
+    ImageLoss,
+    ImageLossConfig,
+    OrthogonalityLoss,
+    gaze_to_camera,
+    head_to_camera_rotation,
+)
 from train.run_config import GaussianStageConfig
 
 
@@ -59,7 +65,7 @@ class TrainBatchData:
 
     def head_to_camera(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
         """[B, 3, 3] rotation from the head frame to the camera frame (w2c ∘ pose)."""
-        return b["viewmat"][:, :3, :3] @ so3_exp(b["pose"][:, :3])
+        return head_to_camera_rotation(b["viewmat"], b["pose"])
 
 
 def load_split(files: list[Path], split: str, res: int) -> TrainBatchData:

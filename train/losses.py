@@ -221,6 +221,14 @@ class GazeLoss(nn.Module):
         return err.mean()
 
 
+def head_to_camera_rotation(viewmat: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """[B, 3, 3] rotation from the head frame to the camera frame (w2c ∘ pose), for world-to-camera
+    ``viewmat`` [B, 4, 4] and head ``pose`` [B, 6] (axis-angle rotation first): the ``R`` of :func:`gaze_to_camera`."""
+    from toolkit.rotations import so3_exp
+
+    return viewmat[:, :3, :3] @ so3_exp(pose[:, :3])
+
+
 def gaze_to_camera(pitchyaw: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     """Head-frame gaze [B, 2] -> camera-frame gaze [B, 2] for head-to-camera rotations R [B, 3, 3].
 
