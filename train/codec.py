@@ -52,6 +52,10 @@ class LatentCodec(nn.Module):
         self.requires_grad_(False)
         return self.eval()
 
+    def decoder_modules(self) -> list[nn.Module]:
+        """The modules that map a latent to an image (what test-time fitting may tune); [] for no decoder."""
+        return []
+
     def latent_size(self, height: int, width: int) -> tuple[int, int]:
         """Latent grid for an image size, or a ToolkitError when the size is not a multiple of ``downsample``."""
         f = self.downsample
@@ -216,6 +220,9 @@ class KLAutoencoder(LatentCodec):
         self._check_latent(latent)
         return (self.decoder(latent / self.scale_factor) + 1) * 0.5
 
+    def decoder_modules(self) -> list[nn.Module]:
+        return [self.decoder]
+
 
 def kl_divergence(mean: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     """Mean per-element KL(N(mean, exp(logvar)) || N(0, 1))."""
@@ -364,6 +371,9 @@ class SDVAECodec(LatentCodec):
         self._check_latent(latent)
         out = self.vae.decode((latent / self.scaling).to(self.vae.dtype)).sample
         return (out.float() + 1) * 0.5
+
+    def decoder_modules(self) -> list[nn.Module]:
+        return [m for m in (getattr(self.vae, "post_quant_conv", None), self.vae.decoder) if m is not None]
 
 
 def load_codec(spec: str | Path, device: str | torch.device = "cpu") -> LatentCodec:

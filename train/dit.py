@@ -407,11 +407,18 @@ def DiT_tiny(**kw) -> DiT:
                          feature_embed_channels=4), **kw})
 
 
+def DiT_pixel(**kw) -> DiT:
+    """For pixel space at 128^2: depth 2, 4 heads, hidden 128, 8x8 patches (256 tokens)."""
+    return DiT(**{**dict(depth=2, num_heads=4, hidden_size=128, patch_size=8, mlp_ratio=2.0,
+                         feature_embed_channels=4), **kw})
+
+
 DIT_MODELS: dict[str, Callable[..., DiT]] = {
     "DiT-Gaze-paper": DiT_paper,
     "DiT-Gaze-paper/4": DiT_paper_p4,
     "DiT-Gaze-S": DiT_small,
     "DiT-Gaze-tiny": DiT_tiny,
+    "DiT-Gaze-pixel": DiT_pixel,
 }
 
 

@@ -102,7 +102,7 @@ def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, step
     return renderer.render(maps["head"], batch["code"], gaze=batch["gaze_head"], pose=batch["pose"])
 
 
-TTA_WEIGHT_GROUPS = ("features", "eye_features", "renderer")
+TTA_WEIGHT_GROUPS = ("features", "eye_features", "renderer", "decoder")
 """Weights test-time fitting may tune besides the code: the face Gaussians' canonical features (all channels;
 0..2 are the RGB), the eye Gaussians' features, and the neural renderer (the DiT; the baseline's whole network).
 The frozen codec, the deformation and eye rotation fields and the Gaussians' geometry are never fitted.
@@ -131,6 +131,15 @@ def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
             group = [model.eye_features]
         elif g == "renderer":
             group = list(getattr(renderer, "dit", renderer).parameters())  # the DiT's codec stays frozen
+        elif g == "decoder":
+            codec = getattr(renderer, "codec", None)
+            mods = codec.decoder_modules() if codec is not None else []
+            if not mods:
+                raise ToolkitError("test-time fitting: the 'decoder' group needs a latent renderer with a codec "
+                                   "decoder (the DiT with an autoencoder or SD VAE); this renderer has none")
+            # Frozen by design (training never tunes the codec): test_time_fit unfreezes them for the fit alone.
+            params += [p for m in mods for p in m.parameters()]
+            continue
         else:
             raise ToolkitError(f"test-time fitting: unknown weight group {g!r}, expected some of {list(TTA_WEIGHT_GROUPS)}")
         group = [p for p in group if p.requires_grad]
@@ -164,21 +173,26 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     """
     if not lr > 0:
         raise ToolkitError(f"test-time fitting: expected a learning rate > 0 (code, features), got {lr}")
-    if "renderer" in weights and not renderer_lr > 0:
+    if ("renderer" in weights or "decoder" in weights) and not renderer_lr > 0:
         raise ToolkitError(f"test-time fitting: expected a renderer learning rate > 0, got {renderer_lr}")
     code = batch["code"].clone().requires_grad_(True)
     feats = fitted_weights(model, renderer, [g for g in weights if g in ("features", "eye_features")])
-    net = fitted_weights(model, renderer, [g for g in weights if g == "renderer"])
+    net = fitted_weights(model, renderer, [g for g in weights if g in ("renderer", "decoder")])
     groups = [{"params": [code] + feats, "lr": lr}] + ([{"params": net, "lr": renderer_lr}] if net else [])
     opt = torch.optim.Adam(groups)
     fitted = [code] + feats + net
     t = _last_t(renderer, code.shape[0], code.device)  # diffusion renderers: the one-step path evaluation renders
     target = composite_on_white(input_image, mask)
+    frozen = [p for p in net if not p.requires_grad]  # the codec decoder's
     try:
+        for p in frozen:
+            p.requires_grad_(True)
         _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t, gaze)
     finally:
         for p in fitted[1:]:  # no .grad left on the weights, even when a step raised
             p.grad = None
+        for p in frozen:
+            p.requires_grad_(False)
     return code.detach()
 
 
@@ -303,8 +317,9 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
              tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
              references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
              own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None) -> dict[str, Any]:
-    """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "examples": tensors for the figure,
-    "references": {name: metrics}} and, with ``own_gaze_row``, "own_gaze": metrics.
+    """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "per_pair": [...] (each pair's subject,
+    index in the subject's pairing, and scores), "examples": tensors for the figure, "references": {name: metrics}}
+    and, with ``own_gaze_row``, "own_gaze": metrics.
 
     ``own_gaze_row``: also render every pair, from the same fitted state, at its *input's* view and gaze
     (:func:`own_gaze_batch`) and score that against the input image (its mask and landmarks) -- the error of
@@ -338,12 +353,13 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     gaze_err, head_err, psnrs, ssims, reals, fakes = [], [], [], [], [], []
     ref_scores: dict[str, dict[str, list[float]]] = {name: {} for name in references or {}}
     own_scores: dict[str, list[float]] = {}
-    per_subject, examples = [], None
+    per_subject, per_pair, examples = [], [], None
     n_images, total_render_time = 0, 0.0
     for f in test_files:
         pairs = SyntheticRedirectionPairs(f, res=res, seed=seed)
         n = min(pairs_per_subject, len(pairs))
-        items = [pairs[i] for i in spread_indices(len(pairs), n)]
+        indices = spread_indices(len(pairs), n)
+        items = [pairs[i] for i in indices]
         tgt = torch.stack([it["target"]["image"] for it in items]).to(device)
         inp = torch.stack([it["input"]["image"] for it in items]).to(device)
         mask = torch.stack([it["target"]["head_mask"] for it in items]).to(device)
@@ -376,6 +392,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
                 e_own, e_inp = estimator(own_w, lm), estimator(inp_w, lm)
             for key, vals in _pair_scores(own_w, e_own, inp_w, e_inp).items():
                 own_scores.setdefault(key, []).extend(vals.tolist())
+        per_pair += [{"subject": Path(f).name, "pair": i, "gaze_error_deg": g, "head_pose_error_deg": h, "psnr": pp,
+                      "ssim": ss} for i, g, h, pp, ss in zip(indices, ge.tolist(), he.tolist(), p.tolist(), s.tolist())]
         gaze_err += ge.tolist()
         head_err += he.tolist()
         psnrs += p.tolist()
@@ -399,7 +417,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
     references_out = {name: {k: summarize(v) for k, v in sc.items()} for name, sc in ref_scores.items()}
-    out = {"metrics": metrics, "per_subject": per_subject, "examples": examples, "references": references_out}
+    out = {"metrics": metrics, "per_subject": per_subject, "per_pair": per_pair, "examples": examples,
+           "references": references_out}
     if own_gaze_row:
         out["own_gaze"] = {k: summarize(v) for k, v in own_scores.items()}
     return out

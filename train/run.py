@@ -323,7 +323,7 @@ def _fitting(e) -> str:
         return "none"
     return f"{e.tta_steps} steps of the shape code" + "".join(
         {"features": ", the face Gaussians' features", "eye_features": ", the eye Gaussians' features",
-         "renderer": ", the renderer"}[w] for w in dict.fromkeys(e.tta_weights)) + (
+         "renderer": ", the renderer", "decoder": ", the codec's decoder"}[w] for w in dict.fromkeys(e.tta_weights)) + (
         ", compared on the input's whole head" if e.tta_region == "head" else ", compared on its face without the eyes"
     ) + (f", with the loss estimator's gaze term (weight {e.tta_gaze_weight:g}, "
          f"{'every step' if e.tta_gaze_every == 1 else f'every {e.tta_gaze_every} steps'}; {', '.join(e.tta_gaze_terms)})"
@@ -375,7 +375,8 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     table = table1_markdown({name: res["metrics"], OWN_GAZE_ROW: res["own_gaze"],
                              **{f"*reference: {k}*": v for k, v in res["references"].items()}})
     atomic_write_json(ctx.run_dir / "metrics.json", {"metrics": res["metrics"], "per_subject": res["per_subject"],
-                                                     "own_gaze": res["own_gaze"], "references": res["references"]})
+                                                     "per_pair": res["per_pair"], "own_gaze": res["own_gaze"],
+                                                     "references": res["references"]})
     import cv2
 
     ex = res["examples"]

@@ -136,6 +136,45 @@ def test_fitting_weights_changes_them_in_place_and_restored_weights_puts_them_ba
     assert all(torch.equal(after[k], v) for k, v in before.items())
 
 
+def test_fitting_the_codec_decoder_tunes_it_alone_and_leaves_it_frozen(subject_file):
+    from train.evaluate import restored_weights, test_time_fit
+
+    model, _, _ = untrained_eval_parts()
+    renderer = _renderer("dit")
+    batch, image, mask, _ = _inputs(subject_file, 1)
+    before = {k: v.clone() for k, v in renderer.state_dict().items()}
+
+    def fit_error(weights):
+        with restored_weights(model, renderer):
+            code = test_time_fit(model, renderer, batch, image, mask, 64, steps=15, weights=weights)
+            changed = {k: v.clone() for k, v in renderer.state_dict().items()}
+            err = _input_error(model, renderer, batch, image, mask, code)
+        return err, changed
+
+    dit_only, _ = fit_error(("renderer",))
+    with_decoder, changed = fit_error(("renderer", "decoder"))
+    assert any(not torch.equal(changed[k], before[k]) for k in before if k.startswith("codec.decoder."))
+    assert all(torch.equal(changed[k], before[k]) for k in before if k.startswith("codec.encoder."))
+    assert with_decoder < dit_only  # the decoder's freedom fits the input better
+    # The codec is frozen again, with no gradients left, and restored_weights put it back.
+    assert not any(p.requires_grad for p in renderer.codec.parameters())
+    assert all(p.grad is None for p in renderer.parameters())
+    assert all(torch.equal(renderer.state_dict()[k], v) for k, v in before.items())
+
+
+def test_decoder_group_needs_a_codec_with_a_decoder():
+    from train.codec import PixelCodec
+    from train.evaluate import fitted_weights
+    from train.renderer import make_renderer
+
+    model, baseline, _ = untrained_eval_parts()
+    for renderer in (baseline, make_renderer("dit", PixelCodec(), output_size=64, upscale=4)):
+        with pytest.raises(ToolkitError, match="'decoder' group needs a latent renderer"):
+            fitted_weights(model, renderer, ["decoder"])
+    dit = _renderer("dit")
+    assert fitted_weights(model, dit, ["decoder"]) == list(dit.codec.decoder.parameters())
+
+
 def test_unknown_fitting_group_is_a_clear_error(subject_file):
     from toolkit.errors import ToolkitError
     from train.evaluate import fitted_weights
@@ -247,9 +286,14 @@ def test_evaluate_takes_the_spread_pairs(subject_file, monkeypatch):
 
     monkeypatch.setattr(SyntheticRedirectionPairs, "__getitem__", recording)
     model, renderer, est = untrained_eval_parts()
-    evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None)
+    out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None)
     total = len(SyntheticRedirectionPairs(subject_file, res=64, seed=0))
     assert total > 3 and seen == spread_indices(total, 3) and seen[-1] == total - 1
+    # Each pair's scores are reported under its index, and they average to the table's numbers.
+    assert [r["pair"] for r in out["per_pair"]] == seen
+    for key in ("gaze_error_deg", "psnr", "ssim"):
+        mean = sum(r[key] for r in out["per_pair"]) / 3
+        assert math.isclose(mean, out["metrics"][key], rel_tol=1e-5)
 
 
 def test_own_gaze_batch_turns_the_render_back_on_the_input():

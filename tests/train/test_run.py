@@ -196,6 +196,39 @@ def test_feature_upscale_sets_the_splat_size(tiny_run, tmp_path, renderer, upsca
     assert m["psnr"] == m["psnr"] and m["gaze_error_deg"] == m["gaze_error_deg"]
 
 
+def test_pixel_space_dit_runs_without_a_codec(tiny_run, tmp_path):
+    from train.codec import PixelCodec
+
+    d = tmp_path / "pixel"
+    shutil.copytree(tiny_run, d)
+    over = ["codec.kind=pixel", "gaussian.dit_model=DiT-Gaze-pixel", "gaussian.steps=2", "eval.pairs_per_subject=1"]
+    assert run.main([*TINY, "--run-dir", str(d), "--stages", "codec,gaussian,eval", *over]) == 0
+    _, renderer = run.load_trained(run.open_run(d), "cpu")
+    assert isinstance(renderer.codec, PixelCodec) and renderer.dit.config.patch_size == 8
+    m = json.loads((d / "metrics.json").read_text())
+    assert m["metrics"]["psnr"] == m["metrics"]["psnr"] and len(m["per_pair"]) == m["metrics"]["pairs"]
+    # No codec: the report scores no "through the codec" reference (it would be the target itself).
+    assert list(m["references"]) == ["target at half resolution"]
+
+
+def test_demo_preset_renders_in_pixel_space_at_its_resolution():
+    from train.codec import PixelCodec
+    from train.renderer import make_renderer
+    from train.run_config import preset
+
+    cfg = preset("demo")
+    g, res = cfg.gaussian, cfg.data.res
+    assert cfg.codec.kind == "pixel" and preset("paper").codec.kind == "ae"
+    renderer = make_renderer("dit", PixelCodec(), model=g.dit_model, output_size=res, upscale=g.feature_upscale,
+                             residual=g.residual)
+    feats = torch.rand(1, renderer.dit.config.feature_channels, res // g.feature_upscale, res // g.feature_upscale)
+    with torch.no_grad():
+        image = renderer.render(feats, torch.zeros(1, 144))
+    assert image.shape == (1, 3, res, res) and torch.isfinite(image).all()
+    # The untrained residual renderer returns the splat's own RGB: the DiT starts from the splat's image.
+    assert torch.allclose(image, feats[:, :3].clamp(0, 1), atol=1e-5)
+
+
 def test_corrupt_checkpoint_is_clear_error(tiny_run, tmp_path):
     d = tmp_path / "c"
     shutil.copytree(tiny_run, d)
