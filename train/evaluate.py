@@ -104,8 +104,10 @@ def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, step
 
 TTA_WEIGHT_GROUPS = ("features", "eye_features", "renderer", "decoder")
 """Weights test-time fitting may tune besides the code: the face Gaussians' canonical features (all channels;
-0..2 are the RGB), the eye Gaussians' features, and the neural renderer (the DiT; the baseline's whole network).
-The frozen codec, the deformation and eye rotation fields and the Gaussians' geometry are never fitted.
+0..2 are the RGB), the eye Gaussians' features, the neural renderer (the DiT; the baseline's whole network) and
+a latent renderer's codec decoder (``decoder``: frozen in training, unfrozen for the fit alone; on the demo's
+latent DiT it bought 0.04 dB and no gaze, session 16). The encoder, the deformation and eye rotation fields and
+the Gaussians' geometry are never fitted.
 
 With ``tta_region="face"`` the fitting loss cuts the input's eyes out (:func:`face_only_mask`) and never
 checks what the eye Gaussians' features draw: fitting them then only lets the eyes drift (session 7, demo run:

@@ -68,7 +68,9 @@ class GeometryStageConfig:
 @dataclass
 class CodecStageConfig:
     kind: Literal["ae", "sd-vae", "pixel"] = "ae"
-    """latent codec: the project's small KL autoencoder, Stable Diffusion's VAE (local path), or pixels."""
+    """latent codec: the project's small KL autoencoder, Stable Diffusion's VAE (local path), or pixels (the demo
+    preset's since session 16, with ``gaussian.dit_model=DiT-Gaze-pixel``: the codec the demo can afford capped the
+    latent DiT's renders at its own reconstruction, see ``demo_preset``)."""
     sd_vae_path: str = ""
     """local diffusers AutoencoderKL folder (kind=sd-vae)."""
     steps: int = 640
@@ -195,7 +197,8 @@ class EvalConfig:
     tta_weights: tuple[Literal["features", "eye_features", "renderer", "decoder"], ...] = ("features", "renderer")
     """weights fitted with the shape code: the face Gaussians' features (all channels), the eye Gaussians'
     features (off: with ``tta_region: face`` the fitting loss never sees the eyes), the neural renderer (pairs
-    are then fitted one at a time); () fits the code alone, all pairs of a subject in one batch."""
+    are then fitted one at a time), a latent DiT's codec decoder (``decoder``, off: +0.04 dB on the session-16
+    demo run); () fits the code alone, all pairs of a subject in one batch."""
     tta_region: Literal["head", "face"] = "head"
     """what test-time fitting compares: the input's whole head, or its face with the eyes cut out (the default
     until session 13). Demo run, 40 steps, head / face: DiT gaze 10.34° / 11.38°, PSNR 32.52 / 32.35 dB; U-Net
