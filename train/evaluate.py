@@ -106,7 +106,7 @@ TTA_WEIGHT_GROUPS = ("features", "eye_features", "renderer", "decoder")
 """Weights test-time fitting may tune besides the code: the face Gaussians' canonical features (all channels;
 0..2 are the RGB), the eye Gaussians' features, the neural renderer (the DiT; the baseline's whole network) and
 a latent renderer's codec decoder (``decoder``: frozen in training, unfrozen for the fit alone; on the demo's
-latent DiT it bought 0.04 dB and no gaze, session 16). The encoder, the deformation and eye rotation fields and
+session 15's demo, a latent DiT: +0.04 dB and +0.18° gaze error, session 16). The encoder, the deformation and eye rotation fields and
 the Gaussians' geometry are never fitted.
 
 With ``tta_region="face"`` the fitting loss cuts the input's eyes out (:func:`face_only_mask`) and never
@@ -124,7 +124,8 @@ teach it the wrong gaze (docs/evaluation.md)."""
 
 def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
     """The parameters of the named ``TTA_WEIGHT_GROUPS``, each group once (a ToolkitError for an unknown name
-    or a group whose weights are all frozen)."""
+    or a group whose weights are all frozen). ``decoder`` is the exception: its weights are frozen by design
+    and returned as they are; the caller unfreezes them for the fit (:func:`test_time_fit` does)."""
     params: list[torch.nn.Parameter] = []
     for g in dict.fromkeys(groups):
         if g == "features":
@@ -167,8 +168,8 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     Loss: L1 on white outside ``mask`` [B, 1, H, W] (the evaluation passes :func:`face_only_mask`) of the
     one-step render, plus L1 of the splatted RGB channels against the area-downsampled input (the training
     stage's ``rgb`` term), also outside the area-downsampled mask. ``weights`` (names from
-    ``TTA_WEIGHT_GROUPS``) are tuned too, **in place** -- the Gaussian features at ``lr``, the renderer at
-    ``renderer_lr`` -- so the caller restores them (:func:`restored_weights`); with no ``weights`` the
+    ``TTA_WEIGHT_GROUPS``) are tuned too, **in place** -- the Gaussian features at ``lr``, the renderer and the
+    codec decoder at ``renderer_lr`` (the decoder unfrozen for the fit, frozen again after) -- so the caller restores them (:func:`restored_weights`); with no ``weights`` the
     model and renderer are untouched (the gradient is taken for the code alone). ``gaze`` (:class:`FitGaze`)
     adds a gaze term read by the frozen loss estimator (it needs ``batch["gaze_head"]`` and
     ``batch["landmarks"]``). Returns the fitted code.

@@ -312,6 +312,9 @@ def _check_values(cfg: RunConfig) -> None:
         raise ToolkitError(f"config key 'eval.tta_gaze_weight': expected a weight >= 0, got {cfg.eval.tta_gaze_weight}")
     if cfg.eval.tta_gaze_every < 1:
         raise ToolkitError(f"config key 'eval.tta_gaze_every': expected a step count >= 1, got {cfg.eval.tta_gaze_every}")
+    if "decoder" in cfg.eval.tta_weights and (cfg.gaussian.renderer != "dit" or cfg.codec.kind == "pixel"):
+        raise ToolkitError("config key 'eval.tta_weights': 'decoder' needs a codec decoder: gaussian.renderer=dit "
+                           f"with codec.kind ae or sd-vae (got renderer {cfg.gaussian.renderer}, codec {cfg.codec.kind})")
     if cfg.eval.tta_gaze_weight > 0 and not cfg.eval.tta_gaze_terms:
         raise ToolkitError("config key 'eval.tta_gaze_terms': expected at least one of target, own when "
                            "eval.tta_gaze_weight > 0")

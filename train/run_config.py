@@ -197,8 +197,8 @@ class EvalConfig:
     tta_weights: tuple[Literal["features", "eye_features", "renderer", "decoder"], ...] = ("features", "renderer")
     """weights fitted with the shape code: the face Gaussians' features (all channels), the eye Gaussians'
     features (off: with ``tta_region: face`` the fitting loss never sees the eyes), the neural renderer (pairs
-    are then fitted one at a time), a latent DiT's codec decoder (``decoder``, off: +0.04 dB on the session-16
-    demo run); () fits the code alone, all pairs of a subject in one batch."""
+    are then fitted one at a time), a latent DiT's codec decoder (``decoder``, off: +0.04 dB and +0.18° gaze error on
+    session 15's latent demo; an error with a pixel codec or the U-Net); () fits the code alone, all pairs of a subject in one batch."""
     tta_region: Literal["head", "face"] = "head"
     """what test-time fitting compares: the input's whole head, or its face with the eyes cut out (the default
     until session 13). Demo run, 40 steps, head / face: DiT gaze 10.34° / 11.38°, PSNR 32.52 / 32.35 dB; U-Net
@@ -241,10 +241,11 @@ class RunConfig:
 
 
 def demo_preset() -> RunConfig:
-    """The CPU demo: minutes on 2 cores, 128² renders. The DiT renders in pixel space (no codec stage): the
+    """The CPU demo: minutes on 2 cores, 128² renders. The DiT renders in pixel space (the codec stage does nothing): the
     autoencoder the demo can afford capped the latent DiT's renders at its own reconstruction (33.1 dB on the
-    held-out targets), and in pixel space the DiT beats the U-Net at equal training time (docs/renderer.md,
-    session 16). The time saved trains the gaze estimators twice as long."""
+    held-out targets), and in pixel space the DiT beats the U-Net on PSNR and SSIM at equal training time
+    (docs/renderer.md, session 16). The time saved trains the gaze estimators twice as long. Session 15's latent
+    demo: ``codec.kind=ae gaussian.dit_model=DiT-Gaze-tiny estimator.steps=1000``."""
     return RunConfig(preset="demo", codec=CodecStageConfig(kind="pixel"),
                      estimator=EstimatorStageConfig(steps=2000),
                      gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel"))

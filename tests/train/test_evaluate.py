@@ -162,6 +162,23 @@ def test_fitting_the_codec_decoder_tunes_it_alone_and_leaves_it_frozen(subject_f
     assert all(torch.equal(renderer.state_dict()[k], v) for k, v in before.items())
 
 
+def test_failed_fit_freezes_the_codec_decoder_again(subject_file, monkeypatch):
+    import train.evaluate as ev
+
+    model, _, _ = untrained_eval_parts()
+    renderer = _renderer("dit")
+    batch, image, mask, _ = _inputs(subject_file, 1)
+
+    def boom(*a, **k):
+        assert all(p.requires_grad for p in renderer.codec.decoder.parameters())  # unfrozen during the fit
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(ev, "_fit_steps", boom)
+    with ev.restored_weights(model, renderer), pytest.raises(RuntimeError, match="boom"):
+        ev.test_time_fit(model, renderer, batch, image, mask, 64, steps=2, weights=("renderer", "decoder"))
+    assert not any(p.requires_grad for p in renderer.codec.parameters())
+
+
 def test_decoder_group_needs_a_codec_with_a_decoder():
     from train.codec import PixelCodec
     from train.evaluate import fitted_weights
@@ -289,11 +306,16 @@ def test_evaluate_takes_the_spread_pairs(subject_file, monkeypatch):
     out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None)
     total = len(SyntheticRedirectionPairs(subject_file, res=64, seed=0))
     assert total > 3 and seen == spread_indices(total, 3) and seen[-1] == total - 1
-    # Each pair's scores are reported under its index, and they average to the table's numbers.
-    assert [r["pair"] for r in out["per_pair"]] == seen
+    # Each pair's scores are reported under its subject and index, and they average to the table's numbers.
+    assert [(r["subject"], r["pair"]) for r in out["per_pair"]] == [(subject_file.name, i) for i in seen]
     for key in ("gaze_error_deg", "psnr", "ssim"):
         mean = sum(r[key] for r in out["per_pair"]) / 3
         assert math.isclose(mean, out["metrics"][key], rel_tol=1e-5)
+    # Order-sensitive: the first pair alone (index 0, the first spread index) scores what its row says.
+    first = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=1, log=lambda s: None)
+    assert first["per_pair"][0]["pair"] == 0
+    for key in ("gaze_error_deg", "psnr", "ssim"):
+        assert math.isclose(first["per_pair"][0][key], out["per_pair"][0][key], rel_tol=1e-4, abs_tol=1e-4)
 
 
 def test_own_gaze_batch_turns_the_render_back_on_the_input():

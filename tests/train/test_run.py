@@ -139,6 +139,14 @@ def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
         run.main([*TINY, "--run-dir", str(d), override])
 
 
+@pytest.mark.parametrize("no_decoder", ["codec.kind=pixel", "gaussian.renderer=unet"])
+def test_fitting_a_decoder_that_is_not_there_fails_before_any_work(tmp_path, no_decoder):
+    d = tmp_path / "never"
+    with pytest.raises(ToolkitError, match="'eval.tta_weights': 'decoder' needs a codec decoder"):
+        run.main([*TINY, "--run-dir", str(d), no_decoder, "eval.tta_weights=[features,decoder]"])
+    assert not d.exists()
+
+
 def test_unknown_stage_and_missing_dataset(tmp_path):
     with pytest.raises(ToolkitError, match="unknown stage"):
         run.main([*TINY, "--run-dir", str(tmp_path), "--stages", "train"])
@@ -214,16 +222,21 @@ def test_pixel_space_dit_runs_without_a_codec(tiny_run, tmp_path):
 def test_demo_preset_renders_in_pixel_space_at_its_resolution():
     from train.codec import PixelCodec
     from train.renderer import make_renderer
-    from train.run_config import preset
+    from train.run_config import RunConfig, preset
 
     cfg = preset("demo")
     g, res = cfg.gaussian, cfg.data.res
-    assert cfg.codec.kind == "pixel" and preset("paper").codec.kind == "ae"
+    assert (cfg.codec.kind, g.dit_model, cfg.estimator.steps) == ("pixel", "DiT-Gaze-pixel", 2000)
+    # The preset alone changed: the dataclass defaults and the paper preset keep the latent DiT.
+    plain = RunConfig()
+    assert (plain.codec.kind, plain.gaussian.dit_model, plain.estimator.steps) == ("ae", "DiT-Gaze-tiny", 1000)
+    assert preset("paper").codec.kind == "ae"
     renderer = make_renderer("dit", PixelCodec(), model=g.dit_model, output_size=res, upscale=g.feature_upscale,
                              residual=g.residual)
+    assert renderer.dit.config.patch_size == 8
     feats = torch.rand(1, renderer.dit.config.feature_channels, res // g.feature_upscale, res // g.feature_upscale)
     with torch.no_grad():
-        image = renderer.render(feats, torch.zeros(1, 144))
+        image = renderer.render(feats, torch.zeros(1, renderer.dit.config.shape_dim))
     assert image.shape == (1, 3, res, res) and torch.isfinite(image).all()
     # The untrained residual renderer returns the splat's own RGB: the DiT starts from the splat's image.
     assert torch.allclose(image, feats[:, :3].clamp(0, 1), atol=1e-5)
