@@ -7,8 +7,9 @@ Step 2: renders a gaze sweep of the demo head through the headless preview splat
 rigidly about its own eyeball centre) as an .mp4 and a .png contact sheet.
 Step 3 (unless ``--skip-training``): the whole DiT-Gaze pipeline (``train/run.py``, ``demo`` preset) on
 synthetic data generated on the fly: geometry, codec (none: the demo's DiT renders in pixel space), gaze
-estimators, the two-stream Gaussian model with the DiT renderer, evaluation on held-out subjects against exact ground truth (``report.md``), a gaze-sweep
-video of a held-out subject rendered by the trained model, and a redirected mini-dataset (HDF5).
+estimators, the two-stream Gaussian model with the DiT renderer, evaluation on held-out subjects against exact
+ground truth (``report.md``), a gaze-sweep video of a held-out subject rendered by the trained model, and a
+redirected mini-dataset (HDF5).
 """
 
 from __future__ import annotations

@@ -105,14 +105,17 @@ def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, step
 TTA_WEIGHT_GROUPS = ("features", "eye_features", "renderer", "decoder")
 """Weights test-time fitting may tune besides the code: the face Gaussians' canonical features (all channels;
 0..2 are the RGB), the eye Gaussians' features, the neural renderer (the DiT; the baseline's whole network) and
-a latent renderer's codec decoder (``decoder``: frozen in training, unfrozen for the fit alone; on the demo's
-session 15's demo, a latent DiT: +0.04 dB and +0.18° gaze error, session 16). The encoder, the deformation and eye rotation fields and
-the Gaussians' geometry are never fitted.
+a latent renderer's codec decoder (``decoder``: frozen in training, unfrozen for the fit alone; on session 15's
+demo, a latent DiT, it gave +0.04 dB and +0.18° gaze error, session 16). The encoder, the deformation and eye
+rotation fields and the Gaussians' geometry are never fitted.
 
 With ``tta_region="face"`` the fitting loss cuts the input's eyes out (:func:`face_only_mask`) and never
 checks what the eye Gaussians' features draw: fitting them then only lets the eyes drift (session 7, demo run:
 held-out gaze 24.4° with them, 20.5° without, PSNR 28.78 / 28.82 dB). They are a group of their own, off by
 default."""
+
+NETWORK_GROUPS = ("renderer", "decoder")
+"""The ``TTA_WEIGHT_GROUPS`` fitted at the renderer's learning rate (the rest at the code's)."""
 
 TTA_REGIONS = ("head", "face")
 """What test-time fitting compares: the input's whole head, or its face with the eyes cut out
@@ -169,18 +172,18 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     one-step render, plus L1 of the splatted RGB channels against the area-downsampled input (the training
     stage's ``rgb`` term), also outside the area-downsampled mask. ``weights`` (names from
     ``TTA_WEIGHT_GROUPS``) are tuned too, **in place** -- the Gaussian features at ``lr``, the renderer and the
-    codec decoder at ``renderer_lr`` (the decoder unfrozen for the fit, frozen again after) -- so the caller restores them (:func:`restored_weights`); with no ``weights`` the
-    model and renderer are untouched (the gradient is taken for the code alone). ``gaze`` (:class:`FitGaze`)
-    adds a gaze term read by the frozen loss estimator (it needs ``batch["gaze_head"]`` and
-    ``batch["landmarks"]``). Returns the fitted code.
+    codec decoder at ``renderer_lr`` (the decoder unfrozen for the fit, frozen again after) -- so the caller
+    restores them (:func:`restored_weights`); with no ``weights`` the model and renderer are untouched (the
+    gradient is taken for the code alone). ``gaze`` (:class:`FitGaze`) adds a gaze term read by the frozen loss
+    estimator (it needs ``batch["gaze_head"]`` and ``batch["landmarks"]``). Returns the fitted code.
     """
     if not lr > 0:
         raise ToolkitError(f"test-time fitting: expected a learning rate > 0 (code, features), got {lr}")
-    if ("renderer" in weights or "decoder" in weights) and not renderer_lr > 0:
+    if any(g in NETWORK_GROUPS for g in weights) and not renderer_lr > 0:
         raise ToolkitError(f"test-time fitting: expected a renderer learning rate > 0, got {renderer_lr}")
     code = batch["code"].clone().requires_grad_(True)
     feats = fitted_weights(model, renderer, [g for g in weights if g in ("features", "eye_features")])
-    net = fitted_weights(model, renderer, [g for g in weights if g in ("renderer", "decoder")])
+    net = fitted_weights(model, renderer, [g for g in weights if g in NETWORK_GROUPS])
     groups = [{"params": [code] + feats, "lr": lr}] + ([{"params": net, "lr": renderer_lr}] if net else [])
     opt = torch.optim.Adam(groups)
     fitted = [code] + feats + net

@@ -197,8 +197,9 @@ class EvalConfig:
     tta_weights: tuple[Literal["features", "eye_features", "renderer", "decoder"], ...] = ("features", "renderer")
     """weights fitted with the shape code: the face Gaussians' features (all channels), the eye Gaussians'
     features (off: with ``tta_region: face`` the fitting loss never sees the eyes), the neural renderer (pairs
-    are then fitted one at a time), a latent DiT's codec decoder (``decoder``, off: +0.04 dB and +0.18° gaze error on
-    session 15's latent demo; an error with a pixel codec or the U-Net); () fits the code alone, all pairs of a subject in one batch."""
+    are then fitted one at a time), a latent DiT's codec decoder (``decoder``, off: +0.04 dB and +0.18° gaze
+    error on session 15's latent demo; an error with a pixel codec or the U-Net); () fits the code alone, all
+    pairs of a subject in one batch."""
     tta_region: Literal["head", "face"] = "head"
     """what test-time fitting compares: the input's whole head, or its face with the eyes cut out (the default
     until session 13). Demo run, 40 steps, head / face: DiT gaze 10.34° / 11.38°, PSNR 32.52 / 32.35 dB; U-Net
@@ -241,13 +242,14 @@ class RunConfig:
 
 
 def demo_preset() -> RunConfig:
-    """The CPU demo: minutes on 2 cores, 128² renders. The DiT renders in pixel space (the codec stage does nothing): the
-    autoencoder the demo can afford capped the latent DiT's renders at its own reconstruction (33.1 dB on the
-    held-out targets), and in pixel space the DiT beats the U-Net on PSNR and SSIM at equal training time
-    (docs/renderer.md, session 16). The time saved trains the gaze estimators twice as long. The fit's gaze term
-    weighs 0.0006 (the default 0.0002 was tuned on the latent DiT; on the pixel DiT 0.0006 read 0.5° better by the
-    run's evaluation estimator and 0.75° better by an independent judge, for 0.14 dB). Session 15's latent demo:
-    ``codec.kind=ae gaussian.dit_model=DiT-Gaze-tiny estimator.steps=1000 eval.tta_gaze_weight=0.0002``."""
+    """The CPU demo: minutes on 2 cores, 128² renders. The DiT renders in pixel space (the codec stage does
+    nothing): the autoencoder the demo can afford capped the latent DiT's renders at its own reconstruction
+    (33.1 dB on the held-out targets), and in pixel space the DiT beats the U-Net on PSNR and SSIM at equal
+    training time (docs/renderer.md, session 16). The time saved trains the gaze estimators twice as long. The
+    fit's gaze term weighs 0.0006 (the default 0.0002 was tuned on the latent DiT; on the pixel DiT 0.0006 read
+    0.5° better by the run's evaluation estimator and 0.75° better by an independent judge, for 0.14 dB).
+    Session 15's latent demo: ``codec.kind=ae gaussian.dit_model=DiT-Gaze-tiny estimator.steps=1000
+    eval.tta_gaze_weight=0.0002``."""
     return RunConfig(preset="demo", codec=CodecStageConfig(kind="pixel"),
                      estimator=EstimatorStageConfig(steps=2000),
                      gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel"),
