@@ -140,8 +140,13 @@ def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
 
 
 @pytest.mark.parametrize("no_decoder", ["codec.kind=pixel", "gaussian.renderer=unet"])
-def test_fitting_a_decoder_that_is_not_there_fails_before_any_work(tmp_path, no_decoder):
+def test_fitting_a_decoder_that_is_not_there_fails_before_any_work(tmp_path, capsys, no_decoder):
+    from toolkit.errors import run_cli
+
     d = tmp_path / "never"
+    assert run_cli(run.main, [*TINY, "--run-dir", str(d), no_decoder, "eval.tta_weights=[features,decoder]"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: config key 'eval.tta_weights'") and err.count("\n") == 1
     with pytest.raises(ToolkitError, match="'eval.tta_weights': 'decoder' needs a codec decoder"):
         run.main([*TINY, "--run-dir", str(d), no_decoder, "eval.tta_weights=[features,decoder]"])
     assert not d.exists()
