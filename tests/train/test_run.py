@@ -51,6 +51,33 @@ def test_all_stages_write_their_outputs(tiny_run):
     assert GazeEstimator.load(tiny_run / "estimator_eval.safetensors").config.eyes
 
 
+def test_estimators_trained_at_once_equal_those_trained_in_turn(tiny_run, tmp_path):
+    """With 2 CPU threads the stage trains both estimators at once, one process and thread each: the weights
+    must be exactly those of the 1-thread run that trained them in turn (the fixture), and the summary too."""
+    from safetensors.torch import load_file
+
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d)
+    for role in ("loss", "eval"):
+        (d / f"estimator_{role}.safetensors").unlink()
+    (d / "estimators.json").unlink()
+    ctx = run.open_run(d)
+    lines = []
+    ctx.log = lines.append
+    torch.set_num_threads(2)
+    try:
+        outs = run.stage_estimator(ctx)
+    finally:
+        torch.set_num_threads(1)
+    assert any("2 processes x 1 threads" in s for s in lines)
+    assert outs == {"loss": "estimator_loss.safetensors", "eval": "estimator_eval.safetensors",
+                    "summary": "estimators.json"}
+    for role in ("loss", "eval"):
+        a, b = load_file(tiny_run / outs[role]), load_file(d / outs[role])
+        assert set(a) == set(b) and all(torch.equal(a[k], b[k]) for k in a), role
+    assert json.loads((d / "estimators.json").read_text()) == json.loads((tiny_run / "estimators.json").read_text())
+
+
 def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, capsys):
     assert run.main([*TINY, "--run-dir", str(tiny_run), "--stages", "all"]) == 0
     status = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["stages"]
