@@ -9,7 +9,8 @@ Step 3 (unless ``--skip-training``): the whole DiT-Gaze pipeline (``train/run.py
 synthetic data generated on the fly: geometry, codec (none: the demo's DiT renders in pixel space), gaze
 estimators, the two-stream Gaussian model with the DiT renderer, evaluation on held-out subjects against exact
 ground truth (``report.md``), a gaze-sweep video of a held-out subject rendered by the trained model, and a
-redirected mini-dataset (HDF5).
+redirected mini-dataset (HDF5). The held-out face is fitted first, as the evaluation fits one, for both
+(``apps.redirect --fit-weights``).
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     from apps.preview import write_contact_sheet, write_video
     from train import run
     from train.data.dataset import GazeDataset
-    from train.evaluate import model_gaze_sweep
+    from train.evaluate import model_gaze_sweep, restored_weights
 
     run_dir = out / "run"
     print(f"== DiT-Gaze pipeline ({preset} preset) -> {run_dir} ==", flush=True)
@@ -104,13 +105,20 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     n = cfg.eval.sweep_frames
     t = torch.linspace(0, 2 * torch.pi, n + 1)[:-1]
     gazes = torch.stack([0.35 * torch.sin(t), 0.45 * torch.cos(t)], -1)  # a circle of ±20° pitch, ±26° yaw
-    frames = model_gaze_sweep(model, renderer, item, gazes, cfg.data.res, cfg.gaussian.sampling_steps)
+    # A held-out face: fitted first, as the evaluation fits one (at the sweep's gazes), then swept.
+    fit_steps = cfg.eval.tta_steps
+    with restored_weights(model, renderer):
+        if fit_steps > 0:
+            fit = redirect.row_fitter(ctx, model, renderer, torch.device("cpu"), fit_steps)
+            item = {**item, "latent_code": fit(item, gazes)[0]}
+        frames = model_gaze_sweep(model, renderer, item, gazes, cfg.data.res, cfg.gaussian.sampling_steps)
     rgb = (frames.clamp(0, 1).permute(0, 2, 3, 1).numpy() * 255).round().astype("uint8")
     write_video(out / "heldout_gaze_sweep.mp4", rgb, fps=6)
     cols = min(n, 8)
     write_contact_sheet(out / "heldout_gaze_sweep.png", rgb, rows=-(-n // cols), cols=cols)
     redirected = out / "redirected_mini.h5"
-    redirect.main([str(run_dir), str(test_file), str(redirected), "--gazes", "grid:3x3:25", "--rows", "4"])
+    redirect.main([str(run_dir), str(test_file), str(redirected), "--gazes", "grid:3x3:25", "--rows", "4"]
+                  + (["--fit-weights"] if fit_steps > 0 else []))
     print("== outputs ==")
     for name, path in (("evaluation report", run_dir / "report.md"), ("metrics", run_dir / "metrics.json"),
                        ("qualitative grid", run_dir / "qualitative.png"),

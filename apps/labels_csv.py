@@ -300,6 +300,7 @@ class LabelsCsvSource:
             return up(maps["head_alpha"]), up(maps["face_alpha"]), up(maps["eyes_alpha"])
 
         user_masks = [self._mask(r) for r in rows]
+        images = [self._image(r) for r in rows]
         fit = [i for i, r in enumerate(rows) if r.code is None]
         if fit and fit_steps > 0:
             head_a, face_a, eyes_a = silhouettes(code)
@@ -308,7 +309,7 @@ class LabelsCsvSource:
             # Compare the face only, as the evaluation does: the image's eyes show its own gaze, which the
             # code must not learn (the redirected rows would copy it).
             mask = face_only_mask(head, visible_eyes(face_a, eyes_a))
-            image = torch.stack([self._image(r) for r in rows]).to(device)
+            image = torch.stack(images).to(device)
             sel = torch.tensor(fit, device=device)
             batch = {"code": code[sel], "in_pose": geo["pose"][sel], "in_gaze_head": geo["gaze_head"][sel],
                      "in_viewmat": geo["viewmat"][sel], "K": geo["K"][sel]}
@@ -331,7 +332,8 @@ class LabelsCsvSource:
                 "latent_code": code[i].detach().cpu(), "pose": geo["pose"][i].cpu(), "viewmat": geo["viewmat"][i].cpu(),
                 "K": geo["K"][i].cpu(), "head_mask": head, "left_eye_mask": left[None], "right_eye_mask": (eyes - left)[None],
                 "face_head_pose": geo["face_head_pose"][i].cpu(), "cam_index": torch.tensor(0),
-                "frame_index": torch.tensor(idx[i]), "landmarks": uv,
+                "frame_index": torch.tensor(idx[i]), "landmarks": uv, "image": images[i],
+                "pitchyaw_head": geo["gaze_head"][i].cpu(),  # the image's own gaze (0, 0 when the row has none)
                 "landmarks_3d": self.landmarks_head, "scale": torch.ones(1), "vertice": self.mesh_head,
             })
         return out

@@ -30,10 +30,11 @@ process renders the chunks ``k ≡ rank (mod world)`` and rank 0 assembles.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -82,10 +83,43 @@ def _chunk_path(parts: Path, k: int) -> Path:
     return parts / f"part_{k:05d}.npz"
 
 
+def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = True
+               ) -> Callable[[dict, torch.Tensor], torch.Tensor]:
+    """The evaluation's test-time fitting for one input row, as a function (item, gazes [G, 2]) -> fitted code
+    [1, C]: ``steps`` Adam steps of the code and the run's ``eval.tta_weights`` (by default the face Gaussians'
+    features and the renderer) on the input image, compared on ``eval.tta_region``, with the loss estimator's
+    gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn. The weights are tuned in place:
+    the caller restores them (``train.evaluate.restored_weights``) after rendering the row. ``gaze_term=False``
+    leaves the gaze term out whatever the run's weight (``benchmarks/redirect.py`` measures what it adds)."""
+    from train.evaluate import face_only_mask, test_time_fit
+    from train.run import fit_gaze_term
+
+    e = ctx.config.eval
+    gaze = fit_gaze_term(ctx, device) if gaze_term else None
+    res = ctx.config.data.res
+
+    def fit(it: dict, gazes: torch.Tensor) -> torch.Tensor:
+        t = lambda k: torch.as_tensor(it[k]).float()[None].to(device)  # noqa: E731
+        head = t("head_mask")
+        mask = head if e.tta_region == "head" else face_only_mask(head, (t("left_eye_mask") + t("right_eye_mask")).clamp(0, 1))
+        batch = {"code": t("latent_code"), "in_pose": t("pose"), "in_gaze_head": t("pitchyaw_head"),
+                 "in_viewmat": t("viewmat"), "K": t("K"), "landmarks": t("landmarks"), "in_head_mask": head,
+                 "gaze_head": gazes[:1], "target_gazes": gazes[None]}
+        with torch.enable_grad():
+            return test_time_fit(model, renderer, batch, t("image"), mask, res, steps, weights=tuple(e.tta_weights),
+                                 renderer_lr=e.tta_renderer_lr, gaze=gaze)
+
+    return fit
+
+
 def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.ndarray, res: int, steps: int,
-                 device) -> dict:
+                 device, fit: Callable[[dict, torch.Tensor], torch.Tensor] | None = None) -> dict:
     """Render every (row, gaze) pair of the input ``items`` (``GazeDataset`` items or
-    ``LabelsCsvSource.items``; ``rows`` their input row numbers) -> arrays of the output schema."""
+    ``LabelsCsvSource.items``; ``rows`` their input row numbers) -> arrays of the output schema.
+
+    ``fit`` (:func:`row_fitter`): fit each row before rendering its gazes, from the trained weights each time."""
+    from train.evaluate import restored_weights
+
     out: dict[str, list] = {k: [] for k in ("face_patch", "head_mask", "pitchyaw_head", "pitchyaw_cam", "pose",
                                             "w2c_Rmat", "w2c_Tvec", "inmat", "latent_codes", "face_head_pose",
                                             "cam_index", "frame_index", "source_row", "left_eye_mask",
@@ -96,14 +130,17 @@ def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.
     for it, r in zip(items, rows):
         G = gazes.shape[0]
         rep = lambda k, it=it, G=G: torch.as_tensor(it[k]).float()[None].expand(G, *torch.as_tensor(it[k]).shape).to(device)  # noqa: E731
-        gz = torch.from_numpy(gazes).to(device)
+        gz = torch.from_numpy(gazes).float().to(device)
         code, pose, V, K = rep("latent_code"), rep("pose"), rep("viewmat"), rep("K")
-        with torch.no_grad():
-            maps = model(code, pose, gz, V, K, res, res, renders=("head",))
-            if hasattr(renderer, "diffusion"):
-                img = renderer.render(maps["head"], code, gaze=gz, pose=pose, steps=steps)
-            else:
-                img = renderer.render(maps["head"], code, gaze=gz, pose=pose)
+        with restored_weights(model, renderer) if fit is not None else contextlib.nullcontext():
+            if fit is not None:
+                code = fit(it, gz).expand(G, -1)
+            with torch.no_grad():
+                maps = model(code, pose, gz, V, K, res, res, renders=("head",))
+                if hasattr(renderer, "diffusion"):
+                    img = renderer.render(maps["head"], code, gaze=gz, pose=pose, steps=steps)
+                else:
+                    img = renderer.render(maps["head"], code, gaze=gz, pose=pose)
         mask = torch.as_tensor(it["head_mask"]).float().to(device)
         img = img * mask + (1 - mask)
         R = V[:, :3, :3] @ so3_exp(pose[:, :3])
@@ -200,6 +237,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="CSV input: test-time fitting steps of the shape code on rows without a code "
                          "(default: the run's eval.tta_steps, or 50 when that is 0)")
     ap.add_argument("--fit-lr", type=float, default=1e-2, help="CSV input: learning rate of the code fitting")
+    ap.add_argument("--fit-weights", action="store_true",
+                    help="fit each input row as the run's evaluation does before rendering its gazes: the code and "
+                         "eval.tta_weights (face features, renderer) for --fit-steps steps on eval.tta_region, with "
+                         "the loss estimator's gaze term at the row's target gazes; one row at a time, from the "
+                         "trained weights each time (CSV rows need their own gaze)")
     args = ap.parse_args(argv)
     from train.distributed import barrier, cleanup, init_distributed
     from train.run import load_trained, open_run
@@ -214,9 +256,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     cfg = ctx.config
     src = open_source(ctx, args)  # validates the whole input before any model is loaded
     fit_steps = args.fit_steps if args.fit_steps >= 0 else (cfg.eval.tta_steps or 50)
+    if args.fit_weights:
+        if fit_steps < 1:
+            raise ToolkitError(f"--fit-weights needs --fit-steps >= 1, got {fit_steps}")
+        missing = [r.line for r in getattr(src, "rows", []) if r.gaze is None]
+        if missing:
+            raise ToolkitError(f"{args.dataset} line {missing[0]}: --fit-weights fits the image at its own gaze; "
+                               f"fill gaze_pitch and gaze_yaw ({len(missing)} rows lack them)")
     info = init_distributed("cpu" if not torch.cuda.is_available() else "auto")
     device = torch.device(info.device)
     model, renderer = load_trained(ctx, device)
+    fit = row_fitter(ctx, model, renderer, device, fit_steps) if args.fit_weights else None
 
     def items(rows: list[int]) -> list[dict]:
         if hasattr(src, "items"):
@@ -237,7 +287,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     steps = args.steps or cfg.gaussian.sampling_steps
     for k in tqdm(todo, desc=f"redirect (rank {info.rank})", disable=not info.is_main, initial=len(mine) - len(todo),
                   total=len(mine)):
-        arrays = render_chunk(model, renderer, items(chunks[k]), chunks[k], gazes, cfg.data.res, steps, device)
+        arrays = render_chunk(model, renderer, items(chunks[k]), chunks[k], gazes, cfg.data.res, steps, device, fit)
         with atomic_write(_chunk_path(parts, k), "wb") as f:
             np.savez(f, **arrays)
     barrier(info)

@@ -203,6 +203,7 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
 
 
 def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t, gaze=None) -> None:
+    terms = 0
     for step in range(steps):
         # A fresh face stream every step: an unchanged code (a zero gradient) would otherwise hit the cache and
         # reuse the previous step's freed graph.
@@ -215,7 +216,11 @@ def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, co
         loss = ((composite_on_white(img, mask) - target).abs().mean()
                 + (composite_on_white(maps["head"][:, :3], small_mask) - small).abs().mean())
         if gaze is not None and gaze.weight > 0 and (steps - 1 - step) % gaze.every == 0:
-            loss = loss + gaze.weight * gaze.term(model, renderer, batch, code, img, input_image, mask, res, t)
+            b = batch
+            if "target_gazes" in batch:  # an input rendered at many gazes (apps.redirect): one a term, in turn
+                b = {**batch, "gaze_head": batch["target_gazes"][:, terms % batch["target_gazes"].shape[1]]}
+            terms += 1
+            loss = loss + gaze.weight * gaze.term(model, renderer, b, code, img, input_image, mask, res, t)
         # Gradients for the fitted tensors alone: the other weights get none (nor a stale .grad).
         for p, g in zip(fitted, torch.autograd.grad(loss, fitted, allow_unused=True)):
             p.grad = g
@@ -240,7 +245,9 @@ class FitGaze:
     Reads from the fitting batch: ``batch["gaze_head"]`` [B, 2] (the target head-frame gaze), ``batch["landmarks"]``
     [B, 68, 2] (the input's, for eye-patch estimators; the target shares the input's view) and, when present,
     ``batch["in_head_mask"]`` [B, 1, H, W], the input's head mask: the estimator reads the renders composited on
-    white outside it, eyes included, whatever region the photometric fit compares (else the fitting mask)."""
+    white outside it, eyes included, whatever region the photometric fit compares (else the fitting mask).
+    An input that will be rendered at G gazes (``apps.redirect``) gives them all as ``batch["target_gazes"]``
+    [B, G, 2]: the term's k-th entry into the fit uses gaze k mod G in place of ``batch["gaze_head"]``."""
     loss: Any
     weight: float
     terms: tuple[str, ...] = ("target",)

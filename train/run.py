@@ -380,6 +380,19 @@ REFERENCES_NOTE = (
     "alone) and, for latent renderers, through the frozen codec (its own reconstruction, which a decoded render can hardly beat).\n\n")
 
 
+def fit_gaze_term(ctx: RunContext, device):
+    """The test-time fitting's gaze term as the run's eval section sets it (``train.evaluate.FitGaze`` around the
+    frozen loss estimator), or None when ``eval.tta_gaze_weight`` is 0."""
+    from train.evaluate import FitGaze
+    from train.losses import GazeLoss
+
+    e = ctx.config.eval
+    if not e.tta_gaze_weight > 0:
+        return None
+    return FitGaze(GazeLoss(_estimator(ctx, "loss", device)), e.tta_gaze_weight, tuple(e.tta_gaze_terms),
+                   every=e.tta_gaze_every)
+
+
 def stage_eval(ctx: RunContext) -> dict[str, str]:
     from train.evaluate import evaluate, image_grid, reference_transforms
     from train.metrics import table1_markdown
@@ -390,9 +403,6 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     est = _estimator(ctx, "eval", device)
     fit_gaze = None
     if cfg.eval.tta_gaze_weight > 0 and cfg.eval.tta_steps > 0:
-        from train.evaluate import FitGaze
-        from train.losses import GazeLoss
-
         # The loss estimator, never the evaluation one: the metric's ruler must not be what the fit optimizes.
         loss_file, eval_file = (_estimator_file(ctx, r).resolve() for r in ("loss", "eval"))
         if loss_file == eval_file or (loss_file.is_file() and eval_file.is_file()
@@ -400,8 +410,7 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
             raise ToolkitError(f"config key 'eval.tta_gaze_weight': the gaze term of the fit reads the loss estimator, "
                                f"and {loss_file} is also the evaluation estimator ({eval_file}); give another estimator.loss_path "
                                f"or set eval.tta_gaze_weight=0")
-        fit_gaze = FitGaze(GazeLoss(_estimator(ctx, "loss", device)), cfg.eval.tta_gaze_weight,
-                           tuple(cfg.eval.tta_gaze_terms), every=cfg.eval.tta_gaze_every)
+        fit_gaze = fit_gaze_term(ctx, device)
     res = evaluate(model, renderer, est, _split(ctx, "test"), res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
                    sampling_steps=cfg.gaussian.sampling_steps, tta_steps=cfg.eval.tta_steps,
                    tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,

@@ -12,3 +12,31 @@ def test_most_frontal_picks_the_smallest_head_rotation():
     assert most_frontal(poses) == 1
     with pytest.raises(ToolkitError, match="no rows"):
         most_frontal([])
+
+
+def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path, monkeypatch):
+    """After training (here: the tiny run, every stage up to date) the demo sweeps and redirects a held-out
+    subject, each after the evaluation's fitting: one fit for the sweep, one per redirected row."""
+    import shutil
+
+    import h5py
+
+    import train.evaluate as evaluate
+    from apps.demo import run_pipeline
+
+    shutil.copytree(tiny_trained_run, tmp_path / "run")
+    fits = []
+    real_fit = evaluate.test_time_fit
+
+    def spy(model, renderer, batch, *a, **kw):
+        fits.append(batch["target_gazes"].shape)
+        return real_fit(model, renderer, batch, *a, **kw)
+
+    monkeypatch.setattr(evaluate, "test_time_fit", spy)
+    run_pipeline(tmp_path, "tiny", [])
+    for name in ("heldout_gaze_sweep.mp4", "heldout_gaze_sweep.png", "redirected_mini.h5"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    with h5py.File(tmp_path / "redirected_mini.h5") as f:
+        assert f["face_patch"].shape[0] == 4 * 9 and np.isfinite(f["latent_codes"][:]).all()
+    sweep = 3  # the tiny preset's eval.sweep_frames
+    assert fits == [(1, sweep, 2)] + [(1, 9, 2)] * 4

@@ -534,3 +534,26 @@ def test_gaze_term_reads_the_whole_head_whatever_region_the_fit_compares(two_fra
         term.term(model, renderer, {**batch, "in_head_mask": torch.ones_like(empty)}, batch["code"], image, image,
                   empty, 64, None)
     assert len(spy.images) == 2 and all(bool((x != 1).any()) for x in spy.images)
+
+
+def test_render_target_at_the_inputs_own_gaze_reproduces_the_input(subject_file):
+    """``SyntheticRedirectionPairs.render_target`` renders a row at any gaze (apps' benchmarks use it as
+    ground truth): at the row's own gaze it is the stored input image; at another it moves only the eyes."""
+    import numpy as np
+
+    from train.data.pairing import SyntheticRedirectionPairs
+
+    pairs = SyntheticRedirectionPairs(subject_file, res=64, seed=0)
+    inp = pairs.data[0]
+    own = pairs.render_target(0, inp["pitchyaw_head"].numpy())
+    assert (own["image"] - inp["image"]).abs().max() <= 1.5 / 255  # the stored image, up to u8 rounding
+    assert torch.allclose(own["pitchyaw_head"], inp["pitchyaw_head"], atol=1e-6)
+    turned = pairs.render_target(0, np.array([0.3, -0.4]))
+    assert torch.allclose(turned["pitchyaw_head"], torch.tensor([0.3, -0.4]), atol=1e-6)
+    moved = (turned["image"] - own["image"]).abs().amax(0) > 0.05
+    eyes = (own["left_eye_mask"] + own["right_eye_mask"])[0] > 0
+    assert moved.any() and moved[~torch.nn.functional.max_pool2d(eyes[None, None].float(), 5, 1, 2)[0, 0].bool()].sum() == 0
+    # The pairs' targets are this function at the target row's gaze.
+    a, b = (int(x) for x in pairs.pairs[0])
+    t = pairs.render_target(a, pairs.data._file(0)["pitchyaw_head"][b])
+    assert torch.equal(t["image"], pairs[0]["target"]["image"])

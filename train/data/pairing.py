@@ -115,13 +115,19 @@ class SyntheticRedirectionPairs(torch.utils.data.Dataset):
         return self._subject
 
     def __getitem__(self, i: int) -> dict:
+        a, b = (int(x) for x in self.pairs[i])
+        target = self.render_target(a, np.asarray(self.data._file(0)["pitchyaw_head"][b], np.float64))
+        return {"input": self.data[self._flat(a)], "target": target, "pair": torch.tensor([a, b])}
+
+    def render_target(self, row: int, target_gaze) -> dict:
+        """Ground truth for input ``row`` turned to head-frame ``target_gaze`` [2] (radians): the item's
+        ``"target"`` dict, rendered by the generator at the row's view, pose, expression and light."""
         from train.data.dataset import resize_image
         from train.data.generate import rgb_to_u8
         from train.data.synthetic import render_views
 
-        a, b = (int(x) for x in self.pairs[i])
-        raw = self.data.read_row(0, a)
-        target_gaze = np.asarray(self.data._file(0)["pitchyaw_head"][b], np.float64)
+        raw = self.data.read_row(0, int(row))
+        target_gaze = np.asarray(target_gaze, np.float64)
         H, W = raw["face_patch"].shape[:2]
         V = np.eye(4, dtype=np.float32)
         V[:3, :3], V[:3, 3] = raw["w2c_Rmat"], raw["w2c_Tvec"]
@@ -145,7 +151,7 @@ class SyntheticRedirectionPairs(torch.utils.data.Dataset):
             target[m] = t(resize_image(out[m][0].astype(np.float32), res)[None])
         target["pitchyaw_head"] = t(out["pitchyaw_head"][0])
         target["pitchyaw_cam"] = t(out["pitchyaw_cam"][0])
-        return {"input": self.data[self._flat(a)], "target": target, "pair": torch.tensor([a, b])}
+        return target
 
     def _flat(self, row: int) -> int:
         return row  # one file: flat index = row

@@ -1,0 +1,113 @@
+"""apps.redirect --fit-weights: each input row is fitted as the evaluation fits a pair (code, face features,
+renderer, with the loss estimator's gaze term at the row's target gazes in turn), from the trained weights."""
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from apps import redirect
+from toolkit.errors import run_cli
+from train import run
+
+
+def _test_subject(run_dir):
+    return sorted((run_dir / "data").glob("*.h5"))[-1]
+
+
+def test_fit_weights_fits_every_row_from_the_trained_weights(tiny_trained_run, tmp_path, monkeypatch):
+    import train.evaluate as evaluate
+
+    ctx = run.open_run(tiny_trained_run)
+    model, renderer = run.load_trained(ctx, torch.device("cpu"))
+    trained = {k: v.clone() for k, v in renderer.state_dict().items()}
+    seen = []
+    real_fit = evaluate.test_time_fit
+
+    def spy(model, renderer, batch, image, mask, res, steps, **kw):
+        start = {k: v.clone() for k, v in renderer.state_dict().items()}
+        seen.append((batch, image, mask, steps, kw, start))
+        return real_fit(model, renderer, batch, image, mask, res, steps, **kw)
+
+    monkeypatch.setattr(evaluate, "test_time_fit", spy)
+    src = _test_subject(tiny_trained_run)
+    plain, fitted = tmp_path / "plain.h5", tmp_path / "fitted.h5"
+    args = [str(tiny_trained_run), str(src), "--gazes", "grid:1x3:20", "--rows", "2", "--batch", "1"]
+    assert redirect.main(args[:2] + [str(plain)] + args[2:]) == 0
+    assert not seen  # HDF5 rows carry their codes: no fitting unless asked
+    assert redirect.main(args[:2] + [str(fitted)] + args[2:] + ["--fit-weights", "--fit-steps", "3"]) == 0
+    assert len(seen) == 2  # one fit per input row
+    gz = torch.from_numpy(redirect.parse_gazes("grid:1x3:20")).float()
+    with h5py.File(src) as f:
+        for r, (batch, image, mask, steps, kw, start) in enumerate(seen):
+            assert steps == 3 and kw["weights"] == tuple(ctx.config.eval.tta_weights)
+            assert kw["renderer_lr"] == ctx.config.eval.tta_renderer_lr
+            assert kw["gaze"] is not None and kw["gaze"].weight == ctx.config.eval.tta_gaze_weight
+            # The gaze term reads the loss estimator, never the evaluation one.
+            loss_w = run._estimator(ctx, "loss", "cpu").state_dict()
+            assert all(torch.equal(kw["gaze"].loss.estimator.state_dict()[k], v) for k, v in loss_w.items())
+            assert torch.equal(batch["target_gazes"][0], gz)
+            assert np.allclose(batch["code"][0].numpy(), f["latent_codes"][r])
+            assert np.allclose(batch["in_gaze_head"][0].numpy(), f["pitchyaw_head"][r])
+            assert image.shape == (1, 3, 64, 64) and mask.shape == (1, 1, 64, 64)
+            # Every row starts from the trained weights: the previous row's fit was undone.
+            assert all(torch.equal(start[k], trained[k]) for k in trained)
+    with h5py.File(plain) as a, h5py.File(fitted) as b:
+        assert a["face_patch"].shape == b["face_patch"].shape == (6, 64, 64, 3)
+        assert np.array_equal(a["pitchyaw_cam"][:], b["pitchyaw_cam"][:])
+        assert not np.array_equal(a["face_patch"][:], b["face_patch"][:])
+        assert not np.allclose(a["latent_codes"][:], b["latent_codes"][:])  # the fitted code is what was rendered
+        assert np.isfinite(b["latent_codes"][:]).all()
+
+
+def test_gaze_term_takes_the_target_gazes_in_turn(tiny_trained_run):
+    """With ``batch["target_gazes"]`` [B, G, 2] the k-th gaze term of the fit reads gaze k mod G (every entry
+    counted, the last fitting step included)."""
+    from train.data.dataset import GazeDataset
+    from train.evaluate import FitGaze, test_time_fit
+
+    ctx = run.open_run(tiny_trained_run)
+    model, renderer = run.load_trained(ctx, torch.device("cpu"))
+    it = GazeDataset([_test_subject(tiny_trained_run)], res=64)[0]
+    t = lambda k: torch.as_tensor(it[k]).float()[None]  # noqa: E731
+    gazes = torch.tensor([[[0.1, 0.2], [-0.3, 0.0], [0.0, 0.4]]])
+    read = []
+
+    class Recording(FitGaze):
+        def term(self, model, renderer, batch, *a, **k):
+            read.append(batch["gaze_head"].clone())
+            return super().term(model, renderer, batch, *a, **k)
+
+    from train.losses import GazeLoss
+
+    gaze = Recording(GazeLoss(run._estimator(ctx, "loss", "cpu")), 0.01, ("target",), every=2)
+    batch = {"code": t("latent_code"), "in_pose": t("pose"), "in_gaze_head": t("pitchyaw_head"),
+             "in_viewmat": t("viewmat"), "K": t("K"), "landmarks": t("landmarks"), "in_head_mask": t("head_mask"),
+             "gaze_head": gazes[:, 0], "target_gazes": gazes}
+    with torch.enable_grad():
+        code = test_time_fit(model, renderer, batch, t("image"), t("head_mask"), 64, 7, gaze=gaze)
+    assert torch.isfinite(code).all()
+    # 7 steps, every 2nd counted from the last: steps 0, 2, 4, 6 -> gazes 0, 1, 2, 0.
+    assert len(read) == 4
+    for k, g in enumerate(read):
+        assert torch.equal(g, gazes[:, k % 3])
+
+
+@pytest.mark.parametrize("case", ["no_gaze", "no_steps"])
+def test_fit_weights_bad_input_is_one_line_error(tiny_trained_run, tmp_path, capsys, case):
+    src = _test_subject(tiny_trained_run)
+    if case == "no_gaze":  # a CSV row without its own gaze cannot be fitted at it
+        import cv2
+
+        with h5py.File(src) as f:
+            cv2.imwrite(str(tmp_path / "a.png"), f["face_patch"][0])
+            np.save(tmp_path / "c.npy", f["latent_codes"][0])
+        (tmp_path / "labels.csv").write_text("image,head_pitch,head_yaw,gaze_pitch,gaze_yaw,code\n"
+                                             "a.png,0,0,,,c.npy\n")
+        dataset, extra, expect = str(tmp_path / "labels.csv"), [], "line 2: --fit-weights fits the image at its own gaze"
+    else:
+        dataset, extra, expect = str(src), ["--fit-steps", "0"], "--fit-weights needs --fit-steps >= 1"
+    code = run_cli(redirect.main, [str(tiny_trained_run), dataset, str(tmp_path / "o.h5"), "--fit-weights", *extra])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and expect in err[0]
+    assert not (tmp_path / "o.h5").exists()
