@@ -13,7 +13,8 @@ column                         required  meaning
 ``head_roll``                  no        roll about the face direction, degrees (default 0: the ETH-XGaze
                                          normalization removes roll by construction)
 ``gaze_pitch``, ``gaze_yaw``   no*       the image's own gaze, degrees, normalized camera frame (ETH-XGaze
-                                         labels; pitch in ±90, yaw in ±180); *needed on rows without ``code``
+                                         labels; pitch in ±90, yaw in ±180); *needed on rows without ``code``,
+                                         and on every row with ``apps.redirect --fit-weights``
 ``focal``                      no        focal length in pixels of this image (default ``--focal``, else the
                                          project's normalized camera: size · NORM_DISTANCE / NORM_CROP)
 ``distance``                   no        camera-to-face-centre distance in metres (default ``--distance``,

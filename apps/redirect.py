@@ -3,6 +3,7 @@
     python -m apps.redirect RUN_DIR DATASET OUT.h5 [--gazes grid:5x5:30 | random:200:35 | file:gazes.csv]
                             [--rows N] [--batch 8] [--seed 0]
     python -m apps.redirect RUN_DIR crops/labels.csv OUT.h5 [--focal F] [--distance D] [--fit-steps N]
+    python -m apps.redirect RUN_DIR DATASET OUT.h5 --fit-weights [--fit-steps N]   # new faces: fit each row first
 
 For every input row and every target gaze (head frame, degrees in the spec), the trained model renders the
 same person looking there. The output is one HDF5 file in the schema of docs/data.md, with the target gaze
@@ -22,8 +23,12 @@ Inputs:
   one error naming the line and column. Output landmarks, mesh and eye masks of CSV rows come from the
   run's geometry and the model's splatted silhouettes (approximate: the crops carry none).
 
+``--fit-weights`` fits every row as the evaluation fits a pair before rendering it (:func:`row_fitter`):
+what a face the run never trained on needs (docs/redirect.md).
+
 Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun skips finished chunks,
-and the final file is assembled (atomically) when all chunks exist. Shardable: under ``torchrun`` each
+and the final file is assembled (atomically) when all chunks exist. ``OUT.parts/settings.json`` records the
+settings the chunks were made with; a rerun with other settings is refused rather than mixed in. Shardable: under ``torchrun`` each
 process renders the chunks ``k ≡ rank (mod world)`` and rank 0 assembles.
 """
 
@@ -135,6 +140,9 @@ def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.
         with restored_weights(model, renderer) if fit is not None else contextlib.nullcontext():
             if fit is not None:
                 code = fit(it, gz).expand(G, -1)
+                if not torch.isfinite(code).all():
+                    raise ToolkitError(f"--fit-weights: the fit of input row {r} diverged (non-finite code); try "
+                                       "fewer --fit-steps or a lower eval.tta_renderer_lr")
             with torch.no_grad():
                 maps = model(code, pose, gz, V, K, res, res, renders=("head",))
                 if hasattr(renderer, "diffusion"):
@@ -168,6 +176,27 @@ def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.
             a = np.asarray(it[src], np.float32)
             out[key].append(np.repeat(a[None], G, 0))
     return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def check_parts_settings(parts: Path, settings: dict) -> None:
+    """Record ``settings`` in ``parts/settings.json``, or refuse (ToolkitError) when the chunks already there were
+    made with other settings: a resumed run must not mix, say, fitted and unfitted rows in one file."""
+    import json
+
+    from toolkit.io import atomic_write_json
+
+    path = parts / "settings.json"
+    if path.is_file():
+        try:
+            before = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise ToolkitError(f"{path}: unreadable ({e}); delete {parts} to start over") from e
+        changed = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
+        if changed:
+            raise ToolkitError(f"{parts} holds chunks of a run with other settings ({', '.join(changed)} differ); "
+                               f"rerun with the same settings to resume, or delete {parts} to start over")
+    else:
+        atomic_write_json(path, settings)
 
 
 def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
@@ -234,8 +263,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--distance", type=float, default=None,
                     help="CSV input: camera-to-face distance (metres) for rows without one (default 0.6)")
     ap.add_argument("--fit-steps", type=int, default=-1,
-                    help="CSV input: test-time fitting steps of the shape code on rows without a code "
-                         "(default: the run's eval.tta_steps, or 50 when that is 0)")
+                    help="test-time fitting steps: of the shape code on CSV rows without a code, and of each row "
+                         "with --fit-weights (default: the run's eval.tta_steps, or 50 when that is 0)")
     ap.add_argument("--fit-lr", type=float, default=1e-2, help="CSV input: learning rate of the code fitting")
     ap.add_argument("--fit-weights", action="store_true",
                     help="fit each input row as the run's evaluation does before rendering its gazes: the code and "
@@ -261,7 +290,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ToolkitError(f"--fit-weights needs --fit-steps >= 1, got {fit_steps}")
         missing = [r.line for r in getattr(src, "rows", []) if r.gaze is None]
         if missing:
-            raise ToolkitError(f"{args.dataset} line {missing[0]}: --fit-weights fits the image at its own gaze; "
+            raise ToolkitError(f"{src.path} line {missing[0]}: --fit-weights fits the image at its own gaze; "
                                f"fill gaze_pitch and gaze_yaw ({len(missing)} rows lack them)")
     info = init_distributed("cpu" if not torch.cuda.is_available() else "auto")
     device = torch.device(info.device)
@@ -278,6 +307,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out)
     parts = out.with_suffix(out.suffix + ".parts")
     parts.mkdir(parents=True, exist_ok=True)
+    check_parts_settings(parts, {
+        "run_dir": str(run_dir.resolve()), "dataset": str(Path(args.dataset).resolve()), "gazes": args.gazes,
+        "seed": args.seed, "rows": n_rows, "batch": args.batch, "steps": args.steps, "fit_steps": fit_steps,
+        "fit_lr": args.fit_lr, "fit_weights": args.fit_weights, "focal": args.focal, "distance": args.distance})
     from tqdm import tqdm
 
     from toolkit.io import atomic_write

@@ -202,8 +202,21 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     return code.detach()
 
 
+def term_gaze_order(n_gazes: int, n_entries: int) -> list[int]:
+    """Which of ``n_gazes`` target gazes each of the gaze term's ``n_entries`` entries into a fit reads: all of
+    them in turn (k mod G) when the entries suffice, else ``n_entries`` gazes spread evenly over the list
+    (:func:`spread_indices`), so a long gaze list is sampled end to end rather than cut short."""
+    if n_gazes < 1 or n_entries < 0:
+        raise ToolkitError(f"term_gaze_order: expected >= 1 gazes and >= 0 entries, got {n_gazes}, {n_entries}")
+    if n_gazes <= n_entries:
+        return [k % n_gazes for k in range(n_entries)]
+    return spread_indices(n_gazes, n_entries)
+
+
 def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t, gaze=None) -> None:
-    terms = 0
+    order, terms = [], 0
+    if gaze is not None and "target_gazes" in batch:  # the entries: the last step, then every `every`-th before it
+        order = term_gaze_order(batch["target_gazes"].shape[1], (steps - 1) // gaze.every + 1 if steps > 0 else 0)
     for step in range(steps):
         # A fresh face stream every step: an unchanged code (a zero gradient) would otherwise hit the cache and
         # reuse the previous step's freed graph.
@@ -217,8 +230,8 @@ def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, co
                 + (composite_on_white(maps["head"][:, :3], small_mask) - small).abs().mean())
         if gaze is not None and gaze.weight > 0 and (steps - 1 - step) % gaze.every == 0:
             b = batch
-            if "target_gazes" in batch:  # an input rendered at many gazes (apps.redirect): one a term, in turn
-                b = {**batch, "gaze_head": batch["target_gazes"][:, terms % batch["target_gazes"].shape[1]]}
+            if order:  # an input rendered at many gazes (apps.redirect): one per entry (term_gaze_order)
+                b = {**batch, "gaze_head": batch["target_gazes"][:, order[terms]]}
             terms += 1
             loss = loss + gaze.weight * gaze.term(model, renderer, b, code, img, input_image, mask, res, t)
         # Gradients for the fitted tensors alone: the other weights get none (nor a stale .grad).
@@ -247,7 +260,8 @@ class FitGaze:
     ``batch["in_head_mask"]`` [B, 1, H, W], the input's head mask: the estimator reads the renders composited on
     white outside it, eyes included, whatever region the photometric fit compares (else the fitting mask).
     An input that will be rendered at G gazes (``apps.redirect``) gives them all as ``batch["target_gazes"]``
-    [B, G, 2]: the term's k-th entry into the fit uses gaze k mod G in place of ``batch["gaze_head"]``."""
+    [B, G, 2]: the term's k-th entry into the fit uses gaze ``term_gaze_order(G, entries)[k]`` in place of
+    ``batch["gaze_head"]`` (k mod G; with more gazes than entries, as many gazes spread over the list)."""
     loss: Any
     weight: float
     terms: tuple[str, ...] = ("target",)

@@ -142,10 +142,11 @@ gaze loss (and the evaluation's fitting term); the evaluation estimator is only 
 
 def stage_estimator(ctx: RunContext) -> dict[str, str]:
     """Train each estimator whose path is not given. On the CPU with >= 2 torch threads and both to train,
-    they train at once, in two processes with half the threads each: a step of this small CNN uses two
-    threads poorly (demo: 89 ms a step on 2 threads, 108 ms on 1 with the other process beside it), so
+    they train at once, in two processes that split the threads: a step of this small CNN uses a second thread
+    poorly (demo, 2 threads: 89 ms a step on both, 108 ms on one with the other process beside it), so there
     the pair takes ~40% less time. Each estimator's numbers depend only on the threads it trains with: the
-    two processes with 1 thread each give exactly what one process with 1 thread gives in turn."""
+    two processes with 1 thread each give exactly what one process with 1 thread gives in turn. The children
+    print nothing; the stage logs both results when they are done."""
     e = ctx.config.estimator
     todo = [(k, name, seed) for k, (name, seed) in enumerate(ESTIMATOR_ROLES)
             if not (e.loss_path if name == "loss" else e.eval_path)]
@@ -156,17 +157,14 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
     job = dict(config=ctx.config, train_files=_split(ctx, "train"), test_files=_split(ctx, "test"),
                run_dir=ctx.run_dir, device=device)
     if len(todo) == 2 and device.type == "cpu" and threads >= 2:
-        import concurrent.futures as cf
-        import multiprocessing as mp
-
-        ctx.log(f"[estimator] training the loss and evaluation estimators at once: 2 processes x {threads // 2} "
-                "threads")
-        with cf.ProcessPoolExecutor(2, mp_context=mp.get_context("spawn")) as ex:
-            futures = [ex.submit(_train_estimator, **job, index=k, role=name, seed=seed, threads=threads // 2)
-                       for k, name, seed in todo]
-            results = [f.result() for f in futures]
+        split = (threads // 2, threads - threads // 2)
+        ctx.log(f"[estimator] training the loss and evaluation estimators at once: 2 processes, "
+                f"{split[0]} + {split[1]} threads")
+        results = run_at_once([(_train_estimator, dict(job, index=k, role=name, seed=seed, threads=n))
+                               for (k, name, seed), n in zip(todo, split)])
     else:
-        results = [_train_estimator(**job, index=k, role=name, seed=seed, threads=threads, log=ctx.log)
+        data = _estimator_data(ctx.config, job["train_files"], job["test_files"]) if todo else None
+        results = [_train_estimator(**job, index=k, role=name, seed=seed, threads=threads, log=ctx.log, data=data)
                    for k, name, seed in todo]
     outs, summary = {}, {}
     for (_, name, _), (file, record) in zip(todo, results):
@@ -179,13 +177,78 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
     return outs
 
 
+def run_at_once(jobs: list[tuple]) -> list:
+    """Run ``jobs`` ([(picklable function, kwargs)]) in one spawned process each; their results in order.
+
+    The first failure (or Ctrl-C) stops the other processes at once instead of waiting for them to finish,
+    and is raised here; a process that died without a result (killed for memory, say) becomes a one-line
+    ToolkitError. (Plain processes, not a ProcessPoolExecutor: when a pool's worker dies, a job it had queued
+    can still start in a fresh worker and run to its end.)"""
+    import multiprocessing as mp
+    import queue
+
+    ctx = mp.get_context("spawn")
+    results_q = ctx.Queue()
+    procs = [ctx.Process(target=_job_entry, args=(results_q, i, fn, kw), daemon=True) for i, (fn, kw) in enumerate(jobs)]
+    results: dict[int, object] = {}
+    try:
+        for proc in procs:
+            proc.start()
+        while len(results) < len(jobs):
+            try:
+                i, ok, value = results_q.get(timeout=0.2)
+            except queue.Empty:
+                # A job's process exits 0 only after putting its result (raised or returned): a non-zero exit
+                # code is a death without one.
+                dead = [i for i, proc in enumerate(procs) if i not in results and proc.exitcode not in (None, 0)]
+                if dead:
+                    raise ToolkitError(f"a worker process died before finishing (exit code {procs[dead[0]].exitcode}; "
+                                       "out of memory?); run with threads=1 to do its work in this process") from None
+                continue
+            if not ok:
+                raise value
+            results[i] = value
+        return [results[i] for i in range(len(jobs))]
+    finally:
+        for proc in procs:
+            if proc.is_alive():
+                proc.terminate()
+        for proc in procs:
+            proc.join()
+
+
+def _job_entry(results_q, i: int, fn, kw: dict) -> None:
+    """One :func:`run_at_once` job, in its spawned process: puts (i, True, result) or (i, False, exception)."""
+    try:
+        results_q.put((i, True, fn(**kw)))
+    except BaseException as exc:  # noqa: BLE001 -- every failure goes back to the parent, which raises it
+        import pickle
+
+        try:
+            pickle.dumps(exc)
+        except Exception:  # noqa: BLE001 -- an exception that cannot travel is sent as its text
+            exc = RuntimeError(f"{type(exc).__name__}: {exc}")
+        results_q.put((i, False, exc))
+
+
+def _estimator_data(config: RunConfig, train_files: list[Path], test_files: list[Path]) -> tuple:
+    """The estimator stage's images of the run's splits: (train images u8, labels [N, 4], landmarks, val)."""
+    from train.gaussian_stage import load_split
+
+    res = config.data.res
+    to_u8 = lambda x: (x * 255).round().clamp(0, 255).to(torch.uint8)  # noqa: E731
+    labels = lambda d: torch.cat([d.gaze_cam, d.head_pose_cam], 1)  # noqa: E731
+    tr, te = load_split(train_files, "all", res), load_split(test_files, "all", res)
+    return to_u8(tr.image), labels(tr), tr.landmarks, (to_u8(te.image), labels(te), te.landmarks)
+
+
 def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: list[Path], run_dir: Path,
-                     device: torch.device, index: int, role: str, seed: int, threads: int, log=None
-                     ) -> tuple[str, dict]:
+                     device: torch.device, index: int, role: str, seed: int, threads: int, log=None,
+                     data: tuple | None = None) -> tuple[str, dict]:
     """Train and save one estimator of the estimator stage (in this process, or a spawned one, with
     ``threads`` torch threads): its training split plus its own extra procedural subjects, validated on the
-    held-out split. Returns (file name in ``run_dir``, its last history record with ``train_images``)."""
-    from train.gaussian_stage import load_split
+    held-out split (``data``: :func:`_estimator_data`, loaded here when None). Returns (file name in
+    ``run_dir``, its last history record with ``train_images``)."""
     from train.gaze_estimator import (
         EYE_BAND,
         GazeEstimatorConfig,
@@ -196,12 +259,7 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
 
     torch.set_num_threads(threads)
     e, res = config.estimator, config.data.res
-    to_u8 = lambda x: (x * 255).round().clamp(0, 255).to(torch.uint8)  # noqa: E731
-    labels = lambda d: torch.cat([d.gaze_cam, d.head_pose_cam], 1)  # noqa: E731
-    tr, te = load_split(train_files, "all", res), load_split(test_files, "all", res)
-    images, targets, lms = to_u8(tr.image), labels(tr), tr.landmarks
-    val = (to_u8(te.image), labels(te), te.landmarks)
-    del tr, te
+    images, targets, lms, val = data if data is not None else _estimator_data(config, train_files, test_files)
     if e.synthetic_subjects > 0 and not config.data.root:
         from train.data.generate import estimator_images
 

@@ -20,12 +20,14 @@ def test_fit_weights_fits_every_row_from_the_trained_weights(tiny_trained_run, t
 
     ctx = run.open_run(tiny_trained_run)
     model, renderer = run.load_trained(ctx, torch.device("cpu"))
-    trained = {k: v.clone() for k, v in renderer.state_dict().items()}
+    state = lambda m, r: {**{f"m.{k}": v.clone() for k, v in m.state_dict().items()},  # noqa: E731
+                          **{f"r.{k}": v.clone() for k, v in r.state_dict().items()}}
+    trained = state(model, renderer)
     seen = []
     real_fit = evaluate.test_time_fit
 
     def spy(model, renderer, batch, image, mask, res, steps, **kw):
-        start = {k: v.clone() for k, v in renderer.state_dict().items()}
+        start = state(model, renderer)
         seen.append((batch, image, mask, steps, kw, start))
         return real_fit(model, renderer, batch, image, mask, res, steps, **kw)
 
@@ -50,14 +52,51 @@ def test_fit_weights_fits_every_row_from_the_trained_weights(tiny_trained_run, t
             assert np.allclose(batch["code"][0].numpy(), f["latent_codes"][r])
             assert np.allclose(batch["in_gaze_head"][0].numpy(), f["pitchyaw_head"][r])
             assert image.shape == (1, 3, 64, 64) and mask.shape == (1, 1, 64, 64)
-            # Every row starts from the trained weights: the previous row's fit was undone.
-            assert all(torch.equal(start[k], trained[k]) for k in trained)
+            # Every row starts from the trained weights (the model's features and the renderer's): the previous
+            # row's fit was undone.
+            assert set(start) == set(trained) and all(torch.equal(start[k], trained[k]) for k in trained)
     with h5py.File(plain) as a, h5py.File(fitted) as b:
         assert a["face_patch"].shape == b["face_patch"].shape == (6, 64, 64, 3)
         assert np.array_equal(a["pitchyaw_cam"][:], b["pitchyaw_cam"][:])
         assert not np.array_equal(a["face_patch"][:], b["face_patch"][:])
         assert not np.allclose(a["latent_codes"][:], b["latent_codes"][:])  # the fitted code is what was rendered
         assert np.isfinite(b["latent_codes"][:]).all()
+
+
+def test_term_gaze_order_cycles_or_spreads():
+    from toolkit.errors import ToolkitError
+    from train.evaluate import term_gaze_order
+
+    assert term_gaze_order(3, 7) == [0, 1, 2, 0, 1, 2, 0]
+    many = term_gaze_order(25, 20)  # grid:5x5 under 40 steps, every 2nd: first to last, no repeats
+    assert len(many) == 20 and many[0] == 0 and many[-1] == 24 and many == sorted(set(many))
+    assert term_gaze_order(4, 0) == []
+    with pytest.raises(ToolkitError, match="expected >= 1 gazes"):
+        term_gaze_order(0, 5)
+
+
+def test_resumed_run_with_other_settings_is_refused(tiny_trained_run, tmp_path, capsys, monkeypatch):
+    """OUT.parts records the settings its chunks were made with: resuming with --fit-weights on chunks rendered
+    without it would mix fitted and unfitted rows, so it is a one-line error; the same settings resume."""
+    src = _test_subject(tiny_trained_run)
+    out = tmp_path / "o.h5"
+    args = [str(tiny_trained_run), str(src), str(out), "--gazes", "grid:1x2:10", "--rows", "2", "--batch", "1"]
+
+    def crash(*a, **k):
+        raise KeyboardInterrupt  # killed after the chunks, before the final file
+
+    with monkeypatch.context() as m:
+        m.setattr(redirect, "assemble", crash)
+        with pytest.raises(KeyboardInterrupt):
+            redirect.main(args)
+    capsys.readouterr()  # the interrupted run's progress bar
+    parts = tmp_path / "o.h5.parts"
+    assert (parts / "settings.json").is_file() and len(list(parts.glob("part_*.npz"))) == 2 and not out.exists()
+    assert run_cli(redirect.main, args + ["--fit-weights"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds chunks of a run with other settings (fit_weights differ)" in err[0]
+    assert not out.exists()
+    assert redirect.main(args) == 0 and out.is_file() and not parts.exists()  # the same settings resume
 
 
 def test_gaze_term_takes_the_target_gazes_in_turn(tiny_trained_run):

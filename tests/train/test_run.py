@@ -69,13 +69,28 @@ def test_estimators_trained_at_once_equal_those_trained_in_turn(tiny_run, tmp_pa
         outs = run.stage_estimator(ctx)
     finally:
         torch.set_num_threads(1)
-    assert any("2 processes x 1 threads" in s for s in lines)
+    assert any("2 processes, 1 + 1 threads" in s for s in lines)
     assert outs == {"loss": "estimator_loss.safetensors", "eval": "estimator_eval.safetensors",
                     "summary": "estimators.json"}
     for role in ("loss", "eval"):
         a, b = load_file(tiny_run / outs[role]), load_file(d / outs[role])
         assert set(a) == set(b) and all(torch.equal(a[k], b[k]) for k in a), role
     assert json.loads((d / "estimators.json").read_text()) == json.loads((tiny_run / "estimators.json").read_text())
+
+
+def test_run_at_once_returns_in_order_and_a_failure_stops_the_others(tmp_path):
+    """Results come back in job order; the first failure is raised at once, the other job is stopped rather than
+    waited for (its marker file never appears), and a process that dies is a one-line ToolkitError."""
+    from tests.train import procs
+
+    assert run.run_at_once([(procs.echo, {"value": 1}), (procs.echo, {"value": "b"})]) == [1, "b"]
+    marker = tmp_path / "finished"
+    slow = (procs.sleep_then_touch, {"seconds": 30, "path": str(marker)})
+    with pytest.raises(ValueError, match="job failed"):
+        run.run_at_once([slow, (procs.fail, {})])
+    with pytest.raises(ToolkitError, match="a worker process died"):
+        run.run_at_once([slow, (procs.die, {})])
+    assert not marker.exists()
 
 
 def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, capsys):
