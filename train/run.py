@@ -142,9 +142,8 @@ gaze loss (and the evaluation's fitting term); the evaluation estimator is only 
 
 def stage_estimator(ctx: RunContext) -> dict[str, str]:
     """Train each estimator whose path is not given. On the CPU with >= 2 torch threads and both to train,
-    they train at once, in two processes that split the threads: a step of this small CNN uses a second thread
-    poorly (demo, 2 threads: 89 ms a step on both, 108 ms on one with the other process beside it), so there
-    the pair takes ~40% less time. Each estimator's numbers depend only on the threads it trains with: the
+    they train at once, in two processes that split the threads: this small CNN uses a second thread poorly
+    (the demo's stage on 2 cores, one hour: 349 s in turn on 2 threads, 242 s at once on 1 thread each). Each estimator's numbers depend only on the threads it trains with: the
     two processes with 1 thread each give exactly what one process with 1 thread gives in turn. The children
     print nothing; the stage logs both results when they are done."""
     e = ctx.config.estimator
