@@ -28,8 +28,8 @@ what a face the run never trained on needs (docs/redirect.md).
 
 Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun skips finished chunks,
 and the final file is assembled (atomically) when all chunks exist. ``OUT.parts/settings.json`` records the
-settings the chunks were made with; a rerun with other settings is refused rather than mixed in. Shardable: under ``torchrun`` each
-process renders the chunks ``k ≡ rank (mod world)`` and rank 0 assembles.
+settings the chunks were made with; a rerun with other settings is refused rather than mixed in.
+Shardable: under ``torchrun`` each process renders the chunks ``k ≡ rank (mod world)`` and rank 0 assembles.
 """
 
 from __future__ import annotations
@@ -93,7 +93,8 @@ def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = Tr
     """The evaluation's test-time fitting for one input row, as a function (item, gazes [G, 2]) -> fitted code
     [1, C]: ``steps`` Adam steps of the code and the run's ``eval.tta_weights`` (by default the face Gaussians'
     features and the renderer) on the input image, compared on ``eval.tta_region``, with the loss estimator's
-    gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn. The weights are tuned in place:
+    gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn (``train.evaluate.term_gaze_order``:
+    spread over them when they outnumber the term's entries). The weights are tuned in place:
     the caller restores them (``train.evaluate.restored_weights``) after rendering the row. ``gaze_term=False``
     leaves the gaze term out whatever the run's weight (``benchmarks/redirect.py`` measures what it adds)."""
     from train.evaluate import face_only_mask, test_time_fit
