@@ -179,15 +179,46 @@ def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
+def sampling_steps(args, cfg) -> int:
+    return args.steps or cfg.gaussian.sampling_steps
+
+
+def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps: int) -> dict:
+    """What the chunks' contents depend on, resolved (the same input or setting spelt another way is the same):
+    the run (its trained checkpoint's size and time), the input file, the gazes themselves, the rows, the
+    rendering and the fitting (with the run's eval section when rows are weight-fitted); CSV-only settings
+    for CSV input only."""
+    import hashlib
+
+    ckpt = ctx.path("gaussian", "checkpoint")
+    st = ckpt.stat()
+    settings = {"run_dir": str(ctx.run_dir.resolve()), "checkpoint": [st.st_size, st.st_mtime_ns],
+                "dataset": str(Path(getattr(src, "path", args.dataset)).resolve()),
+                "gazes_sha1": hashlib.sha1(np.ascontiguousarray(gazes, np.float64).tobytes()).hexdigest(),
+                "rows": n_rows, "batch": args.batch, "steps": sampling_steps(args, ctx.config),
+                "fit_weights": args.fit_weights}
+    csv = is_labels_csv(args.dataset)
+    if csv:
+        settings.update(focal=args.focal, distance=args.distance, fit_lr=args.fit_lr)
+    if args.fit_weights or csv:
+        settings["fit_steps"] = fit_steps
+    if args.fit_weights:
+        e = ctx.config.eval
+        settings["eval"] = {k: list(v) if isinstance(v, tuple) else v for k, v in vars(e).items()
+                            if k.startswith("tta_") and k != "tta_steps"}  # the steps: fit_steps
+    return settings
+
+
 def check_parts_settings(parts: Path, settings: dict) -> None:
-    """Record ``settings`` in ``parts/settings.json``, or refuse (ToolkitError) when the chunks already there were
-    made with other settings: a resumed run must not mix, say, fitted and unfitted rows in one file."""
+    """Record ``settings`` in ``parts/settings.json``, or refuse (ToolkitError) when chunks already there were
+    made with other settings: a resumed run must not mix, say, fitted and unfitted rows in one file. Settings
+    with no chunk yet (a run stopped before its first one) are simply replaced."""
     import json
 
     from toolkit.io import atomic_write_json
 
     path = parts / "settings.json"
-    if path.is_file():
+    if path.is_file() and any(parts.glob("part_*.npz")):
         try:
             before = json.loads(path.read_text())
         except (OSError, ValueError) as e:
@@ -308,17 +339,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out)
     parts = out.with_suffix(out.suffix + ".parts")
     parts.mkdir(parents=True, exist_ok=True)
-    check_parts_settings(parts, {
-        "run_dir": str(run_dir.resolve()), "dataset": str(Path(args.dataset).resolve()), "gazes": args.gazes,
-        "seed": args.seed, "rows": n_rows, "batch": args.batch, "steps": args.steps, "fit_steps": fit_steps,
-        "fit_lr": args.fit_lr, "fit_weights": args.fit_weights, "focal": args.focal, "distance": args.distance})
+    check_parts_settings(parts, redirect_settings(ctx, src, args, gazes, n_rows, fit_steps))
     from tqdm import tqdm
 
     from toolkit.io import atomic_write
 
     mine = [k for k in range(len(chunks)) if k % info.world_size == info.rank]
     todo = [k for k in mine if not _chunk_path(parts, k).exists()]
-    steps = args.steps or cfg.gaussian.sampling_steps
+    steps = sampling_steps(args, cfg)
     for k in tqdm(todo, desc=f"redirect (rank {info.rank})", disable=not info.is_main, initial=len(mine) - len(todo),
                   total=len(mine)):
         arrays = render_chunk(model, renderer, items(chunks[k]), chunks[k], gazes, cfg.data.res, steps, device, fit)

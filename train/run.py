@@ -188,7 +188,9 @@ def run_at_once(jobs: list[tuple]) -> list:
 
     ctx = mp.get_context("spawn")
     results_q = ctx.Queue()
-    procs = [ctx.Process(target=_job_entry, args=(results_q, i, fn, kw), daemon=True) for i, (fn, kw) in enumerate(jobs)]
+    # Not daemonic: a job may start processes of its own (estimator_images' render workers); `finally` below
+    # still stops and joins every one.
+    procs = [ctx.Process(target=_job_entry, args=(results_q, i, fn, kw)) for i, (fn, kw) in enumerate(jobs)]
     results: dict[int, object] = {}
     try:
         for proc in procs:
@@ -197,13 +199,18 @@ def run_at_once(jobs: list[tuple]) -> list:
             try:
                 i, ok, value = results_q.get(timeout=0.2)
             except queue.Empty:
-                # A job's process exits 0 only after putting its result (raised or returned): a non-zero exit
-                # code is a death without one.
-                dead = [i for i, proc in enumerate(procs) if i not in results and proc.exitcode not in (None, 0)]
+                # A process that has exited without a result died (a result put just before exiting is read
+                # first: one more look at the queue before deciding).
+                dead = [i for i, proc in enumerate(procs) if i not in results and proc.exitcode is not None]
                 if dead:
-                    raise ToolkitError(f"a worker process died before finishing (exit code {procs[dead[0]].exitcode}; "
-                                       "out of memory?); run with threads=1 to do its work in this process") from None
-                continue
+                    try:
+                        i, ok, value = results_q.get(timeout=1.0)
+                    except queue.Empty:
+                        raise ToolkitError(f"a worker process died before finishing (exit code "
+                                           f"{procs[dead[0]].exitcode}; out of memory?); run with threads=1 to do "
+                                           "its work in this process") from None
+                else:
+                    continue
             if not ok:
                 raise value
             results[i] = value
@@ -217,15 +224,18 @@ def run_at_once(jobs: list[tuple]) -> list:
 
 
 def _job_entry(results_q, i: int, fn, kw: dict) -> None:
-    """One :func:`run_at_once` job, in its spawned process: puts (i, True, result) or (i, False, exception)."""
-    try:
-        results_q.put((i, True, fn(**kw)))
-    except BaseException as exc:  # noqa: BLE001 -- every failure goes back to the parent, which raises it
-        import pickle
+    """One :func:`run_at_once` job, in its spawned process: puts (i, True, result) or (i, False, exception).
+    Both are pickled here first: the queue pickles in a background thread, where a failure would be lost."""
+    import pickle
 
+    try:
+        result = fn(**kw)
+        pickle.dumps(result)
+        results_q.put((i, True, result))
+    except BaseException as exc:  # noqa: BLE001 -- every failure goes back to the parent, which raises it
         try:
-            pickle.dumps(exc)
-        except Exception:  # noqa: BLE001 -- an exception that cannot travel is sent as its text
+            pickle.loads(pickle.dumps(exc))
+        except Exception:  # noqa: BLE001 -- an exception that cannot make the trip is sent as its text
             exc = RuntimeError(f"{type(exc).__name__}: {exc}")
         results_q.put((i, False, exc))
 

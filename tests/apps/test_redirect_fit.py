@@ -76,6 +76,7 @@ def test_term_gaze_order_cycles_or_spreads():
 
 
 def test_resumed_run_with_other_settings_is_refused(tiny_trained_run, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the test changes directory below
     """OUT.parts records the settings its chunks were made with: resuming with --fit-weights on chunks rendered
     without it would mix fitted and unfitted rows, so it is a one-line error; the same settings resume."""
     src = _test_subject(tiny_trained_run)
@@ -94,9 +95,22 @@ def test_resumed_run_with_other_settings_is_refused(tiny_trained_run, tmp_path, 
     assert (parts / "settings.json").is_file() and len(list(parts.glob("part_*.npz"))) == 2 and not out.exists()
     assert run_cli(redirect.main, args + ["--fit-weights"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "holds chunks of a run with other settings (fit_weights differ)" in err[0]
+    assert len(err) == 1 and "holds chunks of a run with other settings (" in err[0]
+    assert "fit_weights" in err[0].split("(")[1].split(")")[0]
     assert not out.exists()
-    assert redirect.main(args) == 0 and out.is_file() and not parts.exists()  # the same settings resume
+    # The same settings spelt otherwise resume: the dataset by another path, the run's DDIM steps given
+    # explicitly, a --seed that grid gazes do not use.
+    import os
+
+    os.chdir(src.parent)
+    same = [str(tiny_trained_run), src.name, str(out), "--gazes", "grid:1x2:10", "--rows", "2", "--batch", "1",
+            "--steps", str(run.open_run(tiny_trained_run).config.gaussian.sampling_steps), "--seed", "7"]
+    assert redirect.main(same) == 0 and out.is_file() and not parts.exists()
+    # Settings with no chunk yet (stopped before the first) are replaced, not held against the next run.
+    parts.mkdir()
+    redirect.check_parts_settings(parts, {"anything": 1})
+    out.unlink()
+    assert redirect.main(args + ["--fit-weights", "--fit-steps", "1"]) == 0 and out.is_file()
 
 
 def test_gaze_term_takes_the_target_gazes_in_turn(tiny_trained_run):

@@ -21,3 +21,19 @@ def sleep_then_touch(seconds: float, path: str):
     time.sleep(seconds)
     Path(path).touch()
     return "slept"
+
+
+def unpicklable():
+    import threading
+
+    return threading.Lock()
+
+
+class TwoArgError(Exception):
+    def __init__(self, a, b):  # pickles, but cannot be rebuilt from its args
+        super().__init__(a)
+        self.b = b
+
+
+def raise_two_arg():
+    raise TwoArgError("needs two", 2)

@@ -91,6 +91,30 @@ def test_run_at_once_returns_in_order_and_a_failure_stops_the_others(tmp_path):
     with pytest.raises(ToolkitError, match="a worker process died"):
         run.run_at_once([slow, (procs.die, {})])
     assert not marker.exists()
+    # What cannot make the trip back comes back as an error, never as a hang or a misleading TypeError.
+    with pytest.raises(TypeError, match="cannot pickle"):
+        run.run_at_once([(procs.unpicklable, {})])
+    with pytest.raises(RuntimeError, match="TwoArgError: needs two"):
+        run.run_at_once([(procs.raise_two_arg, {})])
+
+
+def test_estimators_at_once_with_render_workers_of_their_own(tiny_run, tmp_path):
+    """With 4 threads each estimator's process gets 2, and renders its extra subjects with 2 processes of its
+    own: the stage's processes must be allowed children."""
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d)
+    ctx = run.open_run(d)
+    ctx.config.estimator.synthetic_subjects = 2
+    lines = []
+    ctx.log = lines.append
+    torch.set_num_threads(4)
+    try:
+        outs = run.stage_estimator(ctx)
+    finally:
+        torch.set_num_threads(1)
+    assert any("2 processes, 2 + 2 threads" in s for s in lines)
+    est = json.loads((d / outs["summary"]).read_text())
+    assert est["loss"]["train_images"] == est["eval"]["train_images"] == 18 + 2 * 2 * 2
 
 
 def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, capsys):
