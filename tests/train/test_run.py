@@ -51,6 +51,21 @@ def test_all_stages_write_their_outputs(tiny_run):
     assert GazeEstimator.load(tiny_run / "estimator_eval.safetensors").config.eyes
 
 
+def _estimator_stage(run_dir, threads: int, **estimator) -> tuple[dict, list[str]]:
+    """Run stage estimator on ``run_dir`` with ``threads`` torch threads (and estimator-section overrides);
+    returns its outputs and log lines."""
+    ctx = run.open_run(run_dir)
+    for k, v in estimator.items():
+        setattr(ctx.config.estimator, k, v)
+    lines = []
+    ctx.log = lines.append
+    torch.set_num_threads(threads)
+    try:
+        return run.stage_estimator(ctx), lines
+    finally:
+        torch.set_num_threads(1)
+
+
 def test_estimators_trained_at_once_equal_those_trained_in_turn(tiny_run, tmp_path):
     """With 2 CPU threads the stage trains both estimators at once, one process and thread each: the weights
     must be exactly those of the 1-thread run that trained them in turn (the fixture), and the summary too."""
@@ -61,14 +76,7 @@ def test_estimators_trained_at_once_equal_those_trained_in_turn(tiny_run, tmp_pa
     for role in ("loss", "eval"):
         (d / f"estimator_{role}.safetensors").unlink()
     (d / "estimators.json").unlink()
-    ctx = run.open_run(d)
-    lines = []
-    ctx.log = lines.append
-    torch.set_num_threads(2)
-    try:
-        outs = run.stage_estimator(ctx)
-    finally:
-        torch.set_num_threads(1)
+    outs, lines = _estimator_stage(d, threads=2)
     assert any("2 processes, 1 + 1 threads" in s for s in lines)
     assert outs == {"loss": "estimator_loss.safetensors", "eval": "estimator_eval.safetensors",
                     "summary": "estimators.json"}
@@ -103,15 +111,7 @@ def test_estimators_at_once_with_render_workers_of_their_own(tiny_run, tmp_path)
     own: the stage's processes must be allowed children."""
     d = tmp_path / "run"
     shutil.copytree(tiny_run, d)
-    ctx = run.open_run(d)
-    ctx.config.estimator.synthetic_subjects = 2
-    lines = []
-    ctx.log = lines.append
-    torch.set_num_threads(4)
-    try:
-        outs = run.stage_estimator(ctx)
-    finally:
-        torch.set_num_threads(1)
+    outs, lines = _estimator_stage(d, threads=4, synthetic_subjects=2)
     assert any("2 processes, 2 + 2 threads" in s for s in lines)
     est = json.loads((d / outs["summary"]).read_text())
     assert est["loss"]["train_images"] == est["eval"]["train_images"] == 18 + 2 * 2 * 2
