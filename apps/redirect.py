@@ -133,10 +133,10 @@ def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.
                                             "vertice")}
     from toolkit.rotations import pitchyaw_to_vector, vector_to_pitchyaw
 
+    G = gazes.shape[0]
+    gz = torch.from_numpy(gazes).float().to(device)
     for it, r in zip(items, rows):
-        G = gazes.shape[0]
-        rep = lambda k, it=it, G=G: torch.as_tensor(it[k]).float()[None].expand(G, *torch.as_tensor(it[k]).shape).to(device)  # noqa: E731
-        gz = torch.from_numpy(gazes).float().to(device)
+        rep = lambda k, it=it: torch.as_tensor(it[k]).float()[None].expand(G, *torch.as_tensor(it[k]).shape).to(device)  # noqa: E731
         code, pose, V, K = rep("latent_code"), rep("pose"), rep("viewmat"), rep("K")
         with restored_weights(model, renderer) if fit is not None else contextlib.nullcontext():
             if fit is not None:

@@ -143,12 +143,12 @@ gaze loss (and the evaluation's fitting term); the evaluation estimator is only 
 def stage_estimator(ctx: RunContext) -> dict[str, str]:
     """Train each estimator whose path is not given. On the CPU with >= 2 torch threads and both to train,
     they train at once, in two processes that split the threads: this small CNN uses a second thread poorly
-    (the demo's stage on 2 cores, one hour: 349 s in turn on 2 threads, 242 s at once on 1 thread each). Each estimator's numbers depend only on the threads it trains with: the
-    two processes with 1 thread each give exactly what one process with 1 thread gives in turn. The children
-    print nothing; the stage logs both results when they are done."""
+    (the demo's stage on 2 cores, one hour: 349 s in turn on 2 threads, 242 s at once on 1 thread each).
+    Each estimator's numbers depend only on the threads it trains with: the two processes with 1 thread each
+    give exactly what one process with 1 thread gives in turn. The children print nothing; the stage logs both
+    results when they are done."""
     e = ctx.config.estimator
-    todo = [(k, name, seed) for k, (name, seed) in enumerate(ESTIMATOR_ROLES)
-            if not (e.loss_path if name == "loss" else e.eval_path)]
+    todo = [(k, name, seed) for k, (name, seed) in enumerate(ESTIMATOR_ROLES) if not _given_estimator(ctx, name)]
     if e.synthetic_subjects > 0 and ctx.config.data.root:
         ctx.log("[estimator] synthetic_subjects ignored: data.root is an external dataset")
     threads = torch.get_num_threads()
@@ -292,9 +292,14 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
     return file, dict(hist[-1] if hist else {}, train_images=len(images))
 
 
+def _given_estimator(ctx: RunContext, role: str) -> str:
+    """The user's estimator path for ``role`` ("loss" or "eval"), or "" when the stage trains it."""
+    return ctx.config.estimator.loss_path if role == "loss" else ctx.config.estimator.eval_path
+
+
 def _estimator_file(ctx: RunContext, role: str) -> Path:
     """The estimator file of ``role`` ("loss" or "eval"): the configured path, else the estimator stage's."""
-    given = ctx.config.estimator.loss_path if role == "loss" else ctx.config.estimator.eval_path
+    given = _given_estimator(ctx, role)
     return Path(given) if given else ctx.path("estimator", role)
 
 
