@@ -102,19 +102,24 @@ def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, step
     return renderer.render(maps["head"], batch["code"], gaze=batch["gaze_head"], pose=batch["pose"])
 
 
-TTA_WEIGHT_GROUPS = ("features", "eye_features", "renderer", "decoder")
+TTA_WEIGHT_GROUPS = ("features", "eye_features", "eye_field", "renderer", "decoder")
 """Weights test-time fitting may tune besides the code: the face Gaussians' canonical features (all channels;
-0..2 are the RGB), the eye Gaussians' features, the neural renderer (the DiT; the baseline's whole network) and
-a latent renderer's codec decoder (``decoder``: frozen in training, unfrozen for the fit alone; on session 15's
-demo, a latent DiT, it gave +0.04 dB and +0.18° gaze error, session 16). The encoder, the deformation and eye
-rotation fields and the Gaussians' geometry are never fitted.
+0..2 are the RGB), the eye Gaussians' features, the eye rotation field (``eye_field``: the MLP that turns each
+eyeball for a gaze), the neural renderer (the DiT; the baseline's whole network) and a latent renderer's codec
+decoder (``decoder``: frozen in training, unfrozen for the fit alone; on session 15's demo, a latent DiT, it gave
++0.04 dB and +0.18° gaze error, session 16). The encoder, the face deformation field and the Gaussians'
+geometry are never fitted.
+
+``eye_field`` and ``eye_features`` let a fit with a gaze term (:class:`FitGaze`) turn and redraw a new face's
+eyes where the term reads them, instead of only bending the renderer (session 18, demo run: gaze 5.95° ->
+5.47°, PSNR 33.60 -> 34.05 dB; docs/evaluation.md).
 
 With ``tta_region="face"`` the fitting loss cuts the input's eyes out (:func:`face_only_mask`) and never
 checks what the eye Gaussians' features draw: fitting them then only lets the eyes drift (session 7, demo run:
 held-out gaze 24.4° with them, 20.5° without, PSNR 28.78 / 28.82 dB). They are a group of their own, off by
 default."""
 
-NETWORK_GROUPS = ("renderer", "decoder")
+NETWORK_GROUPS = ("eye_field", "renderer", "decoder")
 """The ``TTA_WEIGHT_GROUPS`` fitted at the renderer's learning rate (the rest at the code's)."""
 
 TTA_REGIONS = ("head", "face")
@@ -135,6 +140,8 @@ def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
             group = [model.face_features]
         elif g == "eye_features":
             group = [model.eye_features]
+        elif g == "eye_field":
+            group = list(model.eye_field.parameters())
         elif g == "renderer":
             group = list(getattr(renderer, "dit", renderer).parameters())  # the DiT's codec stays frozen
         elif g == "decoder":

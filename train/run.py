@@ -431,6 +431,7 @@ def _fitting(e) -> str:
         return "none"
     return f"{e.tta_steps} steps of the shape code" + "".join(
         {"features": ", the face Gaussians' features", "eye_features": ", the eye Gaussians' features",
+         "eye_field": ", the eye rotation field",
          "renderer": ", the renderer", "decoder": ", the codec's decoder"}[w] for w in dict.fromkeys(e.tta_weights)) + (
         ", compared on the input's whole head" if e.tta_region == "head" else ", compared on its face without the eyes"
     ) + (f", with the loss estimator's gaze term (weight {e.tta_gaze_weight:g}, "

@@ -446,6 +446,28 @@ def test_gaze_term_fits_toward_the_target_gaze(two_frame_file):
     assert errors["gaze"] < errors["plain"] - 3 and errors["gaze"] < before - 5, (before, errors)
 
 
+def test_eye_field_group_lets_the_gaze_term_turn_the_eyes_and_is_restored(two_frame_file):
+    """``eye_field``: the eye rotation field's weights are fitted (at the renderer's rate) and put back by
+    ``restored_weights``; the face deformation field is never touched."""
+    from train.evaluate import FitGaze, fitted_weights, restored_weights, test_time_fit
+    from train.losses import GazeLoss
+
+    model, renderer, _ = untrained_eval_parts()
+    assert fitted_weights(model, renderer, ["eye_field"]) == list(model.eye_field.parameters())
+    loss = GazeLoss(_ColourGaze())
+    batch, image, mask = _target_batch(two_frame_file, 1)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    with restored_weights(model, renderer):
+        code = test_time_fit(model, renderer, batch, image, mask, 64, steps=5, lr=0.1, renderer_lr=1e-2,
+                             weights=("eye_field",), gaze=FitGaze(loss, 1.0))
+        assert torch.isfinite(code).all()
+        changed = model.state_dict()
+        assert any(not torch.equal(changed[k], before[k]) for k in before if k.startswith("eye_field."))
+        assert all(torch.equal(changed[k], before[k]) for k in before if k.startswith("face_field."))
+        assert all(p.grad is None for p in model.parameters())
+    assert all(torch.equal(model.state_dict()[k], v) for k, v in before.items())
+
+
 def test_own_gaze_term_reaches_the_code_without_another_render(two_frame_file, monkeypatch):
     """``own`` reads the fitting render itself: the model runs once per step, and the fitted code differs from
     the photometric fit's."""
