@@ -112,7 +112,7 @@ geometry are never fitted.
 
 ``eye_field`` and ``eye_features`` let a fit with a gaze term (:class:`FitGaze`) turn and redraw a new face's
 eyes where the term reads them, instead of only bending the renderer (session 18, demo run: gaze 5.95° ->
-5.47°, PSNR 33.60 -> 34.05 dB; docs/evaluation.md).
+5.50°, PSNR 33.60 -> 34.07 dB; docs/evaluation.md).
 
 With ``tta_region="face"`` the fitting loss cuts the input's eyes out (:func:`face_only_mask`) and never
 checks what the eye Gaussians' features draw: fitting them then only lets the eyes drift (session 7, demo run:

@@ -250,8 +250,8 @@ def demo_preset() -> RunConfig:
     fit's gaze term weighs 0.0006 (the default 0.0002 was tuned on the latent DiT; on the pixel DiT 0.0006 read
     0.5° better by the run's evaluation estimator and 0.75° better by an independent judge, for 0.14 dB). The
     fit also tunes the eye Gaussians' features and the eye rotation field, so the term turns and redraws the
-    eyes rather than bending the renderer alone (session 18, session 17's demo run: gaze 5.95° -> 5.47°, PSNR
-    33.60 -> 34.05 dB). Session 15's latent demo: ``codec.kind=ae gaussian.dit_model=DiT-Gaze-tiny estimator.steps=1000
+    eyes rather than bending the renderer alone (session 18, session 17's demo run: gaze 5.95° -> 5.50°, PSNR
+    33.60 -> 34.07 dB). Session 15's latent demo: ``codec.kind=ae gaussian.dit_model=DiT-Gaze-tiny estimator.steps=1000
     eval.tta_gaze_weight=0.0002``."""
     return RunConfig(preset="demo", codec=CodecStageConfig(kind="pixel"),
                      estimator=EstimatorStageConfig(steps=2000),
