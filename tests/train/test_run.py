@@ -382,3 +382,17 @@ def test_data_stage_gives_the_held_out_subjects_their_frames(tmp_path):
             with h5py.File(p) as f:
                 rows[split] = len(f["pitchyaw_head"])
     assert rows == {"train": 18, "test": 36}  # tiny preset: 1 frame per training subject, 18 cameras
+
+
+def test_config_and_report_know_every_fitting_group():
+    """The config's allowed ``eval.tta_weights``, the report's wording and ``train.evaluate``'s groups are three
+    listings of one set: a group added to one must be added to all."""
+    import typing
+
+    from train.evaluate import TTA_WEIGHT_GROUPS
+    from train.run_config import EvalConfig
+
+    (allowed, _) = typing.get_args(typing.get_type_hints(EvalConfig)["tta_weights"])
+    assert typing.get_args(allowed) == TTA_WEIGHT_GROUPS
+    text = run._fitting(EvalConfig(tta_steps=1, tta_weights=TTA_WEIGHT_GROUPS))
+    assert "the eye rotation field" in text and "the codec's decoder" in text
