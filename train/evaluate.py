@@ -376,6 +376,22 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     throughput is then that of batch-1 renders). ``tta_region`` (:data:`TTA_REGIONS`): what the fitting
     compares, the input's whole head or its face without the eyes. ``tta_gaze`` (:class:`FitGaze`) adds a gaze
     term to the fit, read by the loss estimator it holds (never ``estimator``)."""
+    return summarize_evaluation(evaluate_raw(
+        model, renderer, estimator, test_files, res=res, pairs_per_subject=pairs_per_subject,
+        sampling_steps=sampling_steps, tta_steps=tta_steps, tta_weights=tta_weights, tta_renderer_lr=tta_renderer_lr,
+        seed=seed, device=device, log=log, references=references, own_gaze_row=own_gaze_row, tta_region=tta_region,
+        tta_gaze=tta_gaze), own_gaze_row=own_gaze_row, log=log)
+
+
+def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
+                 sampling_steps: int = 1, tta_steps: int = 0, tta_weights: tuple[str, ...] = (),
+                 tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
+                 references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
+                 own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None) -> dict[str, Any]:
+    """:func:`evaluate`'s protocol on ``test_files``, unsummarized: every pair's scores and images, in subject
+    order. The raw results of disjoint groups of subjects (evaluated in separate processes, say) join with
+    :func:`merge_raw_evaluations` into what one call on all of them gives; :func:`summarize_evaluation` then
+    makes :func:`evaluate`'s result."""
     from train.data.pairing import SyntheticRedirectionPairs
 
     if tta_region not in TTA_REGIONS:
@@ -441,6 +457,38 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
             f"SSIM {float(s.mean()):.3f} ({n} pairs)")
         if examples is None:
             examples = {"input": composite_on_white(inp, mask_in).cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
+    return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "reals": reals,
+            "fakes": fakes, "ref_scores": ref_scores, "own_scores": own_scores, "per_subject": per_subject,
+            "per_pair": per_pair, "examples": examples, "n_images": n_images, "render_seconds": total_render_time}
+
+
+def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """:func:`evaluate_raw` results of disjoint subject groups, in order, joined into one (lists concatenated,
+    counts and times summed, the first group's examples)."""
+    if not parts:
+        raise ToolkitError("merge_raw_evaluations: expected at least one evaluation")
+    out: dict[str, Any] = {k: [] for k in ("gaze_err", "head_err", "psnrs", "ssims", "reals", "fakes",
+                                           "per_subject", "per_pair")}
+    out.update(ref_scores={}, own_scores={}, examples=None, n_images=0, render_seconds=0.0)
+    for part in parts:
+        for k in ("gaze_err", "head_err", "psnrs", "ssims", "reals", "fakes", "per_subject", "per_pair"):
+            out[k] += part[k]
+        for name, scores in part["ref_scores"].items():
+            for key, vals in scores.items():
+                out["ref_scores"].setdefault(name, {}).setdefault(key, []).extend(vals)
+        for key, vals in part["own_scores"].items():
+            out["own_scores"].setdefault(key, []).extend(vals)
+        if out["examples"] is None:
+            out["examples"] = part["examples"]
+        out["n_images"] += part["n_images"]
+        out["render_seconds"] += part["render_seconds"]
+    return out
+
+
+def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log=print) -> dict[str, Any]:
+    """:func:`evaluate`'s result from :func:`evaluate_raw`'s (or :func:`merge_raw_evaluations`'s)."""
+    gaze_err, head_err, psnrs, ssims = raw["gaze_err"], raw["head_err"], raw["psnrs"], raw["ssims"]
+    reals, fakes, n_images, total_render_time = raw["reals"], raw["fakes"], raw["n_images"], raw["render_seconds"]
     metrics = {
         "gaze_error_deg": summarize(gaze_err), "head_pose_error_deg": summarize(head_err),
         # The mean is the protocol's; the median shows how much of it a few pairs make (side views where the
@@ -450,11 +498,12 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         "fid": _fid(torch.cat(reals), torch.cat(fakes), log) if reals else None, "identity_similarity": None,
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
-    references_out = {name: {k: summarize(v) for k, v in sc.items()} for name, sc in ref_scores.items()}
-    out = {"metrics": metrics, "per_subject": per_subject, "per_pair": per_pair, "examples": examples,
+    references_out = {name: {k: summarize(v) for k, v in sc.items()} for name, sc in raw["ref_scores"].items()}
+    out = {"metrics": metrics, "per_subject": raw["per_subject"], "per_pair": raw["per_pair"],
+           "examples": raw["examples"],
            "references": references_out}
     if own_gaze_row:
-        out["own_gaze"] = {k: summarize(v) for k, v in own_scores.items()}
+        out["own_gaze"] = {k: summarize(v) for k, v in raw["own_scores"].items()}
     return out
 
 
