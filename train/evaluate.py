@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import time
+import zlib
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -405,58 +406,65 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
     own_scores: dict[str, list[float]] = {}
     per_subject, per_pair, examples = [], [], None
     n_images, total_render_time = 0, 0.0
-    for f in test_files:
-        pairs = SyntheticRedirectionPairs(f, res=res, seed=seed)
-        n = min(pairs_per_subject, len(pairs))
-        indices = spread_indices(len(pairs), n)
-        items = [pairs[i] for i in indices]
-        tgt = torch.stack([it["target"]["image"] for it in items]).to(device)
-        inp = torch.stack([it["input"]["image"] for it in items]).to(device)
-        mask = torch.stack([it["target"]["head_mask"] for it in items]).to(device)
-        mask_in = torch.stack([it["input"]["head_mask"] for it in items]).to(device)
-        st = lambda k, items=items: torch.stack([torch.as_tensor(it["input"][k]) for it in items]).float().to(device)  # noqa: E731
-        fit_mask = (mask_in if tta_region == "head"
-                    else face_only_mask(mask_in, (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)))
-        batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
-                 "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
-                 "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat"),
-                 "landmarks": st("landmarks"), "in_head_mask": mask_in}
-        out, render_time, own = _fit_and_render(model, renderer, batch, inp, fit_mask, res, sampling_steps, tta_steps,
-                                                tta_weights, tta_renderer_lr, own_gaze=own_gaze_row, gaze=tta_gaze)
-        n_images += out.shape[0]
-        total_render_time += render_time
-        out_w, tgt_w = composite_on_white(out, mask), composite_on_white(tgt, mask)
-        lm = st("landmarks")  # the target is the input's view: same landmarks
-        with torch.no_grad():  # eye-patch estimators read the landmarks (render and target share the view)
-            e_out, e_tgt = estimator(out_w, lm), estimator(tgt_w, lm)
-        ge, he, p, s = _pair_scores(out_w, e_out, tgt_w, e_tgt).values()
-        for name, fn in (references or {}).items():
-            with torch.no_grad():
-                ref_w = composite_on_white(fn(tgt).clamp(0, 1), mask)
-                e_ref = estimator(ref_w, lm)
-            for key, vals in _pair_scores(ref_w, e_ref, tgt_w, e_tgt).items():
-                ref_scores[name].setdefault(key, []).extend(vals.tolist())
-        if own is not None:  # scored against the input itself, in the input's mask
-            inp_w, own_w = composite_on_white(inp, mask_in), composite_on_white(own, mask_in)
-            with torch.no_grad():
-                e_own, e_inp = estimator(own_w, lm), estimator(inp_w, lm)
-            for key, vals in _pair_scores(own_w, e_own, inp_w, e_inp).items():
-                own_scores.setdefault(key, []).extend(vals.tolist())
-        per_pair += [{"subject": Path(f).name, "pair": i, "gaze_error_deg": g, "head_pose_error_deg": h, "psnr": pp,
-                      "ssim": ss} for i, g, h, pp, ss in zip(indices, ge.tolist(), he.tolist(), p.tolist(), s.tolist())]
-        gaze_err += ge.tolist()
-        head_err += he.tolist()
-        psnrs += p.tolist()
-        ssims += s.tolist()
-        reals.append(tgt_w.cpu())
-        fakes.append(out_w.cpu())
-        per_subject.append({"subject": Path(f).name, "pairs": n, "gaze_error_deg": float(ge.mean()),
-                            "psnr": float(p.mean()), "ssim": float(s.mean()),
-                            "ms_per_image": 1000 * render_time / max(1, n)})
-        log(f"[eval] {Path(f).name}: gaze {float(ge.mean()):.2f} deg, PSNR {float(p.mean()):.2f} dB, "
-            f"SSIM {float(s.mean()):.3f} ({n} pairs)")
-        if examples is None:
-            examples = {"input": composite_on_white(inp, mask_in).cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
+    rng_state = torch.get_rng_state()
+    try:
+        for f in test_files:
+            # Each subject's own random stream (a diffusion renderer's noise while fitting): its scores then do
+            # not depend on what ran before it, in this process or another (the eval stage splits subjects).
+            torch.manual_seed(seed * 1_000_003 + zlib.crc32(Path(f).name.encode()))
+            pairs = SyntheticRedirectionPairs(f, res=res, seed=seed)
+            n = min(pairs_per_subject, len(pairs))
+            indices = spread_indices(len(pairs), n)
+            items = [pairs[i] for i in indices]
+            tgt = torch.stack([it["target"]["image"] for it in items]).to(device)
+            inp = torch.stack([it["input"]["image"] for it in items]).to(device)
+            mask = torch.stack([it["target"]["head_mask"] for it in items]).to(device)
+            mask_in = torch.stack([it["input"]["head_mask"] for it in items]).to(device)
+            st = lambda k, items=items: torch.stack([torch.as_tensor(it["input"][k]) for it in items]).float().to(device)  # noqa: E731
+            fit_mask = (mask_in if tta_region == "head"
+                        else face_only_mask(mask_in, (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)))
+            batch = {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
+                     "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
+                     "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat"),
+                     "landmarks": st("landmarks"), "in_head_mask": mask_in}
+            out, render_time, own = _fit_and_render(model, renderer, batch, inp, fit_mask, res, sampling_steps, tta_steps,
+                                                    tta_weights, tta_renderer_lr, own_gaze=own_gaze_row, gaze=tta_gaze)
+            n_images += out.shape[0]
+            total_render_time += render_time
+            out_w, tgt_w = composite_on_white(out, mask), composite_on_white(tgt, mask)
+            lm = st("landmarks")  # the target is the input's view: same landmarks
+            with torch.no_grad():  # eye-patch estimators read the landmarks (render and target share the view)
+                e_out, e_tgt = estimator(out_w, lm), estimator(tgt_w, lm)
+            ge, he, p, s = _pair_scores(out_w, e_out, tgt_w, e_tgt).values()
+            for name, fn in (references or {}).items():
+                with torch.no_grad():
+                    ref_w = composite_on_white(fn(tgt).clamp(0, 1), mask)
+                    e_ref = estimator(ref_w, lm)
+                for key, vals in _pair_scores(ref_w, e_ref, tgt_w, e_tgt).items():
+                    ref_scores[name].setdefault(key, []).extend(vals.tolist())
+            if own is not None:  # scored against the input itself, in the input's mask
+                inp_w, own_w = composite_on_white(inp, mask_in), composite_on_white(own, mask_in)
+                with torch.no_grad():
+                    e_own, e_inp = estimator(own_w, lm), estimator(inp_w, lm)
+                for key, vals in _pair_scores(own_w, e_own, inp_w, e_inp).items():
+                    own_scores.setdefault(key, []).extend(vals.tolist())
+            per_pair += [{"subject": Path(f).name, "pair": i, "gaze_error_deg": g, "head_pose_error_deg": h, "psnr": pp,
+                          "ssim": ss} for i, g, h, pp, ss in zip(indices, ge.tolist(), he.tolist(), p.tolist(), s.tolist())]
+            gaze_err += ge.tolist()
+            head_err += he.tolist()
+            psnrs += p.tolist()
+            ssims += s.tolist()
+            reals.append(tgt_w.cpu())
+            fakes.append(out_w.cpu())
+            per_subject.append({"subject": Path(f).name, "pairs": n, "gaze_error_deg": float(ge.mean()),
+                                "psnr": float(p.mean()), "ssim": float(s.mean()),
+                                "ms_per_image": 1000 * render_time / max(1, n)})
+            log(f"[eval] {Path(f).name}: gaze {float(ge.mean()):.2f} deg, PSNR {float(p.mean()):.2f} dB, "
+                f"SSIM {float(s.mean()):.3f} ({n} pairs)")
+            if examples is None:
+                examples = {"input": composite_on_white(inp, mask_in).cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
+    finally:
+        torch.set_rng_state(rng_state)
     return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "reals": reals,
             "fakes": fakes, "ref_scores": ref_scores, "own_scores": own_scores, "per_subject": per_subject,
             "per_pair": per_pair, "examples": examples, "n_images": n_images, "render_seconds": total_render_time}

@@ -254,13 +254,14 @@ def demo_preset() -> RunConfig:
     33.60 -> 34.07 dB). Session 15's latent demo: ``codec.kind=ae gaussian.dit_model=DiT-Gaze-tiny estimator.steps=1000
     eval.tta_gaze_weight=0.0002``.
 
-    Step counts (session 19): the 2-core machines this demo runs on differ ~2x in speed, and on the slowest seen
-    (an AVX2-only EPYC) session 18's counts (estimators 2000, Gaussian stage 320, fit 40) took 21 min for ``make
-    demo``. These counts cost 0.06 deg of gaze error and 0.2 dB there (5.07 -> 5.13 deg, 33.87 -> 33.65 dB,
-    docs/evaluation.md) for 27% less pipeline time."""
+    Step counts (session 19): the 2-core machines this demo runs on differ ~2x in speed. On the slowest seen (an
+    AVX2-only EPYC) session 18's counts (estimators 2000, Gaussian stage 320, fit 40) took 21 min for ``make
+    demo``; estimators 1200, Gaussian 240, fit 30 cost 0.06 deg of gaze error and 0.2 dB there (5.07 -> 5.13 deg,
+    33.87 -> 33.65 dB) and still took 15 min 47 s with the eval split over two processes. Hence 1000 and 200
+    (docs/evaluation.md, session 19)."""
     return RunConfig(preset="demo", codec=CodecStageConfig(kind="pixel"),
-                     estimator=EstimatorStageConfig(steps=1200),
-                     gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel", steps=240),
+                     estimator=EstimatorStageConfig(steps=1000),
+                     gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel", steps=200),
                      eval=EvalConfig(tta_gaze_weight=0.0006, tta_steps=30,
                                      tta_weights=("features", "eye_features", "eye_field", "renderer")))
 
