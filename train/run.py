@@ -140,6 +140,11 @@ ESTIMATOR_ROLES = (("loss", 1), ("eval", 2))
 gaze loss (and the evaluation's fitting term); the evaluation estimator is only ever the metric's ruler."""
 
 
+ESTIMATOR_SUSPECT_DEG = 30.0
+"""A held-out gaze error above which the estimator stage warns that training failed (session 19: a 1000-step
+loss estimator read 87 deg on one machine and the demo's gaze error went from ~5 to 26 deg)."""
+
+
 def stage_estimator(ctx: RunContext) -> dict[str, str]:
     """Train each estimator whose path is not given. On the CPU with >= 2 torch threads and both to train,
     they train at once, in two processes that split the threads: this small CNN uses a second thread poorly
@@ -171,6 +176,13 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
         ctx.log(f"[estimator] {name}: {record['train_images']} training images, held-out gaze error "
                 f"{record.get('val_gaze_deg', float('nan')):.2f} deg")
         outs[name] = file
+        err = record.get("val_gaze_deg", float("nan"))
+        if err > ESTIMATOR_SUSPECT_DEG:
+            # Not an error: tiny test runs train for a few steps. But a real run must not go on silently with it.
+            ctx.log(f"[estimator] WARNING: the {name} estimator reads held-out gazes {err:.1f} deg off (trained "
+                    f"estimators read 2-7 deg on synthetic subjects): its training failed or was too short, and "
+                    f"{'the gaze loss and the fit' if name == 'loss' else 'the gaze metric'} will be wrong; rerun "
+                    f"this stage with more estimator.steps")
     atomic_write_json(ctx.run_dir / "estimators.json", summary)
     outs["summary"] = "estimators.json"
     return outs

@@ -256,12 +256,13 @@ def demo_preset() -> RunConfig:
 
     Step counts (session 19): the 2-core machines this demo runs on differ ~2x in speed. On the slowest seen (an
     AVX2-only EPYC) session 18's counts (estimators 2000, Gaussian stage 320, fit 40) took 21 min for ``make
-    demo``; estimators 1200, Gaussian 240, fit 30 cost 0.06 deg of gaze error and 0.2 dB there (5.07 -> 5.13 deg,
-    33.87 -> 33.65 dB) and still took 15 min 47 s with the eval split over two processes. Hence 1000 and 200
-    (docs/evaluation.md, session 19)."""
+    demo``; these (1200, 240, 30) cost 0.06 deg of gaze error and 0.2 dB there (5.07 -> 5.13 deg, 33.87 -> 33.65
+    dB) and, with the eval split over two processes, took 15 min 47 s, venv included. Estimators of 1000 steps
+    (with a Gaussian stage of 200) were faster but the loss estimator's training failed on that machine (87 deg
+    held-out) and the run with it (docs/evaluation.md, session 19)."""
     return RunConfig(preset="demo", codec=CodecStageConfig(kind="pixel"),
-                     estimator=EstimatorStageConfig(steps=1000),
-                     gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel", steps=200),
+                     estimator=EstimatorStageConfig(steps=1200),
+                     gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel", steps=240),
                      eval=EvalConfig(tta_gaze_weight=0.0006, tta_steps=30,
                                      tta_weights=("features", "eye_features", "eye_field", "renderer")))
 
