@@ -121,7 +121,11 @@ def mirror_faces(images: torch.Tensor, labels: torch.Tensor | None = None, landm
     """
     B, _, H, W = images.shape
     which = torch.ones(B, dtype=torch.bool, device=images.device) if which is None else which.to(images.device)
-    images = torch.where(which[:, None, None, None], images.flip(-1), images)
+    if bool(which.all()):
+        images = images.flip(-1)
+    elif bool(which.any()):  # flip the chosen ones alone: a masked select of two whole batches costs 4x more
+        images = images.clone()
+        images[which] = images[which].flip(-1)
     if labels is not None:
         labels = torch.where(which[:, None], labels * labels.new_tensor(MIRROR_SIGNS), labels)
     if landmarks is not None:
@@ -417,14 +421,23 @@ def random_blur(images: torch.Tensor, prob: float, max_sigma: float, g: torch.Ge
         return images
     dev = images.device
     sigma = torch.rand(B, generator=g) * max_sigma * (torch.rand(B, generator=g) < prob)
+    # Only the drawn images are convolved (the estimator's step spent ~25% of its time blurring every image,
+    # half of them with a unit impulse); a zero sigma draws no blur, however small the chance.
+    sel = (sigma > 0).nonzero().squeeze(1)
+    n = sel.numel()
+    if n == 0:
+        return images
     r = max(1, math.ceil(3 * max_sigma))
     xs = torch.arange(-r, r + 1, dtype=torch.float32)
-    k = torch.exp(-0.5 * (xs / sigma.clamp_min(1e-3).unsqueeze(-1)) ** 2)  # sigma -> 0: a unit impulse
-    k = (k / k.sum(-1, keepdim=True)).repeat_interleave(C, 0).to(dev, images.dtype)  # [B*C, 2r+1]
-    x = F.pad(images.reshape(1, B * C, H, W), (r, r, r, r), mode="replicate")
-    x = F.conv2d(x, k.view(B * C, 1, 1, -1), groups=B * C)
-    x = F.conv2d(x, k.view(B * C, 1, -1, 1), groups=B * C)
-    return x.reshape(B, C, H, W)
+    k = torch.exp(-0.5 * (xs / sigma[sel].clamp_min(1e-3).unsqueeze(-1)) ** 2)
+    k = (k / k.sum(-1, keepdim=True)).repeat_interleave(C, 0).to(dev, images.dtype)  # [n*C, 2r+1]
+    sel = sel.to(dev)
+    x = F.pad(images[sel].reshape(1, n * C, H, W), (r, r, r, r), mode="replicate")
+    x = F.conv2d(x, k.view(n * C, 1, 1, -1), groups=n * C)
+    x = F.conv2d(x, k.view(n * C, 1, -1, 1), groups=n * C)
+    out = images.clone()
+    out[sel] = x.reshape(n, C, H, W)
+    return out
 
 
 def augment_eye_inputs(images: torch.Tensor, landmarks: torch.Tensor, model: "GazeEstimator",

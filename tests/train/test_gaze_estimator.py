@@ -191,6 +191,33 @@ def test_random_blur_keeps_mean_and_edges_and_skips_unchosen_images():
     assert torch.isfinite(out).all() and torch.isfinite(big.grad).all()
 
 
+def _blur_every_image(images, prob, max_sigma, g):
+    """random_blur's definition, run on every image (a unit impulse for the unchosen ones): the reference for
+    the chosen-images-only implementation."""
+    import math
+
+    import torch.nn.functional as F
+
+    B, C, H, W = images.shape
+    sigma = torch.rand(B, generator=g) * max_sigma * (torch.rand(B, generator=g) < prob)
+    r = max(1, math.ceil(3 * max_sigma))
+    xs = torch.arange(-r, r + 1, dtype=torch.float32)
+    k = torch.exp(-0.5 * (xs / sigma.clamp_min(1e-3).unsqueeze(-1)) ** 2)
+    k = (k / k.sum(-1, keepdim=True)).repeat_interleave(C, 0)
+    x = F.pad(images.reshape(1, B * C, H, W), (r, r, r, r), mode="replicate")
+    x = F.conv2d(F.conv2d(x, k.view(B * C, 1, 1, -1), groups=B * C), k.view(B * C, 1, -1, 1), groups=B * C)
+    return x.reshape(B, C, H, W)
+
+
+@pytest.mark.parametrize("prob", [0.0, 0.3, 0.5, 1.0])
+def test_random_blur_of_the_chosen_images_equals_blurring_every_image(prob):
+    x = torch.rand(16, 3, 40, 36, generator=torch.Generator().manual_seed(5))
+    for seed in range(3):
+        got = random_blur(x, prob, 1.2, torch.Generator().manual_seed(seed))
+        want = _blur_every_image(x, prob, 1.2, torch.Generator().manual_seed(seed))
+        torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
+
+
 def test_head_frame_output_is_composed_exactly():
     from train.gaze_estimator import camera_to_head_gaze, head_to_camera_gaze
 
@@ -370,6 +397,11 @@ def test_mirrored_face_is_the_mirrored_scene_with_exact_labels():
     # Only the chosen samples move.
     x2, y2, l2 = mirror_faces(torch.cat([xa, xa]), torch.cat([ya, ya]), torch.cat([la, la]), torch.tensor([False, True]))
     assert torch.equal(x2[0], xa[0]) and torch.equal(y2[0], ya[0]) and torch.equal(l2[1], lmm[0])
+    assert torch.equal(x2[1], xm[0]) and torch.equal(mirror_faces(xa, which=torch.tensor([False]))[0], xa)
+    # Gradients reach the mirrored and the untouched samples alike.
+    src = torch.cat([xa, xa]).requires_grad_(True)
+    mirror_faces(src, which=torch.tensor([True, False]))[0].sum().backward()
+    assert torch.equal(src.grad, torch.ones_like(src))
 
 
 @pytest.mark.parametrize("eyes", [False, True])
