@@ -151,13 +151,7 @@ def eye_patches(images: torch.Tensor, landmarks: torch.Tensor, size: tuple[int, 
         raise ToolkitError(f"eye_patches: landmarks must be [B={B}, 68, 2] pixels, got {list(landmarks.shape)}")
     h, w = size
     out = []
-    for sl in (LEFT_EYE, RIGHT_EYE):
-        pts = landmarks[:, sl].float()
-        centre = pts.mean(1)
-        axis = pts[:, 3] - pts[:, 0]  # outer/inner corners: 36 -> 39, 42 -> 45
-        width = axis.norm(dim=-1).clamp_min(2.0)
-        cos, sin = (axis / width.unsqueeze(-1)).unbind(-1)
-        half_w, half_h = width, 0.6 * width  # half extents of the window, pixels
+    for centre, cos, sin, half_w, half_h in _eye_windows(landmarks):
         # affine_grid maps output coords in [-1, 1] to input coords in [-1, 1] (align_corners=False).
         theta = torch.stack([
             torch.stack([cos * half_w * 2 / W, -sin * half_h * 2 / W, centre[:, 0] * 2 / W - 1], -1),
@@ -165,6 +159,36 @@ def eye_patches(images: torch.Tensor, landmarks: torch.Tensor, size: tuple[int, 
         grid = F.affine_grid(theta.to(images.dtype), [B, C, h, w], align_corners=False)
         out.append(F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=False))
     return torch.cat(out, 1)
+
+
+def _eye_windows(landmarks: torch.Tensor):
+    """Per eye (image-left, then image-right) of [B, 68, 2] landmarks: (centre [B, 2], cos [B], sin [B],
+    half width [B], half height [B]) of the turned window :func:`eye_patches` samples, in pixels."""
+    for sl in (LEFT_EYE, RIGHT_EYE):
+        pts = landmarks[:, sl].float()
+        centre = pts.mean(1)
+        axis = pts[:, 3] - pts[:, 0]  # outer/inner corners: 36 -> 39, 42 -> 45
+        width = axis.norm(dim=-1).clamp_min(2.0)
+        cos, sin = (axis / width.unsqueeze(-1)).unbind(-1)
+        yield centre, cos, sin, width, 0.6 * width
+
+
+def eye_patch_box(landmarks: torch.Tensor, H: int, W: int, margin: int = 0) -> tuple[int, int, int, int]:
+    """The pixel box ``(y0, y1, x0, x1)`` (ends excluded, inside the H x W image) holding every pixel that
+    :func:`eye_patches` reads for any sample of the batch [B, 68, 2], both eyes, widened by ``margin`` pixels
+    (a bilinear read at pixel position p touches floor(p) and floor(p) + 1; the border mode clamps to the image)."""
+    xs, ys = [], []
+    for centre, cos, sin, half_w, half_h in _eye_windows(landmarks):
+        for u, v in ((-1, -1), (-1, 1), (1, -1), (1, 1)):  # the window's corners; pixel centres sit at + 0.5
+            xs.append(centre[:, 0] + cos * half_w * u - sin * half_h * v - 0.5)
+            ys.append(centre[:, 1] + sin * half_w * u + cos * half_h * v - 0.5)
+    x, y = torch.cat(xs), torch.cat(ys)
+    if not (torch.isfinite(x).all() and torch.isfinite(y).all()):
+        return 0, H, 0, W
+    x0, x1 = math.floor(float(x.min())) - margin, math.floor(float(x.max())) + 2 + margin
+    y0, y1 = math.floor(float(y.min())) - margin, math.floor(float(y.max())) + 2 + margin
+    y0, y1, x0, x1 = max(0, min(y0, H)), max(0, min(y1, H)), max(0, min(x0, W)), max(0, min(x1, W))
+    return (0, H, 0, W) if y1 <= y0 or x1 <= x0 else (y0, y1, x0, x1)
 
 
 def mean_direction(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -399,6 +423,11 @@ class GazeEstimatorTrainConfig:
     log_every: int = 250
 
 
+BLUR_BOX_MARGIN = 8
+"""Pixels added around :func:`eye_patch_box` before the landmark jitter (``landmark_noise``, 0.3 px by default)
+moves the eye windows: a move of more than ~5 px, which such jitter never draws, would read unblurred pixels."""
+
+
 def jitter_photometric(images: torch.Tensor, cfg: GazeEstimatorTrainConfig, g: torch.Generator) -> torch.Tensor:
     """Per-sample brightness and contrast jitter plus Gaussian noise, [B, C, H, W] -> same (not clamped)."""
     B, dev = images.shape[0], images.device
@@ -409,9 +438,12 @@ def jitter_photometric(images: torch.Tensor, cfg: GazeEstimatorTrainConfig, g: t
     return x + torch.randn(x.shape, generator=g).to(dev) * cfg.noise
 
 
-def random_blur(images: torch.Tensor, prob: float, max_sigma: float, g: torch.Generator) -> torch.Tensor:
+def random_blur(images: torch.Tensor, prob: float, max_sigma: float, g: torch.Generator,
+                box: tuple[int, int, int, int] | None = None) -> torch.Tensor:
     """Blur each image [B, C, H, W] with probability ``prob`` by a separable Gaussian whose standard deviation is
-    uniform in [0, ``max_sigma``] pixels (edge-replicated borders); the others pass unchanged.
+    uniform in [0, ``max_sigma``] pixels (edge-replicated borders); the others pass unchanged. With ``box``
+    ``(y0, y1, x0, x1)`` only the pixels inside it change, to exactly what blurring the whole image gives there
+    (eye-patch training reads :func:`eye_patch_box` alone: ~1/4 of the pixels).
 
     Why: a render is never as sharp as the anti-aliased synthetic ground truth (a latent codec's round trip, a
     coarser splat). An estimator trained on sharp images alone reads a softer image of the *same* eyes as a
@@ -432,11 +464,18 @@ def random_blur(images: torch.Tensor, prob: float, max_sigma: float, g: torch.Ge
     k = torch.exp(-0.5 * (xs / sigma[sel].clamp_min(1e-3).unsqueeze(-1)) ** 2)
     k = (k / k.sum(-1, keepdim=True)).repeat_interleave(C, 0).to(dev, images.dtype)  # [n*C, 2r+1]
     sel = sel.to(dev)
-    x = F.pad(images[sel].reshape(1, n * C, H, W), (r, r, r, r), mode="replicate")
+    y0, y1, x0, x1 = box if box is not None else (0, H, 0, W)
+    if not (0 <= y0 < y1 <= H and 0 <= x0 < x1 <= W):
+        raise ToolkitError(f"random_blur: box {box} is not a non-empty (y0, y1, x0, x1) inside {H} x {W}")
+    # The box with r pixels of context, cut at the image's edges; what the cut removed is the edge replicated,
+    # as the whole image's padding would give it.
+    cy0, cy1, cx0, cx1 = max(0, y0 - r), min(H, y1 + r), max(0, x0 - r), min(W, x1 + r)
+    x = images[sel, :, cy0:cy1, cx0:cx1].reshape(1, n * C, cy1 - cy0, cx1 - cx0)
+    x = F.pad(x, (r - (x0 - cx0), r - (cx1 - x1), r - (y0 - cy0), r - (cy1 - y1)), mode="replicate")
     x = F.conv2d(x, k.view(n * C, 1, 1, -1), groups=n * C)
     x = F.conv2d(x, k.view(n * C, 1, -1, 1), groups=n * C)
     out = images.clone()
-    out[sel] = x.reshape(n, C, H, W)
+    out[sel, :, y0:y1, x0:x1] = x.reshape(n, C, y1 - y0, x1 - x0)
     return out
 
 
@@ -562,7 +601,10 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         if tc.augment and tc.mirror > 0:
             x, y, lm = mirror_faces(x, y, lm, torch.rand(len(idx), generator=g) < tc.mirror)
         if tc.augment and tc.blur_prob > 0:
-            x = random_blur(x, tc.blur_prob, tc.blur_sigma, g)
+            # Eye-patch designs read the eyes alone: blur their box, widened for the landmark jitter drawn next.
+            box = (eye_patch_box(lm, x.shape[2], x.shape[3], margin=BLUR_BOX_MARGIN) if model.config.eyes
+                   else None)
+            x = random_blur(x, tc.blur_prob, tc.blur_sigma, g, box)
         if model.config.eyes:
             eye_in = augment_eye_inputs(x, lm, model, tc, g) if tc.augment else model.eye_inputs(x, lm)
             parts = model.from_eye_inputs(*eye_in)

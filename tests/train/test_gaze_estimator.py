@@ -218,6 +218,32 @@ def test_random_blur_of_the_chosen_images_equals_blurring_every_image(prob):
         torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
 
 
+def test_blurring_the_eye_patch_box_alone_gives_the_patches_of_the_whole_blurred_image():
+    from train.gaze_estimator import BLUR_BOX_MARGIN, eye_patch_box, eye_patches
+
+    g = torch.Generator().manual_seed(7)
+    x = torch.rand(12, 3, 64, 64, generator=g)
+    lm = torch.full((12, 68, 2), 32.0)
+    eye = torch.tensor([[-4.0, 0.0], [-2.0, -1.0], [2.0, -1.0], [4.0, 0.0], [2.0, 1.0], [-2.0, 1.0]])
+    lm[:, 36:42], lm[:, 42:48] = eye + torch.tensor([22.0, 26.0]), eye + torch.tensor([42.0, 26.0])
+    lm = lm + torch.randn(lm.shape, generator=g)
+    lm[:2] -= torch.tensor([20.0, 0.0])  # eyes at and beyond the image's left edge (reads clamp to the border)
+    box = eye_patch_box(lm, 64, 64, margin=BLUR_BOX_MARGIN)
+    y0, y1, x0, x1 = box
+    assert x0 == 0 and 0 < y0 < y1 < 64  # a band of the image, cut at its edge
+    whole = random_blur(x, 0.5, 1.2, torch.Generator().manual_seed(1))
+    boxed = random_blur(x, 0.5, 1.2, torch.Generator().manual_seed(1), box)
+    torch.testing.assert_close(boxed[:, :, y0:y1, x0:x1], whole[:, :, y0:y1, x0:x1], atol=1e-6, rtol=0)
+    jittered = lm + torch.randn(lm.shape, generator=g) * 0.3  # the training's landmark noise, drawn after the blur
+    torch.testing.assert_close(eye_patches(boxed, jittered), eye_patches(whole, jittered), atol=1e-6, rtol=0)
+    # Outside the box nothing changed; a box outside the image is refused with its name.
+    assert torch.equal(boxed[:, :, :y0], x[:, :, :y0]) and torch.equal(boxed[:, :, y1:], x[:, :, y1:])
+    with pytest.raises(ToolkitError, match="box"):
+        random_blur(x, 1.0, 1.2, torch.Generator().manual_seed(1), (10, 5, 0, 64))
+    # Non-finite landmarks: the whole image, never an error mid-training.
+    assert eye_patch_box(torch.full((1, 68, 2), float("nan")), 64, 64) == (0, 64, 0, 64)
+
+
 def test_head_frame_output_is_composed_exactly():
     from train.gaze_estimator import camera_to_head_gaze, head_to_camera_gaze
 
