@@ -34,7 +34,6 @@ import torch  # noqa: E402
 
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.io import atomic_write_json, atomic_write_text  # noqa: E402
-from train.allocator import keep_large_blocks  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
 from train.stages import RunContext, Stage, finished_stages, run_stages  # noqa: E402
@@ -653,7 +652,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         torch.set_num_threads(cfg.threads)
     _device(cfg)  # fail early on an impossible device
     _check_values(cfg)
-    keep_large_blocks()  # before any tensor, and inherited by the spawned estimator and eval workers
     run_dir = Path(args.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     save_yaml_config(cfg, run_dir / "config.yaml")
