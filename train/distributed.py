@@ -65,6 +65,44 @@ def wrap(module: torch.nn.Module, info: DistInfo) -> torch.nn.Module:
     return DDP(module, device_ids=[info.local_rank] if info.device.startswith("cuda") else None)
 
 
+def all_ranks(ok: bool, info: DistInfo) -> bool:
+    """True when ``ok`` holds on every rank (one all-reduce): a rank that is about to stop makes all stop
+    together, instead of leaving its peers blocked in the next collective."""
+    if not info.enabled:
+        return ok
+    flag = torch.tensor([1 if ok else 0], dtype=torch.int32, device=info.device)
+    dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+    return bool(flag.item())
+
+
+def average_gradients(params: list[torch.nn.Parameter], info: DistInfo) -> None:
+    """Average ``.grad`` over the ranks in place, what DDP's reducer does, for training loops whose modules are
+    called through methods other than ``forward`` (the Gaussian stage calls ``renderer.training_forward``).
+
+    With equal shards of a global batch and per-sample mean losses, the result is the gradient of the whole
+    batch. A parameter with no gradient on any rank keeps ``None`` (Adam then skips it, as one process
+    would); one with a gradient on some ranks only gets zeros on the others. Two small all-reduces: which
+    parameters have gradients, then all gradients in one flat buffer."""
+    if not info.enabled or not params:
+        return
+    has = torch.tensor([p.grad is not None for p in params], dtype=torch.int32, device=info.device)
+    dist.all_reduce(has, op=dist.ReduceOp.MAX)
+    live = [p for p, h in zip(params, has.tolist()) if h]
+    if not live:
+        return
+    for p in live:
+        if p.grad is None:
+            p.grad = torch.zeros_like(p)
+    flat = torch.cat([p.grad.reshape(-1) for p in live])
+    dist.all_reduce(flat)
+    flat /= info.world_size
+    offset = 0
+    for p in live:
+        n = p.grad.numel()
+        p.grad.copy_(flat[offset:offset + n].view_as(p.grad))
+        offset += n
+
+
 def barrier(info: DistInfo) -> None:
     if info.enabled:
         dist.barrier()

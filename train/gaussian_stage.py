@@ -99,9 +99,15 @@ class GaussianTrainer:
     """Holds the model, renderer and losses of the stage; ``step(step, generator)`` is the loop's step_fn."""
 
     def __init__(self, cfg: GaussianStageConfig, model: GaussianModel, renderer: torch.nn.Module,
-                 estimator: torch.nn.Module, data: TrainBatchData, device: torch.device, total_steps: int):
+                 estimator: torch.nn.Module, data: TrainBatchData, device: torch.device, total_steps: int,
+                 shard: slice | None = None):
+        """``shard`` (torchrun, :func:`train.distributed.shard`): this rank's slice of the global batch of
+        ``cfg.batch``. Every random draw is made for the whole global batch and sliced (the samples, the
+        timesteps, the diffusion noise, the sampled gazes), so with the gradients averaged over the ranks a
+        step equals one process's step on the global batch up to float sums (tested)."""
         self.cfg, self.model, self.renderer, self.data, self.device = cfg, model, renderer, data, device
         self.total_steps = total_steps
+        self.shard = shard
         self.image_loss = ImageLoss(ImageLossConfig(lambda_ssim=cfg.lambda_ssim, lambda_perceptual=0.0))
         self.gaze_loss = GazeLoss(estimator).to(device)
         self.ortho = OrthogonalityLoss(*model.orthogonality_layers()) if cfg.orthogonality else None
@@ -125,16 +131,27 @@ class GaussianTrainer:
     def _render(self, b, gaze, target, g, t=None):
         R = self.data.res
         maps = self.model(b["code"], b["pose"], gaze, b["viewmat"], b["K"], R, R, renders=("head",))
-        out = self.renderer.training_forward(maps["head"], b["code"], target, gaze=gaze, pose=b["pose"], generator=g, t=t)
+        extra = {}
+        if self.shard is not None and getattr(self.renderer, "diffusion", None) is not None:
+            # The global batch's noise, drawn where the renderer would draw it, then this rank's rows.
+            shape = self.renderer.latent_shape(maps["head"])
+            extra["noise"] = torch.randn((self.cfg.batch, *shape[1:]), generator=g)[self.shard].to(self.device)
+        out = self.renderer.training_forward(maps["head"], b["code"], target, gaze=gaze, pose=b["pose"], generator=g,
+                                             t=t, **extra)
         return maps, out
+
+    def _rows(self, x):
+        """This rank's rows of a global-batch tensor (all of them in one process)."""
+        return x if self.shard is None or x is None else x[self.shard]
 
     def step(self, step: int, g: torch.Generator) -> dict[str, torch.Tensor]:
         cfg = self.cfg
         idx = torch.randint(0, len(self.data), (cfg.batch,), generator=g)
-        b = self.data.take(idx, self.device)
+        b = self.data.take(self._rows(idx), self.device)
+        B = b["image"].shape[0]
         masks = region_masks(b)
         target = b["image"]
-        maps, out = self._render(b, b["gaze_head"], target, g, self._timesteps(cfg.batch, g))
+        maps, out = self._render(b, b["gaze_head"], target, g, self._rows(self._timesteps(cfg.batch, g)))
         img = out.image
         l_img, _ = self.image_loss(img, target, masks)
         small = F.interpolate(target, size=maps["rgb"].shape[-2:], mode="area")
@@ -147,10 +164,10 @@ class GaussianTrainer:
             terms["ortho"] = l_ortho
             total = total + cfg.ortho_weight * l_ortho
         if cfg.weak_supervision:
-            phi = self.sampler.sample(cfg.batch, progress=step / max(1, self.total_steps)).to(self.device)
+            phi = self._rows(self.sampler.sample(cfg.batch, progress=step / max(1, self.total_steps))).to(self.device)
             t_last = None
             if getattr(self.renderer, "diffusion", None) is not None:
-                t_last = torch.full((cfg.batch,), self.renderer.diffusion.num_timesteps - 1, device=self.device)
+                t_last = torch.full((B,), self.renderer.diffusion.num_timesteps - 1, device=self.device)
             _, out_w = self._render(b, phi, target, g, t_last)
             l_face, _ = self.image_loss(out_w.image, target, {"face": masks["face"]},
                                         weights={"head": 0.0, "eyes": 0.0, "face": 1.0})

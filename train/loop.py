@@ -23,6 +23,7 @@ import torch
 
 from toolkit.errors import ToolkitError
 from train.checkpoint import CheckpointManager, load_training_checkpoint
+from train.distributed import DistInfo, all_ranks, average_gradients
 
 StepFn = Callable[[int, torch.Generator], dict[str, torch.Tensor]]
 
@@ -110,10 +111,14 @@ def train_loop(
     schedulers: list[Any] | None = None,
     on_log: Callable[[int, dict[str, float]], None] | None = None,
     is_main: bool = True,
+    dist_info: DistInfo | None = None,
 ) -> dict[str, Any]:
     """Run ``steps`` optimisation steps of ``step_fn``; returns {"step", "last": terms, "checkpoint"}.
 
     Checkpoints go to ``run_dir/checkpoints``. With ``resume``, training continues from the newest one.
+    ``dist_info`` (torchrun): ``step_fn`` computes this rank's shard of the global batch; the loop averages
+    the gradients over the ranks before clipping (:func:`train.distributed.average_gradients`) and stops every
+    rank together on a non-finite loss. Logged terms are rank 0's shard's.
     """
     run_dir = Path(run_dir)
     mgr = CheckpointManager(run_dir / "checkpoints")
@@ -150,13 +155,18 @@ def train_loop(
                 terms = step_fn(step, step_generator(seed, step))
                 total = terms["total"]
                 values = {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in terms.items()}
-                if not all(math.isfinite(v) for v in values.values()):
+                finite = all(math.isfinite(v) for v in values.values())
+                if dist_info is not None:
+                    finite = all_ranks(finite, dist_info)
+                if not finite:
                     raise TrainingDiverged(
                         f"{stage}: non-finite loss at step {step}: "
                         + ", ".join(f"{k}={v:.4g}" for k, v in values.items())
                         + f"; last good checkpoint: {last_ckpt or 'none'}"
                     )
                 total.backward()
+                if dist_info is not None:
+                    average_gradients(params, dist_info)
                 gnorm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf"))
                 if not torch.isfinite(gnorm):
                     raise TrainingDiverged(

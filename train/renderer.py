@@ -127,7 +127,9 @@ class DiTRenderer(nn.Module):
 
     def training_forward(self, feats: torch.Tensor, shape_code: torch.Tensor, target: torch.Tensor, *,
                          gaze: torch.Tensor | None = None, pose: torch.Tensor | None = None,
-                         generator: torch.Generator | None = None, t: torch.Tensor | None = None) -> RenderOutput:
+                         generator: torch.Generator | None = None, t: torch.Tensor | None = None,
+                         noise: torch.Tensor | None = None) -> RenderOutput:
+        """``noise`` [B, C, h, w]: the diffusion's noise for these samples (default: drawn from ``generator``)."""
         check_render_inputs(feats, shape_code, self.dit.config.feature_channels, self.dit.config.shape_dim)
         B, C, h, w = self.latent_shape(feats)
         if target.shape != (B, 3, h * self.codec.downsample, w * self.codec.downsample):
@@ -140,7 +142,7 @@ class DiTRenderer(nn.Module):
         # pull the splat toward the network's current output (the image losses train the splat through x0).
         r0 = x0 - base.detach() if base is not None else x0
         out = self.diffusion.training_step(self._model_fn(feats, shape_code, gaze, pose, (h, w), base), r0, t=t,
-                                          generator=generator)
+                                          noise=noise, generator=generator)
         latent = out["x0_pred"] + base if base is not None else out["x0_pred"]
         image = self.codec.decode(latent)
         extras = {"t": out["t"], "latent_pred": latent, "latent_target": x0}

@@ -13,7 +13,9 @@ config section and upstream stages, are unchanged):
     eval       the GazeNeRF protocol on held-out subjects -> report.md, metrics.json, qualitative PNG
 
 The resolved config is written to ``config.yaml``; a config with an unknown key or a wrong type fails
-before any work. Launch with ``torchrun --nproc_per_node N -m train.run ...`` for DDP in stage gaussian.
+before any work. Launch with ``torchrun --nproc_per_node N -m train.run ...`` for DDP in stage gaussian: each
+process takes 1/N of ``gaussian.batch`` (the same rows of every random draw) and the gradients are averaged, so the
+weights equal one process's on the whole batch up to float sums (tested); rank 0 logs and writes the checkpoints.
 """
 
 from __future__ import annotations
@@ -338,7 +340,7 @@ def _gaussian_modules(ctx: RunContext, device):
 
 def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     from train.checkpoint import CheckpointManager, save_training_checkpoint
-    from train.distributed import cleanup, init_distributed
+    from train.distributed import cleanup, init_distributed, shard
     from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, optimizer_groups
     from train.loop import MetricsLogger, train_loop
 
@@ -352,7 +354,8 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     if g.rgb_init:
         seen = init_rgb(model, data)
         ctx.log(f"[gaussian] RGB channels initialized from the training images ({100 * seen:.0f}% of the Gaussians seen)")
-    trainer = GaussianTrainer(g, model, renderer, _estimator(ctx, "loss", device), data, device, g.steps)
+    trainer = GaussianTrainer(g, model, renderer, _estimator(ctx, "loss", device), data, device, g.steps,
+                              shard=shard(g.batch, info) if info.enabled else None)
     opt = torch.optim.Adam(optimizer_groups(model, renderer, g))
     stage_dir = ctx.run_dir / "gaussian"
     mgr = CheckpointManager(stage_dir / "checkpoints")
@@ -362,12 +365,14 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     try:
         train_loop("gaussian", trainer.step, modules={"model": model, "renderer": renderer}, optimizers={"adam": opt},
                    steps=g.steps, run_dir=stage_dir, seed=cfg.seed, ckpt_every=g.ckpt_every, log_every=g.log_every,
-                   resume=ctx.resume, grad_clip=g.grad_clip, metrics=metrics, is_main=info.is_main)
+                   resume=ctx.resume, grad_clip=g.grad_clip, metrics=metrics, is_main=info.is_main,
+                   dist_info=info if info.enabled else None)
+        if info.is_main:  # the ranks hold the same weights; the others wait for this file at cleanup's barrier
+            save_training_checkpoint(stage_dir / "final.safetensors", step=g.steps,
+                                     modules={"model": model, "renderer": renderer}, extra={"renderer": g.renderer})
     finally:
         metrics.close()
         cleanup(info)
-    save_training_checkpoint(stage_dir / "final.safetensors", step=g.steps, modules={"model": model, "renderer": renderer},
-                             extra={"renderer": g.renderer})
     return {"checkpoint": "gaussian/final.safetensors"}
 
 

@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from pathlib import Path
 
 import h5py
 import pytest
@@ -11,6 +12,7 @@ from toolkit import ToolkitError
 from train import run
 
 TINY = ["--preset", "tiny"]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -453,3 +455,45 @@ def test_config_and_report_know_every_fitting_group():
     assert typing.get_args(allowed) == TTA_WEIGHT_GROUPS
     text = run._fitting(EvalConfig(tta_steps=1, tta_weights=TTA_WEIGHT_GROUPS))
     assert "the eye rotation field" in text and "the codec's decoder" in text
+
+
+def _gaussian_weights(run_dir):
+    from safetensors.torch import load_file
+
+    return load_file(str(run_dir / "gaussian" / "final.safetensors"))
+
+
+@pytest.mark.skipif(not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
+                    reason="torch.distributed/gloo unavailable")
+def test_gaussian_stage_in_two_torchrun_processes_equals_one_process(tiny_run, tmp_path):
+    """torchrun with 2 CPU processes (gloo): each takes half of the global batch (and the same rows of every random
+    draw) and the gradients are averaged, so the trained weights equal one process's on the whole batch up to
+    float sums. A rank that trained alone on its shard, or on the whole batch, ends far from them."""
+    import os
+    import subprocess
+    import sys
+
+    runs = {}
+    for name, launcher in (("one", [sys.executable]),
+                           ("two", [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"])):
+        d = tmp_path / name
+        shutil.copytree(tiny_run, d)
+        cmd = [*launcher, "-m", "train.run", "--config", str(d / "config.yaml"), "--run-dir", str(d),
+               "--stages", "gaussian", "--force", "gaussian"]
+        env = {**os.environ, "OMP_NUM_THREADS": "1"}  # one thread per process, as torchrun gives each rank
+        r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+        if r.returncode != 0 and "terminate called without an active exception" in r.stderr:
+            r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)  # gloo teardown race
+        assert r.returncode == 0, r.stderr[-3000:]
+        runs[name] = _gaussian_weights(d)
+    from safetensors.torch import load_file
+
+    first = load_file(str(sorted((tmp_path / "one" / "gaussian" / "checkpoints").glob("*.safetensors"))[0]))
+    moved = max(float((runs["one"][k].float() - first[k].float()).abs().max()) for k in runs["one"] if k in first)
+    assert moved > 1e-3  # the last steps moved the weights far more than the tolerance below
+    worst = max(float((runs["one"][k].float() - runs["two"][k].float()).abs().max()) for k in runs["one"])
+    assert worst < 1e-4, worst
+    # ... and the work was split: rank 0 logged the loss of its half of the batch, not the whole batch's.
+    last = {name: [json.loads(x) for x in (tmp_path / name / "metrics.jsonl").read_text().splitlines()
+                   if json.loads(x).get("stage") == "gaussian"][-1] for name in runs}
+    assert last["one"]["step"] == last["two"]["step"] and abs(last["one"]["image"] - last["two"]["image"]) > 1e-4
