@@ -24,6 +24,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -653,6 +654,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     unknown = [s for s in stages if s not in STAGE_NAMES]
     if unknown:
         raise ToolkitError(f"--stages: unknown stage(s) {unknown}; stages are {list(STAGE_NAMES)} or 'all'")
+    world = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if world > 1 and stages != ["gaussian"]:
+        # Every rank would run every other stage in full, writing the same files side by side.
+        raise ToolkitError(f"--stages {args.stages}: under torchrun (WORLD_SIZE={world}) only stage gaussian is "
+                           "distributed; run the others in one process (python -m train.run ... --stages "
+                           "data,geometry,codec,estimator, later --stages eval) and torchrun ... --stages gaussian")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     _device(cfg)  # fail early on an impossible device

@@ -497,3 +497,11 @@ def test_gaussian_stage_in_two_torchrun_processes_equals_one_process(tiny_run, t
     last = {name: [json.loads(x) for x in (tmp_path / name / "metrics.jsonl").read_text().splitlines()
                    if json.loads(x).get("stage") == "gaussian"][-1] for name in runs}
     assert last["one"]["step"] == last["two"]["step"] and abs(last["one"]["image"] - last["two"]["image"]) > 1e-4
+
+
+def test_torchrun_runs_the_gaussian_stage_alone(tmp_path, monkeypatch):
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    for stages in ("all", "gaussian,eval", "data"):
+        with pytest.raises(ToolkitError, match="only stage gaussian is distributed"):
+            run.main([*TINY, "--run-dir", str(tmp_path / "r"), "--stages", stages])
+    assert not (tmp_path / "r" / "config.yaml").exists()  # refused before any work
