@@ -164,3 +164,33 @@ def test_fit_weights_bad_input_is_one_line_error(tiny_trained_run, tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and expect in err[0]
     assert not (tmp_path / "o.h5").exists()
+
+
+@pytest.mark.skipif(not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
+                    reason="torch.distributed/gloo unavailable")
+def test_redirect_sharded_over_two_torchrun_processes_writes_what_one_process_writes(tiny_trained_run, tmp_path):
+    """torchrun with 2 CPU processes: each renders its chunks, rank 0 assembles one file equal to one process's."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    src = _test_subject(tiny_trained_run)
+    outs = {}
+    for name, launcher in (("one", [sys.executable]),
+                           ("two", [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"])):
+        outs[name] = tmp_path / f"{name}.h5"
+        cmd = [*launcher, "-m", "apps.redirect", str(tiny_trained_run), str(src), str(outs[name]),
+               "--gazes", "grid:1x2:20", "--rows", "5", "--batch", "2"]  # 3 chunks: rank 0 renders two, rank 1 one
+        env = {**os.environ, "OMP_NUM_THREADS": "1"}
+        r = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300, env=env)
+        if r.returncode != 0 and "terminate called without an active exception" in r.stderr:
+            r = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300, env=env)  # gloo teardown race
+        assert r.returncode == 0, r.stderr[-3000:]
+    assert not (tmp_path / "two.h5.parts").exists()  # the chunks were assembled and removed
+    with h5py.File(outs["one"]) as a, h5py.File(outs["two"]) as b:
+        assert a["face_patch"].shape == b["face_patch"].shape == (10, 64, 64, 3)
+        for key in a:
+            if isinstance(a[key], h5py.Dataset):
+                assert np.array_equal(a[key][:], b[key][:]), key
