@@ -13,7 +13,9 @@ config section and upstream stages, are unchanged):
     eval       the GazeNeRF protocol on held-out subjects -> report.md, metrics.json, qualitative PNG
 
 The resolved config is written to ``config.yaml``; a config with an unknown key or a wrong type fails
-before any work. Launch with ``torchrun --nproc_per_node N -m train.run ...`` for DDP in stage gaussian: each
+before any work. Without ``--preset`` or ``--config`` an existing run directory continues its own
+``config.yaml`` (``--run-dir out/run --stages eval eval.tta_steps=20`` re-runs one stage of that run); a run
+refused because an unselected upstream stage is missing or was made under another config leaves it untouched. Launch with ``torchrun --nproc_per_node N -m train.run ...`` for DDP in stage gaussian: each
 process takes 1/N of ``gaussian.batch`` (the same rows of every random draw) and the gradients are averaged, so the
 weights equal one process's on the whole batch up to float sums (tested); rank 0 logs and writes the checkpoints.
 """
@@ -39,7 +41,7 @@ from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.io import atomic_write_json, atomic_write_text  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
-from train.stages import RunContext, Stage, finished_stages, run_stages  # noqa: E402
+from train.stages import RunContext, Stage, check_dependencies, finished_stages, run_stages  # noqa: E402
 
 STAGE_NAMES = ("data", "geometry", "codec", "estimator", "gaussian", "eval")
 
@@ -630,14 +632,22 @@ STAGES = [
 
 # ----------------------------------------------------------------------------- CLI
 def resolve_config(args: argparse.Namespace) -> RunConfig:
-    cfg = load_yaml_config(RunConfig, args.config) if args.config else preset(args.preset)
+    """``--config``, else ``--preset``, else the run directory's own ``config.yaml`` (re-running a stage of an
+    existing run continues its config), else the demo preset; then the overrides."""
+    if args.config:
+        cfg = load_yaml_config(RunConfig, args.config)
+    elif args.preset is None and (Path(args.run_dir) / "config.yaml").is_file():
+        cfg = load_yaml_config(RunConfig, Path(args.run_dir) / "config.yaml")
+    else:
+        cfg = preset(args.preset or "demo")
     return apply_overrides(cfg, args.overrides)
 
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m train.run", description="Staged DiT-Gaze training.",
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    ap.add_argument("--preset", default="demo", choices=sorted(PRESETS))
+    ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
+                    help="start from this preset (default: the run directory's config.yaml when it has one, else demo)")
     ap.add_argument("--config", help="a config.yaml to start from instead of a preset")
     ap.add_argument("--run-dir", default="out/run", help="the run directory (default: out/run)")
     ap.add_argument("--stages", default="all", help=f"comma-separated subset of {','.join(STAGE_NAMES)} or 'all'")
@@ -665,10 +675,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     _device(cfg)  # fail early on an impossible device
     _check_values(cfg)
     run_dir = Path(args.run_dir)
+    ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True))
+    check_dependencies(STAGES, stages, ctx)  # a refused run leaves the run's config.yaml as it was
     run_dir.mkdir(parents=True, exist_ok=True)
     save_yaml_config(cfg, run_dir / "config.yaml")
     t0 = time.perf_counter()
-    ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True))
     from train.loop import TrainingInterrupted
 
     try:

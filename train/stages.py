@@ -64,6 +64,32 @@ def fingerprint(stage: Stage, cfg: Any, upstream: dict[str, str]) -> str:
     return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
 
 
+def check_dependencies(stages: list[Stage], selected: list[str], ctx: RunContext) -> None:
+    """Raise :func:`run_stages`'s error for a selected stage whose unselected dependency is missing or stale,
+    before anything runs or is written (fingerprints depend on the config alone, not on outputs)."""
+    prints: dict[str, str] = {}
+    for stage in stages:
+        prints[stage.name] = fingerprint(stage, ctx.config, prints)
+    for stage in stages:
+        if stage.name not in selected:
+            continue
+        for d in stage.depends:
+            if d in selected:
+                continue
+            record = _finished_record(ctx.run_dir, d)
+            if record is not None and record.get("fingerprint") != prints[d]:
+                raise _stale_dependency(stage.name, d, ctx)
+            if record is None:
+                raise ToolkitError(f"stage '{stage.name}' needs stage '{d}', which has not run in {ctx.run_dir}")
+
+
+def _stale_dependency(name: str, d: str, ctx: RunContext) -> ToolkitError:
+    return ToolkitError(f"stage '{name}' needs stage '{d}', whose outputs in {ctx.run_dir} were made under another "
+                        f"config than this one (or from other upstream outputs); re-run it too (--stages {d},...), "
+                        f"or start from the run's own config (--config {ctx.run_dir / 'config.yaml'}) with the "
+                        f"same overrides")
+
+
 def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force: list[str] = ()) -> dict[str, str]:
     """Run ``selected`` stages in the order of ``stages``; returns {stage: "ran" | "skipped"}.
 
@@ -75,6 +101,7 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
         raise ToolkitError(f"unknown stage(s) {unknown}; stages are {list(by_name)} or 'all'")
     prints: dict[str, str] = {}
     status: dict[str, str] = {}
+    stale: set[str] = set()  # finished once, under another config or from other upstream outputs
     for stage in stages:
         missing_dep = [d for d in stage.depends if d not in prints]
         if missing_dep:
@@ -86,6 +113,8 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
         if stage.name not in selected:
             if up_to_date:
                 ctx.outputs[stage.name] = record["outputs"]
+            elif record is not None:
+                stale.add(stage.name)
             continue
         if up_to_date and stage.name not in force:
             ctx.outputs[stage.name] = record["outputs"]
@@ -93,6 +122,8 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
             status[stage.name] = "skipped"
             continue
         for d in stage.depends:
+            if d in stale:
+                raise _stale_dependency(stage.name, d, ctx)
             if d not in ctx.outputs:
                 raise ToolkitError(f"stage '{stage.name}' needs stage '{d}', which has not run in {ctx.run_dir}")
         ctx.log(f"[{stage.name}] running")

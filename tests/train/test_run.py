@@ -505,3 +505,25 @@ def test_torchrun_runs_the_gaussian_stage_alone(tmp_path, monkeypatch):
         with pytest.raises(ToolkitError, match="only stage gaussian is distributed"):
             run.main([*TINY, "--run-dir", str(tmp_path / "r"), "--stages", stages])
     assert not (tmp_path / "r" / "config.yaml").exists()  # refused before any work
+
+
+def test_a_stage_rerun_continues_the_runs_config_and_a_refused_run_leaves_it_alone(tiny_run, tmp_path):
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d)
+    before = (d / "config.yaml").read_bytes()
+    # Another preset's config: its gaussian fingerprint differs, so eval is refused, naming why, before any write.
+    with pytest.raises(ToolkitError, match="made under another config"):
+        run.main(["--preset", "demo", "--run-dir", str(d), "--stages", "eval"])
+    assert (d / "config.yaml").read_bytes() == before
+    # Never run at all: the other message.
+    with pytest.raises(ToolkitError, match="which has not run"):
+        run.main(["--preset", "tiny", "--run-dir", str(tmp_path / "empty"), "--stages", "eval"])
+    assert not (tmp_path / "empty").exists()
+    # No --preset and no --config: the run's own config.yaml, with the overrides on top.
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        assert run.main(["--run-dir", str(d), "--stages", "eval", "eval.tta_steps=1"]) == 0
+    finally:
+        torch.set_num_threads(old)
+    assert "tta_steps: 1" in (d / "config.yaml").read_text()
