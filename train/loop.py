@@ -143,7 +143,10 @@ def train_loop(
     try:
         with _stop_signals() as flag:
             for step in range(start, steps):
-                if flag["stop"]:
+                stop = flag["stop"]
+                if dist_info is not None:  # one rank's Ctrl-C stops all at the same step, before any collective
+                    stop = not all_ranks(not stop, dist_info)
+                if stop:
                     last_ckpt = save(step)
                     raise TrainingInterrupted(
                         f"{stage}: interrupted at step {step}; checkpoint saved to {last_ckpt} (rerun with --resume)"

@@ -152,3 +152,27 @@ def test_sigint_saves_checkpoint_and_exits_cleanly(tmp_path):
     assert m, err.decode()[-500:]
     step, path = int(m.group(1)), Path(m.group(2).decode())
     assert path.exists() and path.name == f"ckpt_{step:08d}.safetensors"
+
+
+def test_a_stop_on_any_rank_stops_every_rank_at_the_same_step(tmp_path, monkeypatch):
+    """Under torchrun the stop flag is agreed by all ranks before each step (else one rank would leave for its
+    checkpoint while the others wait in the step's gradient all-reduce). Simulated: the other rank's vote says
+    stop before step 2; this rank's own flag never rose."""
+    import train.loop as loop
+    from train.distributed import DistInfo
+    from train.loop import TrainingInterrupted
+
+    votes = []
+
+    def all_ranks(ok, info):
+        votes.append(ok)
+        return ok and len(votes) != 5  # per step: the stop vote, then the finite-loss vote; 5th: step 2's stop
+
+    monkeypatch.setattr(loop, "all_ranks", all_ranks)
+    monkeypatch.setattr(loop, "average_gradients", lambda params, info: None)
+    model, opt, step_fn = _problem()
+    with pytest.raises(TrainingInterrupted, match="step 2"):
+        train_loop("s", step_fn, modules={"m": model}, optimizers={"o": opt}, steps=10, run_dir=tmp_path,
+                   ckpt_every=100, progress=False, dist_info=DistInfo(rank=0, world_size=2))
+    assert votes[4] is True  # this rank voted to go on
+    assert CheckpointManager(tmp_path / "checkpoints").latest().name[5:13] == "00000002"
