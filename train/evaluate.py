@@ -475,11 +475,11 @@ def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
     counts and times summed, the first group's examples)."""
     if not parts:
         raise ToolkitError("merge_raw_evaluations: expected at least one evaluation")
-    out: dict[str, Any] = {k: [] for k in ("gaze_err", "head_err", "psnrs", "ssims", "reals", "fakes",
-                                           "per_subject", "per_pair")}
+    lists = ("gaze_err", "head_err", "psnrs", "ssims", "reals", "fakes", "per_subject", "per_pair")
+    out: dict[str, Any] = {k: [] for k in lists}
     out.update(ref_scores={}, own_scores={}, examples=None, n_images=0, render_seconds=0.0)
     for part in parts:
-        for k in ("gaze_err", "head_err", "psnrs", "ssims", "reals", "fakes", "per_subject", "per_pair"):
+        for k in lists:
             out[k] += part[k]
         for name, scores in part["ref_scores"].items():
             for key, vals in scores.items():

@@ -65,10 +65,14 @@ def fingerprint(stage: Stage, cfg: Any, upstream: dict[str, str]) -> str:
 
 
 def check_dependencies(stages: list[Stage], selected: list[str], ctx: RunContext) -> None:
-    """Raise :func:`run_stages`'s error for a selected stage whose unselected dependency is missing or stale,
-    before anything runs or is written (fingerprints depend on the config alone, not on outputs)."""
+    """Raise for a selected stage whose unselected dependency is missing or stale (or unknown), before anything
+    runs or is written: fingerprints depend on the config alone, not on outputs. :func:`run_stages` starts with
+    it; ``train.run`` also calls it before writing the run's ``config.yaml``."""
     prints: dict[str, str] = {}
     for stage in stages:
+        missing_dep = [d for d in stage.depends if d not in prints]
+        if missing_dep:
+            raise ToolkitError(f"stage '{stage.name}' depends on unknown stage(s) {missing_dep}")
         prints[stage.name] = fingerprint(stage, ctx.config, prints)
     for stage in stages:
         if stage.name not in selected:
@@ -77,17 +81,13 @@ def check_dependencies(stages: list[Stage], selected: list[str], ctx: RunContext
             if d in selected:
                 continue
             record = _finished_record(ctx.run_dir, d)
-            if record is not None and record.get("fingerprint") != prints[d]:
-                raise _stale_dependency(stage.name, d, ctx)
             if record is None:
                 raise ToolkitError(f"stage '{stage.name}' needs stage '{d}', which has not run in {ctx.run_dir}")
-
-
-def _stale_dependency(name: str, d: str, ctx: RunContext) -> ToolkitError:
-    return ToolkitError(f"stage '{name}' needs stage '{d}', whose outputs in {ctx.run_dir} were made under another "
-                        f"config than this one (or from other upstream outputs); re-run it too (--stages {d},...), "
-                        f"or start from the run's own config (--config {ctx.run_dir / 'config.yaml'}) with the "
-                        f"same overrides")
+            if record.get("fingerprint") != prints[d]:
+                raise ToolkitError(f"stage '{stage.name}' needs stage '{d}', whose outputs in {ctx.run_dir} were made "
+                                   f"under another config than this one (or from other upstream outputs); re-run it "
+                                   f"too (--stages {d},...), or start from the run's own config "
+                                   f"(--config {ctx.run_dir / 'config.yaml'}) with the same overrides")
 
 
 def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force: list[str] = ()) -> dict[str, str]:
@@ -99,13 +99,10 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
     unknown = [s for s in selected if s not in by_name]
     if unknown:
         raise ToolkitError(f"unknown stage(s) {unknown}; stages are {list(by_name)} or 'all'")
+    check_dependencies(stages, selected, ctx)
     prints: dict[str, str] = {}
     status: dict[str, str] = {}
-    stale: set[str] = set()  # finished once, under another config or from other upstream outputs
     for stage in stages:
-        missing_dep = [d for d in stage.depends if d not in prints]
-        if missing_dep:
-            raise ToolkitError(f"stage '{stage.name}' depends on unknown stage(s) {missing_dep}")
         fp = fingerprint(stage, ctx.config, prints)
         prints[stage.name] = fp
         record = _finished_record(ctx.run_dir, stage.name)
@@ -113,19 +110,12 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
         if stage.name not in selected:
             if up_to_date:
                 ctx.outputs[stage.name] = record["outputs"]
-            elif record is not None:
-                stale.add(stage.name)
             continue
         if up_to_date and stage.name not in force:
             ctx.outputs[stage.name] = record["outputs"]
             ctx.log(f"[{stage.name}] up to date, skipped")
             status[stage.name] = "skipped"
             continue
-        for d in stage.depends:
-            if d in stale:
-                raise _stale_dependency(stage.name, d, ctx)
-            if d not in ctx.outputs:
-                raise ToolkitError(f"stage '{stage.name}' needs stage '{d}', which has not run in {ctx.run_dir}")
         ctx.log(f"[{stage.name}] running")
         t0 = time.perf_counter()
         outputs = stage.run(ctx)
