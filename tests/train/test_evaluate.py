@@ -3,6 +3,7 @@ rendering throughput does not count it."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -579,3 +580,78 @@ def test_render_target_at_the_inputs_own_gaze_reproduces_the_input(subject_file)
     a, b = (int(x) for x in pairs.pairs[0])
     t = pairs.render_target(a, pairs.data._file(0)["pitchyaw_head"][b])
     assert torch.equal(t["image"], pairs[0]["target"]["image"])
+
+
+class _ConstantReading(torch.nn.Module):
+    """A stand-in estimator: the same (gaze pitch/yaw, head pitch/yaw) reading for every image."""
+
+    def __init__(self, reading):
+        super().__init__()
+        self.reading = torch.tensor(reading)
+
+    def forward(self, images, landmarks=None):
+        return self.reading.expand(images.shape[0], 4).clone()
+
+
+def test_readings_against_the_labels_use_each_targets_own_labels(subject_file):
+    """Render and target read alike (a constant estimator): the metric reads 0 while each reading misses
+    the target's own camera-frame gaze label, and the input's head pose, by exactly their angle to it."""
+    from toolkit.rotations import angular_error_deg
+    from train.data.pairing import SyntheticRedirectionPairs
+    from train.evaluate import evaluate, spread_indices
+
+    model, renderer, _ = untrained_eval_parts()
+    est = _ConstantReading([0.1, -0.3, 0.05, 0.2])
+    out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None)
+    pairs = SyntheticRedirectionPairs(subject_file, res=64, seed=0)
+    items = [pairs[i] for i in spread_indices(len(pairs), 3)]
+    gaze = torch.stack([it["target"]["pitchyaw_cam"] for it in items])
+    head = torch.stack([torch.as_tensor(it["input"]["face_head_pose"]) for it in items]).float()
+    want_gaze = angular_error_deg(est.reading[:2].expand(3, 2), gaze)
+    want_head = angular_error_deg(est.reading[2:].expand(3, 2), head)
+    assert want_gaze.min() > 1  # the check can fail: the reading is far from every label
+    for r, w in zip(out["per_pair"], want_gaze.tolist()):
+        assert r["gaze_error_deg"] < 1e-3
+        assert math.isclose(r["target_vs_label_gaze_deg"], w, rel_tol=1e-5)
+        assert math.isclose(r["render_vs_label_gaze_deg"], w, rel_tol=1e-5)
+    for who in ("target", "render"):
+        assert math.isclose(out["labels"][who]["gaze_error_deg"], float(want_gaze.mean()), rel_tol=1e-5)
+        assert math.isclose(out["labels"][who]["head_pose_error_deg"], float(want_head.mean()), rel_tol=1e-5)
+
+
+def test_worst_eye_views_are_the_worst_pairs_eye_patches_and_survive_a_merge():
+    from train.evaluate import (
+        EYE_VIEW_HW,
+        WORST_EYE_PAIRS,
+        _worst_eye_views,
+        eye_views_grid,
+        merge_raw_evaluations,
+        summarize_evaluation,
+    )
+    from train.gaze_estimator import eye_patches
+
+    g = torch.Generator().manual_seed(0)
+    B, h, w = 8, *EYE_VIEW_HW
+    inp, tgt, out = (torch.rand(B, 3, 64, 64, generator=g) for _ in range(3))
+    lm = 20 + 24 * torch.rand(B, 68, 2, generator=g)
+    err = torch.tensor([3.0, 9.0, 1.0, 7.0, 2.0, 8.0, 0.5, 4.0])
+    views = _worst_eye_views("a.h5", list(range(10, 18)), err, inp, tgt, out, lm)
+    assert [v["pair"] for v in views] == [11, 15, 13, 17, 10, 14][:WORST_EYE_PAIRS]
+    v = views[0]["views"]
+    assert v.dtype == torch.uint8 and v.shape == (3, 3, h, 2 * w)
+    p = eye_patches(tgt[1:2], lm[1:2], EYE_VIEW_HW)[0]  # the target's two eyes, side by side
+    want = (torch.cat([p[:3], p[3:]], -1).clamp(0, 1) * 255).round()
+    assert torch.equal(v[1].float(), want)
+    # Two groups of subjects, merged: the summary keeps the overall worst pairs, worst first.
+    other = _worst_eye_views("b.h5", [0, 1], torch.tensor([8.5, 0.1]), inp[:2], tgt[:2], out[:2], lm[:2])
+    empty = {"gaze_err": [], "head_err": [], "psnrs": [], "ssims": [], "reals": [], "fakes": [], "per_subject": [],
+             "per_pair": [], "ref_scores": {}, "own_scores": {}, "label_scores": {}, "examples": None, "n_images": 0,
+             "render_seconds": 0.0}
+    raw = merge_raw_evaluations([dict(empty, worst_eyes=views), dict(empty, worst_eyes=other)])
+    worst = summarize_evaluation(raw, log=lambda s: None)["worst_eyes"]
+    assert [(r["subject"], r["pair"]) for r in worst] == [("a.h5", 11), ("b.h5", 0), ("a.h5", 15), ("a.h5", 13),
+                                                         ("a.h5", 17), ("a.h5", 10)]
+    grid = eye_views_grid(worst)
+    assert grid.dtype == np.uint8 and grid.shape == (WORST_EYE_PAIRS * (h + 14), 3 * (2 * w + 6), 3)
+    with pytest.raises(ToolkitError, match="no pairs"):
+        eye_views_grid([])

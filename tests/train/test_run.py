@@ -26,7 +26,8 @@ def tiny_run(tmp_path_factory):
 def test_all_stages_write_their_outputs(tiny_run):
     for rel in ("config.yaml", "data/split.json", "geometry/gaussians.safetensors", "geometry/neutral_mesh.ply",
                 "codec.safetensors", "estimator_loss.safetensors", "estimator_eval.safetensors",
-                "gaussian/final.safetensors", "report.md", "metrics.json", "qualitative.png", "metrics.jsonl"):
+                "gaussian/final.safetensors", "report.md", "metrics.json", "qualitative.png", "eyes.png",
+                "metrics.jsonl"):
         assert (tiny_run / rel).exists(), rel
     m = json.loads((tiny_run / "metrics.json").read_text())["metrics"]
     for k in ("gaze_error_deg", "head_pose_error_deg", "psnr", "ssim"):
@@ -41,6 +42,12 @@ def test_all_stages_write_their_outputs(tiny_run):
     assert "*diagnostic: the input re-rendered at its own gaze*" in report
     own = json.loads((tiny_run / "metrics.json").read_text())["own_gaze"]
     assert 0 <= own["gaze_error_deg"] <= 180 and own["psnr"] > 0
+    # The ruler against the synthetic targets' exact labels: a table row, the renders' reading, the eye figure.
+    labels = json.loads((tiny_run / "metrics.json").read_text())["labels"]
+    assert set(labels) == {"target", "render"} and all(0 <= v <= 180 for d in labels.values() for v in d.values())
+    assert "*reference: the target read against its labels*" in report and "![eyes](eyes.png)" in report
+    pair = json.loads((tiny_run / "metrics.json").read_text())["per_pair"][0]
+    assert 0 <= pair["target_vs_label_gaze_deg"] <= 180 and 0 <= pair["render_vs_label_gaze_deg"] <= 180
     refs = json.loads((tiny_run / "metrics.json").read_text())["references"]
     assert refs["target through the codec"]["gaze_error_deg"] >= 0 and refs["target at half resolution"]["psnr"] > 0
     # Each estimator trained on the run's training split plus its own extra synthetic subject.
