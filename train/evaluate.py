@@ -187,6 +187,9 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     """
     if not lr > 0:
         raise ToolkitError(f"test-time fitting: expected a learning rate > 0 (code, features), got {lr}")
+    if gaze is not None and any(g != "code" and g not in weights for g in gaze.reach):
+        raise ToolkitError(f"test-time fitting: the gaze term may reach only the code and fitted weights "
+                           f"({['code', *weights]}), got {list(gaze.reach)}")
     if any(g in NETWORK_GROUPS for g in weights) and not renderer_lr > 0:
         raise ToolkitError(f"test-time fitting: expected a renderer learning rate > 0, got {renderer_lr}")
     code = batch["code"].clone().requires_grad_(True)
@@ -223,6 +226,10 @@ def term_gaze_order(n_gazes: int, n_entries: int) -> list[int]:
 
 def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, code, fitted, opt, t, gaze=None) -> None:
     order, terms = [], 0
+    reach = None  # indices into ``fitted`` of what the gaze term may change (None: all of it)
+    if gaze is not None and gaze.reach:
+        mine = {id(p) for p in fitted_weights(model, renderer, [g for g in gaze.reach if g != "code"])}
+        reach = [i for i, p in enumerate(fitted) if (i == 0 and "code" in gaze.reach) or (i > 0 and id(p) in mine)]
     if gaze is not None and "target_gazes" in batch:  # the entries: the last step, then every `every`-th before it
         order = term_gaze_order(batch["target_gazes"].shape[1], (steps - 1) // gaze.every + 1 if steps > 0 else 0)
     for step in range(steps):
@@ -236,19 +243,30 @@ def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, co
         small, small_mask = (F.interpolate(x, size=maps["head"].shape[-2:], mode="area") for x in (target, mask))
         loss = ((composite_on_white(img, mask) - target).abs().mean()
                 + (composite_on_white(maps["head"][:, :3], small_mask) - small).abs().mean())
+        term = None
         if gaze is not None and gaze.weight > 0 and (steps - 1 - step) % gaze.every == 0:
             b = batch
             if order:  # an input rendered at many gazes (apps.redirect): one per entry (term_gaze_order)
                 b = {**batch, "gaze_head": batch["target_gazes"][:, order[terms]]}
             terms += 1
-            loss = loss + gaze.weight * gaze.term(model, renderer, b, code, img, input_image, mask, res, t)
+            term = gaze.weight * gaze.term(model, renderer, b, code, img, input_image, mask, res, t)
         # Gradients for the fitted tensors alone: the other weights get none (nor a stale .grad).
-        for p, g in zip(fitted, torch.autograd.grad(loss, fitted, allow_unused=True)):
+        if term is not None and reach is not None:  # the gaze term's gradient reaches its own weights only
+            # The two renders share the cached face stream's graph: keep it for the second gradient.
+            grads = list(torch.autograd.grad(loss, fitted, allow_unused=True, retain_graph=True))
+            for i, g in zip(reach, torch.autograd.grad(term, [fitted[i] for i in reach], allow_unused=True)):
+                if g is not None:
+                    grads[i] = g if grads[i] is None else grads[i] + g
+        else:
+            grads = torch.autograd.grad(loss if term is None else loss + term, fitted, allow_unused=True)
+        for p, g in zip(fitted, grads):
             p.grad = g
         opt.step()
 
 
 FIT_GAZE_TERMS = ("target", "own")
+FIT_GAZE_REACH = ("code",) + TTA_WEIGHT_GROUPS
+"""What a :class:`FitGaze` term's gradient may be limited to (``FitGaze.reach``)."""
 
 
 @dataclass
@@ -274,12 +292,20 @@ class FitGaze:
     weight: float
     terms: tuple[str, ...] = ("target",)
     every: int = 1
+    reach: tuple[str, ...] = ()
+    """what the term's gradient may change: ``"code"`` and names of ``TTA_WEIGHT_GROUPS`` among the fitted ones
+    (:data:`FIT_GAZE_REACH`); () all that is fitted. The photometric loss reaches every fitted weight either way.
+    With only the code and the eye rotation field, the term can turn the eyes but not repaint them: the
+    eyes stay natural, at ~1° of the metric (docs/evaluation.md, session 21)."""
 
     def __post_init__(self):
         if not self.weight >= 0:
             raise ToolkitError(f"test-time fitting: the gaze term's weight must be >= 0, got {self.weight}")
         if isinstance(self.every, bool) or not (isinstance(self.every, int) and self.every >= 1):
             raise ToolkitError(f"test-time fitting: the gaze term's 'every' must be an integer >= 1, got {self.every!r}")
+        bad = [g for g in self.reach if g not in FIT_GAZE_REACH]
+        if bad:
+            raise ToolkitError(f"test-time fitting: the gaze term may reach some of {list(FIT_GAZE_REACH)}, got {list(self.reach)}")
         unknown = [t for t in self.terms if t not in FIT_GAZE_TERMS]
         if unknown or not self.terms:
             raise ToolkitError(f"test-time fitting: gaze terms must be some of {list(FIT_GAZE_TERMS)}, got "

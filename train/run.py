@@ -440,6 +440,10 @@ def _check_values(cfg: RunConfig) -> None:
     if "decoder" in cfg.eval.tta_weights and (cfg.gaussian.renderer != "dit" or cfg.codec.kind == "pixel"):
         raise ToolkitError("config key 'eval.tta_weights': 'decoder' needs a codec decoder: gaussian.renderer=dit "
                            f"with codec.kind ae or sd-vae (got renderer {cfg.gaussian.renderer}, codec {cfg.codec.kind})")
+    outside = [g for g in cfg.eval.tta_gaze_reach if g != "code" and g not in cfg.eval.tta_weights]
+    if outside:
+        raise ToolkitError(f"config key 'eval.tta_gaze_reach': the gaze term may reach only the code and the fitted "
+                           f"eval.tta_weights {list(cfg.eval.tta_weights)}, got {outside}")
     if cfg.eval.tta_gaze_weight > 0 and not cfg.eval.tta_gaze_terms:
         raise ToolkitError("config key 'eval.tta_gaze_terms': expected at least one of target, own when "
                            "eval.tta_gaze_weight > 0")
@@ -455,7 +459,8 @@ def _fitting(e) -> str:
          "renderer": ", the renderer", "decoder": ", the codec's decoder"}[w] for w in dict.fromkeys(e.tta_weights)) + (
         ", compared on the input's whole head" if e.tta_region == "head" else ", compared on its face without the eyes"
     ) + (f", with the loss estimator's gaze term (weight {e.tta_gaze_weight:g}, "
-         f"{'every step' if e.tta_gaze_every == 1 else f'every {e.tta_gaze_every} steps'}; {', '.join(e.tta_gaze_terms)})"
+         f"{'every step' if e.tta_gaze_every == 1 else f'every {e.tta_gaze_every} steps'}; {', '.join(e.tta_gaze_terms)}"
+         + (f"; reaching {', '.join(e.tta_gaze_reach)} only" if e.tta_gaze_reach else "") + ")"
          if e.tta_gaze_weight > 0 else "")
 
 
@@ -500,7 +505,7 @@ def fit_gaze_term(ctx: RunContext, device):
     if not e.tta_gaze_weight > 0:
         return None
     return FitGaze(GazeLoss(_estimator(ctx, "loss", device)), e.tta_gaze_weight, tuple(e.tta_gaze_terms),
-                   every=e.tta_gaze_every)
+                   every=e.tta_gaze_every, reach=tuple(e.tta_gaze_reach))
 
 
 def _tensors_to_numpy(obj):

@@ -221,6 +221,14 @@ class EvalConfig:
     """what the gaze term reads: ``target``, one more render per step at the input's view turned to the pair's
     target gaze, against that gaze (weak supervision at the gaze the pair is rendered at); ``own``, the fitting
     render, against the estimator's reading of the input image."""
+    tta_gaze_reach: tuple[Literal["code", "features", "eye_features", "eye_field", "renderer", "decoder"], ...] = ()
+    """what the gaze term's gradient may change: ``code`` and some of ``tta_weights``; () all that is fitted. With
+    free Gaussian colours or the renderer in reach, the term repaints a new face's eyes with coloured specks that
+    read the target gaze to estimators of the loss estimator's design, most visibly in side views (``eyes.png``).
+    Limited to ``[code, eye_field]`` it can only turn the eyes, which stay natural. Session 21, demo run, fitting
+    ``[features, eye_field, renderer]`` with the term reaching ``[code, eye_field]`` at weight 0.002: gaze 6.95°,
+    PSNR 33.28 dB, against 5.81°, 33.55 dB for the demo preset's fit with specks (docs/evaluation.md). For
+    redirected training data, where an estimator must learn from real eye cues, prefer the natural setting."""
     pairing_file: str = ""
     """GazeNeRF pairing file for real data; synthetic data pairs deterministically."""
     sweep_frames: int = 9

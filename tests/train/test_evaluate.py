@@ -469,6 +469,35 @@ def test_eye_field_group_lets_the_gaze_term_turn_the_eyes_and_is_restored(two_fr
     assert all(torch.equal(model.state_dict()[k], v) for k, v in before.items())
 
 
+def test_gaze_term_limited_to_its_reach_leaves_the_other_weights_to_the_photometric_fit(two_frame_file):
+    """``FitGaze.reach``: one step (the term enters the last) with the term reaching the eye rotation field only
+    moves the face features exactly as the photometric fit alone does, and the eye field otherwise; reaching
+    everything (the default) moves the features too."""
+    from train.evaluate import FitGaze, restored_weights, test_time_fit
+    from train.losses import GazeLoss
+
+    model, renderer, _ = untrained_eval_parts()
+    loss = GazeLoss(_ColourGaze())
+    batch, image, mask = _target_batch(two_frame_file, 1)
+    weights = ("features", "eye_field")
+    after = {}
+    for name, gaze in (("plain", None), ("reach", FitGaze(loss, 1.0, reach=("eye_field",))), ("all", FitGaze(loss, 1.0))):
+        with restored_weights(model, renderer):
+            code = test_time_fit(model, renderer, batch, image, mask, 64, steps=1, lr=0.1, renderer_lr=1e-2,
+                                 weights=weights, gaze=gaze)
+            after[name] = (code, model.face_features.detach().clone(),
+                           [p.detach().clone() for p in model.eye_field.parameters()])
+    plain, reach, every = after["plain"], after["reach"], after["all"]
+    assert torch.equal(reach[0], plain[0]) and torch.equal(reach[1], plain[1])  # code and features: photometric only
+    assert any(not torch.equal(a, b) for a, b in zip(reach[2], plain[2]))  # the eye field: the term's too
+    assert not torch.equal(every[1], plain[1])  # reaching everything, the term moves the features as well
+    with pytest.raises(ToolkitError, match="may reach only the code and fitted weights"):
+        test_time_fit(model, renderer, batch, image, mask, 64, steps=1, weights=("features",),
+                      gaze=FitGaze(loss, 1.0, reach=("eye_field",)))
+    with pytest.raises(ToolkitError, match="may reach some of"):
+        FitGaze(loss, 1.0, reach=("eyes",))
+
+
 def test_own_gaze_term_reaches_the_code_without_another_render(two_frame_file, monkeypatch):
     """``own`` reads the fitting render itself: the model runs once per step, and the fitted code differs from
     the photometric fit's."""

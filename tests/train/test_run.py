@@ -209,14 +209,16 @@ def test_eval_gaze_term_fits_with_the_loss_estimator(tiny_run, tmp_path, capsys,
 
     monkeypatch.setattr(ev.FitGaze, "term", spy)
     assert run.main([*TINY, "--run-dir", str(d), "--stages", "eval", "eval.tta_gaze_weight=0.01",
-                     "eval.tta_gaze_terms=[target,own]", "eval.tta_gaze_every=1"]) == 0
+                     "eval.tta_gaze_terms=[target,own]", "eval.tta_gaze_every=1", "eval.tta_gaze_reach=[code]"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["stages"] == {"eval": "ran"}
-    assert seen and all(g.weight == 0.01 and g.terms == ("target", "own") and g.every == 1 for g in seen)
+    assert seen and all(g.weight == 0.01 and g.terms == ("target", "own") and g.every == 1 and g.reach == ("code",)
+                        for g in seen)
     loss_w, eval_w = load_file(d / "estimator_loss.safetensors"), load_file(d / "estimator_eval.safetensors")
     fitted = seen[0].loss.estimator.state_dict()
     assert set(fitted) == set(loss_w) and all(torch.equal(fitted[k], loss_w[k]) for k in fitted)
     assert any(not torch.equal(fitted[k], eval_w[k]) for k in fitted)
-    assert "with the loss estimator's gaze term (weight 0.01, every step; target, own)" in (d / "report.md").read_text()
+    assert ("with the loss estimator's gaze term (weight 0.01, every step; target, own; reaching code only)"
+            in (d / "report.md").read_text())
 
 
 def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
@@ -248,6 +250,8 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("eval.tta_gaze_weight=-1", "'eval.tta_gaze_weight': expected a weight >= 0"),
         ("eval.tta_gaze_terms=[eyes]", "'eval.tta_gaze_terms"),
         ("eval.tta_gaze_every=0", "'eval.tta_gaze_every': expected a step count >= 1"),
+        ("eval.tta_gaze_reach=[eyes]", "eval.tta_gaze_reach.0.': expected one of"),  # the list's item [0]
+        ("eval.tta_gaze_reach=[eye_field]", "'eval.tta_gaze_reach': the gaze term may reach only the code and"),
         ("gaussian.feature_upscale=3", "'gaussian.feature_upscale': expected a power of two"),
         ("geometry.eye_gaussians=2", "'geometry.eye_gaussians': expected 0"),
         ("estimator.blur_prob=1.5", "'estimator.blur_prob': expected a probability"),
