@@ -4,6 +4,7 @@
                             [--rows N] [--batch 8] [--seed 0]
     python -m apps.redirect RUN_DIR crops/labels.csv OUT.h5 [--focal F] [--distance D] [--fit-steps N]
     python -m apps.redirect RUN_DIR DATASET OUT.h5 --fit-weights [--fit-steps N]   # new faces: fit each row first
+    python -m apps.redirect RUN_DIR DATASET OUT.h5 --fit-weights --natural-eyes    # ... turning, not repainting, the eyes
 
 For every input row and every target gaze (head frame, degrees in the spec), the trained model renders the
 same person looking there. The output is one HDF5 file in the schema of docs/data.md, with the target gaze
@@ -24,7 +25,8 @@ Inputs:
   run's geometry and the model's splatted silhouettes (approximate: the crops carry none).
 
 ``--fit-weights`` fits every row as the evaluation fits a pair before rendering it (:func:`row_fitter`):
-what a face the run never trained on needs (docs/redirect.md).
+what a face the run never trained on needs (docs/redirect.md). ``--natural-eyes`` limits the fit's gaze term to
+turning the eyes (:func:`row_fitter`).
 
 Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun skips finished chunks,
 and the final file is assembled (atomically) when all chunks exist. ``OUT.parts/settings.json`` records the
@@ -88,7 +90,7 @@ def _chunk_path(parts: Path, k: int) -> Path:
     return parts / f"part_{k:05d}.npz"
 
 
-def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = True
+def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = True, natural_eyes: bool = False
                ) -> Callable[[dict, torch.Tensor], torch.Tensor]:
     """The evaluation's test-time fitting for one input row, as a function (item, gazes [G, 2]) -> fitted code
     [1, C]: ``steps`` Adam steps of the code and the run's ``eval.tta_weights`` (by default the face Gaussians'
@@ -96,12 +98,17 @@ def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = Tr
     gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn (``train.evaluate.term_gaze_order``:
     spread over them when they outnumber the term's entries). The weights are tuned in place:
     the caller restores them (``train.evaluate.restored_weights``) after rendering the row. ``gaze_term=False``
-    leaves the gaze term out whatever the run's weight (``benchmarks/redirect.py`` measures what it adds)."""
-    from train.evaluate import face_only_mask, test_time_fit
+    leaves the gaze term out whatever the run's weight (``benchmarks/redirect.py`` measures what it adds).
+    ``natural_eyes`` fits ``train.evaluate.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the
+    term may turn the eyes but not repaint them, so the redirected eyes carry no coloured specks that an
+    estimator trained on them could learn from."""
+    from train.evaluate import NATURAL_EYES_FIT, face_only_mask, test_time_fit
     from train.run import fit_gaze_term
 
     e = ctx.config.eval
-    gaze = fit_gaze_term(ctx, device) if gaze_term else None
+    weights = NATURAL_EYES_FIT["weights"] if natural_eyes else tuple(e.tta_weights)
+    natural = {"weight": NATURAL_EYES_FIT["gaze_weight"], "reach": NATURAL_EYES_FIT["reach"]} if natural_eyes else {}
+    gaze = fit_gaze_term(ctx, device, **natural) if gaze_term else None
     res = ctx.config.data.res
 
     def fit(it: dict, gazes: torch.Tensor) -> torch.Tensor:
@@ -112,7 +119,7 @@ def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = Tr
                  "in_viewmat": t("viewmat"), "K": t("K"), "landmarks": t("landmarks"), "in_head_mask": head,
                  "gaze_head": gazes[:1], "target_gazes": gazes[None]}
         with torch.enable_grad():
-            return test_time_fit(model, renderer, batch, t("image"), mask, res, steps, weights=tuple(e.tta_weights),
+            return test_time_fit(model, renderer, batch, t("image"), mask, res, steps, weights=weights,
                                  renderer_lr=e.tta_renderer_lr, gaze=gaze)
 
     return fit
@@ -196,7 +203,7 @@ def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
                 "dataset": str(Path(getattr(src, "path", args.dataset)).resolve()),
                 "gazes_sha1": hashlib.sha1(np.ascontiguousarray(gazes, np.float64).tobytes()).hexdigest(),
                 "rows": n_rows, "batch": args.batch, "steps": sampling_steps(args, ctx.config),
-                "fit_weights": args.fit_weights}
+                "fit_weights": args.fit_weights, "natural_eyes": args.natural_eyes}
     csv = is_labels_csv(args.dataset)
     if csv:
         settings.update(focal=args.focal, distance=args.distance, fit_lr=args.fit_lr)
@@ -303,6 +310,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "eval.tta_weights (face features, renderer) for --fit-steps steps on eval.tta_region, with "
                          "the loss estimator's gaze term at the row's target gazes; one row at a time, from the "
                          "trained weights each time (CSV rows need their own gaze)")
+    ap.add_argument("--natural-eyes", action="store_true",
+                    help="with --fit-weights: fit the face features, eye rotation field and renderer, with a gaze "
+                         "term that may only turn the eyes (train.evaluate.NATURAL_EYES_FIT): no coloured specks "
+                         "in the eyes, ~1 deg less gaze accuracy on the demo; for data a gaze estimator learns from")
     args = ap.parse_args(argv)
     from train.distributed import barrier, cleanup, init_distributed
     from train.run import load_trained, open_run
@@ -317,6 +328,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     cfg = ctx.config
     src = open_source(ctx, args)  # validates the whole input before any model is loaded
     fit_steps = args.fit_steps if args.fit_steps >= 0 else (cfg.eval.tta_steps or 50)
+    if args.natural_eyes and not args.fit_weights:
+        raise ToolkitError("--natural-eyes sets how --fit-weights fits each row; give --fit-weights too")
     if args.fit_weights:
         if fit_steps < 1:
             raise ToolkitError(f"--fit-weights needs --fit-steps >= 1, got {fit_steps}")
@@ -327,7 +340,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     info = init_distributed("cpu" if not torch.cuda.is_available() else "auto")
     device = torch.device(info.device)
     model, renderer = load_trained(ctx, device)
-    fit = row_fitter(ctx, model, renderer, device, fit_steps) if args.fit_weights else None
+    fit = row_fitter(ctx, model, renderer, device, fit_steps, natural_eyes=args.natural_eyes) if args.fit_weights else None
 
     def items(rows: list[int]) -> list[dict]:
         if hasattr(src, "items"):

@@ -267,6 +267,12 @@ def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, co
 FIT_GAZE_TERMS = ("target", "own")
 FIT_GAZE_REACH = ("code",) + TTA_WEIGHT_GROUPS
 """What a :class:`FitGaze` term's gradient may be limited to (``FitGaze.reach``)."""
+NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weight": 0.002,
+                    "reach": ("code", "eye_field")}
+"""A test-time fit whose gaze term turns a new face's eyes but cannot repaint them (``FitGaze.reach``): no
+coloured specks, and the iris keeps the trained model's colour rather than the new face's. Session 21, demo
+run: gaze 6.95°, PSNR 33.28 dB, against 5.81°, 33.55 dB for the demo preset's fit, whose side views show
+specks (docs/evaluation.md). ``apps.redirect --natural-eyes`` fits this way."""
 
 
 @dataclass

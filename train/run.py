@@ -495,17 +495,18 @@ REFERENCES_NOTE = (
     "alone) and, for latent renderers, through the frozen codec (its own reconstruction, which a decoded render can hardly beat).\n\n")
 
 
-def fit_gaze_term(ctx: RunContext, device):
+def fit_gaze_term(ctx: RunContext, device, *, weight: float | None = None, reach: tuple[str, ...] | None = None):
     """The test-time fitting's gaze term as the run's eval section sets it (``train.evaluate.FitGaze`` around the
-    frozen loss estimator), or None when ``eval.tta_gaze_weight`` is 0."""
+    frozen loss estimator; ``weight`` and ``reach`` replace the section's), or None when the weight is 0."""
     from train.evaluate import FitGaze
     from train.losses import GazeLoss
 
     e = ctx.config.eval
-    if not e.tta_gaze_weight > 0:
+    weight = e.tta_gaze_weight if weight is None else weight
+    if not weight > 0:
         return None
-    return FitGaze(GazeLoss(_estimator(ctx, "loss", device)), e.tta_gaze_weight, tuple(e.tta_gaze_terms),
-                   every=e.tta_gaze_every, reach=tuple(e.tta_gaze_reach))
+    return FitGaze(GazeLoss(_estimator(ctx, "loss", device)), weight, tuple(e.tta_gaze_terms),
+                   every=e.tta_gaze_every, reach=tuple(e.tta_gaze_reach) if reach is None else reach)
 
 
 def _tensors_to_numpy(obj):

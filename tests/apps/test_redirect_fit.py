@@ -63,6 +63,41 @@ def test_fit_weights_fits_every_row_from_the_trained_weights(tiny_trained_run, t
         assert np.isfinite(b["latent_codes"][:]).all()
 
 
+def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_eyes(tiny_trained_run, tmp_path,
+                                                                                   monkeypatch):
+    """``--natural-eyes``: each row's fit takes ``NATURAL_EYES_FIT`` (weights, gaze weight, reach) instead of the
+    run's eval section."""
+    import train.evaluate as evaluate
+
+    seen = []
+    real_fit = evaluate.test_time_fit
+
+    def spy(model, renderer, batch, image, mask, res, steps, **kw):
+        seen.append(kw)
+        return real_fit(model, renderer, batch, image, mask, res, steps, **kw)
+
+    monkeypatch.setattr(evaluate, "test_time_fit", spy)
+    src = _test_subject(tiny_trained_run)
+    out = tmp_path / "natural.h5"
+    args = [str(tiny_trained_run), str(src), str(out), "--gazes", "grid:1x2:20", "--rows", "1", "--fit-weights",
+            "--fit-steps", "2", "--natural-eyes"]
+    assert redirect.main(args) == 0 and out.is_file()
+    nat = evaluate.NATURAL_EYES_FIT
+    assert len(seen) == 1 and seen[0]["weights"] == nat["weights"]
+    assert seen[0]["weights"] != tuple(run.open_run(tiny_trained_run).config.eval.tta_weights)
+    assert seen[0]["gaze"].weight == nat["gaze_weight"] and seen[0]["gaze"].reach == nat["reach"]
+    with h5py.File(out) as f:
+        assert f["face_patch"].shape == (2, 64, 64, 3) and np.isfinite(f["latent_codes"][:]).all()
+
+
+def test_natural_eyes_without_fit_weights_is_one_line_error(tiny_trained_run, tmp_path, capsys):
+    src = _test_subject(tiny_trained_run)
+    code = run_cli(redirect.main, [str(tiny_trained_run), str(src), str(tmp_path / "o.h5"), "--natural-eyes"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--natural-eyes sets how --fit-weights fits" in err[0]
+    assert not (tmp_path / "o.h5").exists()
+
+
 def test_term_gaze_order_cycles_or_spreads():
     from toolkit.errors import ToolkitError
     from train.evaluate import term_gaze_order
