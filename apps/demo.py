@@ -122,6 +122,7 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     print("== outputs ==")
     for name, path in (("evaluation report", run_dir / "report.md"), ("metrics", run_dir / "metrics.json"),
                        ("qualitative grid", run_dir / "qualitative.png"),
+                       ("worst pairs' eyes", run_dir / "eyes.png"),
                        ("held-out gaze sweep (video)", out / "heldout_gaze_sweep.mp4"),
                        ("held-out gaze sweep (sheet)", out / "heldout_gaze_sweep.png"),
                        ("redirected mini-dataset", redirected), ("run config", run_dir / "config.yaml"),

@@ -5,9 +5,10 @@ For a trained run, every held-out subject's rows (``--rows``, spread over the fi
 value: 0 renders with the file's codes and the trained weights as they are (the app's default for HDF5
 input); N > 0 first fits each row as the evaluation fits a pair (``apps.redirect.row_fitter``, the app's
 ``--fit-weights``: code, ``eval.tta_weights``, the loss estimator's gaze term at the row's target gazes), N
-steps (``--no-gaze-steps``: also N steps without the gaze term). Each redirected image is compared with the
-generator's ground truth of the same row turned to the same gaze (``SyntheticRedirectionPairs.render_target``),
-both on white outside the ground truth's head mask:
+steps (``--no-gaze-steps``: also N steps without the gaze term; ``--natural-steps``: N steps as the app's
+``--natural-eyes`` fits). Each redirected image is compared with the generator's ground truth of the same row
+turned to the same gaze (``SyntheticRedirectionPairs.render_target``), both on white outside the ground
+truth's head mask:
 
 - ``label °``: the run's *evaluation* estimator reading the redirected image, against the label the app
   wrote (``pitchyaw_cam``): how wrong the new dataset's labels are, as that estimator sees it;
@@ -94,6 +95,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fit-steps", type=int, nargs="+", default=[0, 10, 20, 40])
     ap.add_argument("--no-gaze-steps", type=int, nargs="*", default=[40],
                     help="also fit these step counts without the gaze term (what the term adds)")
+    ap.add_argument("--natural-steps", type=int, nargs="*", default=[40],
+                    help="also fit these step counts as apps.redirect --natural-eyes does (a gaze term that may "
+                         "only turn the eyes)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -126,9 +130,11 @@ def main(argv=None) -> int:
 
     table = [{"fit steps": "ground truth", "s/image": None,
               **score(truth["image"], landmarks, truth["pitchyaw_cam"], truth, estimator), "vs truth °": 0.0}]
-    variants = [(n, True) for n in args.fit_steps] + [(n, False) for n in args.no_gaze_steps if n > 0]
-    for steps, gaze_term in variants:
-        fit = row_fitter(ctx, model, renderer, device, steps, gaze_term=gaze_term) if steps > 0 else None
+    variants = ([(n, True, False) for n in args.fit_steps] + [(n, False, False) for n in args.no_gaze_steps if n > 0]
+                + [(n, True, True) for n in args.natural_steps if n > 0])
+    for steps, gaze_term, natural in variants:
+        fit = (row_fitter(ctx, model, renderer, device, steps, gaze_term=gaze_term, natural_eyes=natural)
+               if steps > 0 else None)
         t0 = time.perf_counter()
         arrays = render_chunk(model, renderer, [it for _, _, it in items], [r for _, r, _ in items], gazes, res,
                               cfg.gaussian.sampling_steps, device, fit)
@@ -137,7 +143,7 @@ def main(argv=None) -> int:
         labels = torch.from_numpy(arrays["pitchyaw_cam"]).float()
         if not torch.allclose(labels, truth["pitchyaw_cam"], atol=1e-4):
             raise RuntimeError("the app's labels disagree with the generator's camera-frame gazes")
-        name = steps if gaze_term or steps == 0 else f"{steps}, no gaze term"
+        name = f"{steps}, natural eyes" if natural else steps if gaze_term or steps == 0 else f"{steps}, no gaze term"
         table.append({"fit steps": name, "s/image": seconds / images.shape[0],
                       **score(images, landmarks, labels, truth, estimator)})
         print(format_table(table[-1:]), flush=True)
