@@ -16,7 +16,7 @@ def test_most_frontal_picks_the_smallest_head_rotation():
 
 def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path, monkeypatch):
     """After training (here: the tiny run, every stage up to date) the demo sweeps and redirects a held-out
-    subject, each after the evaluation's fitting: one fit for the sweep, one per redirected row."""
+    subject, each after fitting: one fit for the sweep (the evaluation's), one per redirected row (natural eyes)."""
     import shutil
 
     import h5py
@@ -29,7 +29,7 @@ def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path
     real_fit = evaluate.test_time_fit
 
     def spy(model, renderer, batch, *a, **kw):
-        fits.append(batch["target_gazes"].shape)
+        fits.append((batch["target_gazes"].shape, kw["weights"]))
         return real_fit(model, renderer, batch, *a, **kw)
 
     monkeypatch.setattr(evaluate, "test_time_fit", spy)
@@ -39,4 +39,13 @@ def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path
     with h5py.File(tmp_path / "redirected_mini.h5") as f:
         assert f["face_patch"].shape[0] == 4 * 9 and np.isfinite(f["latent_codes"][:]).all()
     sweep = 3  # the tiny preset's eval.sweep_frames
-    assert fits == [(1, sweep, 2)] + [(1, 9, 2)] * 4
+    run_weights = tuple(run_config_of(tmp_path / "run").eval.tta_weights)
+    natural = evaluate.NATURAL_EYES_FIT["weights"]
+    assert run_weights != natural
+    assert fits == [((1, sweep, 2), run_weights)] + [((1, 9, 2), natural)] * 4
+
+
+def run_config_of(run_dir):
+    from train import run
+
+    return run.open_run(run_dir).config
