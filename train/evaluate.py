@@ -401,7 +401,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     Where the target rows carry gaze labels (``pitchyaw_cam``; the synthetic data's are exact), "labels" holds
     what the estimator's readings miss of them: {"target": ..., "render": ...} (gaze and head-pose degrees), and
     every ``per_pair`` record its two gaze readings' errors. The metric compares two readings, so the target's
-    row is its floor on these very pairs. "worst_eyes" holds the eye patches the estimator reads (input,
+    row is how far the ruler itself misses on these very pairs. "worst_eyes" holds the eye patches the estimator reads (input,
     target, render) of the :data:`WORST_EYE_PAIRS` pairs with the largest gaze errors (:func:`eye_views_grid`).
 
     ``metrics["images_per_s"]`` is the rendering throughput: the renders at the target gaze over their own
