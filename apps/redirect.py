@@ -25,8 +25,8 @@ Inputs:
   run's geometry and the model's splatted silhouettes (approximate: the crops carry none).
 
 ``--fit-weights`` fits every row as the evaluation fits a pair before rendering it (:func:`row_fitter`):
-what a face the run never trained on needs (docs/redirect.md). ``--natural-eyes`` limits the fit's gaze term to
-turning the eyes (:func:`row_fitter`).
+what a face the run never trained on needs (docs/redirect.md). ``--natural-eyes`` fits other weights with a gaze
+term that may only turn the eyes (``train.evaluate.NATURAL_EYES_FIT``, :func:`row_fitter`).
 
 Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun skips finished chunks,
 and the final file is assembled (atomically) when all chunks exist. ``OUT.parts/settings.json`` records the
@@ -107,7 +107,7 @@ def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = Tr
 
     e = ctx.config.eval
     weights = NATURAL_EYES_FIT["weights"] if natural_eyes else tuple(e.tta_weights)
-    natural = {"weight": NATURAL_EYES_FIT["gaze_weight"], "reach": NATURAL_EYES_FIT["reach"]} if natural_eyes else {}
+    natural = {k: v for k, v in NATURAL_EYES_FIT.items() if k != "weights"} if natural_eyes else {}
     gaze = fit_gaze_term(ctx, device, **natural) if gaze_term else None
     res = ctx.config.data.res
 
@@ -213,6 +213,11 @@ def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
         e = ctx.config.eval
         settings["eval"] = {k: list(v) if isinstance(v, tuple) else v for k, v in vars(e).items()
                             if k.startswith("tta_") and k != "tta_steps"}  # the steps: fit_steps
+        if args.natural_eyes:  # what the fit then uses in place of the section's weights and gaze term
+            from train.evaluate import NATURAL_EYES_FIT
+
+            settings["natural_eyes_fit"] = {k: list(v) if isinstance(v, tuple) else v
+                                            for k, v in NATURAL_EYES_FIT.items()}
     return settings
 
 
@@ -315,6 +320,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "term that may only turn the eyes (train.evaluate.NATURAL_EYES_FIT): no coloured specks "
                          "in the eyes, ~1 deg less gaze accuracy on the demo; for data a gaze estimator learns from")
     args = ap.parse_args(argv)
+    if args.natural_eyes and not args.fit_weights:
+        raise ToolkitError("--natural-eyes sets how --fit-weights fits each row; give --fit-weights too")
     from train.distributed import barrier, cleanup, init_distributed
     from train.run import load_trained, open_run
 
@@ -328,8 +335,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     cfg = ctx.config
     src = open_source(ctx, args)  # validates the whole input before any model is loaded
     fit_steps = args.fit_steps if args.fit_steps >= 0 else (cfg.eval.tta_steps or 50)
-    if args.natural_eyes and not args.fit_weights:
-        raise ToolkitError("--natural-eyes sets how --fit-weights fits each row; give --fit-weights too")
     if args.fit_weights:
         if fit_steps < 1:
             raise ToolkitError(f"--fit-weights needs --fit-steps >= 1, got {fit_steps}")

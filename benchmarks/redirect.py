@@ -95,7 +95,7 @@ def main(argv=None) -> int:
     ap.add_argument("--fit-steps", type=int, nargs="+", default=[0, 10, 20, 40])
     ap.add_argument("--no-gaze-steps", type=int, nargs="*", default=[40],
                     help="also fit these step counts without the gaze term (what the term adds)")
-    ap.add_argument("--natural-steps", type=int, nargs="*", default=[40],
+    ap.add_argument("--natural-steps", type=int, nargs="*", default=[],
                     help="also fit these step counts as apps.redirect --natural-eyes does (a gaze term that may "
                          "only turn the eyes)")
     ap.add_argument("--threads", type=int, default=2)

