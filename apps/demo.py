@@ -10,8 +10,8 @@ synthetic data generated on the fly: geometry, codec (none: the demo's DiT rende
 estimators, the two-stream Gaussian model with the DiT renderer, evaluation on held-out subjects against exact
 ground truth (``report.md``), a gaze-sweep video of a held-out subject rendered by the trained model, and a
 redirected mini-dataset (HDF5). The held-out face is fitted first, as the evaluation fits one, for the sweep,
-and with natural eyes for the mini-dataset (``apps.redirect --fit-weights --natural-eyes``: training data for
-gaze estimators should not carry eyes repainted for the loss estimator).
+and with natural eyes for the mini-dataset (``apps.redirect --fit-weights --natural-eyes``: eyes, not specks
+repainted for the loss estimator).
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     cols = min(n, 8)
     write_contact_sheet(out / "heldout_gaze_sweep.png", rgb, rows=-(-n // cols), cols=cols)
     redirected = out / "redirected_mini.h5"
-    # Training data for gaze estimators: eyes turned, not repainted for the loss estimator (docs/redirect.md).
+    # Eyes turned, not repainted for the loss estimator (docs/redirect.md, "Natural eyes").
     redirect.main([str(run_dir), str(test_file), str(redirected), "--gazes", "grid:3x3:25", "--rows", "4"]
                   + (["--fit-weights", "--natural-eyes"] if fit_steps > 0 else []))
     print("== outputs ==")

@@ -100,8 +100,7 @@ def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = Tr
     the caller restores them (``train.evaluate.restored_weights``) after rendering the row. ``gaze_term=False``
     leaves the gaze term out whatever the run's weight (``benchmarks/redirect.py`` measures what it adds).
     ``natural_eyes`` fits ``train.evaluate.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the
-    term may turn the eyes but not repaint them, so the redirected eyes carry no coloured specks that an
-    estimator trained on them could learn from."""
+    term may turn the eyes but not repaint them, so the redirected eyes carry no coloured specks."""
     from train.evaluate import NATURAL_EYES_FIT, face_only_mask, test_time_fit
     from train.run import fit_gaze_term
 
@@ -318,7 +317,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--natural-eyes", action="store_true",
                     help="with --fit-weights: fit the face features, eye rotation field and renderer, with a gaze "
                          "term that may only turn the eyes (train.evaluate.NATURAL_EYES_FIT): no coloured specks "
-                         "in the eyes, ~1 deg less gaze accuracy on the demo; for data a gaze estimator learns from")
+                         "in the eyes, ~1 deg less gaze accuracy on the demo (docs/redirect.md)")
     args = ap.parse_args(argv)
     if args.natural_eyes and not args.fit_weights:
         raise ToolkitError("--natural-eyes sets how --fit-weights fits each row; give --fit-weights too")
