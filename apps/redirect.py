@@ -209,14 +209,13 @@ def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
     if args.fit_weights or csv:
         settings["fit_steps"] = fit_steps
     if args.fit_weights:
-        e = ctx.config.eval
-        settings["eval"] = {k: list(v) if isinstance(v, tuple) else v for k, v in vars(e).items()
-                            if k.startswith("tta_") and k != "tta_steps"}  # the steps: fit_steps
+        as_json = lambda d: {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}  # noqa: E731
+        settings["eval"] = as_json({k: v for k, v in vars(ctx.config.eval).items()
+                                    if k.startswith("tta_") and k != "tta_steps"})  # the steps: fit_steps
         if args.natural_eyes:  # what the fit then uses in place of the section's weights and gaze term
             from train.evaluate import NATURAL_EYES_FIT
 
-            settings["natural_eyes_fit"] = {k: list(v) if isinstance(v, tuple) else v
-                                            for k, v in NATURAL_EYES_FIT.items()}
+            settings["natural_eyes_fit"] = as_json(NATURAL_EYES_FIT)
     return settings
 
 

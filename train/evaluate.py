@@ -374,9 +374,7 @@ def _pair_scores(img_w: torch.Tensor, e_img: torch.Tensor, tgt_w: torch.Tensor, 
                  ) -> dict[str, torch.Tensor]:
     """Per-pair [B] gaze and head-pose errors (degrees, between the estimator's readings ``e_img`` and ``e_tgt``
     [B, 4]), PSNR and SSIM of the images ``img_w`` against ``tgt_w`` [B, 3, H, W], both on white."""
-    return {"gaze_error_deg": angular_error_deg(e_img[:, :2], e_tgt[:, :2]),
-            "head_pose_error_deg": angular_error_deg(e_img[:, 2:4], e_tgt[:, 2:4]),
-            "psnr": psnr(img_w, tgt_w), "ssim": ssim(img_w, tgt_w)}
+    return {**_reading_errors(e_img, e_tgt), "psnr": psnr(img_w, tgt_w), "ssim": ssim(img_w, tgt_w)}
 
 
 def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
@@ -479,10 +477,11 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             against_labels = {}
             if labels is not None:
                 for who, e in (("target", e_tgt), ("render", e_out)):
-                    against_labels[who] = _label_errors(e, labels)
+                    against_labels[who] = _reading_errors(e, labels)
                     for key, vals in against_labels[who].items():
                         label_scores[who].setdefault(key, []).extend(vals.tolist())
-            worst_eyes += _worst_eye_views(Path(f).name, indices, ge, composite_on_white(inp, mask_in), tgt_w, out_w, lm)
+            inp_w = composite_on_white(inp, mask_in)  # the input on white in its own mask (figures, own-gaze row)
+            worst_eyes += _worst_eye_views(Path(f).name, indices, ge, inp_w, tgt_w, out_w, lm)
             for name, fn in (references or {}).items():
                 with torch.no_grad():
                     ref_w = composite_on_white(fn(tgt).clamp(0, 1), mask)
@@ -490,7 +489,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                 for key, vals in _pair_scores(ref_w, e_ref, tgt_w, e_tgt).items():
                     ref_scores[name].setdefault(key, []).extend(vals.tolist())
             if own is not None:  # scored against the input itself, in the input's mask
-                inp_w, own_w = composite_on_white(inp, mask_in), composite_on_white(own, mask_in)
+                own_w = composite_on_white(own, mask_in)
                 with torch.no_grad():
                     e_own, e_inp = estimator(own_w, lm), estimator(inp_w, lm)
                 for key, vals in _pair_scores(own_w, e_own, inp_w, e_inp).items():
@@ -513,7 +512,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             log(f"[eval] {Path(f).name}: gaze {float(ge.mean()):.2f} deg, PSNR {float(p.mean()):.2f} dB, "
                 f"SSIM {float(s.mean()):.3f} ({n} pairs)")
             if examples is None:
-                examples = {"input": composite_on_white(inp, mask_in).cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
+                examples = {"input": inp_w.cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
     finally:
         torch.set_rng_state(rng_state)
     return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "reals": reals,
@@ -579,10 +578,11 @@ def _target_labels(items: list[dict], device) -> torch.Tensor | None:
                                    torch.as_tensor(it["input"]["face_head_pose"]).float()]) for it in items]).to(device)
 
 
-def _label_errors(readings: torch.Tensor, labels: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Per-pair [B] degrees between an estimator's readings [B, 4] and the labels [B, 4]."""
-    return {"gaze_error_deg": angular_error_deg(readings[:, :2], labels[:, :2]),
-            "head_pose_error_deg": angular_error_deg(readings[:, 2:4], labels[:, 2:4])}
+def _reading_errors(a: torch.Tensor, b: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per-pair [B] gaze and head-pose degrees between two [B, 4] (gaze pitch/yaw, head pitch/yaw): two
+    estimator readings, or a reading and the labels."""
+    return {"gaze_error_deg": angular_error_deg(a[:, :2], b[:, :2]),
+            "head_pose_error_deg": angular_error_deg(a[:, 2:4], b[:, 2:4])}
 
 
 WORST_EYE_PAIRS = 6
