@@ -1,4 +1,5 @@
-"""Conditioned fields of the two-stream Gaussian model: positional encoding, MLPs, face deformation, eye rotation.
+"""Conditioned fields of the two-stream Gaussian model: positional encoding, MLPs, face deformation, eye rotation,
+eye appearance.
 
 Every field MLP starts with a plain ``nn.Linear`` named ``first`` (the layer the orthogonality loss hooks) of
 width ``hidden``, equal across fields, and ends with a zero-initialized linear layer so that at
@@ -107,3 +108,32 @@ class EyeRotationField(nn.Module):
         residual = self.max_residual * torch.tanh(self.mlp(inp).float())  # [B, 2, 3] axis-angle
         R_gaze = gaze_rotation(gaze.float())[:, None]  # [B, 1, 3, 3]
         return so3_exp(residual) @ R_gaze
+
+
+class EyeAppearanceField(nn.Module):
+    """Per-identity colours of the eye Gaussians: ``Δfeature(x_eye, τ, eye)`` added to their shared features.
+
+    Without it every face gets the same eyes: the eye Gaussians' features are one set for all identities, so a
+    new face's iris colour could come only from the renderer. Each eye Gaussian is located by its canonical
+    position in its own eyeball's frame (``x_eye``, in eyeball radii: the iris and pupil sit on the front cap),
+    so the field can colour the iris, the pupil and the sclera differently, from the code τ. A test-time fit
+    of the code then recolours the eyes through this low-dimensional map rather than Gaussian by Gaussian.
+    """
+
+    def __init__(self, feature_dim: int, code_dim: int, hidden: int, depth: int, pos_freqs: int):
+        super().__init__()
+        self.pos_freqs = pos_freqs
+        self.mlp = FieldMLP(encoded_dim(3, pos_freqs) + 2 + code_dim, hidden, feature_dim, depth)
+
+    def forward(self, x_eye: torch.Tensor, side: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
+        """x_eye [N, 3] eyeball-frame positions in eyeball radii, side [N] (0 left, 1 right), code [B, C]
+        -> [B, N, feature_dim] raw feature deltas (zero at initialization)."""
+        pe = positional_encoding(x_eye, self.pos_freqs)
+        where = torch.cat([pe, nn.functional.one_hot(side.long(), 2).to(pe.dtype)], -1)  # [N, P]
+        # The first layer split in two: the per-Gaussian half once, the per-code half once per sample.
+        w = self.mlp.first.weight
+        h = (where @ w[:, :where.shape[1]].T)[None] + (code.to(pe.dtype) @ w[:, where.shape[1]:].T + self.mlp.first.bias)[:, None]
+        h = torch.relu(h)
+        for layer in self.mlp.hidden:
+            h = torch.relu(layer(h))
+        return self.mlp.last(h)

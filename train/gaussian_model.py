@@ -9,7 +9,8 @@ Gaussian to the nearest 3D landmark; ``near`` / ``far`` are given in **metres** 
 Eye stream: canonical eye Gaussians (parts 1 and 2, isotropic: one log-scale each) rotated rigidly per eye
 by :class:`train.fields.EyeRotationField` about **that eye's own eyeball centre** from
 ``scene.metadata["eyes"]`` (``toolkit.eyes.eyeball_info``); left and right eyes use their own Gaussians and
-centres. Gaze φ [B, 2] is (pitch, yaw) in the head frame.
+centres. Gaze φ [B, 2] is (pitch, yaw) in the head frame. Their features are shared by every identity, or,
+with ``eye_appearance``, shifted per code by :class:`train.fields.EyeAppearanceField`.
 
 Then the rigid head transform ``x_world = R(γ[:3]) x + γ[3:]`` (γ[:3] axis-angle radians, γ[3:] translation in
 scene units), optional per-image camera offsets, and splatting with ``render.splat.rasterize`` into
@@ -37,7 +38,7 @@ from toolkit.errors import ToolkitError
 from toolkit.eyes import EYE_PARTS, eyeball_info
 from toolkit.rotations import matrix_to_quat, normalize_quat, quat_multiply, so3_exp
 from toolkit.scene import PART_FACE, GaussianScene
-from train.fields import EyeRotationField, FaceDeformationField
+from train.fields import EyeAppearanceField, EyeRotationField, FaceDeformationField
 
 UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
 RENDERS = ("head", "face", "eyes")
@@ -77,6 +78,10 @@ class GaussianModelConfig:
     with this the eyes of another identity move with the lids and sockets the code puts on its face, and a
     fit of the face region alone (eyes masked out) still places them."""
     socket_sigma_m: float = 0.01
+    eye_appearance: bool = False
+    """give the eye Gaussians per-identity features: :class:`train.fields.EyeAppearanceField` adds a bounded
+    (``max_feature_delta``) code-conditioned delta to their shared features, so a new face's code can carry its
+    iris colour; off, every identity gets the same eyes."""
     render_scale: float = 0.25
     num_images: int = 0
     """> 0 adds per-training-image learnable codes and camera offsets (auto-decoder)."""
@@ -121,6 +126,16 @@ class GaussianModel(nn.Module):
         self.face_field = FaceDeformationField(cfg.feature_dim, cfg.code_dim, cfg.pose_dim, cfg.hidden, cfg.depth,
                                                cfg.pos_freqs, cfg.pose_freqs)
         self.eye_field = EyeRotationField(cfg.code_dim, cfg.hidden, cfg.depth, cfg.gaze_freqs, cfg.max_eye_residual)
+        if cfg.eye_appearance:
+            self.eye_appearance = EyeAppearanceField(cfg.feature_dim, cfg.code_dim, cfg.hidden, cfg.depth,
+                                                     cfg.pos_freqs)
+            # Each eyeball's extent at construction, so the field's positions are in eyeball radii.
+            r = (eyes["means"].float() - eye_centers.float()[eyes["side"].long()]).norm(dim=-1)
+            radius = torch.stack([r[eyes["side"] == k].max() if bool((eyes["side"] == k).any()) else r.new_tensor(1.0)
+                                  for k in (0, 1)])
+            self.register_buffer("eye_radius", radius.clamp_min(1e-6))
+        else:
+            self.eye_appearance = None
         if cfg.num_images > 0:
             self.image_codes = nn.Embedding(cfg.num_images, cfg.code_dim)
             self.camera_offsets = nn.Embedding(cfg.num_images, 6)
@@ -285,6 +300,10 @@ class GaussianModel(nn.Module):
         scales = torch.exp(self.eye_log_scales)[None, :, None].expand(B, ne, 3)
         opacities = torch.sigmoid(self.eye_opacity_logits)[None].expand(B, ne)
         features = self.eye_features[None].expand(B, ne, -1)
+        if self.eye_appearance is not None:
+            x_eye = (self.eye_means - c) / self.eye_radius[self.eye_side, None]
+            d = self.eye_appearance(x_eye, self.eye_side, code).float()
+            features = features + self.config.max_feature_delta * torch.tanh(d)
         return {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
                 "rotations": R}
 

@@ -192,7 +192,7 @@ def build_model(scene_path: Path, cfg: GaussianStageConfig, device) -> GaussianM
 def model_config(cfg: GaussianStageConfig) -> GaussianModelConfig:
     """The two-stream model's configuration that the stage's options set."""
     return GaussianModelConfig(hidden=cfg.gaussians_hidden, eyes_follow_face=cfg.eyes_follow_face,
-                               render_scale=1.0 / cfg.feature_upscale)
+                               eye_appearance=cfg.eye_appearance, render_scale=1.0 / cfg.feature_upscale)
 
 
 CANONICAL_MEANS = ("face_means", "eye_means")

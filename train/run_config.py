@@ -180,6 +180,10 @@ class GaussianStageConfig:
     """move each eyeball with its socket as the face field deforms the face
     (``GaussianModelConfig.eyes_follow_face``), so the eyes follow the identity the code describes, and
     test-time fitting of a new face's code moves its eyes too (held-out gaze 19.7° -> 17.3° on the demo)."""
+    eye_appearance: bool = False
+    """code-conditioned colours of the eye Gaussians (``GaussianModelConfig.eye_appearance``): each identity
+    its own eyes, so a new face's code can carry its iris colour. Off: on the demo's 8 (and on 16) training
+    identities it gave no gain in gaze, with or without test-time fitting (docs/model.md, session 22)."""
     ckpt_every: int = 100
     log_every: int = 10
     grad_clip: float = 1.0

@@ -391,3 +391,33 @@ def test_batch_renders_each_sample_with_its_own_camera_and_pose():
                 torch.testing.assert_close(both[r][b:b + 1], alone[r], atol=1e-5, rtol=0)
     assert not torch.allclose(both["head"][0], both["head"][1], atol=1e-3)
 
+
+
+def test_eye_appearance_gives_each_code_its_own_eyes(tmp_path):
+    scene = demo_head_scene(600)
+    plain = small_model(scene)
+    model = small_model(scene, eye_appearance=True)
+    code, pose, gaze, _, _ = model_inputs(2)
+    # Zero-initialized: at the start the eyes are the shared ones, whatever the code.
+    a, b = model.gaussians(code, pose, gaze)["eyes"], plain.gaussians(code, pose, gaze)["eyes"]
+    assert torch.equal(a["features"], b["features"])
+    # Eyeball-frame positions are in eyeball radii: the front cap lies within the unit ball.
+    x = (model.eye_means.detach() - model.eye_centers[model.eye_side]) / model.eye_radius[model.eye_side, None]
+    assert float(x.norm(dim=-1).max()) == pytest.approx(1.0, abs=1e-5)
+    torch.nn.init.normal_(model.eye_appearance.mlp.last.weight, std=0.1)
+    f = model.gaussians(code, pose, gaze)["eyes"]["features"]
+    assert not torch.allclose(f[0], f[1])  # two codes, two sets of eye colours
+    assert (f - model.eye_features).abs().max() <= model.config.max_feature_delta + 1e-6
+    # Colours only: the eye geometry is the same as without the field.
+    g = model.gaussians(code, pose, gaze)["eyes"]
+    for k in ("means", "scales", "opacities"):
+        assert torch.equal(g[k], b[k]), k
+    # The gradient reaches the code through the eyes alone (the face field's output is detached here).
+    c = code.clone().requires_grad_(True)
+    model.eye_stream(c, gaze)["features"].square().sum().backward()
+    assert c.grad is not None and float(c.grad.abs().sum()) > 0
+    path = tmp_path / "gm.safetensors"
+    model.save(path)
+    back = GaussianModel.load(path, rasterizer=model._rasterizer)
+    assert torch.equal(back.gaussians(code, pose, gaze)["eyes"]["features"], f)
+    assert back.eye_radius.tolist() == model.eye_radius.tolist()

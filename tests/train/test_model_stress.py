@@ -24,7 +24,10 @@ def scene():
 def _nonzero_fields(model):
     # Zero-initialized last layers would hide non-finite gradients upstream; make every path live.
     g = torch.Generator().manual_seed(5)
-    for mlp in (model.face_field.expr_mlp, model.face_field.pose_mlp, model.eye_field.mlp):
+    mlps = [model.face_field.expr_mlp, model.face_field.pose_mlp, model.eye_field.mlp]
+    if model.eye_appearance is not None:
+        mlps.append(model.eye_appearance.mlp)
+    for mlp in mlps:
         mlp.last.weight.data = torch.randn(mlp.last.weight.shape, generator=g) * 0.1
     return model
 
@@ -57,8 +60,9 @@ def _full_step(model, code, pose, gaze, viewmats, Ks, size=64, autocast=False):
     return out
 
 
-def test_bf16_autocast_forward_backward(scene):
-    model = _nonzero_fields(small_model(scene))
+@pytest.mark.parametrize("eye_appearance", [False, True])
+def test_bf16_autocast_forward_backward(scene, eye_appearance):
+    model = _nonzero_fields(small_model(scene, eye_appearance=eye_appearance))
     code, pose, gaze, viewmats, Ks = model_inputs(2)
     pose[:, :3] = torch.tensor([0.1, -0.2, 0.05])
     _full_step(model, code, pose, gaze, viewmats, Ks, autocast=True)
@@ -75,9 +79,10 @@ def test_extreme_gazes(scene, deg):
     assert torch.isfinite(gaze.grad).all()
 
 
+@pytest.mark.parametrize("eye_appearance", [False, True])
 @pytest.mark.parametrize("scale", [0.0, 1e6])
-def test_zero_and_huge_codes(scene, scale):
-    model = _nonzero_fields(small_model(scene))
+def test_zero_and_huge_codes(scene, scale, eye_appearance):
+    model = _nonzero_fields(small_model(scene, eye_appearance=eye_appearance))
     _, pose, gaze, viewmats, Ks = model_inputs(2)
     code = torch.ones(2, 144) * scale
     code[1] = -code[1]
@@ -87,6 +92,8 @@ def test_zero_and_huge_codes(scene, scale):
     shift = (g["face"]["means"][0] - model.face_means).abs().max()
     assert float(shift.detach()) <= model.config.max_offset * float(model.norm_scale) + 1e-6
     assert out["head"].abs().max() < 100
+    eye_shift = (g["eyes"]["features"] - model.eye_features).abs().max()
+    assert float(eye_shift.detach()) <= (model.config.max_feature_delta + 1e-6 if eye_appearance else 0.0)
 
 
 def test_batch_of_one_and_huge_pose(scene):
