@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError, run_cli
+from toolkit.host import keep_freed_memory
 from toolkit.rotations import so3_exp
 
 GRID_EXAMPLE = "grid:5x5:30 (N×N grid over ±30°), random:200:35 (200 gazes uniform in ±35°), file:gazes.csv"
@@ -318,6 +319,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "term that may only turn the eyes (train.evaluate.NATURAL_EYES_FIT): no coloured specks "
                          "in the eyes, ~1 deg less gaze accuracy on the demo (docs/redirect.md)")
     args = ap.parse_args(argv)
+    keep_freed_memory()
     if args.natural_eyes and not args.fit_weights:
         raise ToolkitError("--natural-eyes sets how --fit-weights fits each row; give --fit-weights too")
     from train.distributed import barrier, cleanup, init_distributed

@@ -38,6 +38,7 @@ if __package__ in (None, ""):  # `python train/run.py`: make the repository impo
 import torch  # noqa: E402
 
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.host import keep_freed_memory  # noqa: E402
 from toolkit.io import atomic_write_json, atomic_write_text  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
@@ -245,6 +246,7 @@ def _job_entry(results_q, i: int, fn, kw: dict) -> None:
     Both are pickled here first: the queue pickles in a background thread, where a failure would be lost."""
     import pickle
 
+    keep_freed_memory()
     try:
         result = fn(**kw)
         pickle.dumps(result)
@@ -707,6 +709,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                            "data,geometry,codec,estimator, later --stages eval) and torchrun ... --stages gaussian")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
+    keep_freed_memory()
     _device(cfg)  # fail early on an impossible device
     _check_values(cfg)
     run_dir = Path(args.run_dir)

@@ -1,0 +1,36 @@
+"""Process-wide settings of the host that speed up CPU work without changing any number it computes."""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import sys
+
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameter numbers (malloc.h)
+MMAP_THRESHOLD = 32 << 20
+"""glibc's largest mmap threshold (32 MiB on 64-bit hosts): blocks below it come from the heap."""
+TRIM_THRESHOLD = 1 << 30
+"""freed heap memory glibc may keep for reuse before returning it to the system."""
+
+
+def keep_freed_memory() -> bool:
+    """Let glibc reuse the memory of freed tensors instead of unmapping it.
+
+    A CPU training step allocates and frees the same large activations every step. glibc serves blocks above
+    its mmap threshold (dynamic, from 128 KiB) with fresh mappings, and their first touch page-faults each step
+    again; with blocks up to 32 MiB served from a heap that keeps up to 1 GiB of freed memory, they are
+    reused. On the demo's 2 cores this made a Gaussian-stage training step ~7% faster (484 -> 443 ms, AMD
+    EPYC, docs/model.md). Results are unchanged: only where memory comes from changes. Returns whether the
+    settings were applied (False off Linux/glibc, where this does nothing)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # musl and others: no mallopt
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+
+
+__all__ = ["keep_freed_memory", "MMAP_THRESHOLD", "TRIM_THRESHOLD"]
