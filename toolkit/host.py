@@ -19,8 +19,8 @@ def keep_freed_memory() -> bool:
     A CPU training step allocates and frees the same large activations every step. glibc serves blocks above
     its mmap threshold (dynamic, from 128 KiB) with fresh mappings, and their first touch page-faults each step
     again; with blocks up to 32 MiB served from a heap that keeps up to 1 GiB of freed memory, they are
-    reused. On the demo's 2 cores this made a Gaussian-stage training step ~7% faster (484 -> 443 ms, AMD
-    EPYC, docs/model.md). Results are unchanged: only where memory comes from changes. Returns whether the
+    reused. On the demo's 2 cores (AMD EPYC) a Gaussian-stage training step took ~7% less in isolation (median
+    of 11 steps: 478 -> 443 ms) and the stage itself 3-5% less (80 steps: 46.0 / 46.3 s -> 43.6 / 45.1 s). Results are unchanged: only where memory comes from changes. Returns whether the
     settings were applied (False off Linux/glibc, where this does nothing)."""
     if not sys.platform.startswith("linux"):
         return False
