@@ -108,8 +108,8 @@ TTA_WEIGHT_GROUPS = ("features", "eye_features", "eye_field", "renderer", "decod
 0..2 are the RGB), the eye Gaussians' features, the eye rotation field (``eye_field``: the MLP that turns each
 eyeball for a gaze), the neural renderer (the DiT; the baseline's whole network) and a latent renderer's codec
 decoder (``decoder``: frozen in training, unfrozen for the fit alone; on session 15's demo, a latent DiT, it gave
-+0.04 dB and +0.18° gaze error, session 16). The encoder, the face deformation field and the Gaussians'
-geometry are never fitted.
++0.04 dB and +0.18° gaze error, session 16). The encoder, the face deformation field, the eye appearance field
+(``gaussian.eye_appearance``; the code it reads is fitted) and the Gaussians' geometry are never fitted.
 
 ``eye_field`` and ``eye_features`` let a fit with a gaze term (:class:`FitGaze`) turn and redraw a new face's
 eyes where the term reads them, instead of only bending the renderer (session 18, demo run: gaze 5.95° ->
@@ -272,7 +272,9 @@ NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weig
 """A test-time fit whose gaze term turns a new face's eyes but cannot repaint them (``FitGaze.reach``): no
 coloured specks, and the iris keeps the trained model's colour rather than the new face's. Session 21, demo
 run: gaze 6.95°, PSNR 33.28 dB, against 5.81°, 33.55 dB for the demo preset's fit, whose side views show
-specks (docs/evaluation.md). ``apps.redirect --natural-eyes`` fits this way."""
+specks (docs/evaluation.md). ``apps.redirect --natural-eyes`` fits this way. With a model trained with
+``gaussian.eye_appearance`` the code also sets the eye colours, so a term reaching the code can recolour
+them, within that field's bound: the guarantee then no longer holds."""
 
 
 @dataclass

@@ -1,8 +1,9 @@
 """Conditioned fields of the two-stream Gaussian model: positional encoding, MLPs, face deformation, eye rotation,
 eye appearance.
 
-Every field MLP starts with a plain ``nn.Linear`` named ``first`` (the layer the orthogonality loss hooks) of
-width ``hidden``, equal across fields, and ends with a zero-initialized linear layer so that at
+Every field MLP starts with a plain ``nn.Linear`` named ``first`` of width ``hidden``, equal across fields (the
+orthogonality loss hooks those of the expression, pose and gaze MLPs; the eye appearance field applies its
+``first`` as two matrix products, so hooks on it would not fire), and ends with a zero-initialized linear layer so that at
 initialization the face is undeformed and the eyes follow the analytic gaze rotation exactly.
 """
 
@@ -115,7 +116,8 @@ class EyeAppearanceField(nn.Module):
 
     Without it every face gets the same eyes: the eye Gaussians' features are one set for all identities, so a
     new face's iris colour could come only from the renderer. Each eye Gaussian is located by its canonical
-    position in its own eyeball's frame (``x_eye``, in eyeball radii: the iris and pupil sit on the front cap),
+    position in its own eyeball's frame (``x_eye``, in eyeball radii, see ``GaussianModel``: the iris and pupil
+    sit on the front cap),
     so the field can colour the iris, the pupil and the sclera differently, from the code τ. A test-time fit
     of the code then recolours the eyes through this low-dimensional map rather than Gaussian by Gaussian.
     """

@@ -129,7 +129,8 @@ class GaussianModel(nn.Module):
         if cfg.eye_appearance:
             self.eye_appearance = EyeAppearanceField(cfg.feature_dim, cfg.code_dim, cfg.hidden, cfg.depth,
                                                      cfg.pos_freqs)
-            # Each eyeball's extent at construction, so the field's positions are in eyeball radii.
+            # Each eye's largest Gaussian distance from its centre at construction (the front cap reaches the
+            # eyeball's radius): the field's positions are in these units.
             r = (eyes["means"].float() - eye_centers.float()[eyes["side"].long()]).norm(dim=-1)
             radius = torch.stack([r[eyes["side"] == k].max() if bool((eyes["side"] == k).any()) else r.new_tensor(1.0)
                                   for k in (0, 1)])
@@ -301,7 +302,8 @@ class GaussianModel(nn.Module):
         opacities = torch.sigmoid(self.eye_opacity_logits)[None].expand(B, ne)
         features = self.eye_features[None].expand(B, ne, -1)
         if self.eye_appearance is not None:
-            x_eye = (self.eye_means - c) / self.eye_radius[self.eye_side, None]
+            # Detached: a colour loss recolours the eyes through the field but never moves their Gaussians.
+            x_eye = (self.eye_means.detach() - c) / self.eye_radius[self.eye_side, None]
             d = self.eye_appearance(x_eye, self.eye_side, code).float()
             features = features + self.config.max_feature_delta * torch.tanh(d)
         return {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,

@@ -246,8 +246,8 @@ def _job_entry(results_q, i: int, fn, kw: dict) -> None:
     Both are pickled here first: the queue pickles in a background thread, where a failure would be lost."""
     import pickle
 
-    keep_freed_memory()
     try:
+        keep_freed_memory()
         result = fn(**kw)
         pickle.dumps(result)
         results_q.put((i, True, result))

@@ -401,9 +401,10 @@ def test_eye_appearance_gives_each_code_its_own_eyes(tmp_path):
     # Zero-initialized: at the start the eyes are the shared ones, whatever the code.
     a, b = model.gaussians(code, pose, gaze)["eyes"], plain.gaussians(code, pose, gaze)["eyes"]
     assert torch.equal(a["features"], b["features"])
-    # Eyeball-frame positions are in eyeball radii: the front cap lies within the unit ball.
+    # Eyeball-frame positions in units of each eye's own extent: both eyes reach exactly 1.
     x = (model.eye_means.detach() - model.eye_centers[model.eye_side]) / model.eye_radius[model.eye_side, None]
-    assert float(x.norm(dim=-1).max()) == pytest.approx(1.0, abs=1e-5)
+    for side in (0, 1):
+        assert float(x[model.eye_side == side].norm(dim=-1).max()) == pytest.approx(1.0, abs=1e-5)
     torch.nn.init.normal_(model.eye_appearance.mlp.last.weight, std=0.1)
     f = model.gaussians(code, pose, gaze)["eyes"]["features"]
     assert not torch.allclose(f[0], f[1])  # two codes, two sets of eye colours
@@ -412,12 +413,31 @@ def test_eye_appearance_gives_each_code_its_own_eyes(tmp_path):
     g = model.gaussians(code, pose, gaze)["eyes"]
     for k in ("means", "scales", "opacities"):
         assert torch.equal(g[k], b[k]), k
-    # The gradient reaches the code through the eyes alone (the face field's output is detached here).
+    # A colour loss reaches the code and the field, never the eye Gaussians' positions.
     c = code.clone().requires_grad_(True)
     model.eye_stream(c, gaze)["features"].square().sum().backward()
     assert c.grad is not None and float(c.grad.abs().sum()) > 0
+    assert model.eye_appearance.mlp.first.weight.grad is not None
+    assert model.eye_means.grad is None or float(model.eye_means.grad.abs().sum()) == 0
+    # The stored radius comes back as saved, not recomputed from the (since trained) eye centres.
+    with torch.no_grad():
+        model.eye_means.mul_(1.1)
+    f = model.gaussians(code, pose, gaze)["eyes"]["features"]
     path = tmp_path / "gm.safetensors"
     model.save(path)
     back = GaussianModel.load(path, rasterizer=model._rasterizer)
-    assert torch.equal(back.gaussians(code, pose, gaze)["eyes"]["features"], f)
     assert back.eye_radius.tolist() == model.eye_radius.tolist()
+    assert torch.equal(back.gaussians(code, pose, gaze)["eyes"]["features"], f)
+
+
+def test_eye_appearance_field_equals_its_mlp_on_the_joined_input():
+    from train.fields import EyeAppearanceField, positional_encoding
+
+    torch.manual_seed(0)
+    field = EyeAppearanceField(8, 12, 16, 3, 2).double()
+    for p in field.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    x, side, code = torch.randn(10, 3).double(), torch.tensor([0, 1] * 5), torch.randn(3, 12).double()
+    where = torch.cat([positional_encoding(x, 2), torch.nn.functional.one_hot(side, 2).double()], -1)
+    joined = torch.cat([where[None].expand(3, -1, -1), code[:, None].expand(-1, 10, -1)], -1)
+    assert torch.allclose(field(x, side, code), field.mlp(joined), atol=1e-12)

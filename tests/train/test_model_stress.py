@@ -66,6 +66,8 @@ def test_bf16_autocast_forward_backward(scene, eye_appearance):
     code, pose, gaze, viewmats, Ks = model_inputs(2)
     pose[:, :3] = torch.tensor([0.1, -0.2, 0.05])
     _full_step(model, code, pose, gaze, viewmats, Ks, autocast=True)
+    if eye_appearance:  # the image loss reaches the field's every layer (finite: _check_grads)
+        assert all(p.grad is not None for p in model.eye_appearance.parameters())
 
 
 @pytest.mark.parametrize("deg", [89.0, -89.0])
