@@ -369,7 +369,13 @@ def test_demo_preset_renders_in_pixel_space_at_its_resolution():
     g, res = cfg.gaussian, cfg.data.res
     assert (cfg.codec.kind, g.dit_model, cfg.estimator.steps) == ("pixel", "DiT-Gaze-pixel", 1200)
     assert (g.steps, cfg.eval.tta_steps) == (240, 30)  # session 19: sized for the slowest 2-core machine seen
-    assert cfg.eval.tta_gaze_weight == 0.0006
+    # Session 22: the natural fit (the gaze term only turns the eyes), and the Gaussian stage at twice the rates.
+    from train.evaluate import NATURAL_EYES_FIT
+
+    assert (cfg.eval.tta_weights, cfg.eval.tta_gaze_weight, cfg.eval.tta_gaze_reach, cfg.eval.tta_gaze_terms,
+            cfg.eval.tta_gaze_every) == tuple(NATURAL_EYES_FIT[k] for k in ("weights", "gaze_weight", "reach",
+                                                                           "terms", "every"))
+    assert (g.lr, g.renderer_lr) == (4e-3, 1e-3)
     # The preset alone changed: the dataclass defaults and the paper preset keep the latent DiT.
     plain = RunConfig()
     assert (plain.codec.kind, plain.gaussian.dit_model, plain.estimator.steps) == ("ae", "DiT-Gaze-tiny", 1000)
