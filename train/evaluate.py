@@ -271,8 +271,9 @@ NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weig
                     "reach": ("code", "eye_field"), "terms": ("target",), "every": 2}
 """A test-time fit whose gaze term turns a new face's eyes but cannot repaint them (``FitGaze.reach``): no
 coloured specks, and the iris keeps the trained model's colour rather than the new face's. Session 21, demo
-run: gaze 6.95°, PSNR 33.28 dB, against 5.81°, 33.55 dB for the demo preset's fit, whose side views show
-specks (docs/evaluation.md). ``apps.redirect --natural-eyes`` fits this way. With a model trained with
+run: gaze 6.95°, PSNR 33.28 dB, against 5.81°, 33.55 dB for the demo preset's fit of then, whose side views show
+specks (docs/evaluation.md). ``apps.redirect --natural-eyes`` fits this way, and so does the demo preset since
+session 22. With a model trained with
 ``gaussian.eye_appearance`` the code also sets the eye colours, so a term reaching the code can recolour
 them, within that field's bound: the guarantee then no longer holds."""
 

@@ -201,7 +201,7 @@ class EvalConfig:
     tta_weights: tuple[Literal["features", "eye_features", "eye_field", "renderer", "decoder"], ...] = ("features", "renderer")
     """weights fitted with the shape code: the face Gaussians' features (all channels), the eye Gaussians'
     features (off: with ``tta_region: face`` the fitting loss never sees the eyes), the eye rotation field
-    (``eye_field``, at ``tta_renderer_lr``; the demo preset fits both eye groups), the neural renderer (pairs
+    (``eye_field``, at ``tta_renderer_lr``; the demo preset fitted both eye groups in sessions 18-21, the eye field alone since), the neural renderer (pairs
     are then fitted one at a time), a latent DiT's codec decoder (``decoder``, off: +0.04 dB and +0.18° gaze
     error on session 15's latent demo; an error with a pixel codec or the U-Net); () fits the code alone, all
     pairs of a subject in one batch."""
@@ -233,7 +233,8 @@ class EvalConfig:
     ``eye_features`` is fitted: the photometric fit then paints the input's iris where the input shows it (demo
     run, the preset's weights: 9.60°). Session 21, demo run, fitting ``[features, eye_field, renderer]`` with the
     term reaching ``[code, eye_field]`` at weight 0.002 (``train.evaluate.NATURAL_EYES_FIT``): gaze 6.95°, PSNR
-    33.28 dB, natural eyes, against 5.81°, 33.55 dB for the demo preset's fit with specks (docs/evaluation.md).
+    33.28 dB, natural eyes, against 5.81°, 33.55 dB for the demo preset's fit of then, with specks; the demo preset
+    fits this way since session 22, with the Gaussian stage at twice the rates: 5.77° (docs/evaluation.md).
     The natural fit's images show eyes; a small augmentation test found no measured gain either way."""
     pairing_file: str = ""
     """GazeNeRF pairing file for real data; synthetic data pairs deterministically."""

@@ -545,3 +545,21 @@ def test_a_stage_rerun_continues_the_runs_config_and_a_refused_run_leaves_it_alo
     finally:
         torch.set_num_threads(old)
     assert "tta_steps: 1" in (d / "config.yaml").read_text()
+
+
+def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
+    from dataclasses import replace
+
+    from train.evaluate import NATURAL_EYES_FIT
+    from train.run import _labels_note
+    from train.run_config import EvalConfig
+
+    labels = {"target": {"gaze_error_deg": 5.5}, "render": {"gaze_error_deg": 5.0}}
+    painting = _labels_note(labels, EvalConfig(tta_gaze_weight=0.001))  # reach (): all it fits, renderer included
+    natural = _labels_note(labels, replace(EvalConfig(), tta_weights=NATURAL_EYES_FIT["weights"],
+                                           tta_gaze_weight=0.002, tta_gaze_reach=NATURAL_EYES_FIT["reach"]))
+    no_term = _labels_note(labels, EvalConfig(tta_gaze_weight=0.0))
+    assert "no measure of how real" in painting and "only turn" not in painting
+    assert "may only turn the eyes (it reaches code, eye_field)" in natural and "no measure" not in natural
+    assert "5.00°" in no_term and "gaze term" not in no_term
+    assert _labels_note({}, EvalConfig()) == ""
