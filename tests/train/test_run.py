@@ -552,14 +552,23 @@ def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
 
     from train.evaluate import NATURAL_EYES_FIT
     from train.run import _labels_note
-    from train.run_config import EvalConfig
+    from train.run_config import EvalConfig, RunConfig
+
+    def note(eye_appearance=False, **ev):
+        cfg = RunConfig(eval=EvalConfig(**ev))
+        return _labels_note(labels, replace(cfg, gaussian=replace(cfg.gaussian, eye_appearance=eye_appearance)))
 
     labels = {"target": {"gaze_error_deg": 5.5}, "render": {"gaze_error_deg": 5.0}}
-    painting = _labels_note(labels, EvalConfig(tta_gaze_weight=0.001))  # reach (): all it fits, renderer included
-    natural = _labels_note(labels, replace(EvalConfig(), tta_weights=NATURAL_EYES_FIT["weights"],
-                                           tta_gaze_weight=0.002, tta_gaze_reach=NATURAL_EYES_FIT["reach"]))
-    no_term = _labels_note(labels, EvalConfig(tta_gaze_weight=0.0))
-    assert "no measure of how real" in painting and "only turn" not in painting
-    assert "may only turn the eyes (it reaches code, eye_field)" in natural and "no measure" not in natural
+    natural = dict(tta_weights=NATURAL_EYES_FIT["weights"], tta_gaze_weight=0.002,
+                   tta_gaze_reach=NATURAL_EYES_FIT["reach"])
+    painting = note(tta_gaze_weight=0.001)  # reach (): all it fits, the renderer included
+    assert "pushes the renders toward those labels" in painting and "no measure of how real" in painting
+    assert "cannot repaint" not in painting
+    turning = note(**natural)
+    assert "pushes the renders toward those labels" in turning and "no measure" not in turning
+    assert "It reaches code, eye_field, and cannot repaint the eyes" in turning
+    # With code-conditioned eye colours a term reaching the code can recolour the eyes.
+    assert "no measure of how real" in note(eye_appearance=True, **natural)
+    no_term = note(tta_gaze_weight=0.0)
     assert "5.00°" in no_term and "gaze term" not in no_term
-    assert _labels_note({}, EvalConfig()) == ""
+    assert _labels_note({}, RunConfig()) == ""
