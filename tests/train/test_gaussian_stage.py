@@ -53,3 +53,16 @@ def test_onestep_fraction_sets_the_share_of_the_inference_timestep(fraction):
     assert abs(share - fraction) < 0.03
     # Without a diffusion (the U-Net baseline) there is no timestep.
     assert GaussianTrainer._timesteps(SimpleNamespace(renderer=SimpleNamespace()), 4, torch.Generator()) is None
+
+
+def test_lr_factor_constant_and_cosine():
+    from train.gaussian_stage import lr_factor
+
+    assert all(lr_factor(GaussianStageConfig(steps=10))(s) == 1.0 for s in range(12))
+    f = lr_factor(GaussianStageConfig(steps=11, lr_schedule="cosine", lr_final=0.2))
+    vals = [f(s) for s in range(11)]
+    assert vals[0] == pytest.approx(1.0) and vals[5] == pytest.approx(0.6) and vals[10] == pytest.approx(0.2)
+    assert all(a > b for a, b in zip(vals, vals[1:]))
+    assert f(50) == pytest.approx(0.2)  # past the end (a resumed run given more steps): the final factor
+    one = lr_factor(GaussianStageConfig(steps=1, lr_schedule="cosine", lr_final=0.0))
+    assert one(0) == pytest.approx(1.0)  # a single step trains at the configured rate

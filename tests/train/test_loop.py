@@ -47,6 +47,31 @@ def test_resume_reproduces_uninterrupted_run(tmp_path):
         assert torch.equal(p, q)
 
 
+def test_lr_factor_sets_rates_and_survives_resume(tmp_path):
+    """The rates follow ``lr_factor`` of the step, and a resumed run restores the entry rates (not the saved
+    ones of the checkpoint's last step) before applying it: the same weights as the uninterrupted run."""
+    factor = lambda step: 1.0 / (1 + step)  # noqa: E731
+    m1, o1, f1 = _problem()
+    seen = []
+    train_loop("t", lambda s, g: (seen.append(o1.param_groups[0]["lr"]), f1(s, g))[1], modules={"m": m1},
+               optimizers={"o": o1}, steps=30, run_dir=tmp_path / "a", ckpt_every=10, progress=False,
+               lr_factor=factor)
+    # Set before each update: the rate the step-s update used is read at step s + 1.
+    assert seen[1:] == pytest.approx([1e-2 * factor(s) for s in range(29)])
+    m2, o2, f2 = _problem()
+    train_loop("t", f2, modules={"m": m2}, optimizers={"o": o2}, steps=20, run_dir=tmp_path / "b",
+               ckpt_every=10, progress=False, lr_factor=factor)
+    m3, o3, f3 = _problem(seed=99)
+    train_loop("t", f3, modules={"m": m3}, optimizers={"o": o3}, steps=30, run_dir=tmp_path / "b",
+               ckpt_every=10, resume=True, progress=False, lr_factor=factor)
+    for p, q in zip(m1.parameters(), m3.parameters()):
+        assert torch.equal(p, q)
+    m4, o4, f4 = _problem()
+    train_loop("t", f4, modules={"m": m4}, optimizers={"o": o4}, steps=30, run_dir=tmp_path / "c",
+               ckpt_every=10, progress=False)
+    assert not all(torch.equal(p, q) for p, q in zip(m1.parameters(), m4.parameters()))
+
+
 def test_nan_loss_stops_with_step_terms_and_checkpoint(tmp_path):
     model, opt, f = _problem()
 

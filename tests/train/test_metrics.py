@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from toolkit import ToolkitError
-from train.metrics import composite_on_white, psnr, ssim, summarize, table1_markdown
+from train.metrics import bootstrap_mean_interval, composite_on_white, psnr, ssim, summarize, table1_markdown
 
 
 def test_psnr_known_value():
@@ -45,3 +45,26 @@ def test_table1_layout():
     assert "| DiT-Gaze | 3.21 | n/a | 0.910 | 27.50 | n/a |" in lines[2]
     assert lines[3].count("n/a") == 8
     assert summarize([1.0, None, 3.0]) == 2.0 and summarize([None]) is None and summarize([math.nan]) is None
+
+
+def test_bootstrap_interval_brackets_the_mean_and_narrows_with_more_samples():
+    g = torch.Generator().manual_seed(0)
+    few = (torch.randn(12, generator=g) * 4 + 6).tolist()
+    many = (torch.randn(400, generator=g) * 4 + 6).tolist()
+    lo, hi = bootstrap_mean_interval(few)
+    assert lo < summarize(few) < hi
+    # About 2 x 1.96 standard errors wide (sd 4): ~4.5 for 12 samples, ~0.8 for 400.
+    assert 2.5 < hi - lo < 7.0
+    lo2, hi2 = bootstrap_mean_interval(many)
+    assert lo2 < 6.0 < hi2 and hi2 - lo2 < 1.2
+    assert bootstrap_mean_interval(few) == (lo, hi)  # a fixed seed: a report is reproducible
+    assert bootstrap_mean_interval(few + [None, float("nan")]) == (lo, hi)  # missing scores are left out
+
+
+def test_bootstrap_interval_of_degenerate_samples():
+    assert bootstrap_mean_interval([]) is None and bootstrap_mean_interval([3.0]) is None
+    assert bootstrap_mean_interval([None, float("nan"), 2.0]) is None
+    lo, hi = bootstrap_mean_interval([5.0] * 10)
+    assert lo == hi == 5.0
+    lo, hi = bootstrap_mean_interval([1e30, -1e30, 0.0, 1e-30])  # extreme values: finite bounds
+    assert math.isfinite(lo) and math.isfinite(hi) and lo <= hi

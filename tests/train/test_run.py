@@ -37,6 +37,9 @@ def test_all_stages_write_their_outputs(tiny_run):
     assert "| Method | Gaze" in report and "n/a" in report
     assert "estimator's own held-out error" in report
     assert "Median gaze error over the pairs: " in report and m["gaze_error_median_deg"] >= 0
+    lo, hi = m["gaze_error_ci95_deg"]
+    assert lo <= m["gaze_error_deg"] <= hi and f"gaze {lo:.2f}-{hi:.2f}°" in report
+    assert m["psnr_ci95"][0] <= m["psnr"] <= m["psnr_ci95"][1]
     # The references the renders are read against: scored, in the table and in metrics.json.
     assert "*reference: target at half resolution*" in report and "*reference: target through the codec*" in report
     assert "*diagnostic: the input re-rendered at its own gaze*" in report
@@ -261,6 +264,8 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("data.test_frames=3", "'data.test_frames': expected 0"),
         ("data.test_fraction=1.5", "'data.test_fraction': expected a share"),
         ("gaussian.onestep_fraction=1.5", "'gaussian.onestep_fraction': expected a share in"),
+        ("gaussian.lr_final=-0.1", "'gaussian.lr_final': expected a factor in"),
+        ("gaussian.lr_schedule=linear", "'gaussian.lr_schedule': expected one of"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
