@@ -172,9 +172,27 @@ def save_yaml_config(cfg: Any, path: str | Path) -> None:
     atomic_write_text(path, yaml.safe_dump(to_dict(cfg), sort_keys=False))
 
 
+NEUTRAL = {"neutral": True}
+"""Field metadata (``dataclasses.field(default=..., metadata=NEUTRAL)``) of an option added with a default that
+keeps the behaviour from before it existed: :func:`config_hash` leaves it out while it holds that default, so
+the stages of runs made before it was added stay up to date."""
+
+
+def _hashed(v: Any) -> Any:
+    if dataclasses.is_dataclass(v):
+        return {f.name: _hashed(getattr(v, f.name)) for f in dataclasses.fields(v)
+                if not (f.metadata.get("neutral") and getattr(v, f.name) == f.default)}
+    if isinstance(v, (list, tuple)):
+        return [_hashed(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _hashed(x) for k, x in v.items()}
+    return v
+
+
 def config_hash(obj: Any) -> str:
-    """A stable short hash of a config (or any YAML-able value), for stage skipping."""
+    """A stable short hash of a config (or any YAML-able value), for stage skipping (:data:`NEUTRAL` fields at
+    their defaults left out)."""
     import hashlib
 
-    data = to_dict(obj)
+    data = _hashed(obj)
     return hashlib.sha256(yaml.safe_dump(data, sort_keys=True).encode()).hexdigest()[:16]

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from toolkit.errors import ToolkitError
+from train.config import NEUTRAL
 
 
 @dataclass
@@ -158,10 +159,10 @@ class GaussianStageConfig:
     """learning rate of the canonical Gaussian centres, as a fraction of the head's radius per step (3DGS's
     position rate relative to the scene extent; see ``train.gaussian_stage.optimizer_groups``)."""
     renderer_lr: float = 5e-4
-    lr_schedule: Literal["constant", "cosine"] = "constant"
+    lr_schedule: Literal["constant", "cosine"] = field(default="constant", metadata=NEUTRAL)
     """the rates over the stage: constant, or a half cosine from the configured rates down to ``lr_final`` times
     them at the last step (every group alike)."""
-    lr_final: float = 0.1
+    lr_final: float = field(default=0.1, metadata=NEUTRAL)
     """cosine schedule: the rates' factor at the last step."""
     lambda_rgb: float = 1.0
     """low-resolution RGB supervision of the splatted feature maps' first three channels."""

@@ -78,3 +78,39 @@ def test_bad_yaml_files(tmp_path):
         load_yaml_config(Outer, p)
     with pytest.raises(ToolkitError, match="expected a mapping"):
         from_dict(Outer, {"inner": 3})
+
+
+def test_neutral_fields_at_their_defaults_leave_the_hash_unchanged():
+    """An option added later with a behaviour-preserving default (metadata NEUTRAL) does not make the stages of
+    older runs stale; set to anything else it counts like any field."""
+    from train.config import NEUTRAL
+
+    @dataclass
+    class Before:
+        steps: int = 3
+        names: tuple[str, ...] = ("a",)
+
+    @dataclass
+    class After:
+        steps: int = 3
+        names: tuple[str, ...] = ("a",)
+        schedule: str = field(default="constant", metadata=NEUTRAL)
+
+    @dataclass
+    class Outer:
+        inner: After = field(default_factory=After)
+
+    assert config_hash(After()) == config_hash(Before())
+    assert config_hash(After(schedule="cosine")) != config_hash(Before())
+    assert config_hash(After(steps=4)) == config_hash(Before(steps=4)) != config_hash(Before())
+    assert config_hash(Outer()) == config_hash({"inner": to_dict(Before())})  # nested sections too
+    assert "schedule" in to_dict(After())  # the YAML still shows it
+
+
+def test_the_gaussian_learning_rate_schedule_is_neutral_at_its_defaults():
+    from train.run_config import GaussianStageConfig
+
+    base = to_dict(GaussianStageConfig())
+    older = {k: v for k, v in base.items() if k not in ("lr_schedule", "lr_final")}
+    assert config_hash(GaussianStageConfig()) == config_hash(older)
+    assert config_hash(GaussianStageConfig(lr_schedule="cosine")) != config_hash(older)
