@@ -333,8 +333,10 @@ def _renderer(ctx: RunContext, device):
 
     g = ctx.config.gaussian
     codec = _load_codec(ctx, device) if g.renderer == "dit" else None
+    dit_kw = {"feature_hidden": g.dit_feature_hidden} if g.renderer == "dit" else {}
     return make_renderer("dit" if g.renderer == "dit" else "baseline", codec, model=g.dit_model,
-                         output_size=ctx.config.data.res, upscale=g.feature_upscale, residual=g.residual).to(device)
+                         output_size=ctx.config.data.res, upscale=g.feature_upscale, residual=g.residual,
+                         **dit_kw).to(device)
 
 
 def _gaussian_modules(ctx: RunContext, device):

@@ -131,6 +131,8 @@ class GaussianStageConfig:
     renderer: Literal["dit", "unet"] = "dit"
     """the neural renderer: the latent DiT (ours) or GazeGaussian's U-Net-style baseline."""
     dit_model: str = "DiT-Gaze-tiny"
+    dit_feature_hidden: int = field(default=64, metadata=NEUTRAL)
+    """DiT only: hidden channels of the renderer's feature encoder (``DiTConfig.feature_hidden``)."""
     residual: bool = True
     """DiT only: predict the clean latent as the encoded, upsampled splat RGB plus a learned residual (the
     untrained renderer outputs the splat's own image); false: the plain latent DiT. See train/renderer.py."""

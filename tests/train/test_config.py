@@ -107,10 +107,11 @@ def test_neutral_fields_at_their_defaults_leave_the_hash_unchanged():
     assert "schedule" in to_dict(After())  # the YAML still shows it
 
 
-def test_the_gaussian_learning_rate_schedule_is_neutral_at_its_defaults():
+def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults():
     from train.run_config import GaussianStageConfig
 
     base = to_dict(GaussianStageConfig())
-    older = {k: v for k, v in base.items() if k not in ("lr_schedule", "lr_final")}
+    older = {k: v for k, v in base.items() if k not in ("lr_schedule", "lr_final", "dit_feature_hidden")}
     assert config_hash(GaussianStageConfig()) == config_hash(older)
     assert config_hash(GaussianStageConfig(lr_schedule="cosine")) != config_hash(older)
+    assert config_hash(GaussianStageConfig(dit_feature_hidden=16)) != config_hash(older)

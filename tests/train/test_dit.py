@@ -114,7 +114,7 @@ def test_named_configs():
 
 
 @pytest.mark.parametrize("bad", [dict(hidden_size=66, num_heads=4), dict(input_size=9, patch_size=2),
-                                 dict(gaze_dim=3), dict(depth=0)])
+                                 dict(gaze_dim=3), dict(depth=0), dict(feature_hidden=0)])
 def test_bad_config(bad):
     with pytest.raises(ToolkitError, match="DiTConfig"):
         DiT(DiTConfig(**{**dict(hidden_size=64, num_heads=4, depth=1, input_size=8), **bad}))
@@ -145,3 +145,12 @@ def test_precomputed_feature_embedding_matches_and_is_checked():
     assert torch.equal(model(x, t, f, s, feature_embedding=emb), model(x, t, f, s))
     with pytest.raises(ToolkitError, match="feature_embedding"):
         model(x, t, f, s, feature_embedding=emb[:, :, :4])
+
+
+def test_feature_hidden_sets_the_encoder_width_and_the_model_still_runs():
+    m = tiny(feature_hidden=16)
+    assert m.feature_encoder.conv_in.out_channels == 16 and m.feature_encoder.conv_out.in_channels == 16
+    assert tiny().feature_encoder.conv_in.out_channels == 64  # the default
+    x, t, feats, code = inputs()
+    out = m(x, t, feats, code)
+    assert out.shape == x.shape and torch.isfinite(out).all()

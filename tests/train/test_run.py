@@ -355,10 +355,12 @@ def test_pixel_space_dit_runs_without_a_codec(tiny_run, tmp_path):
 
     d = tmp_path / "pixel"
     shutil.copytree(tiny_run, d)
-    over = ["codec.kind=pixel", "gaussian.dit_model=DiT-Gaze-pixel", "gaussian.steps=2", "eval.pairs_per_subject=1"]
+    over = ["codec.kind=pixel", "gaussian.dit_model=DiT-Gaze-pixel", "gaussian.steps=2", "eval.pairs_per_subject=1",
+            "gaussian.dit_feature_hidden=8"]
     assert run.main([*TINY, "--run-dir", str(d), "--stages", "codec,gaussian,eval", *over]) == 0
     _, renderer = run.load_trained(run.open_run(d), "cpu")
     assert isinstance(renderer.codec, PixelCodec) and renderer.dit.config.patch_size == 8
+    assert renderer.dit.feature_encoder.conv_in.out_channels == 8  # gaussian.dit_feature_hidden
     m = json.loads((d / "metrics.json").read_text())
     assert m["metrics"]["psnr"] == m["metrics"]["psnr"] and len(m["per_pair"]) == m["metrics"]["pairs"]
     # No codec: the report scores no "through the codec" reference (it would be the target itself).
