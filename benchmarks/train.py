@@ -259,7 +259,7 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
     """Train the stage for ``budget_s`` seconds of training time; evaluate every ``eval_every_s``."""
     from train import run
     from train.evaluate import evaluate
-    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, optimizer_groups
+    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
     from train.loop import train_loop
 
     sub = with_overrides(ctx, overrides)
@@ -300,7 +300,8 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
         try:
             train_loop("gaussian", trainer.step, modules={"model": model, "renderer": renderer},
                        optimizers={"adam": opt}, steps=args.max_steps, run_dir=tmp, seed=cfg.seed,
-                       ckpt_every=10**9, log_every=1, grad_clip=g.grad_clip, progress=False, on_log=on_log)
+                       ckpt_every=10**9, log_every=1, grad_clip=g.grad_clip, progress=False, on_log=on_log,
+                       lr_factor=lr_factor(g))  # as the stage (and the sampler): over gaussian.steps, then its last rate
         except _BudgetReached:
             pass
     return points

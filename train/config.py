@@ -178,10 +178,14 @@ keeps the behaviour from before it existed: :func:`config_hash` leaves it out wh
 the stages of runs made before it was added stay up to date."""
 
 
+def _default(f: dataclasses.Field) -> Any:
+    return f.default_factory() if f.default is dataclasses.MISSING else f.default  # type: ignore[misc]
+
+
 def _hashed(v: Any) -> Any:
     if dataclasses.is_dataclass(v):
         return {f.name: _hashed(getattr(v, f.name)) for f in dataclasses.fields(v)
-                if not (f.metadata.get("neutral") and getattr(v, f.name) == f.default)}
+                if not (f.metadata.get("neutral") and getattr(v, f.name) == _default(f))}
     if isinstance(v, (list, tuple)):
         return [_hashed(x) for x in v]
     if isinstance(v, dict):

@@ -425,6 +425,9 @@ def _check_values(cfg: RunConfig) -> None:
     if not 0.0 <= cfg.gaussian.onestep_fraction <= 1.0:
         raise ToolkitError(f"config key 'gaussian.onestep_fraction': expected a share in [0, 1], "
                            f"got {cfg.gaussian.onestep_fraction}")
+    if cfg.gaussian.dit_feature_hidden < 1:
+        raise ToolkitError(f"config key 'gaussian.dit_feature_hidden': expected a channel count >= 1, "
+                           f"got {cfg.gaussian.dit_feature_hidden}")
     if not 0.0 <= cfg.gaussian.lr_final <= 1.0:
         raise ToolkitError(f"config key 'gaussian.lr_final': expected a factor in [0, 1] of the rates at the last "
                            f"step, got {cfg.gaussian.lr_final}")

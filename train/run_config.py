@@ -163,7 +163,8 @@ class GaussianStageConfig:
     renderer_lr: float = 5e-4
     lr_schedule: Literal["constant", "cosine"] = field(default="constant", metadata=NEUTRAL)
     """the rates over the stage: constant, or a half cosine from the configured rates down to ``lr_final`` times
-    them at the last step (every group alike)."""
+    them at the last step (every group alike). The curve spans ``steps``: a run resumed with more steps follows
+    the new, longer curve from where it stopped."""
     lr_final: float = field(default=0.1, metadata=NEUTRAL)
     """cosine schedule: the rates' factor at the last step."""
     lambda_rgb: float = 1.0

@@ -107,6 +107,22 @@ def test_neutral_fields_at_their_defaults_leave_the_hash_unchanged():
     assert "schedule" in to_dict(After())  # the YAML still shows it
 
 
+def test_neutral_fields_with_a_default_factory():
+    from train.config import NEUTRAL
+
+    @dataclass
+    class Before:
+        steps: int = 3
+
+    @dataclass
+    class After:
+        steps: int = 3
+        extra: list = field(default_factory=list, metadata=NEUTRAL)
+
+    assert config_hash(After()) == config_hash(Before())
+    assert config_hash(After(extra=[1])) != config_hash(Before())
+
+
 def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults():
     from train.run_config import GaussianStageConfig
 

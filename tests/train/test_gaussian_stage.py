@@ -63,6 +63,6 @@ def test_lr_factor_constant_and_cosine():
     vals = [f(s) for s in range(11)]
     assert vals[0] == pytest.approx(1.0) and vals[5] == pytest.approx(0.6) and vals[10] == pytest.approx(0.2)
     assert all(a > b for a, b in zip(vals, vals[1:]))
-    assert f(50) == pytest.approx(0.2)  # past the end (a resumed run given more steps): the final factor
+    assert f(50) == pytest.approx(0.2)  # past the end (the time-budgeted benchmark's steps): the final factor
     one = lr_factor(GaussianStageConfig(steps=1, lr_schedule="cosine", lr_final=0.0))
     assert one(0) == pytest.approx(1.0)  # a single step trains at the configured rate

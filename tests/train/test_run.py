@@ -265,6 +265,7 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("data.test_fraction=1.5", "'data.test_fraction': expected a share"),
         ("gaussian.onestep_fraction=1.5", "'gaussian.onestep_fraction': expected a share in"),
         ("gaussian.lr_final=-0.1", "'gaussian.lr_final': expected a factor in"),
+        ("gaussian.dit_feature_hidden=0", "'gaussian.dit_feature_hidden': expected a channel count"),
         ("gaussian.lr_schedule=linear", "'gaussian.lr_schedule': expected one of"),
     ],
 )
