@@ -13,7 +13,7 @@ import re
 import types
 import typing
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Callable, TypeVar
 
 import yaml
 
@@ -23,12 +23,13 @@ from toolkit.io import atomic_write_text, check_readable_file
 T = TypeVar("T")
 
 
-def to_dict(cfg: Any) -> dict[str, Any]:
-    """Dataclass (or any nesting of them in tuples, lists, dicts) -> plain YAML-safe values (tuples become lists)."""
+def to_dict(cfg: Any, skip: Callable[[Any, dataclasses.Field], bool] | None = None) -> dict[str, Any]:
+    """Dataclass (or any nesting of them in tuples, lists, dicts) -> plain YAML-safe values (tuples become lists);
+    ``skip(dataclass instance, field)`` true leaves that field out."""
 
     def conv(v: Any) -> Any:
         if dataclasses.is_dataclass(v):
-            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v) if not (skip and skip(v, f))}
         if isinstance(v, (list, tuple)):
             return [conv(x) for x in v]
         if isinstance(v, dict):
@@ -182,15 +183,8 @@ def _default(f: dataclasses.Field) -> Any:
     return f.default_factory() if f.default is dataclasses.MISSING else f.default  # type: ignore[misc]
 
 
-def _hashed(v: Any) -> Any:
-    if dataclasses.is_dataclass(v):
-        return {f.name: _hashed(getattr(v, f.name)) for f in dataclasses.fields(v)
-                if not (f.metadata.get("neutral") and getattr(v, f.name) == _default(f))}
-    if isinstance(v, (list, tuple)):
-        return [_hashed(x) for x in v]
-    if isinstance(v, dict):
-        return {k: _hashed(x) for k, x in v.items()}
-    return v
+def _neutral_at_default(obj: Any, f: dataclasses.Field) -> bool:
+    return bool(f.metadata.get("neutral")) and getattr(obj, f.name) == _default(f)
 
 
 def config_hash(obj: Any) -> str:
@@ -198,5 +192,5 @@ def config_hash(obj: Any) -> str:
     their defaults left out)."""
     import hashlib
 
-    data = _hashed(obj)
+    data = to_dict(obj, skip=_neutral_at_default)
     return hashlib.sha256(yaml.safe_dump(data, sort_keys=True).encode()).hexdigest()[:16]

@@ -181,9 +181,9 @@ def train_loop(
                         + ", ".join(f"{k}={v:.4g}" for k, v in values.items())
                         + f"); last good checkpoint: {last_ckpt or 'none'}"
                     )
+                factor = lr_factor(step) if lr_factor is not None else None
                 for name, opt in optimizers.items():
-                    if lr_factor is not None:
-                        factor = lr_factor(step)
+                    if factor is not None:
                         for grp, base in zip(opt.param_groups, base_lrs[name]):
                             grp["lr"] = base * factor
                     opt.step()
