@@ -104,13 +104,17 @@ def render_pairs(model, renderer, batch: dict[str, torch.Tensor], res: int, step
     return renderer.render(maps["head"], batch["code"], gaze=batch["gaze_head"], pose=batch["pose"])
 
 
-TTA_WEIGHT_GROUPS = ("features", "eye_features", "eye_field", "renderer", "decoder")
+TTA_WEIGHT_GROUPS = ("features", "eye_features", "eye_colours", "eye_field", "renderer", "decoder")
 """Weights test-time fitting may tune besides the code: the face Gaussians' canonical features (all channels;
 0..2 are the RGB), the eye Gaussians' features, the eye rotation field (``eye_field``: the MLP that turns each
 eyeball for a gaze), the neural renderer (the DiT; the baseline's whole network) and a latent renderer's codec
 decoder (``decoder``: frozen in training, unfrozen for the fit alone; on session 15's demo, a latent DiT, it gave
 +0.04 dB and +0.18° gaze error, session 16). The encoder, the face deformation field, the eye appearance field
 (``gaussian.eye_appearance``; the code it reads is fitted) and the Gaussians' geometry are never fitted.
+
+``eye_colours`` (a model with ``eyeball_colours``, :class:`train.fields.EyeballColours`): the parametric
+eyeball's pupil, iris and sclera colours and its two edge angles, at the code's rate. Eight numbers,
+symmetric about the optical axis: a fit can give the new face its iris but cannot paint one off the axis.
 
 ``eye_field`` and ``eye_features`` let a fit with a gaze term (:class:`FitGaze`) turn and redraw a new face's
 eyes where the term reads them, instead of only bending the renderer (session 18, demo run: gaze 5.95° ->
@@ -122,7 +126,9 @@ held-out gaze 24.4° with them, 20.5° without, PSNR 28.78 / 28.82 dB). They are
 default."""
 
 NETWORK_GROUPS = ("eye_field", "renderer", "decoder")
-"""The ``TTA_WEIGHT_GROUPS`` fitted at the renderer's learning rate (the rest at the code's)."""
+"""The ``TTA_WEIGHT_GROUPS`` fitted at the renderer's learning rate."""
+COLOUR_GROUPS = ("features", "eye_features", "eye_colours")
+"""The ``TTA_WEIGHT_GROUPS`` fitted at the code's learning rate."""
 
 TTA_REGIONS = ("head", "face")
 """What test-time fitting compares: the input's whole head, or its face with the eyes cut out
@@ -142,6 +148,11 @@ def fitted_weights(model, renderer, groups) -> list[torch.nn.Parameter]:
             group = [model.face_features]
         elif g == "eye_features":
             group = [model.eye_features]
+        elif g == "eye_colours":
+            if getattr(model, "eyeball_colours", None) is None:
+                raise ToolkitError("test-time fitting: the 'eye_colours' group needs a model trained with "
+                                   "gaussian.eyeball_colours=true; this model's eyes have free colours")
+            group = list(model.eyeball_colours.parameters())
         elif g == "eye_field":
             group = list(model.eye_field.parameters())
         elif g == "renderer":
@@ -194,7 +205,7 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     if any(g in NETWORK_GROUPS for g in weights) and not renderer_lr > 0:
         raise ToolkitError(f"test-time fitting: expected a renderer learning rate > 0, got {renderer_lr}")
     code = batch["code"].clone().requires_grad_(True)
-    feats = fitted_weights(model, renderer, [g for g in weights if g in ("features", "eye_features")])
+    feats = fitted_weights(model, renderer, [g for g in weights if g in COLOUR_GROUPS])
     net = fitted_weights(model, renderer, [g for g in weights if g in NETWORK_GROUPS])
     groups = [{"params": [code] + feats, "lr": lr}] + ([{"params": net, "lr": renderer_lr}] if net else [])
     opt = torch.optim.Adam(groups)

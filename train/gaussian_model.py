@@ -10,7 +10,8 @@ Eye stream: canonical eye Gaussians (parts 1 and 2, isotropic: one log-scale eac
 by :class:`train.fields.EyeRotationField` about **that eye's own eyeball centre** from
 ``scene.metadata["eyes"]`` (``toolkit.eyes.eyeball_info``); left and right eyes use their own Gaussians and
 centres. Gaze φ [B, 2] is (pitch, yaw) in the head frame. Their features are shared by every identity, or,
-with ``eye_appearance``, shifted per code by :class:`train.fields.EyeAppearanceField`.
+with ``eye_appearance``, shifted per code by :class:`train.fields.EyeAppearanceField`; with ``eyeball_colours``
+their RGB channels come from a parametric pupil / iris / sclera (:class:`train.fields.EyeballColours`).
 
 Then the rigid head transform ``x_world = R(γ[:3]) x + γ[3:]`` (γ[:3] axis-angle radians, γ[3:] translation in
 scene units), optional per-image camera offsets, and splatting with ``render.splat.rasterize`` into
@@ -38,7 +39,7 @@ from toolkit.errors import ToolkitError
 from toolkit.eyes import EYE_PARTS, eyeball_info
 from toolkit.rotations import matrix_to_quat, normalize_quat, quat_multiply, so3_exp
 from toolkit.scene import PART_FACE, GaussianScene
-from train.fields import EyeAppearanceField, EyeRotationField, FaceDeformationField
+from train.fields import EyeAppearanceField, EyeballColours, EyeRotationField, FaceDeformationField
 
 UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
 RENDERS = ("head", "face", "eyes")
@@ -82,6 +83,10 @@ class GaussianModelConfig:
     """give the eye Gaussians per-identity features: :class:`train.fields.EyeAppearanceField` adds a bounded
     (``max_feature_delta``) code-conditioned delta to their shared features, so a new face's code can carry its
     iris colour; off, every identity gets the same eyes."""
+    eyeball_colours: bool = False
+    """the eye Gaussians' RGB channels (0..2) from :class:`train.fields.EyeballColours`, a pupil, an iris and a
+    sclera by each Gaussian's polar angle from its eye's canonical optical axis (-z), instead of a free colour
+    per Gaussian; their other channels stay free. Excludes ``eye_appearance`` (both would set the eye colours)."""
     render_scale: float = 0.25
     num_images: int = 0
     """> 0 adds per-training-image learnable codes and camera offsets (auto-decoder)."""
@@ -137,6 +142,10 @@ class GaussianModel(nn.Module):
             self.register_buffer("eye_radius", radius.clamp_min(1e-6))
         else:
             self.eye_appearance = None
+        if cfg.eyeball_colours and cfg.eye_appearance:
+            raise ToolkitError("GaussianModelConfig: eyeball_colours and eye_appearance both set the eye Gaussians' "
+                               "colours; enable one of them")
+        self.eyeball_colours = EyeballColours() if cfg.eyeball_colours else None
         if cfg.num_images > 0:
             self.image_codes = nn.Embedding(cfg.num_images, cfg.code_dim)
             self.camera_offsets = nn.Embedding(cfg.num_images, 6)
@@ -282,6 +291,13 @@ class GaussianModel(nn.Module):
         ``face`` (:meth:`face_stream` output): the ``socket_weights``-weighted mean Δposition."""
         return torch.einsum("en,bnc->bec", self.socket_weights, face["means"] - self.face_means)
 
+    def eye_polar_angles(self) -> torch.Tensor:
+        """[Ne] angle (radians) of each canonical eye Gaussian from its eye's optical axis (-z, the canonical
+        gaze) about that eye's centre; atan2 rather than acos, exact near the axis. Detached: the colours it
+        selects never pull the Gaussians along the eyeball."""
+        d = (self.eye_means.detach() - self.eye_centers[self.eye_side]).float()
+        return torch.atan2(d[:, :2].norm(dim=-1), -d[:, 2])
+
     def eye_stream(self, code: torch.Tensor, gaze: torch.Tensor, shift: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Eye Gaussians rotated per eye about their own centres, head frame.
 
@@ -306,6 +322,9 @@ class GaussianModel(nn.Module):
             x_eye = (self.eye_means.detach() - c) / self.eye_radius[self.eye_side, None]
             d = self.eye_appearance(x_eye, self.eye_side, code).float()
             features = features + self.config.max_feature_delta * torch.tanh(d)
+        if self.eyeball_colours is not None:
+            rgb = self.eyeball_colours(self.eye_polar_angles()).to(features.dtype)
+            features = torch.cat([rgb[None].expand(B, -1, -1), features[..., 3:]], -1)
         return {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
                 "rotations": R}
 

@@ -193,7 +193,8 @@ def build_model(scene_path: Path, cfg: GaussianStageConfig, device) -> GaussianM
 def model_config(cfg: GaussianStageConfig) -> GaussianModelConfig:
     """The two-stream model's configuration that the stage's options set."""
     return GaussianModelConfig(hidden=cfg.gaussians_hidden, eyes_follow_face=cfg.eyes_follow_face,
-                               eye_appearance=cfg.eye_appearance, render_scale=1.0 / cfg.feature_upscale)
+                               eye_appearance=cfg.eye_appearance, eyeball_colours=cfg.eyeball_colours,
+                               render_scale=1.0 / cfg.feature_upscale)
 
 
 CANONICAL_MEANS = ("face_means", "eye_means")

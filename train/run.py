@@ -431,6 +431,12 @@ def _check_values(cfg: RunConfig) -> None:
     if not 0.0 <= cfg.gaussian.lr_final <= 1.0:
         raise ToolkitError(f"config key 'gaussian.lr_final': expected a factor in [0, 1] of the rates at the last "
                            f"step, got {cfg.gaussian.lr_final}")
+    if cfg.gaussian.eyeball_colours and cfg.gaussian.eye_appearance:
+        raise ToolkitError("config keys 'gaussian.eyeball_colours' and 'gaussian.eye_appearance' both set the eye "
+                           "Gaussians' colours: enable one of them")
+    if "eye_colours" in cfg.eval.tta_weights and not cfg.gaussian.eyeball_colours:
+        raise ToolkitError("config key 'eval.tta_weights': 'eye_colours' needs gaussian.eyeball_colours=true (the "
+                           "parametric eyeball whose colours it fits)")
     if cfg.data.test_frames < 0 or cfg.data.test_frames % 2:
         raise ToolkitError(f"config key 'data.test_frames': expected 0 (as data.frames) or an even frame count, "
                            f"got {cfg.data.test_frames}")
@@ -465,6 +471,7 @@ def _fitting(e) -> str:
         return "none"
     return f"{e.tta_steps} steps of the shape code" + "".join(
         {"features": ", the face Gaussians' features", "eye_features": ", the eye Gaussians' features",
+         "eye_colours": ", the eyeball's colours",
          "eye_field": ", the eye rotation field",
          "renderer": ", the renderer", "decoder": ", the codec's decoder"}[w] for w in dict.fromkeys(e.tta_weights)) + (
         ", compared on the input's whole head" if e.tta_region == "head" else ", compared on its face without the eyes"

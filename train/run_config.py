@@ -193,6 +193,10 @@ class GaussianStageConfig:
     """code-conditioned colours of the eye Gaussians (``GaussianModelConfig.eye_appearance``): each identity
     its own eyes, so a new face's code can carry its iris colour. Off: on the demo's 8 (and on 16) training
     identities it gave no gain in gaze, with or without test-time fitting (docs/model.md, session 22)."""
+    eyeball_colours: bool = field(default=False, metadata=NEUTRAL)
+    """the eye Gaussians' RGB from a parametric pupil / iris / sclera (``GaussianModelConfig.eyeball_colours``,
+    :class:`train.fields.EyeballColours`) instead of a free colour each. With free colours the demo's eyes
+    train into a grey-to-skin smear (docs/model.md, session 24)."""
     ckpt_every: int = 100
     log_every: int = 10
     grad_clip: float = 1.0
@@ -207,7 +211,7 @@ class EvalConfig:
     (GazeNeRF protocol: held-out subjects are identities the model never saw). Session 12, demo run, eval stage:
     20 / 40 / 60 steps gave gaze 11.70° / 11.38° / 11.11°, PSNR 31.76 / 32.35 / 32.54 dB, SSIM 0.968 / 0.973 /
     0.974, in ~47 / 73 / 108 s. Measurements: docs/evaluation.md."""
-    tta_weights: tuple[Literal["features", "eye_features", "eye_field", "renderer", "decoder"], ...] = ("features", "renderer")
+    tta_weights: tuple[Literal["features", "eye_features", "eye_colours", "eye_field", "renderer", "decoder"], ...] = ("features", "renderer")
     """weights fitted with the shape code: the face Gaussians' features (all channels), the eye Gaussians'
     features (off: with ``tta_region: face`` the fitting loss never sees the eyes), the eye rotation field
     (``eye_field``, at ``tta_renderer_lr``; the demo preset fitted both eye groups in sessions 18-21, the eye field alone since), the neural renderer (pairs
@@ -234,7 +238,7 @@ class EvalConfig:
     """what the gaze term reads: ``target``, one more render per step at the input's view turned to the pair's
     target gaze, against that gaze (weak supervision at the gaze the pair is rendered at); ``own``, the fitting
     render, against the estimator's reading of the input image."""
-    tta_gaze_reach: tuple[Literal["code", "features", "eye_features", "eye_field", "renderer", "decoder"], ...] = ()
+    tta_gaze_reach: tuple[Literal["code", "features", "eye_features", "eye_colours", "eye_field", "renderer", "decoder"], ...] = ()
     """what the gaze term's gradient may change: ``code`` and some of ``tta_weights``; () all that is fitted. With
     free Gaussian colours or the renderer in reach, the term repaints a new face's eyes with coloured specks that
     read the target gaze to estimators of the loss estimator's design, most visibly in side views (``eyes.png``).

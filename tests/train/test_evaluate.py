@@ -686,3 +686,30 @@ def test_worst_eye_views_are_the_worst_pairs_eye_patches_and_survive_a_merge():
     assert grid.dtype == np.uint8 and grid.shape == (WORST_EYE_PAIRS * (h + 14), 3 * (2 * w + 6), 3)
     with pytest.raises(ToolkitError, match="no pairs"):
         eye_views_grid([])
+
+
+def test_eye_colours_group_fits_the_parametric_eyeball_alone_and_is_restored(subject_file):
+    """``eye_colours``: the parametric eyeball's eight numbers (a model with ``eyeball_colours``), fitted at the
+    code's rate and put back by ``restored_weights``; a model with free eye colours gets a clear error."""
+    from tests.train.helpers import untrained_eval_parts
+    from toolkit.errors import ToolkitError
+    from toolkit.procedural import demo_head_scene
+    from train.evaluate import fitted_weights, restored_weights, test_time_fit
+    from train.gaussian_model import GaussianModel, GaussianModelConfig
+
+    plain, renderer, _ = untrained_eval_parts()
+    with pytest.raises(ToolkitError, match="'eye_colours' group needs a model trained with gaussian.eyeball_colours"):
+        fitted_weights(plain, renderer, ["eye_colours"])
+    torch.manual_seed(0)
+    model = GaussianModel.from_scene(demo_head_scene(1500), GaussianModelConfig(hidden=16, eyeball_colours=True)).eval()
+    assert fitted_weights(model, renderer, ["eye_colours"]) == list(model.eyeball_colours.parameters())
+    batch, image, mask, eyes = _inputs(subject_file, 1)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    with restored_weights(model, renderer):
+        code = test_time_fit(model, renderer, batch, image, eyes * mask, 64, steps=5, lr=0.05, weights=("eye_colours",))
+        assert torch.isfinite(code).all()
+        changed = model.state_dict()
+        moved = [k for k in before if not torch.equal(changed[k], before[k])]
+        assert moved and all(k.startswith("eyeball_colours.") for k in moved), moved
+        assert all(p.grad is None for p in model.parameters())
+    assert all(torch.equal(model.state_dict()[k], v) for k, v in before.items())

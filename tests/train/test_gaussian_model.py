@@ -441,3 +441,63 @@ def test_eye_appearance_field_equals_its_mlp_on_the_joined_input():
     where = torch.cat([positional_encoding(x, 2), torch.nn.functional.one_hot(side, 2).double()], -1)
     joined = torch.cat([where[None].expand(3, -1, -1), code[:, None].expand(-1, 10, -1)], -1)
     assert torch.allclose(field(x, side, code), field.mlp(joined), atol=1e-12)
+
+
+def test_eyeball_colours_draw_a_pupil_an_iris_and_a_sclera_about_each_axis(tmp_path):
+    scene = demo_head_scene(600)
+    model = small_model(scene, eyeball_colours=True)
+    ball = model.eyeball_colours
+    # Three Gaussians of each eye moved onto its pupil, its iris and its sclera (the sparse test head has few there).
+    with torch.no_grad():
+        for side in (0, 1):
+            k = torch.nonzero(model.eye_side == side)[:3, 0]
+            c = model.eye_centers[side]
+            r = float((model.eye_means[k[0]] - c).norm())
+            for i, a in zip(k.tolist(), (0.0, 0.35, 0.9)):
+                model.eye_means[i] = c + r * torch.tensor([math.sin(a) * 0.6, math.sin(a) * 0.8, -math.cos(a)])
+    theta = model.eye_polar_angles()
+    d = model.eye_means.detach() - model.eye_centers[model.eye_side]
+    assert torch.allclose(theta, torch.acos((-d[:, 2] / d.norm(dim=-1)).clamp(-1, 1)), atol=1e-4)
+    code, pose, gaze, _, _ = model_inputs(2)
+    f = model.gaussians(code, pose, gaze)["eyes"]["features"]
+    assert torch.equal(f[0], f[1])  # every code and gaze: the same eyeball, turned
+    t_pupil, t_iris = (float(t.detach()) for t in ball.boundaries())
+    e = 4 * ball.edge
+    for where, colour in ((theta < t_pupil - e, ball.pupil), ((theta > t_pupil + e) & (theta < t_iris - e), ball.iris),
+                          (theta > t_iris + e, ball.sclera)):
+        assert int(where.sum()) > 0
+        torch.testing.assert_close(f[0, where, :3], torch.sigmoid(colour.detach()).expand(int(where.sum()), 3),
+                                   atol=0.02, rtol=0)
+    assert torch.equal(f[0, :, 3:], model.eye_features[:, 3:].detach())  # the other channels stay free
+    # A colour loss reaches the eyeball's numbers, not the Gaussians' positions or their free RGB.
+    f[..., :3].square().sum().backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() and float(p.grad.abs().sum()) > 0
+               for p in ball.parameters())
+    assert model.eye_means.grad is None or float(model.eye_means.grad.abs().sum()) == 0
+    assert model.eye_features.grad is None or float(model.eye_features.grad[:, :3].abs().sum()) == 0
+    path = tmp_path / "gm.safetensors"
+    with torch.no_grad():
+        ball.iris.fill_(2.0)
+    model.save(path)
+    back = GaussianModel.load(path, rasterizer=model._rasterizer)
+    assert torch.equal(back.gaussians(code, pose, gaze)["eyes"]["features"], model.gaussians(code, pose, gaze)["eyes"]["features"])
+    with pytest.raises(ToolkitError, match="eyeball_colours and eye_appearance"):
+        small_model(scene, eyeball_colours=True, eye_appearance=True)
+
+
+def test_eyeball_colours_keep_their_edges_ordered_and_finite_at_any_value():
+    from train.fields import EyeballColours
+
+    ball = EyeballColours()
+    with torch.no_grad():
+        for p, v in ((ball.pupil, 1e6), (ball.iris, -1e6), (ball.sclera, float("inf")),
+                     (ball.theta_pupil, 50.0), (ball.theta_iris, -50.0)):
+            p.fill_(v)
+    t_pupil, t_iris = (t.detach() for t in ball.boundaries())
+    assert ball.MIN_ANGLE <= float(t_pupil) < float(t_iris) <= ball.MAX_ANGLE
+    theta = torch.tensor([0.0, 1e-9, 0.3, math.pi / 2, math.pi, 100.0])
+    rgb = ball(theta).detach()
+    assert torch.isfinite(rgb).all() and float(rgb.min()) >= 0 and float(rgb.max()) <= 1
+    for bad in (dict(edge=0.0), dict(theta_pupil=0.6, theta_iris=0.5), dict(theta_iris=2.0)):
+        with pytest.raises(ToolkitError, match="EyeballColours"):
+            EyeballColours(**bad)

@@ -60,14 +60,28 @@ def _full_step(model, code, pose, gaze, viewmats, Ks, size=64, autocast=False):
     return out
 
 
-@pytest.mark.parametrize("eye_appearance", [False, True])
-def test_bf16_autocast_forward_backward(scene, eye_appearance):
-    model = _nonzero_fields(small_model(scene, eye_appearance=eye_appearance))
+@pytest.mark.parametrize("eyes", ["free", "eye_appearance", "eyeball_colours"])
+def test_bf16_autocast_forward_backward(scene, eyes):
+    model = _nonzero_fields(small_model(scene, **({} if eyes == "free" else {eyes: True})))
     code, pose, gaze, viewmats, Ks = model_inputs(2)
     pose[:, :3] = torch.tensor([0.1, -0.2, 0.05])
     _full_step(model, code, pose, gaze, viewmats, Ks, autocast=True)
-    if eye_appearance:  # the image loss reaches the field's every layer (finite: _check_grads)
-        assert all(p.grad is not None for p in model.eye_appearance.parameters())
+    if eyes != "free":  # the image loss reaches every weight of the eyes' colours (finite: _check_grads)
+        assert all(p.grad is not None for p in getattr(model, eyes).parameters())
+
+
+@pytest.mark.parametrize("value", [0.0, 1e4, -1e4])
+def test_eyeball_colours_at_extreme_values_and_gazes(scene, value):
+    """Saturated colour logits, edge angles far out of their bounds and ±89° gazes: finite renders and gradients."""
+    model = _nonzero_fields(small_model(scene, eyeball_colours=True))
+    with torch.no_grad():
+        for p in model.eyeball_colours.parameters():
+            p.fill_(value)
+    code, pose, _, viewmats, Ks = model_inputs(4)
+    r = math.radians(89.0)
+    gaze = torch.tensor([[r, 0.0], [0.0, -r], [r, r], [-r, r]], requires_grad=True)
+    _full_step(model, code, pose, gaze, viewmats, Ks)
+    assert torch.isfinite(gaze.grad).all()
 
 
 @pytest.mark.parametrize("deg", [89.0, -89.0])

@@ -267,6 +267,7 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("gaussian.lr_final=-0.1", "'gaussian.lr_final': expected a factor in"),
         ("gaussian.dit_feature_hidden=0", "'gaussian.dit_feature_hidden': expected a channel count"),
         ("gaussian.lr_schedule=linear", "'gaussian.lr_schedule': expected one of"),
+        ("eval.tta_weights=[features,eye_colours]", "'eval.tta_weights': 'eye_colours' needs gaussian.eyeball_colours"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
@@ -279,6 +280,13 @@ def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
     assert not d.exists()
     with pytest.raises(ToolkitError, match=msg):
         run.main([*TINY, "--run-dir", str(d), override])
+
+
+def test_two_sources_of_eye_colour_fail_before_any_work(tmp_path):
+    d = tmp_path / "never"
+    with pytest.raises(ToolkitError, match="'gaussian.eyeball_colours' and 'gaussian.eye_appearance' both"):
+        run.main([*TINY, "--run-dir", str(d), "gaussian.eyeball_colours=true", "gaussian.eye_appearance=true"])
+    assert not d.exists()
 
 
 @pytest.mark.parametrize("no_decoder", ["codec.kind=pixel", "gaussian.renderer=unet"])
@@ -580,3 +588,18 @@ def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
     no_term = note(tta_gaze_weight=0.0)
     assert "5.00°" in no_term and "gaze term" not in no_term
     assert _labels_note({}, RunConfig()) == ""
+
+
+def test_parametric_eyeballs_train_save_and_fit_through_the_stages(tiny_run, tmp_path):
+    d = tmp_path / "eyeballs"
+    shutil.copytree(tiny_run, d)
+    over = ["gaussian.eyeball_colours=true", "gaussian.steps=2", "eval.pairs_per_subject=1",
+            "eval.tta_weights=[features,eye_colours]"]
+    assert run.main([*TINY, "--run-dir", str(d), "--stages", "gaussian,eval", *over]) == 0
+    model, _ = run.load_trained(run.open_run(d), "cpu")
+    assert model.eyeball_colours is not None
+    start = torch.logit(torch.tensor(0.92))  # EyeballColours' sclera prior, before training
+    assert not torch.allclose(model.eyeball_colours.sclera.detach(), start.expand(3))  # trained
+    m = json.loads((d / "metrics.json").read_text())["metrics"]
+    assert m["psnr"] == m["psnr"] and m["gaze_error_deg"] == m["gaze_error_deg"]
+    assert "the eyeball's colours" in (d / "report.md").read_text()
