@@ -305,6 +305,10 @@ def demo_preset() -> RunConfig:
     lower; and the natural fit improves with training where that one does not: 5.57° at 960 Gaussian steps,
     4.97° at 1920 (docs/evaluation.md, session 22).
 
+    The eye Gaussians' RGB is a parametric eyeball (``eyeball_colours``, session 24): over three seeds, 24 pairs
+    a subject, gaze 5.66° against 5.92° with free colours and PSNR +0.3 to +0.5 dB on every seed, with a white
+    sclera and a dark pupil where free colours trained into a grey-to-skin smear (docs/model.md).
+
     Step counts (session 19): the 2-core machines this demo runs on differ ~2x in speed. On the slowest seen (an
     AVX2-only EPYC) session 18's counts (estimators 2000, Gaussian stage 320, fit 40) took 21 min for ``make
     demo``; these (1200, 240, 30) cost 0.06 deg of gaze error and 0.2 dB there (5.07 -> 5.13 deg, 33.87 -> 33.65
@@ -313,7 +317,8 @@ def demo_preset() -> RunConfig:
     held-out) and the run with it (docs/evaluation.md, session 19)."""
     return RunConfig(preset="demo", codec=CodecStageConfig(kind="pixel"),
                      estimator=EstimatorStageConfig(steps=1200),
-                     gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel", steps=240, lr=4e-3, renderer_lr=1e-3),
+                     gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel", steps=240, lr=4e-3, renderer_lr=1e-3,
+                                                  eyeball_colours=True),
                      eval=natural_eyes_eval(tta_steps=30))
 
 

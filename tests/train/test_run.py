@@ -392,10 +392,11 @@ def test_demo_preset_renders_in_pixel_space_at_its_resolution():
             cfg.eval.tta_gaze_every) == tuple(NATURAL_EYES_FIT[k] for k in ("weights", "gaze_weight", "reach",
                                                                            "terms", "every"))
     assert (g.lr, g.renderer_lr) == (4e-3, 1e-3)
+    assert g.eyeball_colours and not g.eye_appearance  # session 24: the eyes' RGB is a parametric eyeball
     # The preset alone changed: the dataclass defaults and the paper preset keep the latent DiT.
     plain = RunConfig()
     assert (plain.codec.kind, plain.gaussian.dit_model, plain.estimator.steps) == ("ae", "DiT-Gaze-tiny", 1000)
-    assert preset("paper").codec.kind == "ae"
+    assert preset("paper").codec.kind == "ae" and not plain.gaussian.eyeball_colours
     renderer = make_renderer("dit", PixelCodec(), model=g.dit_model, output_size=res, upscale=g.feature_upscale,
                              residual=g.residual)
     assert renderer.dit.config.patch_size == 8
