@@ -113,7 +113,7 @@ decoder (``decoder``: frozen in training, unfrozen for the fit alone; on session
 (``gaussian.eye_appearance``; the code it reads is fitted) and the Gaussians' geometry are never fitted.
 
 ``eye_colours`` (a model with ``eyeball_colours``, :class:`train.fields.EyeballColours`): the parametric
-eyeball's pupil, iris and sclera colours and its two edge angles, at the code's rate. Eight numbers,
+eyeball's pupil, iris and sclera colours and its two edge angles, at the code's rate. Eleven numbers,
 symmetric about the optical axis: a fit can give the new face its iris but cannot paint one off the axis.
 
 ``eye_field`` and ``eye_features`` let a fit with a gaze term (:class:`FitGaze`) turn and redraw a new face's

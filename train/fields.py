@@ -145,15 +145,16 @@ class EyeAppearanceField(nn.Module):
 class EyeballColours(nn.Module):
     """RGB of the eye Gaussians from a parametric eyeball: a pupil, an iris and a sclera of one colour each,
     bounded by two circles about the eye's optical axis at polar angles ``theta_pupil`` < ``theta_iris``
-    (radians), each edge a logistic step ``edge`` radians wide.
+    (radians), each edge a logistic step of scale ``edge`` radians.
 
     Why: with a free colour per eye Gaussian, training smears the eye into a ramp from a grey centre to
     skin-coloured edges (the demo model: luminance 0.25 at the axis, 0.55 at the iris edge, 0.7 and pink beyond,
-    against the data's 0.03 / ~0.3 / 0.95): the eye Gaussians also paint the lids, and every identity's iris
+    against the data's 0.03 / 0.2-0.45 / 0.93): the eye Gaussians also paint the lids, and every identity's iris
     size and colour and every misplaced view average into one blur. Here the eyeball can only be an eyeball,
-    sharp at any size, and a fit can recolour it (eight numbers) but never paint an iris off its axis.
-    Colours are stored as logits (always in (0, 1)); the angles are clamped to ``[MIN_ANGLE, theta_iris]`` and
-    ``[theta_pupil + edge, MAX_ANGLE]``.
+    sharp at any size; a fit can recolour it and resize its iris and pupil (eleven numbers) but never paint an
+    iris off its axis. Colours are stored as logits (always in (0, 1)). The edges are kept in order by clamping
+    (:meth:`boundaries`): the iris edge to ``[MIN_ANGLE + edge, MAX_ANGLE]``, the pupil edge to
+    ``[MIN_ANGLE, iris edge - edge]`` (the pupil gives way when the two meet).
     """
 
     MIN_ANGLE = 0.02
@@ -164,9 +165,9 @@ class EyeballColours(nn.Module):
         super().__init__()
         if not edge > 0:
             raise ToolkitError(f"EyeballColours: edge must be > 0 radians, got {edge}")
-        if not self.MIN_ANGLE <= theta_pupil < theta_iris <= self.MAX_ANGLE:
-            raise ToolkitError(f"EyeballColours: need {self.MIN_ANGLE} <= theta_pupil < theta_iris <= pi/2, "
-                             f"got {theta_pupil}, {theta_iris}")
+        if not (self.MIN_ANGLE <= theta_pupil <= theta_iris - edge and theta_iris <= self.MAX_ANGLE):
+            raise ToolkitError(f"EyeballColours: need {self.MIN_ANGLE} <= theta_pupil <= theta_iris - edge and "
+                               f"theta_iris <= pi/2, got {theta_pupil}, {theta_iris} (edge {edge})")
         self.edge = float(edge)
         logit = lambda c: torch.logit(torch.tensor(c, dtype=torch.float32).clamp(1e-3, 1 - 1e-3))  # noqa: E731
         self.pupil, self.iris, self.sclera = (nn.Parameter(logit(c)) for c in (pupil, iris, sclera))

@@ -492,7 +492,7 @@ def _labels_note(labels: dict, cfg: RunConfig) -> str:
     ev = cfg.eval
     term = ev.tta_steps > 0 and ev.tta_gaze_weight > 0
     reach = set(ev.tta_gaze_reach or ("code", *ev.tta_weights))
-    colours = {"features", "eye_features", "renderer", "decoder"}
+    colours = {"features", "eye_features", "eye_colours", "renderer", "decoder"}
     if cfg.gaussian.eye_appearance:
         colours.add("code")  # the code sets the eye colours too (train.fields.EyeAppearanceField)
     may_paint = bool(reach & colours)

@@ -213,7 +213,8 @@ class EvalConfig:
     0.974, in ~47 / 73 / 108 s. Measurements: docs/evaluation.md."""
     tta_weights: tuple[Literal["features", "eye_features", "eye_colours", "eye_field", "renderer", "decoder"], ...] = ("features", "renderer")
     """weights fitted with the shape code: the face Gaussians' features (all channels), the eye Gaussians'
-    features (off: with ``tta_region: face`` the fitting loss never sees the eyes), the eye rotation field
+    features (off: with ``tta_region: face`` the fitting loss never sees the eyes), the parametric eyeball's
+    colours and edges (``eye_colours``, a model with ``gaussian.eyeball_colours``), the eye rotation field
     (``eye_field``, at ``tta_renderer_lr``; the demo preset fitted both eye groups in sessions 18-21, the eye field alone since), the neural renderer (pairs
     are then fitted one at a time), a latent DiT's codec decoder (``decoder``, off: +0.04 dB and +0.18° gaze
     error on session 15's latent demo; an error with a pixel codec or the U-Net); () fits the code alone, all
@@ -306,7 +307,7 @@ def demo_preset() -> RunConfig:
     4.97° at 1920 (docs/evaluation.md, session 22).
 
     The eye Gaussians' RGB is a parametric eyeball (``eyeball_colours``, session 24): over three seeds, 24 pairs
-    a subject, gaze 5.66° against 5.92° with free colours and PSNR +0.3 to +0.5 dB on every seed, with a white
+    a subject, gaze 5.66° against 5.91° with free colours and PSNR +0.3 to +0.5 dB on every seed, with a white
     sclera and a dark pupil where free colours trained into a grey-to-skin smear (docs/model.md).
 
     Step counts (session 19): the 2-core machines this demo runs on differ ~2x in speed. On the slowest seen (an

@@ -689,7 +689,7 @@ def test_worst_eye_views_are_the_worst_pairs_eye_patches_and_survive_a_merge():
 
 
 def test_eye_colours_group_fits_the_parametric_eyeball_alone_and_is_restored(subject_file):
-    """``eye_colours``: the parametric eyeball's eight numbers (a model with ``eyeball_colours``), fitted at the
+    """``eye_colours``: the parametric eyeball's eleven numbers (a model with ``eyeball_colours``), fitted at the
     code's rate and put back by ``restored_weights``; a model with free eye colours gets a clear error."""
     from tests.train.helpers import untrained_eval_parts
     from toolkit.errors import ToolkitError
@@ -703,10 +703,19 @@ def test_eye_colours_group_fits_the_parametric_eyeball_alone_and_is_restored(sub
     torch.manual_seed(0)
     model = GaussianModel.from_scene(demo_head_scene(1500), GaussianModelConfig(hidden=16, eyeball_colours=True)).eval()
     assert fitted_weights(model, renderer, ["eye_colours"]) == list(model.eyeball_colours.parameters())
+    seen = {}
+    real_adam = torch.optim.Adam
+
+    def spy(groups, *a, **k):  # which rate each fitted tensor gets
+        seen.update({id(p): g["lr"] for g in groups for p in g["params"]})
+        return real_adam(groups, *a, **k)
     batch, image, mask, eyes = _inputs(subject_file, 1)
     before = {k: v.clone() for k, v in model.state_dict().items()}
-    with restored_weights(model, renderer):
-        code = test_time_fit(model, renderer, batch, image, eyes * mask, 64, steps=5, lr=0.05, weights=("eye_colours",))
+    with restored_weights(model, renderer), pytest.MonkeyPatch.context() as mp:
+        mp.setattr(torch.optim, "Adam", spy)
+        code = test_time_fit(model, renderer, batch, image, eyes * mask, 64, steps=5, lr=0.05, renderer_lr=1e-4,
+                             weights=("eye_colours",))
+        assert all(seen[id(p)] == 0.05 for p in model.eyeball_colours.parameters())  # the code's rate
         assert torch.isfinite(code).all()
         changed = model.state_dict()
         moved = [k for k in before if not torch.equal(changed[k], before[k])]

@@ -571,9 +571,10 @@ def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
     from train.run import _labels_note
     from train.run_config import EvalConfig, RunConfig
 
-    def note(eye_appearance=False, **ev):
+    def note(eye_appearance=False, eyeball_colours=False, **ev):
         cfg = RunConfig(eval=EvalConfig(**ev))
-        return _labels_note(labels, replace(cfg, gaussian=replace(cfg.gaussian, eye_appearance=eye_appearance)))
+        return _labels_note(labels, replace(cfg, gaussian=replace(cfg.gaussian, eye_appearance=eye_appearance,
+                                                                  eyeball_colours=eyeball_colours)))
 
     labels = {"target": {"gaze_error_deg": 5.5}, "render": {"gaze_error_deg": 5.0}}
     natural = dict(tta_weights=NATURAL_EYES_FIT["weights"], tta_gaze_weight=NATURAL_EYES_FIT["gaze_weight"],
@@ -586,6 +587,9 @@ def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
     assert "It reaches code, eye_field, and cannot repaint the eyes" in turning
     # With code-conditioned eye colours a term reaching the code can recolour the eyes.
     assert "no measure of how real" in note(eye_appearance=True, **natural)
+    # The parametric eyeball's numbers set the iris's size and colour: a term reaching them may repaint.
+    eyeball = dict(natural, tta_weights=("features", "eye_colours", "eye_field"), tta_gaze_reach=("code", "eye_colours"))
+    assert "no measure of how real" in note(eyeball_colours=True, **eyeball)
     no_term = note(tta_gaze_weight=0.0)
     assert "5.00°" in no_term and "gaze term" not in no_term
     assert _labels_note({}, RunConfig()) == ""
