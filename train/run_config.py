@@ -56,7 +56,8 @@ class GeometryStageConfig:
     pool: int = 100_000
     """labelled sample points (visual-hull signed distances) the fit draws from."""
     gaussians: int = 6000
-    """Gaussians sampled on the neutral mesh (face + eyes)."""
+    """Gaussians sampled on the neutral mesh (face + eyes). The demo preset takes 12000 since session 24: a
+    sharper splat and a lower gaze error on three seeds (docs/evaluation.md)."""
     eye_gaussians: int = 400
     """> 0: each eye gets this many Gaussians evenly over its eyeball's front cap instead of the mesh's few
     (``geometry.init_gaussians.InitConfig.eye_points``; 0: the mesh's points, ~40 per eye of 6000 on the demo
@@ -308,7 +309,10 @@ def demo_preset() -> RunConfig:
 
     The eye Gaussians' RGB is a parametric eyeball (``eyeball_colours``, session 24): over three seeds, 24 pairs
     a subject, gaze 5.66° against 5.91° with free colours and PSNR +0.3 to +0.5 dB on every seed, with a white
-    sclera and a dark pupil where free colours trained into a grey-to-skin smear (docs/model.md).
+    sclera and a dark pupil where free colours trained into a grey-to-skin smear (docs/model.md). And the head
+    has 12000 Gaussians, not 6000: smaller ones, a sharper splat (the face Gaussians had sigma ~1.2 px and
+    opacity 0.3, and the renders were as soft as the images blurred by 1.5 px); over three seeds, 24 pairs a
+    subject, gaze 5.47° against 5.66° and PSNR +0.3 to +0.5 dB on every seed, for ~40% more Gaussian-stage time (docs/evaluation.md, session 24).
 
     Step counts (session 19): the 2-core machines this demo runs on differ ~2x in speed. On the slowest seen (an
     AVX2-only EPYC) session 18's counts (estimators 2000, Gaussian stage 320, fit 40) took 21 min for ``make
@@ -316,7 +320,8 @@ def demo_preset() -> RunConfig:
     dB) and, with the eval split over two processes, took 15 min 47 s, venv included. Estimators of 1000 steps
     (with a Gaussian stage of 200) were faster but the loss estimator's training failed on that machine (87 deg
     held-out) and the run with it (docs/evaluation.md, session 19)."""
-    return RunConfig(preset="demo", codec=CodecStageConfig(kind="pixel"),
+    return RunConfig(preset="demo", geometry=GeometryStageConfig(gaussians=12_000),
+                     codec=CodecStageConfig(kind="pixel"),
                      estimator=EstimatorStageConfig(steps=1200),
                      gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel", steps=240, lr=4e-3, renderer_lr=1e-3,
                                                   eyeball_colours=True),

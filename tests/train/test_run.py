@@ -393,6 +393,7 @@ def test_demo_preset_renders_in_pixel_space_at_its_resolution():
                                                                            "terms", "every"))
     assert (g.lr, g.renderer_lr) == (4e-3, 1e-3)
     assert g.eyeball_colours and not g.eye_appearance  # session 24: the eyes' RGB is a parametric eyeball
+    assert cfg.geometry.gaussians == 12_000  # session 24: a sharper splat
     # The preset alone changed: the dataclass defaults and the paper preset keep the latent DiT.
     plain = RunConfig()
     assert (plain.codec.kind, plain.gaussian.dit_model, plain.estimator.steps) == ("ae", "DiT-Gaze-tiny", 1000)
