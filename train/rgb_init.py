@@ -76,16 +76,21 @@ def init_rgb_from_images(model, images, masks, code, pose, gaze, viewmats, Ks, *
     evenly spaced) images, which may stay on the CPU; returns the fraction of Gaussians some image saw.
 
     The eye Gaussians' colours are read at the images' full resolution: at the model's 1/4 an eye is ~3 pixels
-    wide and its iris less than one, so every eye Gaussian would get the same sclera-iris-lid mixture."""
+    wide and its iris less than one, so every eye Gaussian would get the same sclera-iris-lid mixture. A model
+    with ``eyeball_colours`` keeps its eye features as they are (their RGB is never drawn)."""
     n = images.shape[0]
     idx = torch.linspace(0, n - 1, min(n, max_images)).round().long().unique()
     dev = model.face_features.device
     pick = lambda x: x[idx.to(x.device)].to(dev)  # noqa: E731  (the subset only goes to the model's device)
     args = [pick(x) for x in (images, masks, code, pose, gaze, viewmats, Ks)]
     out = rgb_from_images(model, *args)
-    eyes = out if model.config.render_scale == 1 else rgb_from_images(model, *args, render_scale=1.0)
+    # A parametric eyeball (``eyeball_colours``) draws the eyes' RGB itself: their free RGB columns go unused,
+    # so neither the full-resolution eye pass nor their colours are needed.
+    free_eyes = getattr(model, "eyeball_colours", None) is None
+    eyes = out if model.config.render_scale == 1 or not free_eyes else rgb_from_images(model, *args, render_scale=1.0)
     model.face_features[:, :3] = out["face"].to(model.face_features)
-    model.eye_features[:, :3] = eyes["eyes"].to(model.eye_features)
+    if free_eyes:
+        model.eye_features[:, :3] = eyes["eyes"].to(model.eye_features)
     out["eyes_weight"] = eyes["eyes_weight"]
     model.clear_cache()
     seen = torch.cat([out["face_weight"], out["eyes_weight"]]) > 1e-4

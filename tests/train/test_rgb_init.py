@@ -110,3 +110,22 @@ def test_eye_colours_are_read_at_full_resolution():
     contrast = lambda rgb: float((rgb[seen & ~iris].mean() - rgb[seen & iris].mean()).detach())  # noqa: E731
     assert contrast(model.eye_features[:, :3]) > 2 * contrast(quarter["eyes"]) > 0  # measured: 0.095 and 0.027
     torch.testing.assert_close(model.eye_features[:, :3], full["eyes"])
+
+
+def test_a_parametric_eyeball_keeps_its_eye_features_and_skips_the_full_resolution_pass(monkeypatch):
+    """With ``eyeball_colours`` the eyes' RGB columns are never drawn: the initializer leaves them as they were and
+    reads the images once, at the model's resolution, for the face alone."""
+    import train.rgb_init as ri
+
+    model = small_model(demo_head_scene(600), eyeball_colours=True)
+    assert model.config.render_scale < 1
+    views = _views()
+    images, masks = torch.rand(4, 3, 128, 128), torch.ones(4, 1, 128, 128)
+    scales = []
+    real = ri.rgb_from_images
+    monkeypatch.setattr(ri, "rgb_from_images", lambda *a, **k: (scales.append(k.get("render_scale")), real(*a, **k))[1])
+    before, face_before = model.eye_features.detach().clone(), model.face_features.detach().clone()
+    seen = init_rgb_from_images(model, images, masks, *views)
+    assert scales == [None] and 0 < seen <= 1
+    assert torch.equal(model.eye_features.detach(), before)
+    assert not torch.equal(model.face_features.detach()[:, :3], face_before[:, :3])  # the face is initialized
