@@ -14,6 +14,8 @@
   anisotropic: per axis, the RMS neighbour offset along that axis (rotations stay identity, so the axes
   are the head frame's; a patch of the flat front of the face gets thin along z), clamped to
   [0.2, 1] x the mean distance. Eye Gaussians are isotropic.
+- Lids (``lid_points`` > 0): face Gaussians on a shell just in front of each eyeball, outside the lid
+  landmarks' polygon, opacity 0.9 and half the neighbour rule's scale.
 - Opacity 0.3 face / 0.9 eye; identity rotations.
 """
 
@@ -54,6 +56,21 @@ class InitConfig:
     eyes as sparsely as the cheeks (~40 points per eye from 6000 on a head), too coarse to carry an iris
     and a pupil; gaze can only be read off an eyeball whose colours resolve them."""
     eye_cap_deg: float = 60.0
+    lid_points: int = 0
+    """> 0 (with ``eye_points``): each eye's lids as face Gaussians, this many lattice points on a shell
+    ``lid_offset`` x radius in front of the eyeball's cap of half-angle ``lid_cap_deg``, less those inside
+    the eye's landmark polygon (the opening; head-frame x, y). The mesh points dropped with the eyeball's
+    shell band include the lids, and without them every eyeball shows as a full round disc where the data
+    shows an almond opening."""
+    lid_offset: float = 0.1
+    lid_cap_deg: float = 75.0
+    lid_opening: float = 1.15
+    """the opening: the lid landmarks' polygon scaled by this about its centroid (six landmarks cut the
+    almond's curves short)."""
+    lid_scale: float = 0.5
+    """lid Gaussians' scales x this after the neighbour rule: at the rule's size their tails close most of
+    the opening."""
+    opacity_lid: float = 0.9
     seed: int = 0
 
 
@@ -113,6 +130,15 @@ def _fibonacci_cap(center: torch.Tensor, radius: float, n: int, cap_deg: float) 
     return _cap_points(center, radius, i / n, i * np.pi * (3 - np.sqrt(5)), cap_deg)
 
 
+def lid_shell(center: torch.Tensor, radius: float, eye_lmk: torch.Tensor, cfg: InitConfig) -> torch.Tensor:
+    """[P, 3] lid points of one eye: the ``cfg.lid_points`` lattice on the shell of radius (1 + lid_offset) x
+    ``radius`` over the front cap, without the points inside the lid polygon (landmarks [6, 3], head x, y)."""
+    shell = _fibonacci_cap(center, radius * (1 + cfg.lid_offset), cfg.lid_points, cfg.lid_cap_deg)
+    xy = eye_lmk[:, :2]
+    poly = (xy - xy.mean(0)) * cfg.lid_opening + xy.mean(0)
+    return shell[~_polygon_contains(poly, shell[:, :2])]
+
+
 def _anisotropic_scales(p: torch.Tensor, k: int = 3) -> torch.Tensor:
     from scipy.spatial import cKDTree
 
@@ -137,6 +163,14 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
     if cfg.eye_points < 0 or 0 < cfg.eye_points < 4 or not 0 < cfg.eye_cap_deg <= 180:
         raise ToolkitError(f"init_gaussians: eye_points must be 0 or >= 4 and eye_cap_deg in (0, 180], got "
                            f"{cfg.eye_points} and {cfg.eye_cap_deg}")
+    if cfg.lid_points < 0 or (cfg.lid_points > 0 and cfg.eye_points == 0):
+        raise ToolkitError(f"init_gaussians: lid_points must be 0, or > 0 with eye_points > 0 (the lids replace the "
+                           f"mesh points dropped with the eyes' shells), got {cfg.lid_points} with eye_points {cfg.eye_points}")
+    if cfg.lid_points > 0 and not (cfg.lid_offset > 0 and 0 < cfg.lid_cap_deg <= 180 and cfg.lid_opening > 0
+                                   and cfg.lid_scale > 0 and 0 < cfg.opacity_lid < 1):
+        raise ToolkitError(f"init_gaussians: expected lid_offset > 0, lid_cap_deg in (0, 180], lid_opening > 0, "
+                           f"lid_scale > 0 and opacity_lid in (0, 1), got {cfg.lid_offset}, {cfg.lid_cap_deg}, "
+                           f"{cfg.lid_opening}, {cfg.lid_scale}, {cfg.opacity_lid}")
     g = torch.Generator().manual_seed(cfg.seed)
     verts = verts.detach().float()
     if cfg.n_points is None:
@@ -164,6 +198,8 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
         if cfg.eye_points > 0:
             drop |= sel
             extra.append((_fibonacci_cap(c, r, cfg.eye_points, cfg.eye_cap_deg), pid))
+            if cfg.lid_points > 0:
+                extra.append((lid_shell(c, r, landmarks[ids], cfg), PART_FACE))
         else:
             part[sel] = pid
             n_have = int(sel.sum())
@@ -199,6 +235,11 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
         feats = torch.full((pts.shape[0], 3), 0.5)
         kind = "rgb"
     opac = torch.where(face, torch.tensor(cfg.opacity_face), torch.tensor(cfg.opacity_eye))
+    n_lid = sum(p.shape[0] for p, pid in extra if pid == PART_FACE)
+    if n_lid:  # the lid points are the last face points appended
+        lid_rows = torch.nonzero(face).squeeze(1)[-n_lid:]
+        opac[lid_rows] = cfg.opacity_lid
+        scales[lid_rows] *= cfg.lid_scale
     scene = GaussianScene.from_activated(
         means=pts, scales=scales, opacities=opac, features=feats, part=part,
         metadata={"units": "m", "feature_kind": kind, "source": "geometry.init_gaussians",

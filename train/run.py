@@ -105,6 +105,7 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     verts, faces = load_mesh(out / "neutral_mesh.ply")
     net = SDFNet.load(out / "sdf.safetensors")
     scene = init_gaussians(verts, faces, data["landmarks"], net, InitConfig(n_points=g.gaussians, eye_points=g.eye_gaussians,
+                                                                          lid_points=g.lid_gaussians,
                                                                           seed=ctx.config.seed))
     scene.metadata["landmarks"] = data["landmarks"].tolist()
     scene.save(out / "gaussians.safetensors")
@@ -417,6 +418,9 @@ def _check_values(cfg: RunConfig) -> None:
     if u < 1 or u & (u - 1) or cfg.data.res % u:
         raise ToolkitError(f"config key 'gaussian.feature_upscale': expected a power of two dividing data.res="
                            f"{cfg.data.res}, got {u}")
+    if cfg.geometry.lid_gaussians < 0 or (cfg.geometry.lid_gaussians > 0 and cfg.geometry.eye_gaussians == 0):
+        raise ToolkitError(f"config key 'geometry.lid_gaussians': expected 0, or > 0 with geometry.eye_gaussians > 0, "
+                           f"got {cfg.geometry.lid_gaussians}")
     if cfg.geometry.eye_gaussians < 0 or 0 < cfg.geometry.eye_gaussians < 4:
         raise ToolkitError(f"config key 'geometry.eye_gaussians': expected 0 (the mesh's eye points) or >= 4, "
                            f"got {cfg.geometry.eye_gaussians}")

@@ -142,3 +142,49 @@ def test_dense_eyes_extremes_give_finite_positive_scales(subject, n, cap):
         assert int((scene.part == pid).sum()) == n
     assert bool(torch.isfinite(scene.means).all()) and bool(torch.isfinite(scene.scales).all())
     assert float(scene.scales.min()) > 0
+
+
+def test_lids_cover_the_eyeball_outside_the_opening(subject):
+    """Lid points: face Gaussians on a shell just in front of each eyeball, none inside the opening polygon."""
+    from geometry.init_gaussians import _polygon_contains
+
+    v, f, lmk, _, _ = subject
+    base = init_gaussians(v, f, lmk, config=InitConfig(n_points=3000, eye_points=200))
+    cfg = InitConfig(n_points=3000, eye_points=200, lid_points=400)
+    scene = init_gaussians(v, f, lmk, config=cfg)
+    n_face_base = int((base.part == PART_FACE).sum())
+    face = torch.nonzero(scene.part == PART_FACE).squeeze(1)
+    lids = face[n_face_base:]  # appended after the mesh's face points
+    assert 0 < lids.numel() < 2 * 400 and scene.num_gaussians == base.num_gaussians + lids.numel()
+    # The mesh's own points, eyes included, are unchanged.
+    torch.testing.assert_close(scene.means[face[:n_face_base]], base.means[base.part == PART_FACE])
+    eyes = scene.metadata["eyes"]
+    p = scene.means[lids]
+    on_shell = torch.zeros(p.shape[0], dtype=torch.bool)
+    for name, ids in (("left", list(range(36, 42))), ("right", list(range(42, 48)))):
+        c, r = torch.tensor(eyes[name]["center"]), eyes[name]["radius"]
+        mine = ((p - c).norm(dim=-1) - r * (1 + cfg.lid_offset)).abs() < 1e-5
+        on_shell |= mine
+        xy = lmk[ids, :2]
+        assert not bool(_polygon_contains((xy - xy.mean(0)) * cfg.lid_opening + xy.mean(0), p[mine, :2]).any())
+        assert int(mine.sum()) > 100  # most of the cap is lid: the opening is small
+        assert bool((-(p[mine] - c)[:, 2] > 0).all())  # in front of the eyeball's centre
+    assert bool(on_shell.all())
+    torch.testing.assert_close(scene.opacities[lids], torch.full((lids.numel(),), cfg.opacity_lid))
+    assert bool(torch.isfinite(scene.scales).all()) and float(scene.scales[lids].min()) > 0
+    with pytest.raises(ToolkitError, match="lid_points"):
+        init_gaussians(v, f, lmk, config=InitConfig(lid_points=100))  # lids need the dense eyes
+    with pytest.raises(ToolkitError, match="lid_offset"):
+        init_gaussians(v, f, lmk, config=InitConfig(eye_points=50, lid_points=100, lid_offset=0.0))
+
+
+@pytest.mark.parametrize("n,cap,offset", [(4, 1.0, 0.1), (3000, 180.0, 0.01), (50, 75.0, 5.0)])
+def test_lid_extremes_give_finite_positive_scales(subject, n, cap, offset):
+    """A cap inside the opening (no lids at all), a whole dense sphere, a shell far out: a valid scene each."""
+    v, f, lmk, _, _ = subject
+    base = init_gaussians(v, f, lmk, config=InitConfig(n_points=1500, eye_points=50))
+    scene = init_gaussians(v, f, lmk, config=InitConfig(n_points=1500, eye_points=50, lid_points=n,
+                                                        lid_cap_deg=cap, lid_offset=offset))
+    assert base.num_gaussians <= scene.num_gaussians <= base.num_gaussians + 2 * n
+    assert bool(torch.isfinite(scene.means).all()) and bool(torch.isfinite(scene.scales).all())
+    assert float(scene.scales.min()) > 0 and bool(((scene.opacities > 0) & (scene.opacities < 1)).all())

@@ -258,6 +258,7 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("eval.tta_gaze_reach=[eye_field]", "'eval.tta_gaze_reach': the gaze term may reach only the code and"),
         ("gaussian.feature_upscale=3", "'gaussian.feature_upscale': expected a power of two"),
         ("geometry.eye_gaussians=2", "'geometry.eye_gaussians': expected 0"),
+        ("geometry.lid_gaussians=-1", "'geometry.lid_gaussians': expected 0"),
         ("estimator.blur_prob=1.5", "'estimator.blur_prob': expected a probability"),
         ("estimator.blur_sigma=-1", "'estimator.blur_sigma': expected a width >= 0"),
         ("data.test_frames=-1", "'data.test_frames': expected 0"),
@@ -280,6 +281,13 @@ def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
     assert not d.exists()
     with pytest.raises(ToolkitError, match=msg):
         run.main([*TINY, "--run-dir", str(d), override])
+
+
+def test_lids_without_dense_eyes_fail_before_any_work(tmp_path):
+    d = tmp_path / "never"
+    with pytest.raises(ToolkitError, match="'geometry.lid_gaussians': expected 0, or > 0 with geometry.eye_gaussians"):
+        run.main([*TINY, "--run-dir", str(d), "geometry.lid_gaussians=100", "geometry.eye_gaussians=0"])
+    assert not d.exists()
 
 
 def test_two_sources_of_eye_colour_fail_before_any_work(tmp_path):
