@@ -15,7 +15,8 @@
   are the head frame's; a patch of the flat front of the face gets thin along z), clamped to
   [0.2, 1] x the mean distance. Eye Gaussians are isotropic.
 - Lids (``lid_points`` > 0): face Gaussians on a shell just in front of each eyeball, outside the lid
-  landmarks' polygon, opacity 0.9 and half the neighbour rule's scale.
+  landmarks' polygon, opacity 0.9 and half the neighbour rule's scale (neighbours among the lids, so the
+  mesh points' scales do not change).
 - Opacity 0.3 face / 0.9 eye; identity rotations.
 """
 
@@ -31,6 +32,7 @@ from toolkit.eyes import fit_sphere
 from toolkit.procedural import knn_spacing
 from toolkit.scene import PART_FACE, PART_LEFT_EYE, PART_RIGHT_EYE, GaussianScene
 
+PART_LID = -1  # lid points while the scene is assembled; they become face Gaussians
 LEFT_EYE = list(range(36, 42))
 RIGHT_EYE = list(range(42, 48))
 INWARD = torch.tensor([0.0, 0.0, 1.0])  # the face looks towards -z (README conventions)
@@ -68,8 +70,8 @@ class InitConfig:
     """the opening: the lid landmarks' polygon scaled by this about its centroid (six landmarks cut the
     almond's curves short)."""
     lid_scale: float = 0.5
-    """lid Gaussians' scales x this after the neighbour rule: at the rule's size their tails close most of
-    the opening."""
+    """lid Gaussians' scales x this after the neighbour rule (among the lids) and the mesh face's floor: at
+    the rule's size their tails close most of the opening."""
     opacity_lid: float = 0.9
     seed: int = 0
 
@@ -166,9 +168,9 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
     if cfg.lid_points < 0 or (cfg.lid_points > 0 and cfg.eye_points == 0):
         raise ToolkitError(f"init_gaussians: lid_points must be 0, or > 0 with eye_points > 0 (the lids replace the "
                            f"mesh points dropped with the eyes' shells), got {cfg.lid_points} with eye_points {cfg.eye_points}")
-    if cfg.lid_points > 0 and not (cfg.lid_offset > 0 and 0 < cfg.lid_cap_deg <= 180 and cfg.lid_opening > 0
+    if cfg.lid_points > 0 and not (cfg.lid_offset > 0 and 0 < cfg.lid_cap_deg <= 90 and cfg.lid_opening > 0
                                    and cfg.lid_scale > 0 and 0 < cfg.opacity_lid < 1):
-        raise ToolkitError(f"init_gaussians: expected lid_offset > 0, lid_cap_deg in (0, 180], lid_opening > 0, "
+        raise ToolkitError(f"init_gaussians: expected lid_offset > 0, lid_cap_deg in (0, 90], lid_opening > 0, "
                            f"lid_scale > 0 and opacity_lid in (0, 1), got {cfg.lid_offset}, {cfg.lid_cap_deg}, "
                            f"{cfg.lid_opening}, {cfg.lid_scale}, {cfg.opacity_lid}")
     g = torch.Generator().manual_seed(cfg.seed)
@@ -199,7 +201,7 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
             drop |= sel
             extra.append((_fibonacci_cap(c, r, cfg.eye_points, cfg.eye_cap_deg), pid))
             if cfg.lid_points > 0:
-                extra.append((lid_shell(c, r, landmarks[ids], cfg), PART_FACE))
+                extra.append((lid_shell(c, r, landmarks[ids], cfg), PART_LID))
         else:
             part[sel] = pid
             n_have = int(sel.sum())
@@ -207,14 +209,22 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
                 extra.append((_front_cap(c, r, cfg.min_eye_points - n_have, g), pid))
         eyes_meta[name] = {"center": [float(x) for x in c], "radius": r, "part": pid, "fit": eye["fit"]}
     pts, part = pts[~drop], part[~drop]
+    lid = torch.zeros(pts.shape[0], dtype=torch.bool)
     for p, pid in extra:
         pts = torch.cat([pts, p])
+        lid = torch.cat([lid, torch.full((p.shape[0],), pid == PART_LID)])
+        pid = PART_FACE if pid == PART_LID else pid  # lids are face Gaussians: the face field deforms them
         part = torch.cat([part, torch.full((p.shape[0],), pid, dtype=torch.int8)])
 
     scales = torch.zeros(pts.shape[0], 3)
     face = part == PART_FACE
-    if int(face.sum()) > 3:
-        scales[face] = _anisotropic_scales(pts[face])
+    mesh_face = face & ~lid
+    # Lids and the mesh's face points take their neighbours among their own kind, so adding lids leaves every
+    # mesh point's scale as it was.
+    if int(mesh_face.sum()) > 3:
+        scales[mesh_face] = _anisotropic_scales(pts[mesh_face])
+    if int(lid.sum()) > 3:
+        scales[lid] = _anisotropic_scales(pts[lid])
     for pid in (PART_LEFT_EYE, PART_RIGHT_EYE):
         m = part == pid
         if int(m.sum()) > 3:
@@ -223,10 +233,12 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
             scales[m] = float(eyes_meta["left" if pid == PART_LEFT_EYE else "right"]["radius"]) * 0.2
     # DMTet meshes can have vertices a hair apart (where the surface grazes a grid vertex): floor each
     # part's scales at 0.2 x its median so no Gaussian collapses to a point.
-    for pid in (PART_FACE, PART_LEFT_EYE, PART_RIGHT_EYE):
-        m = part == pid
+    for m in (mesh_face, part == PART_LEFT_EYE, part == PART_RIGHT_EYE):
         if int(m.sum()):
             scales[m] = scales[m].clamp_min(0.2 * float(scales[m].median()))
+    if int(lid.sum()):  # floored as the mesh's face (few lids: the floor alone), then made smaller
+        floor = 0.2 * float(scales[mesh_face].median()) if int(mesh_face.sum()) else 1e-4
+        scales[lid] = scales[lid].clamp_min(floor) * cfg.lid_scale
     if net is not None:
         with torch.no_grad():
             feats = net.evaluate(pts.to(net.center.device))[2].float().cpu()
@@ -235,11 +247,7 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
         feats = torch.full((pts.shape[0], 3), 0.5)
         kind = "rgb"
     opac = torch.where(face, torch.tensor(cfg.opacity_face), torch.tensor(cfg.opacity_eye))
-    n_lid = sum(p.shape[0] for p, pid in extra if pid == PART_FACE)
-    if n_lid:  # the lid points are the last face points appended
-        lid_rows = torch.nonzero(face).squeeze(1)[-n_lid:]
-        opac[lid_rows] = cfg.opacity_lid
-        scales[lid_rows] *= cfg.lid_scale
+    opac[lid] = cfg.opacity_lid
     scene = GaussianScene.from_activated(
         means=pts, scales=scales, opacities=opac, features=feats, part=part,
         metadata={"units": "m", "feature_kind": kind, "source": "geometry.init_gaussians",

@@ -420,7 +420,7 @@ def _check_values(cfg: RunConfig) -> None:
                            f"{cfg.data.res}, got {u}")
     if cfg.geometry.lid_gaussians < 0 or (cfg.geometry.lid_gaussians > 0 and cfg.geometry.eye_gaussians == 0):
         raise ToolkitError(f"config key 'geometry.lid_gaussians': expected 0, or > 0 with geometry.eye_gaussians > 0, "
-                           f"got {cfg.geometry.lid_gaussians}")
+                           f"got {cfg.geometry.lid_gaussians} with geometry.eye_gaussians={cfg.geometry.eye_gaussians}")
     if cfg.geometry.eye_gaussians < 0 or 0 < cfg.geometry.eye_gaussians < 4:
         raise ToolkitError(f"config key 'geometry.eye_gaussians': expected 0 (the mesh's eye points) or >= 4, "
                            f"got {cfg.geometry.eye_gaussians}")

@@ -65,7 +65,7 @@ class GeometryStageConfig:
     17.3° to 14.5° (docs/model.md, session 9)."""
     lid_gaussians: int = field(default=0, metadata=NEUTRAL)
     """> 0: each eye's lids as face Gaussians on a shell in front of the eyeball, outside the lid landmarks'
-    polygon, from a lattice of this many (``geometry.init_gaussians.InitConfig.lid_points``); 0: none, the
+    polygon, from a lattice of this many per eye (``geometry.init_gaussians.InitConfig.lid_points``); 0: none, the
     eyeball shows as a full disc where the mesh's lids were dropped with its shell band. Off: on the demo (800,
     seed 0, 48 pairs) they took the unfitted renders' gaze error from 10.70° to 8.88° but the fitted
     redirections' from 5.32° to 6.20° (docs/model.md, session 25)."""

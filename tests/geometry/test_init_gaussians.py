@@ -171,20 +171,33 @@ def test_lids_cover_the_eyeball_outside_the_opening(subject):
         assert bool((-(p[mine] - c)[:, 2] > 0).all())  # in front of the eyeball's centre
     assert bool(on_shell.all())
     torch.testing.assert_close(scene.opacities[lids], torch.full((lids.numel(),), cfg.opacity_lid))
-    assert bool(torch.isfinite(scene.scales).all()) and float(scene.scales[lids].min()) > 0
+    torch.testing.assert_close(scene.opacities[face[:n_face_base]], base.opacities[base.part == PART_FACE])
+    # The mesh points' scales are as without lids; the lids' are lid_scale x their own neighbour rule.
+    torch.testing.assert_close(scene.scales[face[:n_face_base]], base.scales[base.part == PART_FACE])
+    full = init_gaussians(v, f, lmk, config=InitConfig(n_points=3000, eye_points=200, lid_points=400, lid_scale=1.0))
+    torch.testing.assert_close(scene.scales[lids], 0.5 * full.scales[lids])
+    floor = 0.2 * float(base.scales[base.part == PART_FACE].median())  # the mesh face's, as without lids
+    assert float(full.scales[lids].min()) >= floor * 0.9999 and bool(torch.isfinite(scene.scales).all())
     with pytest.raises(ToolkitError, match="lid_points"):
         init_gaussians(v, f, lmk, config=InitConfig(lid_points=100))  # lids need the dense eyes
     with pytest.raises(ToolkitError, match="lid_offset"):
         init_gaussians(v, f, lmk, config=InitConfig(eye_points=50, lid_points=100, lid_offset=0.0))
+    with pytest.raises(ToolkitError, match="lid_cap_deg"):  # past 90 degrees the shell goes behind the eyeball
+        init_gaussians(v, f, lmk, config=InitConfig(eye_points=50, lid_points=100, lid_cap_deg=120.0))
 
 
-@pytest.mark.parametrize("n,cap,offset", [(4, 1.0, 0.1), (3000, 180.0, 0.01), (50, 75.0, 5.0)])
-def test_lid_extremes_give_finite_positive_scales(subject, n, cap, offset):
-    """A cap inside the opening (no lids at all), a whole dense sphere, a shell far out: a valid scene each."""
+@pytest.mark.parametrize("n,cap,offset,empty", [(4, 1.0, 0.1, True), (3000, 90.0, 0.01, False),
+                                                 (50, 75.0, 5.0, False)])
+def test_lid_extremes_give_finite_positive_scales(subject, n, cap, offset, empty):
+    """A cap inside the opening (no lids at all), a dense hemisphere, a shell far out: a valid scene each."""
     v, f, lmk, _, _ = subject
     base = init_gaussians(v, f, lmk, config=InitConfig(n_points=1500, eye_points=50))
     scene = init_gaussians(v, f, lmk, config=InitConfig(n_points=1500, eye_points=50, lid_points=n,
                                                         lid_cap_deg=cap, lid_offset=offset))
-    assert base.num_gaussians <= scene.num_gaussians <= base.num_gaussians + 2 * n
+    if empty:
+        assert scene.num_gaussians == base.num_gaussians
+        torch.testing.assert_close(scene.scales, base.scales)
+    else:
+        assert base.num_gaussians < scene.num_gaussians <= base.num_gaussians + 2 * n
     assert bool(torch.isfinite(scene.means).all()) and bool(torch.isfinite(scene.scales).all())
     assert float(scene.scales.min()) > 0 and bool(((scene.opacities > 0) & (scene.opacities < 1)).all())

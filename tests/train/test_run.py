@@ -285,7 +285,8 @@ def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
 
 def test_lids_without_dense_eyes_fail_before_any_work(tmp_path):
     d = tmp_path / "never"
-    with pytest.raises(ToolkitError, match="'geometry.lid_gaussians': expected 0, or > 0 with geometry.eye_gaussians"):
+    with pytest.raises(ToolkitError, match="'geometry.lid_gaussians': expected 0, or > 0 with geometry.eye_gaussians > 0, "
+                                           "got 100 with geometry.eye_gaussians=0"):
         run.main([*TINY, "--run-dir", str(d), "geometry.lid_gaussians=100", "geometry.eye_gaussians=0"])
     assert not d.exists()
 
