@@ -88,6 +88,12 @@ def _polygon_contains(poly: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
     return inside
 
 
+def lid_polygon(eye_lmk: torch.Tensor, scale: float) -> torch.Tensor:
+    """[6, 2] the lid landmarks' polygon [6, 3] in the head's frontal (x, y) plane, scaled about its centroid."""
+    xy = eye_lmk[:, :2]
+    return (xy - xy.mean(0)) * scale + xy.mean(0)
+
+
 def fit_eyeball(points: torch.Tensor, eye_lmk: torch.Tensor, cfg: InitConfig) -> dict:
     """Eyeball {"center", "radius", "fit"} for one eye from mesh points and its 6 lid landmarks [6, 3]."""
     width = float((eye_lmk[0] - eye_lmk[3]).norm())
@@ -95,8 +101,7 @@ def fit_eyeball(points: torch.Tensor, eye_lmk: torch.Tensor, cfg: InitConfig) ->
         raise ToolkitError("init_gaussians: eye corner landmarks coincide; cannot size the eyeball")
     r_prior = cfg.eye_radius_ratio * width
     lid_c = eye_lmk.mean(0)
-    # The lid polygon in the head's frontal (x, y) plane, dilated by 20 % around its centroid.
-    poly = (eye_lmk[:, :2] - lid_c[:2]) * 1.2 + lid_c[:2]
+    poly = lid_polygon(eye_lmk, 1.2)  # dilated by 20 %
     near = (points[:, 2] - lid_c[2]).abs() < r_prior
     cand = points[near & _polygon_contains(poly, points[:, :2])]
     prior_c = lid_c + INWARD * (r_prior * 0.8)  # the cornea bulges ~0.2 r in front of the lid plane
@@ -136,9 +141,7 @@ def lid_shell(center: torch.Tensor, radius: float, eye_lmk: torch.Tensor, cfg: I
     """[P, 3] lid points of one eye: the ``cfg.lid_points`` lattice on the shell of radius (1 + lid_offset) x
     ``radius`` over the front cap, without the points inside the lid polygon (landmarks [6, 3], head x, y)."""
     shell = _fibonacci_cap(center, radius * (1 + cfg.lid_offset), cfg.lid_points, cfg.lid_cap_deg)
-    xy = eye_lmk[:, :2]
-    poly = (xy - xy.mean(0)) * cfg.lid_opening + xy.mean(0)
-    return shell[~_polygon_contains(poly, shell[:, :2])]
+    return shell[~_polygon_contains(lid_polygon(eye_lmk, cfg.lid_opening), shell[:, :2])]
 
 
 def _anisotropic_scales(p: torch.Tensor, k: int = 3) -> torch.Tensor:

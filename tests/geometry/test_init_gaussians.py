@@ -146,7 +146,7 @@ def test_dense_eyes_extremes_give_finite_positive_scales(subject, n, cap):
 
 def test_lids_cover_the_eyeball_outside_the_opening(subject):
     """Lid points: face Gaussians on a shell just in front of each eyeball, none inside the opening polygon."""
-    from geometry.init_gaussians import _polygon_contains
+    from geometry.init_gaussians import _polygon_contains, lid_polygon
 
     v, f, lmk, _, _ = subject
     base = init_gaussians(v, f, lmk, config=InitConfig(n_points=3000, eye_points=200))
@@ -165,8 +165,7 @@ def test_lids_cover_the_eyeball_outside_the_opening(subject):
         c, r = torch.tensor(eyes[name]["center"]), eyes[name]["radius"]
         mine = ((p - c).norm(dim=-1) - r * (1 + cfg.lid_offset)).abs() < 1e-5
         on_shell |= mine
-        xy = lmk[ids, :2]
-        assert not bool(_polygon_contains((xy - xy.mean(0)) * cfg.lid_opening + xy.mean(0), p[mine, :2]).any())
+        assert not bool(_polygon_contains(lid_polygon(lmk[ids], cfg.lid_opening), p[mine, :2]).any())
         assert int(mine.sum()) > 100  # most of the cap is lid: the opening is small
         assert bool((-(p[mine] - c)[:, 2] > 0).all())  # in front of the eyeball's centre
     assert bool(on_shell.all())
