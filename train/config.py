@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import re
 import types
 import typing
@@ -99,6 +100,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
             value = float(value)  # PyYAML (YAML 1.1) reads "4e-3", with no dot, as a string
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ToolkitError(f"config key '{key}': expected a number, got {value!r}")
+        if not math.isfinite(value):  # YAML reads .nan / .inf as floats; no setting means either
+            raise ToolkitError(f"config key '{key}': expected a finite number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):

@@ -269,6 +269,16 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("gaussian.dit_feature_hidden=0", "'gaussian.dit_feature_hidden': expected a channel count"),
         ("gaussian.lr_schedule=linear", "'gaussian.lr_schedule': expected one of"),
         ("eval.tta_weights=[features,eye_colours]", "'eval.tta_weights': 'eye_colours' needs gaussian.eyeball_colours"),
+        ("gaussian.lr=-1", "'gaussian.lr': expected a learning rate > 0"),
+        ("gaussian.renderer_lr=0", "'gaussian.renderer_lr': expected a learning rate > 0"),
+        ("gaussian.means_lr=-1e-4", "'gaussian.means_lr': expected a learning rate > 0"),
+        ("gaussian.lr=.nan", "'gaussian.lr': expected a finite number"),
+        ("gaussian.weak_weight=.inf", "'gaussian.weak_weight': expected a finite number"),
+        ("gaussian.steps=0", "'gaussian.steps': expected a count >= 1"),
+        ("gaussian.batch=0", "'gaussian.batch': expected a count >= 1"),
+        ("estimator.steps=-5", "'estimator.steps': expected a count >= 1"),
+        ("eval.pairs_per_subject=0", "'eval.pairs_per_subject': expected a count >= 1"),
+        ("eval.tta_steps=-1", "'eval.tta_steps': expected a step count >= 0"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
