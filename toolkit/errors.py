@@ -18,8 +18,8 @@ OUR_PACKAGES = ("toolkit", "render", "geometry", "train", "apps", "benchmarks")
 
 
 def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[str] | None = None) -> int:
-    """Run a CLI entry point; ``ToolkitError``, a missing package and Ctrl-C become one line on stderr, never a
-    traceback."""
+    """Run a CLI entry point; ``ToolkitError``, a missing package, a file-system error on a named path and Ctrl-C
+    become one line on stderr, never a traceback."""
     try:
         code = main(argv)
     except ToolkitError as e:
@@ -32,6 +32,12 @@ def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[s
         # them, so a partial install fails here rather than at start-up.
         print(f"error: this command needs the Python package {e.name!r}, which is not installed "
               f"(`make setup` installs every dependency)", file=sys.stderr)
+        return 2
+    except OSError as e:
+        if e.filename is None:
+            raise  # not about a path the user gave: a bug or a system fault, keep its traceback
+        # A path the user gave that the system refuses (a file where a folder should be, no permission, a full disk).
+        print(f"error: {e.filename}: {e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)

@@ -26,8 +26,11 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
     path = Path(path)
     if path.is_dir():
         raise ToolkitError(f"{path}: is a directory, expected a file path to write")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:  # a parent that is a file, a read-only or missing mount, no permission
+        raise ToolkitError(f"{path}: cannot write here ({e.strerror or e})") from None
     try:
         with os.fdopen(fd, mode) as f:
             yield f
@@ -90,6 +93,8 @@ def load_tensors(path: str | os.PathLike, device: str | torch.device = "cpu") ->
         meta = json.loads(raw_meta.get("json", "{}"))
     except json.JSONDecodeError as e:
         raise ToolkitError(f"{path}: metadata is not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise ToolkitError(f"{path}: metadata 'json' is not a JSON object (got {type(meta).__name__})")
     return tensors, meta
 
 

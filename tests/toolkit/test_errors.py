@@ -16,6 +16,7 @@ def _raises(exc):
     (ToolkitError("data.h5: field 'gaze' expected [N, 2]"), 2, "error: data.h5: field 'gaze' expected [N, 2]"),
     (ModuleNotFoundError("No module named 'open3d'", name="open3d"), 2, "needs the Python package 'open3d'"),
     (KeyboardInterrupt(), 130, "error: interrupted"),
+    (FileExistsError(17, "File exists", "out/demo"), 2, "error: out/demo: File exists"),
 ])
 def test_expected_failures_are_one_line(capsys, exc, code, text):
     assert run_cli(_raises(exc), []) == code
@@ -28,5 +29,7 @@ def test_exit_codes_pass_through_and_bugs_still_raise():
     assert run_cli(lambda argv: 3, []) == 3
     with pytest.raises(ValueError):  # a bug in our code is not hidden behind a one-line message
         run_cli(_raises(ValueError("bug")), [])
+    with pytest.raises(OSError):  # nor is a system error that names no path the user gave
+        run_cli(_raises(OSError(5, "Input/output error")), [])
     with pytest.raises(ModuleNotFoundError):  # nor is a broken import of our own modules
         run_cli(_raises(ModuleNotFoundError("No module named 'train.nope'", name="train.nope")), [])

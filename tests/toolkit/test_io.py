@@ -22,6 +22,22 @@ def test_atomic_write_cleans_up_on_error(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.bin"]
 
 
+def test_atomic_write_under_a_file_is_one_clear_error(tmp_path):
+    (tmp_path / "blocker").write_text("a file, not a folder")
+    with pytest.raises(ToolkitError, match=r"blocker/out.json: cannot write here"):
+        atomic_write_json(tmp_path / "blocker" / "out.json", {"a": 1})
+
+
+def test_metadata_that_is_not_an_object_is_refused(tmp_path):
+    from safetensors.torch import save_file
+
+    from toolkit.io import load_tensors
+
+    save_file({"w": torch.ones(2)}, str(tmp_path / "m.safetensors"), metadata={"json": "[1]"})
+    with pytest.raises(ToolkitError, match="metadata 'json' is not a JSON object"):
+        load_tensors(tmp_path / "m.safetensors")
+
+
 def test_checkpoint_round_trip_with_tied_weights(tmp_path):
     lin = torch.nn.Linear(3, 3)
     sd = {"a": lin.weight, "b": lin.weight, "c": torch.arange(4)}
