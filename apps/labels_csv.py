@@ -186,7 +186,7 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
                 raise ToolkitError(f"{where}, column 'code': {code_path}: no such file")
             try:
                 code = np.load(code_path, allow_pickle=False)
-            except (OSError, ValueError) as e:
+            except (OSError, ValueError, EOFError) as e:  # EOFError: an empty file
                 raise ToolkitError(f"{where}, column 'code': {code_path}: not a .npy array ({e})") from None
             code = np.asarray(code, np.float32).reshape(-1) if np.asarray(code).size == CODE_DIM else None
             if code is None:

@@ -328,6 +328,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     run_dir = Path(args.run_dir)
     if args.batch < 1:
         raise ToolkitError(f"--batch must be >= 1, got {args.batch}")
+    if Path(args.out).is_dir():  # before any rendering: the file is only written once every chunk is done
+        raise ToolkitError(f"out {args.out}: is a directory, expected the path of the HDF5 file to write")
     if not args.fit_lr > 0:
         raise ToolkitError(f"--fit-lr must be > 0, got {args.fit_lr}")
     gazes = parse_gazes(args.gazes, args.seed)

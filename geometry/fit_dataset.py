@@ -38,6 +38,18 @@ def _read(f, path, key, shape_tail=None):
     return a
 
 
+def _read_rows(f, path, key, n: int, width: int = 1, default=None):
+    """``key`` as [n] (width 1) or [n, width] rows -- [n, width] or [n, 1, width] in the file -- or ``default``
+    when the file has no ``key``."""
+    if key not in f:
+        return default
+    a = _read(f, path, key)
+    if a.size != n * width or a.shape[0] != n:
+        want = f"[{n}]" if width == 1 else f"[{n}, {width}]"
+        raise ToolkitError(f"{path}: {key} has shape {list(a.shape)}, expected {want} (one row per head_mask image)")
+    return a.reshape(n) if width == 1 else a.reshape(n, width)
+
+
 def read_subject(path: str | os.PathLike) -> dict:
     """Head-frame views and landmarks of one subject file.
 
@@ -59,12 +71,14 @@ def read_subject(path: str | os.PathLike) -> dict:
         n = masks.shape[0]
         K = _read(f, path, "inmat", (3, 3))
         Rc = _read(f, path, "w2c_Rmat", (3, 3))
-        tc = _read(f, path, "w2c_Tvec").reshape(n, 3)
+        tc = _read_rows(f, path, "w2c_Tvec", n, 3)
+        if tc is None:
+            raise ToolkitError(f"{path}: missing dataset 'w2c_Tvec' (expected the keys of docs/data.md)")
         pose = _read(f, path, "pose", (6,))
-        scale = np.asarray(f["scale"]).reshape(n) if "scale" in f else np.ones(n)
+        scale = _read_rows(f, path, "scale", n, default=np.ones(n))
         lmk_w = _read(f, path, "facial_landmarks_3d", (68, 3))
-        cam = np.asarray(f["cam_index"]).reshape(n) if "cam_index" in f else np.arange(n)
-        frame = np.asarray(f["frame_index"]).reshape(n) if "frame_index" in f else np.arange(n)
+        cam = _read_rows(f, path, "cam_index", n, default=np.arange(n))
+        frame = _read_rows(f, path, "frame_index", n, default=np.arange(n))
         for k, a in (("inmat", K), ("w2c_Rmat", Rc), ("pose", pose), ("facial_landmarks_3d", lmk_w)):
             if a.shape[0] != n:
                 raise ToolkitError(f"{path}: {k} has {a.shape[0]} rows, head_mask has {n}")

@@ -11,6 +11,9 @@ Conventions:
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import torch
 
 from toolkit.errors import ToolkitError
@@ -39,20 +42,37 @@ def fit_sphere(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return (c + mu).to(points.dtype), torch.sqrt(r2).to(points.dtype)
 
 
+def _stored_eyeball(entry: Any, name: str) -> tuple[list[float], float]:
+    """``metadata["eyes"][name]`` -> (centre [3], radius), checked: the scene file is user input."""
+    where = f"scene metadata eyes.{name}"
+    if not isinstance(entry, dict):
+        raise ToolkitError(f"{where}: expected a mapping with 'center' and 'radius', got {type(entry).__name__}")
+    c, r = entry.get("center"), entry.get("radius")
+    ok = (isinstance(c, (list, tuple)) and len(c) == 3
+          and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in c))
+    if not ok:
+        raise ToolkitError(f"{where}.center: expected 3 finite numbers, got {c!r}")
+    if isinstance(r, bool) or not isinstance(r, (int, float)) or not (math.isfinite(r) and r > 0):
+        raise ToolkitError(f"{where}.radius: expected a finite number > 0, got {r!r}")
+    return [float(v) for v in c], float(r)
+
+
 def eyeball_info(scene) -> dict[str, dict[str, torch.Tensor]]:
     """Per-eye {"center": [3], "radius": []} from metadata, else fitted to that eye's Gaussian means.
 
     Eyes without Gaussians are left out; the result is empty for a scene with no eye Gaussians.
     """
     meta = scene.metadata.get("eyes", {}) or {}
+    if not isinstance(meta, dict):
+        raise ToolkitError(f"scene metadata eyes: expected a mapping of left/right eyeballs, got {type(meta).__name__}")
     out = {}
     for name, part in EYE_PARTS.items():
         mask = scene.part == part
         if not bool(mask.any()):
             continue
-        if name in meta and "center" in meta[name]:
-            c = torch.tensor(meta[name]["center"], dtype=scene.means.dtype, device=scene.device)
-            r = torch.tensor(float(meta[name].get("radius", 0.0)), dtype=scene.means.dtype, device=scene.device)
+        if name in meta:
+            c, r = _stored_eyeball(meta[name], name)
+            c, r = (torch.tensor(v, dtype=scene.means.dtype, device=scene.device) for v in (c, r))
         else:
             c, r = fit_sphere(scene.means[mask])
         out[name] = {"center": c, "radius": r}

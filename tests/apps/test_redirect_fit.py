@@ -238,3 +238,12 @@ def test_redirect_sharded_over_two_torchrun_processes_writes_what_one_process_wr
         for key in a:
             if isinstance(a[key], h5py.Dataset):
                 assert np.array_equal(a[key][:], b[key][:]), key
+
+
+def test_output_that_is_a_folder_fails_before_any_rendering(tiny_trained_run, tmp_path, capsys):
+    src = _test_subject(tiny_trained_run)
+    (tmp_path / "o.h5").mkdir()
+    code = run_cli(redirect.main, [str(tiny_trained_run), str(src), str(tmp_path / "o.h5")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "o.h5: is a directory, expected the path of the HDF5 file" in err[0]
+    assert not (tmp_path / "o.h5.parts").exists()  # nothing was rendered

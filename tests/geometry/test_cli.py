@@ -102,3 +102,20 @@ def test_extract_and_render(tmp_path):
 
     img = iio.imread(png)
     assert img.shape == (64, 3 * 64, 3) and (img < 250).any()
+
+
+@pytest.mark.parametrize("key, bad", [("w2c_Tvec", np.zeros((12, 3))), ("scale", np.ones(5)), ("cam_index", np.zeros((6, 2)))])
+def test_fit_rejects_rows_of_the_wrong_shape(tmp_path, capsys, key, bad):
+    import h5py
+
+    n = 6
+    good = {"head_mask": np.zeros((n, 8, 8), np.uint8), "inmat": np.tile(np.eye(3), (n, 1, 1)),
+            "w2c_Rmat": np.tile(np.eye(3), (n, 1, 1)), "w2c_Tvec": np.zeros((n, 3)), "pose": np.zeros((n, 6)),
+            "facial_landmarks_3d": np.zeros((n, 68, 3)), "scale": np.ones((n, 1)), "cam_index": np.arange(n)}
+    path = tmp_path / "subject.h5"
+    with h5py.File(path, "w") as f:
+        for k, v in {**good, key: bad}.items():
+            f[k] = v
+    assert run_cli(main, ["fit", str(path), str(tmp_path / "fit")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {path}: {key} has shape {list(bad.shape)}, expected [{n}")

@@ -77,3 +77,19 @@ def test_knn_spacing():
     assert sp[0].item() == pytest.approx(1.0)
     with pytest.raises(ToolkitError):
         knn_spacing(pts[:3])
+
+
+@pytest.mark.parametrize("eyes, msg", [
+    ({"left": {"center": "0 0 0", "radius": 0.012}}, r"eyes.left.center: expected 3 finite numbers"),
+    ({"left": {"center": [0.0, 0.0], "radius": 0.012}}, r"eyes.left.center: expected 3 finite numbers"),
+    ({"left": {"center": [0.0, float("nan"), 0.0], "radius": 0.012}}, r"eyes.left.center: expected 3 finite numbers"),
+    ({"left": {"center": [0.0, 0.0, 0.0]}}, r"eyes.left.radius: expected a finite number > 0, got None"),
+    ({"right": {"center": [0.0, 0.0, 0.0], "radius": -1}}, r"eyes.right.radius: expected a finite number > 0"),
+    ({"right": [0.0, 0.0, 0.0]}, r"eyes.right: expected a mapping"),
+    ([1, 2], r"scene metadata eyes: expected a mapping"),
+])
+def test_malformed_eye_metadata_is_one_clear_error(eyes, msg):
+    s = demo_head_scene(300)
+    s.metadata["eyes"] = eyes
+    with pytest.raises(ToolkitError, match=msg):
+        eyeball_info(s)
