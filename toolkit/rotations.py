@@ -145,7 +145,8 @@ def quat_slerp(q0: torch.Tensor, q1: torch.Tensor, t: torch.Tensor | float) -> t
         t = t[..., None]
     dot = (q0 * q1).sum(-1, keepdim=True)
     q1 = torch.where(dot < 0, -q1, q1)
-    dot = dot.abs().clamp(max=1.0)
+    # Below 1, not at it: acos'(1) is infinite, and 0 * inf would make the gradient of equal quaternions NaN.
+    dot = dot.abs().clamp(max=1.0 - 1e-7)
     theta = torch.acos(dot)
     s = torch.sin(theta)
     near = s < 1e-6

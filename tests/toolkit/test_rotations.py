@@ -86,6 +86,16 @@ def test_slerp_endpoints_and_midpoint():
     assert torch.isfinite(quat_slerp(a, a, 0.3)).all()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_slerp_of_equal_quaternions_has_finite_gradients(dtype):
+    q = _random_quats(6).to(dtype).requires_grad_(True)
+    for q1 in (q, -q, q.detach()):  # the same rotation, its double cover, and a constant copy
+        out = quat_slerp(q, q1, 0.3)
+        (g,) = torch.autograd.grad(out.sum(), q)
+        assert torch.isfinite(out).all() and torch.isfinite(g).all()
+        assert torch.allclose(quat_to_matrix(out), quat_to_matrix(q.detach()), atol=1e-5)
+
+
 def test_gaze_convention_eth_xgaze():
     # Frontal gaze towards the camera: (0, 0, -1) in OpenCV axes -> pitch 0, yaw 0.
     assert torch.allclose(vector_to_pitchyaw(torch.tensor([0.0, 0, -1])), torch.zeros(2))
