@@ -350,13 +350,18 @@ class SDVAECodec(LatentCodec):
             raise ToolkitError(f"{path}: no such directory; expected a local Stable Diffusion VAE folder (config.json + weights)")
         if not (path / "config.json").is_file():
             raise ToolkitError(f"{path}: missing config.json; expected a diffusers AutoencoderKL folder")
+        if not any(path.glob("*.safetensors")):
+            # A .bin checkpoint is a pickle, which can run code when loaded: only safetensors weights are read.
+            raise ToolkitError(f"{path}: no .safetensors weights (e.g. diffusion_pytorch_model.safetensors); pickled "
+                               f".bin checkpoints are not loaded -- convert them to safetensors first")
         try:
             from diffusers import AutoencoderKL
         except ImportError:
             raise ToolkitError("Stable Diffusion VAE: the optional package 'diffusers' is not installed "
                                "(pip install 'ditgaze[sd-vae]')") from None
         try:
-            self.vae = AutoencoderKL.from_pretrained(str(path), torch_dtype=dtype, local_files_only=True)
+            self.vae = AutoencoderKL.from_pretrained(str(path), torch_dtype=dtype, local_files_only=True,
+                                                     use_safetensors=True)
         except Exception as e:  # diffusers raises OSError/ValueError/... for incomplete folders
             raise ToolkitError(f"{path}: could not load a diffusers AutoencoderKL ({type(e).__name__}: {str(e)[:160]})") from None
         self.scaling = float(getattr(getattr(self.vae, "config", None), "scaling_factor", None) or SD_VAE_SCALING)

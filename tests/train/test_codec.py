@@ -180,6 +180,10 @@ def test_sd_vae_missing_path_and_missing_diffusers(tmp_path, monkeypatch):
     with pytest.raises(ToolkitError, match="config.json"):
         SDVAECodec(tmp_path)
     (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "diffusion_pytorch_model.bin").write_bytes(b"a pickle")
+    with pytest.raises(ToolkitError, match="no .safetensors weights"):  # never unpickled
+        SDVAECodec(tmp_path)
+    (tmp_path / "diffusion_pytorch_model.safetensors").write_bytes(b"")
     monkeypatch.setitem(sys.modules, "diffusers", None)  # import diffusers -> ImportError
     with pytest.raises(ToolkitError, match="diffusers"):
         load_codec(tmp_path)
@@ -197,8 +201,8 @@ def test_sd_vae_wrapper_scaling_and_range(tmp_path, monkeypatch):
             self.seen = None
 
         @classmethod
-        def from_pretrained(cls, path, torch_dtype=None, local_files_only=False):
-            assert local_files_only  # never a download
+        def from_pretrained(cls, path, torch_dtype=None, local_files_only=False, use_safetensors=None):
+            assert local_files_only and use_safetensors  # never a download, never a pickle
             return cls()
 
         def encode(self, x):
@@ -211,6 +215,7 @@ def test_sd_vae_wrapper_scaling_and_range(tmp_path, monkeypatch):
 
     monkeypatch.setitem(sys.modules, "diffusers", types.SimpleNamespace(AutoencoderKL=FakeVAE))
     (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "diffusion_pytorch_model.safetensors").write_bytes(b"")
     codec = SDVAECodec(tmp_path)
     assert not any(p.requires_grad for p in codec.parameters())
     img = torch.full((1, 3, 16, 16), 0.75)
