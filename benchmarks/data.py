@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot  # noqa: E402
 from toolkit.cameras import eth_xgaze_rig  # noqa: E402
+from toolkit.errors import run_cli  # noqa: E402
 from train.data.format import write_subject_h5  # noqa: E402
 from train.data.generate import RIG_RADIUS, generate_subject  # noqa: E402
 from train.data.synthetic import SubjectParams, build_subject  # noqa: E402
@@ -65,11 +66,11 @@ def run(res: int, n_subjects: int, n_frames: int, out: Path) -> dict:
                 p.stat().st_size for p in out.glob("*.h5")) / n_subjects / 1e6, "landmark reproj err px": err}
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--subjects", type=int, default=8, help="subjects at 128² (512² uses a quarter)")
     ap.add_argument("--frames", type=int, default=10)
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     print(machine_info())
     import os
 
@@ -95,4 +96,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(run_cli(main))

@@ -32,6 +32,7 @@ import torch  # noqa: E402
 from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot, timeit  # noqa: E402
 from geometry.dmtet import marching_tets  # noqa: E402
 from geometry.tets import subdivide, tet_grid  # noqa: E402
+from toolkit.errors import run_cli  # noqa: E402
 
 
 def sphere(p):
@@ -247,4 +248,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -29,6 +29,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot  # noqa: E402
+from toolkit.errors import run_cli  # noqa: E402
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -126,12 +127,12 @@ def _last_mid(sp) -> np.ndarray:
     return np.frombuffer(lst.buffer.read(size=4 * lst.count), np.int32).astype(np.int64)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10000, 50000, 100000, 300000])
     ap.add_argument("--res", type=int, default=512)
     ap.add_argument("--frames", type=int, default=8)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     from render.preview import _shared_context
 
     ctx = _shared_context()
@@ -166,4 +167,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(run_cli(main))

@@ -38,6 +38,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot  # noqa: E402
+from toolkit.errors import run_cli  # noqa: E402
 
 
 def default_run_dir() -> str:
@@ -162,4 +163,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot, timeit  # noqa: E402
+from toolkit.errors import run_cli  # noqa: E402
 from toolkit.io import atomic_write_json  # noqa: E402
 from train.baseline_renderer import BaselineConfig, BaselineRenderer  # noqa: E402
 from train.codec import AutoencoderConfig, KLAutoencoder, train_autoencoder  # noqa: E402
@@ -282,4 +283,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main))
