@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+import render.mesh_gl as mesh_gl
 from toolkit.cameras import intrinsics, look_at, project_points
 from toolkit.errors import ToolkitError
-
-mesh_gl = pytest.importorskip("render.mesh_gl")
 
 
 def _egl_ok() -> bool:
