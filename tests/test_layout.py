@@ -28,6 +28,21 @@ def test_import_render_and_toolkit_stays_light():
     assert r.returncode == 0, r.stdout + r.stderr
 
 
+def test_every_library_module_imports_without_heavy_dependencies():
+    """open3d, pymeshlab, moderngl and tensorboard are imported inside the functions that need them."""
+    modules = sorted(".".join(p.relative_to(ROOT).with_suffix("").parts) for pkg in ("toolkit", "render", "geometry", "train")
+                     for p in (ROOT / pkg).rglob("*.py") if p.name != "__main__.py")
+    modules = [m.removesuffix(".__init__") for m in modules]
+    code = (
+        "import importlib, sys\n"
+        f"for m in {modules!r}: importlib.import_module(m)\n"
+        "heavy = [m for m in ('open3d', 'pymeshlab', 'moderngl', 'tensorboard') if m in sys.modules]\n"
+        "print(heavy); sys.exit(1 if heavy else 0)"
+    )
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
 def _imports_of(path: Path) -> set[str]:
     tree = ast.parse(path.read_text())
     out = set()
