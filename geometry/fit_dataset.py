@@ -40,8 +40,8 @@ def _read(f, path, key, shape_tail=None):
 
 def _read_rows(f, path, key, n: int, width: int = 1, default=None):
     """``key`` as [n] (width 1) or [n, width] rows -- [n, width] or [n, 1, width] in the file -- or ``default``
-    when the file has no ``key``."""
-    if key not in f:
+    when the file has no ``key`` (required when ``default`` is None)."""
+    if key not in f and default is not None:
         return default
     a = _read(f, path, key)
     if a.size != n * width or a.shape[0] != n:
@@ -72,8 +72,6 @@ def read_subject(path: str | os.PathLike) -> dict:
         K = _read(f, path, "inmat", (3, 3))
         Rc = _read(f, path, "w2c_Rmat", (3, 3))
         tc = _read_rows(f, path, "w2c_Tvec", n, 3)
-        if tc is None:
-            raise ToolkitError(f"{path}: missing dataset 'w2c_Tvec' (expected the keys of docs/data.md)")
         pose = _read(f, path, "pose", (6,))
         scale = _read_rows(f, path, "scale", n, default=np.ones(n))
         lmk_w = _read(f, path, "facial_landmarks_3d", (68, 3))

@@ -415,13 +415,13 @@ def load_trained(ctx: RunContext, device):
 def _check_values(cfg: RunConfig) -> None:
     """Values the type check cannot catch, before any work."""
     for name in ("lr", "renderer_lr", "means_lr"):
-        if not getattr(cfg.gaussian, name) > 0:
-            raise ToolkitError(f"config key 'gaussian.{name}': expected a learning rate > 0, got {getattr(cfg.gaussian, name)}")
+        if not (rate := getattr(cfg.gaussian, name)) > 0:
+            raise ToolkitError(f"config key 'gaussian.{name}': expected a learning rate > 0, got {rate}")
     for key in ("geometry.steps", "codec.steps", "estimator.steps", "gaussian.steps", "gaussian.batch", "codec.batch",
                 "estimator.batch", "eval.pairs_per_subject"):
         section, name = key.split(".")
-        if not getattr(getattr(cfg, section), name) >= 1:
-            raise ToolkitError(f"config key '{key}': expected a count >= 1, got {getattr(getattr(cfg, section), name)}")
+        if not (count := getattr(getattr(cfg, section), name)) >= 1:
+            raise ToolkitError(f"config key '{key}': expected a count >= 1, got {count}")
     if cfg.eval.tta_steps < 0:
         raise ToolkitError(f"config key 'eval.tta_steps': expected a step count >= 0, got {cfg.eval.tta_steps}")
     u = cfg.gaussian.feature_upscale
