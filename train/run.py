@@ -27,6 +27,7 @@ import dataclasses
 import json
 import logging
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -414,6 +415,14 @@ def load_trained(ctx: RunContext, device):
 
 def _check_values(cfg: RunConfig) -> None:
     """Values the type check cannot catch, before any work."""
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", cfg.device):
+        raise ToolkitError(f"config key 'device': expected auto, cpu, cuda or cuda:N, got {cfg.device!r}")
+    for key in ("data.subjects", "data.frames"):
+        section, name = key.split(".")
+        if not (count := getattr(getattr(cfg, section), name)) >= 1:
+            raise ToolkitError(f"config key '{key}': expected a count >= 1, got {count}")
+    if not 16 <= cfg.data.res <= 2048:
+        raise ToolkitError(f"config key 'data.res': expected an image size in [16, 2048] pixels, got {cfg.data.res}")
     for name in ("lr", "renderer_lr", "means_lr"):
         if not (rate := getattr(cfg.gaussian, name)) > 0:
             raise ToolkitError(f"config key 'gaussian.{name}': expected a learning rate > 0, got {rate}")
@@ -744,13 +753,21 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _stage_names(flag: str, text: str) -> list[str]:
+    """The comma-separated stage names of ``flag``, each one checked."""
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    if unknown := [s for s in names if s not in STAGE_NAMES]:
+        raise ToolkitError(f"{flag}: unknown stage(s) {unknown}; stages are {list(STAGE_NAMES)} or 'all'")
+    return names
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cfg = resolve_config(args)
-    stages = list(STAGE_NAMES) if args.stages == "all" else [s.strip() for s in args.stages.split(",") if s.strip()]
-    unknown = [s for s in stages if s not in STAGE_NAMES]
-    if unknown:
-        raise ToolkitError(f"--stages: unknown stage(s) {unknown}; stages are {list(STAGE_NAMES)} or 'all'")
+    stages = list(STAGE_NAMES) if args.stages == "all" else _stage_names("--stages", args.stages)
+    force = _stage_names("--force", args.force)
+    if idle := [s for s in force if s not in stages]:
+        raise ToolkitError(f"--force: stage(s) {idle} are not among --stages {args.stages}, so nothing would re-run them")
     world = int(os.environ.get("WORLD_SIZE", "1") or 1)
     if world > 1 and stages != ["gaussian"]:
         # Every rank would run every other stage in full, writing the same files side by side.
@@ -760,8 +777,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     keep_freed_memory()
-    _device(cfg)  # fail early on an impossible device
     _check_values(cfg)
+    _device(cfg)  # fail early on an impossible device
     run_dir = Path(args.run_dir)
     ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True))
     check_dependencies(STAGES, stages, ctx)  # a refused run leaves the run's config.yaml as it was
@@ -771,7 +788,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from train.loop import TrainingInterrupted
 
     try:
-        status = run_stages(STAGES, stages, ctx, force=[s for s in args.force.split(",") if s])
+        status = run_stages(STAGES, stages, ctx, force=force)
     except TrainingInterrupted as e:
         print(f"stopped: {e}", file=sys.stderr)
         return 130

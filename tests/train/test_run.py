@@ -279,6 +279,10 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("estimator.steps=-5", "'estimator.steps': expected a count >= 1"),
         ("eval.pairs_per_subject=0", "'eval.pairs_per_subject': expected a count >= 1"),
         ("eval.tta_steps=-1", "'eval.tta_steps': expected a step count >= 0"),
+        ("device=tpu", "'device': expected auto, cpu, cuda or cuda:N"),
+        ("data.subjects=0", "'data.subjects': expected a count >= 1"),
+        ("data.frames=0", "'data.frames': expected a count >= 1"),
+        ("data.res=8", "'data.res': expected an image size in"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
@@ -324,6 +328,11 @@ def test_fitting_a_decoder_that_is_not_there_fails_before_any_work(tmp_path, cap
 def test_unknown_stage_and_missing_dataset(tmp_path):
     with pytest.raises(ToolkitError, match="unknown stage"):
         run.main([*TINY, "--run-dir", str(tmp_path), "--stages", "train"])
+    with pytest.raises(ToolkitError, match=r"--force: unknown stage\(s\) \['evl'\]"):
+        run.main([*TINY, "--run-dir", str(tmp_path / "never"), "--stages", "eval", "--force", "evl"])
+    with pytest.raises(ToolkitError, match=r"--force: stage\(s\) \['gaussian'\] are not among --stages eval"):
+        run.main([*TINY, "--run-dir", str(tmp_path / "never"), "--stages", "eval", "--force", "gaussian"])
+    assert not (tmp_path / "never").exists()
     with pytest.raises(ToolkitError, match="data.root"):
         run.main([*TINY, "--run-dir", str(tmp_path), "--stages", "data", f"data.root={tmp_path / 'nope'}"])
 
