@@ -148,7 +148,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     i.add_argument("--n", type=int, default=18, help="images on the contact sheet")
     i.add_argument("--tile", type=int, default=160)
     a = ap.parse_args(argv)
+    _check_flags(a)
     return cmd_synth(a) if a.cmd == "synth" else cmd_inspect(a)
+
+
+def _check_flags(a) -> None:
+    """Flag values argparse's types cannot catch, named as the user typed them."""
+    if a.cmd == "synth":
+        counts = {"--subjects": a.subjects, "--frames": a.frames, "--test-frames": a.test_frames}
+        if not 16 <= a.res <= 2048:
+            raise ToolkitError(f"--res: expected an image size in [16, 2048] pixels, got {a.res}")
+    else:
+        counts = {"--n": a.n, "--tile": a.tile}
+    for flag, value in counts.items():
+        least = 16 if flag == "--tile" else 1  # a smaller tile leaves no room for the drawn labels
+        if value is not None and value < least:
+            raise ToolkitError(f"{flag}: expected a count >= {least}, got {value}")
 
 
 if __name__ == "__main__":

@@ -46,6 +46,13 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
         assert run_cli(main, args) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and err.count("\n") == 1, err
+    # Flags checked before any file is read or written, each error naming its flag.
+    for args, flag in ((["inspect", str(bad), "--n", "0"], "--n"), (["inspect", str(bad), "--tile", "0"], "--tile"),
+                       (["synth", "--frames", "0", "--out", str(tmp_path / "f")], "--frames"),
+                       (["synth", "--res", "7", "--out", str(tmp_path / "r")], "--res")):
+        assert run_cli(main, args) == 2
+        assert capsys.readouterr().err.startswith(f"error: {flag}: expected"), args
+    assert not (tmp_path / "f").exists() and not (tmp_path / "r").exists()
     # The real entry point: exit status 2, one line, no traceback.
     r = subprocess.run([sys.executable, "-m", "train.data", "inspect", str(bad)], cwd=ROOT, capture_output=True,
                        text=True)
