@@ -50,7 +50,7 @@ from toolkit.errors import ToolkitError, run_cli
 from toolkit.host import keep_freed_memory
 from toolkit.rotations import so3_exp
 
-GRID_EXAMPLE = "grid:5x5:30 (N×N grid over ±30°), random:200:35 (200 gazes uniform in ±35°), file:gazes.csv"
+GRID_EXAMPLE = "grid:5x5:30 (pitch rows × yaw columns over ±30°), random:200:35 (200 gazes uniform in ±35°), file:gazes.csv"
 
 
 def parse_gazes(spec: str, seed: int = 0) -> np.ndarray:
@@ -60,6 +60,8 @@ def parse_gazes(spec: str, seed: int = 0) -> np.ndarray:
         if kind == "grid":
             dims, rng = rest.split(":")
             ny, nx = (int(v) for v in dims.lower().split("x"))
+            if ny < 1 or nx < 1:
+                raise ToolkitError(f"--gazes {spec!r}: a grid needs at least 1 row and 1 column, got {ny}x{nx}")
             r = math.radians(float(rng))
             p = np.linspace(-r, r, ny) if ny > 1 else np.zeros(1)
             y = np.linspace(-r, r, nx) if nx > 1 else np.zeros(1)
@@ -72,7 +74,11 @@ def parse_gazes(spec: str, seed: int = 0) -> np.ndarray:
             path = Path(rest)
             if not path.is_file():
                 raise ToolkitError(f"--gazes file {path}: no such file")
-            vals = np.loadtxt(path, delimiter=",", ndmin=2, comments="#")
+            try:
+                vals = np.loadtxt(path, delimiter=",", ndmin=2, comments="#")
+            except ValueError as e:  # a header line, a stray word: numpy says which line
+                raise ToolkitError(f"--gazes file {path}: expected lines of 'pitch,yaw' in degrees (# starts a "
+                                   f"comment): {e}") from None
             if vals.shape[1] != 2:
                 raise ToolkitError(f"--gazes file {path}: expected two columns (pitch, yaw in degrees), got {vals.shape[1]}")
             out = np.radians(vals)
@@ -172,9 +178,9 @@ def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.
         out["inmat"].append(K.cpu().numpy())
         out["latent_codes"].append(code.cpu().numpy())
         out["face_head_pose"].append(np.repeat(np.asarray(it["face_head_pose"], np.float32)[None], G, 0))
-        out["cam_index"].append(np.full(G, int(it["cam_index"])))
-        out["frame_index"].append(np.full(G, int(it["frame_index"])))
-        out["source_row"].append(np.full(G, r))
+        out["cam_index"].append(np.full(G, int(it["cam_index"]), np.int32))  # the schema's int32 (docs/data.md)
+        out["frame_index"].append(np.full(G, int(it["frame_index"]), np.int32))  # the schema's int32 (docs/data.md)
+        out["source_row"].append(np.full(G, r, np.int64))
         # Gaze does not move the lids, landmarks or mesh of the synthetic subjects: the input's stay valid.
         for key, src in (("left_eye_mask", "left_eye_mask"), ("right_eye_mask", "right_eye_mask")):
             m = (np.asarray(it[src]).reshape(res, res) > 0.5).astype(np.uint8) * 255
@@ -328,6 +334,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     run_dir = Path(args.run_dir)
     if args.batch < 1:
         raise ToolkitError(f"--batch must be >= 1, got {args.batch}")
+    if args.rows < 0:
+        raise ToolkitError(f"--rows must be >= 0 (0 = all rows), got {args.rows}")
+    if args.steps < 0:
+        raise ToolkitError(f"--steps must be >= 0 (0 = the run's setting), got {args.steps}")
+    if Path(args.out).suffix.lower() not in (".h5", ".hdf5"):
+        raise ToolkitError(f"out {args.out}: expected an HDF5 file name ending in .h5 or .hdf5")
     if Path(args.out).is_dir():  # before any rendering: the file is only written once every chunk is done
         raise ToolkitError(f"out {args.out}: is a directory, expected the path of the HDF5 file to write")
     if not args.fit_lr > 0:
@@ -347,6 +359,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     info = init_distributed("cpu" if not torch.cuda.is_available() else "auto")
     device = torch.device(info.device)
     model, renderer = load_trained(ctx, device)
+    diffusion = getattr(renderer, "diffusion", None)
+    if diffusion is not None and not 1 <= sampling_steps(args, cfg) <= diffusion.num_timesteps:
+        raise ToolkitError(f"--steps must be 0 (the run's setting) or 1..{diffusion.num_timesteps} DDIM steps, "
+                           f"got {args.steps}")
     fit = row_fitter(ctx, model, renderer, device, fit_steps, natural_eyes=args.natural_eyes) if args.fit_weights else None
 
     def items(rows: list[int]) -> list[dict]:

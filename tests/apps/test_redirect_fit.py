@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from apps import redirect
-from toolkit.errors import run_cli
+from toolkit.errors import ToolkitError, run_cli
 from train import run
 
 
@@ -247,3 +247,30 @@ def test_output_that_is_a_folder_fails_before_any_rendering(tiny_trained_run, tm
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "o.h5: is a directory, expected the path of the HDF5 file" in err[0]
     assert not (tmp_path / "o.h5.parts").exists()  # nothing was rendered
+
+
+@pytest.mark.parametrize("extra, expect", [
+    (["--gazes", "grid:0x5:30"], "a grid needs at least 1 row and 1 column, got 0x5"),
+    (["--rows", "-1"], "--rows must be >= 0"),
+    (["--steps", "-5"], "--steps must be >= 0"),
+    (["--steps", "5000"], "--steps must be 0 (the run's setting) or 1..1000 DDIM steps, got 5000"),
+    (["--out-name", "x.png"], "x.png: expected an HDF5 file name ending in .h5 or .hdf5"),
+])
+def test_bad_flags_fail_before_any_rendering(tiny_trained_run, tmp_path, capsys, extra, expect):
+    src = _test_subject(tiny_trained_run)
+    out = tmp_path / "o.h5"
+    if extra[0] == "--out-name":
+        out, extra = tmp_path / extra[1], []
+    code = run_cli(redirect.main, [str(tiny_trained_run), str(src), str(out), *extra])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and expect in err[0], err
+    assert not out.exists() and not out.with_suffix(out.suffix + ".parts").exists()
+
+
+def test_gazes_file_with_a_header_names_the_file(tmp_path):
+    f = tmp_path / "g.csv"
+    f.write_text("pitch,yaw\n10,20\n")
+    with pytest.raises(ToolkitError, match=r"--gazes file .*g\.csv: expected lines of 'pitch,yaw' in degrees"):
+        redirect.parse_gazes(f"file:{f}")
+    f.write_text("# pitch,yaw\n10,20\n-5,0\n")
+    assert np.allclose(np.degrees(redirect.parse_gazes(f"file:{f}")), [[10, 20], [-5, 0]], atol=1e-4)
