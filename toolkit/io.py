@@ -20,6 +20,24 @@ import torch
 from toolkit.errors import ToolkitError
 
 
+def _process_umask() -> int:
+    mask = os.umask(0)  # reading the umask means setting it: put it straight back
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _process_umask()  # once, at import: a later read would briefly zero the mask under other threads
+
+
+def _new_file_mode(path: Path) -> int:
+    """The mode ``open(path, "w")`` would leave: the existing file's, else 0o666 less the umask (mkstemp's
+    temporary files are 0o600, which would hide every output from the user's group)."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_UMASK
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
     """Open a temporary file beside ``path``; on clean exit rename it onto ``path``, else delete it."""
@@ -33,6 +51,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
         raise ToolkitError(f"{path}: cannot write here ({e.strerror or e})") from None
     try:
         with os.fdopen(fd, mode) as f:
+            os.fchmod(f.fileno(), _new_file_mode(path))
             yield f
             f.flush()
             os.fsync(f.fileno())

@@ -62,3 +62,21 @@ def test_foreign_checkpoint_weights_only(tmp_path):
         load_foreign_torch_checkpoint(tmp_path / "evil.pt")
     with pytest.raises(ToolkitError, match="no such"):
         load_foreign_torch_checkpoint(tmp_path / "missing.pt")
+
+
+def test_atomic_write_leaves_the_mode_a_plain_write_would(tmp_path, monkeypatch):
+    """Not mkstemp's 0o600: a new file gets 0o666 less the umask, a replaced file keeps its own mode."""
+    import os
+    import stat
+
+    import toolkit.io
+
+    monkeypatch.setattr(toolkit.io, "_UMASK", 0o022)  # the module reads the process's umask once, at import
+    toolkit.io.atomic_write_text(tmp_path / "new.txt", "a")
+    assert stat.S_IMODE((tmp_path / "new.txt").stat().st_mode) == 0o644
+    (tmp_path / "kept.txt").write_text("b")
+    os.chmod(tmp_path / "kept.txt", 0o640)
+    toolkit.io.atomic_write_text(tmp_path / "kept.txt", "c")
+    assert stat.S_IMODE((tmp_path / "kept.txt").stat().st_mode) == 0o640
+    assert (tmp_path / "kept.txt").read_text() == "c"
+    assert toolkit.io._UMASK == os.umask(toolkit.io._UMASK)  # and the read left the umask as it was
