@@ -40,8 +40,11 @@ def _cmd_compare(a) -> int:
 
 def _cmd_clean(a) -> int:
     from geometry.cleanup import CleanupConfig, clean_mesh
-    from geometry.mesh_stats import load_mesh, save_mesh
+    from geometry.mesh_stats import check_mesh_extension, load_mesh, save_mesh
 
+    check_mesh_extension(a.output)  # before the pipeline runs, not after
+    if a.target_faces is not None and a.target_faces < 4:
+        raise ToolkitError(f"--target-faces must be >= 4, got {a.target_faces}")
     cfg = CleanupConfig(weld_tolerance=a.weld_tolerance, min_component_fraction=a.min_component_fraction,
                         repair_non_manifold=not a.no_repair, max_hole_edges=a.max_hole_edges,
                         remesh_edge_fraction=a.remesh_edge, taubin_steps=a.taubin_steps, target_faces=a.target_faces)
@@ -53,9 +56,10 @@ def _cmd_clean(a) -> int:
 
 
 def _cmd_extract(a) -> int:
-    from geometry.mesh_stats import save_mesh
+    from geometry.mesh_stats import check_mesh_extension, save_mesh
     from geometry.sdf import SDFNet, extract_mesh
 
+    check_mesh_extension(a.output)
     if a.res < 2:
         raise ToolkitError(f"--res must be >= 2, got {a.res}")
     net = SDFNet.load(a.ckpt)
@@ -86,6 +90,10 @@ def _cmd_render(a) -> int:
     from geometry.mesh_stats import load_mesh
     from geometry.render_sheet import contact_sheet
 
+    if not a.output.lower().endswith(".png"):
+        raise ToolkitError(f"{a.output}: the contact sheet is a PNG; expected a file name ending in .png")
+    if a.views < 1 or a.size < 8:
+        raise ToolkitError(f"--views must be >= 1 and --size >= 8, got {a.views} and {a.size}")
     v, f = load_mesh(a.mesh)
     contact_sheet(v, f, a.output, n_views=a.views, size=a.size)
     print(f"wrote {a.output}")

@@ -234,6 +234,8 @@ def fit_sdf_to_targets(pool_pts: torch.Tensor, pool_sdf: torch.Tensor, cfg: FitC
         sphere.steps = cfg.pretrain_steps
         sphere.batch = cfg.batch
         sphere.lr = max(sphere.lr, cfg.lr)
+        if log is not None:  # the first fit step's line comes only after this
+            log(f"pre-training the SDF on a sphere: {sphere.steps} steps of {sphere.batch} points")
         pretrain_sphere(net, sphere)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(cfg.steps, 1), eta_min=cfg.lr * 0.05)

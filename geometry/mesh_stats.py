@@ -43,10 +43,19 @@ def load_mesh(path: str | os.PathLike) -> tuple[torch.Tensor, torch.Tensor]:
         raise ToolkitError(f"{path}: not a readable mesh ({type(e).__name__}: {str(e)[:120]})") from None
     if not isinstance(m, trimesh.Trimesh):
         raise ToolkitError(f"{path}: not a triangle mesh (got {type(m).__name__})")
+    if len(m.faces) == 0:  # trimesh turns a point cloud into an empty mesh
+        raise ToolkitError(f"{path}: no triangles (a point cloud? a Gaussian scene reads with `python -m toolkit info`)")
     verts = torch.tensor(np.asarray(m.vertices), dtype=torch.float32).reshape(-1, 3)
     faces = torch.tensor(np.asarray(m.faces), dtype=torch.long).reshape(-1, 3)
     check_mesh(verts, faces, str(path))
     return verts, faces
+
+
+def check_mesh_extension(path: str | os.PathLike) -> None:
+    """Raise a ToolkitError unless ``path``'s extension is a mesh format :func:`save_mesh` writes."""
+    ext = Path(path).suffix.lower()
+    if ext not in MESH_EXTENSIONS:
+        raise ToolkitError(f"{path}: unknown mesh extension {ext!r}; expected one of {MESH_EXTENSIONS}")
 
 
 def save_mesh(path: str | os.PathLike, verts: torch.Tensor, faces: torch.Tensor) -> None:
@@ -54,12 +63,10 @@ def save_mesh(path: str | os.PathLike, verts: torch.Tensor, faces: torch.Tensor)
     import trimesh
 
     path = Path(path)
-    ext = path.suffix.lower()
-    if ext not in MESH_EXTENSIONS:
-        raise ToolkitError(f"{path}: unknown mesh extension {ext!r}; expected one of {MESH_EXTENSIONS}")
+    check_mesh_extension(path)
     check_mesh(verts, faces, str(path))
     m = trimesh.Trimesh(verts.detach().cpu().double().numpy(), faces.cpu().numpy(), process=False)
-    data = m.export(file_type=ext[1:])
+    data = m.export(file_type=path.suffix.lower()[1:])
     atomic_write_bytes(path, data.encode() if isinstance(data, str) else data)
 
 

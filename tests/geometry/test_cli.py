@@ -57,7 +57,7 @@ def test_bad_inputs_one_line_exit_2(tmp_path):
         err = r.stderr.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: ") and "Traceback" not in r.stderr, r.stderr
     assert "NaN" in _run("inspect", tmp_path / "nan.ply").stderr
-    assert "empty" in _run("inspect", tmp_path / "empty.ply").stderr
+    assert "no triangles (a point cloud?" in _run("inspect", tmp_path / "empty.ply").stderr
 
 
 def test_bad_inputs_in_process(tmp_path, capsys, sphere_ply):
@@ -68,6 +68,15 @@ def test_bad_inputs_in_process(tmp_path, capsys, sphere_ply):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 4 and all(e.startswith("error: ") for e in err)
     assert not (tmp_path / "o.xyz").exists()
+    # Flags and output names are checked before the work, each error naming what was wrong.
+    for args, expect in ((["clean", str(sphere_ply), str(tmp_path / "o.ply"), "--target-faces", "0"], "--target-faces"),
+                         (["extract", str(tmp_path / "none.safetensors"), str(tmp_path / "o.txt")], "o.txt: unknown mesh"),
+                         (["render", str(sphere_ply), str(tmp_path / "s.jpgg")], "s.jpgg: the contact sheet is a PNG"),
+                         (["render", str(sphere_ply), str(tmp_path / "s.png"), "--views", "0"], "--views must be >= 1")):
+        assert run_cli(main, args) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and expect in err and err.count("\n") == 1, err
+    assert not list(tmp_path.glob("o.*")) and not list(tmp_path.glob("s.*"))
 
 
 def test_inspect_json_compare_clean(tmp_path, sphere_ply):
