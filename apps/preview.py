@@ -200,10 +200,14 @@ def parse_range(text: str, what: str) -> list[float]:
             n = int(n)
             if n < 1:
                 raise ValueError
-            return [float(lo)] if n == 1 else list(np.linspace(float(lo), float(hi), n))
-        return [float(v) for v in text.split(",") if v.strip()]
+            angles = [float(lo)] if n == 1 else list(np.linspace(float(lo), float(hi), n))
+        else:
+            angles = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise ToolkitError(f"--{what}: expected MIN:MAX:N or a comma list of degrees, got {text!r}") from None
+    if not all(math.isfinite(a) for a in angles):
+        raise ToolkitError(f"--{what}: expected finite degrees, got {text!r}")
+    return angles
 
 
 def render_gaze_sweep(scene, out_path, pitches: Sequence[float], yaws: Sequence[float], width: int = 512,

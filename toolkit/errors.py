@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sys
 from typing import Callable, Sequence
 
@@ -33,6 +35,12 @@ def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[s
         print(f"error: this command needs the Python package {e.name!r}, which is not installed "
               f"(`make setup` installs every dependency)", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader went away (`... | head`): stop quietly, as cat does. Point stdout at /dev/null so the
+        # interpreter's own flush at exit does not fail on the closed pipe a second time.
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except OSError as e:
         if e.filename is None:
             raise  # not about a path the user gave: a bug or a system fault, keep its traceback

@@ -138,6 +138,7 @@ def test_scene_without_eyes_sweeps_with_a_message(egl, head, tmp_path, capsys):
     ("no_sweep", "--headless needs --sweep"),
     ("bad_sweep_ext", "must end in .mp4"),
     ("bad_pitch", "--pitch: expected MIN:MAX:N"),
+    ("nan_yaw", "--yaw: expected finite degrees"),
     ("bad_demo", "demo:N"),
 ])
 def test_bad_input_exits_2_with_one_line(egl, tmp_path, capsys, case, match):
@@ -155,6 +156,7 @@ def test_bad_input_exits_2_with_one_line(egl, tmp_path, capsys, case, match):
         "no_sweep": ["demo:200", "--headless"],
         "bad_sweep_ext": ["demo:200", "--headless", "--sweep", str(tmp_path / "o.gif")],
         "bad_pitch": ["demo:200", "--headless", "--sweep", str(tmp_path / "o.png"), "--pitch", "a:b"],
+        "nan_yaw": ["demo:200", "--headless", "--sweep", str(tmp_path / "o.png"), "--yaw", "nan,1"],
         "bad_demo": ["demo:many", "--headless", "--sweep", str(tmp_path / "o.png")],
     }[case]
     assert run_cli(main, argv) == 2

@@ -33,3 +33,20 @@ def test_exit_codes_pass_through_and_bugs_still_raise():
         run_cli(_raises(OSError(5, "Input/output error")), [])
     with pytest.raises(ModuleNotFoundError):  # nor is a broken import of our own modules
         run_cli(_raises(ModuleNotFoundError("No module named 'train.nope'", name="train.nope")), [])
+
+
+def test_a_closed_pipe_stops_quietly():
+    """`... | head`: the reader leaves early; the CLI stops without a BrokenPipeError traceback."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import sys\nfrom toolkit.errors import run_cli\n"
+            "def main(argv):\n    for _ in range(200000):\n        print('x' * 80)\n"
+            "sys.exit(run_cli(main))\n")
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         cwd=Path(__file__).resolve().parents[2])
+    p.stdout.read(100)
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=60) == 1 and err == "", err
