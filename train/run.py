@@ -417,10 +417,11 @@ def _check_values(cfg: RunConfig) -> None:
     """Values the type check cannot catch, before any work."""
     if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", cfg.device):
         raise ToolkitError(f"config key 'device': expected auto, cpu, cuda or cuda:N, got {cfg.device!r}")
-    for key in ("data.subjects", "data.frames"):
-        section, name = key.split(".")
-        if not (count := getattr(getattr(cfg, section), name)) >= 1:
-            raise ToolkitError(f"config key '{key}': expected a count >= 1, got {count}")
+    if not cfg.data.root and cfg.data.subjects < 2:
+        raise ToolkitError(f"config key 'data.subjects': expected >= 2 synthetic subjects (at least one to train on "
+                           f"and one held out), got {cfg.data.subjects}")
+    if cfg.data.frames < 1:
+        raise ToolkitError(f"config key 'data.frames': expected a count >= 1, got {cfg.data.frames}")
     if not 16 <= cfg.data.res <= 2048:
         raise ToolkitError(f"config key 'data.res': expected an image size in [16, 2048] pixels, got {cfg.data.res}")
     for name in ("lr", "renderer_lr", "means_lr"):

@@ -280,7 +280,7 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("eval.pairs_per_subject=0", "'eval.pairs_per_subject': expected a count >= 1"),
         ("eval.tta_steps=-1", "'eval.tta_steps': expected a step count >= 0"),
         ("device=tpu", "'device': expected auto, cpu, cuda or cuda:N"),
-        ("data.subjects=0", "'data.subjects': expected a count >= 1"),
+        ("data.subjects=1", "'data.subjects': expected >= 2 synthetic subjects"),
         ("data.frames=0", "'data.frames': expected a count >= 1"),
         ("data.res=8", "'data.res': expected an image size in"),
     ],
