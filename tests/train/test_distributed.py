@@ -27,8 +27,9 @@ SCRIPT = textwrap.dedent(
         sl = shard(8, info)
         loss = ((ddp(x[sl]) - y[sl]) ** 2).mean()
         opt.zero_grad(); loss.backward(); opt.step()
-    if info.is_main:
-        torch.save([p.detach() for p in model.parameters()], {out!r})
+    # Every rank reports the rows it trained on and its weights: one process trained on all 8 rows.
+    torch.save({{"rows": [sl.start, sl.stop], "weights": [p.detach() for p in model.parameters()]}},
+               {out!r} + f".{{info.rank}}")
     cleanup(info)
     """
 )
@@ -47,6 +48,12 @@ def test_two_process_gloo_matches_single_process(tmp_path):
             # its threads wind down. One relaunch; a real fault fails twice.
             r = subprocess.run([*launcher, str(script)], cwd=ROOT, capture_output=True, text=True, timeout=180)
         assert r.returncode == 0, r.stderr if len(r.stderr) <= 3000 else r.stderr[:1500] + "\n...\n" + r.stderr[-1500:]
-    a, b = torch.load(single, weights_only=True), torch.load(multi, weights_only=True)
-    for x, y in zip(a, b):
-        assert torch.allclose(x, y, atol=1e-6), (x - y).abs().max()
+    one = torch.load(f"{single}.0", weights_only=True)
+    ranks = [torch.load(f"{multi}.{r}", weights_only=True) for r in range(2)]
+    assert one["rows"] == [0, 8]
+    # Each rank trained on its own half (a rank training the whole batch alone would match one process too)...
+    assert [r["rows"] for r in ranks] == [[0, 4], [4, 8]]
+    # ...and the averaged gradients made both end where one process on the whole batch ends.
+    for rank in ranks:
+        for x, y in zip(one["weights"], rank["weights"]):
+            assert torch.allclose(x, y, atol=1e-6), (x - y).abs().max()

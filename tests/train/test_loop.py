@@ -124,7 +124,11 @@ _SCRIPT = textwrap.dedent(
     from tests.train.test_loop import _problem
     from train.loop import train_loop
     model, opt, f = _problem()
+    seen = []
     def slow(step, g):
+        if not seen:
+            seen.append(step)
+            print(f"first step {{step}}", flush=True)
         if step >= {slow_from}:
             time.sleep(0.2)
         return f(step, g)
@@ -153,8 +157,13 @@ def test_sigkill_then_resume_matches_uninterrupted(tmp_path):
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert not (tmp_path / "run" / "final.pt").exists()
+    newest = mgr.all()[-1].name
+    assert newest >= "ckpt_00000015.safetensors", newest  # killed mid-run, after the step-15 checkpoint
     done = _spawn(tmp_path / "run", slow_from=10**9)
-    assert done.wait(timeout=120) == 0, done.stderr.read().decode()
+    out, err = done.communicate(timeout=120)
+    assert done.returncode == 0, err.decode()
+    # It went on from the newest checkpoint, not from step 0 (a deterministic retrain would also match).
+    assert f"first step {int(newest[5:13])}" in out.decode(), out.decode()
     a = torch.load(tmp_path / "ref" / "final.pt", weights_only=True)
     b = torch.load(tmp_path / "run" / "final.pt", weights_only=True)
     assert all(torch.equal(x, y) for x, y in zip(a, b))

@@ -347,16 +347,20 @@ def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path):
     assert run.main([*TINY, "--run-dir", str(full), "--stages", "gaussian", "--force", "gaussian",
                      "gaussian.steps=4", "gaussian.ckpt_every=2"]) == 0
     shutil.rmtree(part / "gaussian")
-    # "Crash" after step 2: run 2 steps, then continue the 4-step schedule from the step-2 checkpoint.
+    # A "crash" after step 2: run the 4-step schedule, keep only its step-2 checkpoint, and resume from it.
     mgr = CheckpointManager(part / "gaussian" / "checkpoints")
     assert run.main([*TINY, "--run-dir", str(part), "--stages", "gaussian", "--force", "gaussian",
                      "gaussian.steps=4", "gaussian.ckpt_every=2", "gaussian.log_every=2"]) == 0
-    # Re-create the interrupted state: keep only the step-2 checkpoint, then resume.
     for p in mgr.all():
         if not p.name.endswith("0002.safetensors"):
             p.unlink()
+    log = part / "metrics.jsonl"
+    before = len(log.read_text().splitlines())
     assert run.main([*TINY, "--run-dir", str(part), "--stages", "gaussian", "--force", "gaussian", "--resume",
                      "gaussian.steps=4", "gaussian.ckpt_every=2", "gaussian.log_every=2"]) == 0
+    # It went on from step 2: only step 4 was logged again (a retrain from step 0 would match the weights too).
+    resumed = [json.loads(line) for line in log.read_text().splitlines()[before:]]
+    assert [r["step"] for r in resumed if r["stage"] == "gaussian"] == [4], resumed
     from toolkit.io import load_tensors
 
     a, _ = load_tensors(full / "gaussian" / "final.safetensors")
