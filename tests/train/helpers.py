@@ -15,9 +15,9 @@ def rasterizer_for_tests():
     return rasterize
 
 
-def small_model(scene, **overrides) -> GaussianModel:
+def small_model(scene, seed: int = 0, **overrides) -> GaussianModel:
     cfg = GaussianModelConfig(hidden=32, depth=3, **overrides)
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
     return GaussianModel.from_scene(scene, cfg, rasterizer=rasterizer_for_tests())
 
 
@@ -48,18 +48,12 @@ def fit_renderer(renderer, feats: torch.Tensor, code: torch.Tensor, target: torc
 def one_frame_subject_file(directory, subject_seed: int, frame_seed: int, res: int = 64, n_frames: int = 1):
     """A synthetic subject file (``n_frames`` frames x 18 rig cameras) in ``directory``; skips the calling test
     where no headless EGL OpenGL context exists."""
-    import pytest
-
-    from render.mesh_gl import shared_context
-    from toolkit.errors import ToolkitError
+    from tests.gl import require_gl
     from train.data.format import write_subject_h5
     from train.data.generate import generate_subject
     from train.data.synthetic import SubjectParams
 
-    try:
-        shared_context()
-    except ToolkitError:
-        pytest.skip("no headless EGL OpenGL context")
+    require_gl()
     rows, subj, attrs = generate_subject(SubjectParams.sample(subject_seed), n_frames=n_frames, res=res, seed=frame_seed)
     return write_subject_h5(directory / "subject0000.h5", rows, subject=subj, attrs=attrs)
 
