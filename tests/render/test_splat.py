@@ -162,6 +162,27 @@ def test_sh_colors_degree_0_and_1():
     assert torch.allclose(img0, rimg0, atol=1e-9)
 
 
+@pytest.mark.parametrize("degree", [2, 3])
+def test_sh_basis_is_orthonormal_on_the_sphere(degree):
+    """Each of the (degree + 1)^2 basis functions (a one-hot coefficient) integrates against every other to
+    delta_ij over the unit sphere: wrong constants or a wrong polynomial in degrees 2-3 break this."""
+    from render.sh import eval_sh, num_sh_bases
+
+    n = 200_000  # a Fibonacci lattice: near-uniform points, each of area 4 pi / n
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = i * math.pi * (3 - math.sqrt(5))
+    r = (1 - z * z).sqrt()
+    dirs = torch.stack([r * phi.cos(), r * phi.sin(), z], -1)
+    k = num_sh_bases(degree)
+    basis = eval_sh(degree, torch.eye(k, dtype=torch.float64)[None].expand(n, k, k), dirs)  # [n, k]
+    gram = basis.T @ basis * (4 * math.pi / n)
+    assert torch.allclose(gram, torch.eye(k, dtype=torch.float64), atol=1e-4), (gram - torch.eye(k)).abs().max()
+    # And one value by hand: Y_2^0 at the pole is sqrt(5 / (4 pi)) (3 cos^2 - 1) / 2 = 0.6308.
+    pole = eval_sh(2, torch.eye(9, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    assert pole[6].item() == pytest.approx(math.sqrt(5 / (4 * math.pi)), rel=1e-12)
+
+
 # ---------------------------------------------------------------------------------------------- gradients
 def _loss_weights(shape_img, shape_alpha, dtype, seed=0):
     g = torch.Generator().manual_seed(seed)

@@ -47,6 +47,13 @@ def test_shape_code_changes_the_image():
 def test_blur_keeps_constants_and_sums():
     x = torch.full((1, 2, 5, 5), 0.3)
     torch.testing.assert_close(blur(x), x)
+    # An impulse away from the border spreads into the [1 2 1] x [1 2 1] / 16 kernel, its sum kept.
+    impulse = torch.zeros(1, 1, 7, 7)
+    impulse[0, 0, 3, 3] = 1.0
+    k = torch.tensor([1.0, 2.0, 1.0])
+    expect = torch.zeros(1, 1, 7, 7)
+    expect[0, 0, 2:5, 2:5] = torch.outer(k, k) / 16
+    torch.testing.assert_close(blur(impulse), expect)
 
 
 def test_it_learns_a_feature_to_image_map():

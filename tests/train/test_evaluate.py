@@ -56,14 +56,35 @@ def test_test_time_fit_lowers_the_input_error_and_keeps_the_weights(subject_file
     assert all(torch.equal(after[k], v) for k, v in weights.items())
 
 
-def test_evaluate_with_fitting_reports_the_rendering_throughput(subject_file):
-    from train.evaluate import evaluate
+@pytest.mark.parametrize("tta_weights", [(), ("features",)])
+def test_evaluate_with_fitting_reports_the_rendering_throughput(subject_file, monkeypatch, tta_weights):
+    """The throughput counts the renders alone: on a fake clock that ticks 1 per reading and 1000 per fit, the
+    3 pairs' render time stays a few ticks (1 batch of 3, or 3 renders of 1), never a fit's 1000."""
+    import types
 
+    import train.evaluate as ev
+
+    clock = [0.0]
+
+    def tick():
+        clock[0] += 1.0
+        return clock[0]
+
+    real_fit = ev.test_time_fit
+
+    def slow_fit(*args, **kwargs):
+        clock[0] += 1000.0
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(ev, "time", types.SimpleNamespace(perf_counter=tick))
+    monkeypatch.setattr(ev, "test_time_fit", slow_fit)
     model, renderer, est = untrained_eval_parts()
-    out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, tta_steps=2,
-                   log=lambda s: None)
+    out = ev.evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, tta_steps=2,
+                      tta_weights=tta_weights, log=lambda s: None)
     m = out["metrics"]
-    assert m["pairs"] == 3 and math.isfinite(m["psnr"]) and m["images_per_s"] > 0
+    assert clock[0] > 1000  # the fits ran
+    assert m["pairs"] == 3 and math.isfinite(m["psnr"])
+    assert m["images_per_s"] == pytest.approx(1.0 if tta_weights else 3.0)  # 3 images in 1 or 3 ticks
     assert 0 <= m["gaze_error_median_deg"] <= 180 and math.isfinite(m["gaze_error_deg"])
 
 
@@ -722,3 +743,15 @@ def test_eye_colours_group_fits_the_parametric_eyeball_alone_and_is_restored(sub
         assert moved and all(k.startswith("eyeball_colours.") for k in moved), moved
         assert all(p.grad is None for p in model.parameters())
     assert all(torch.equal(model.state_dict()[k], v) for k, v in before.items())
+
+
+def test_fid_is_reported_as_n_a_without_its_optional_package(monkeypatch):
+    import train.evaluate as ev
+
+    def must_not_run(*a, **k):
+        raise AssertionError("fid() called without its package")
+
+    monkeypatch.setattr(ev, "fid_available", lambda: False)
+    monkeypatch.setattr(ev, "fid", must_not_run)
+    images = torch.rand(4, 3, 16, 16)
+    assert ev._fid(images, images, log=lambda s: None) is None
