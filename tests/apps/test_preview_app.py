@@ -10,14 +10,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
+import moderngl
 import numpy as np
 import pytest
 import torch
 
+from tests.gl import skip_without_gl
 from toolkit.errors import ToolkitError, run_cli
 
-moderngl = pytest.importorskip("moderngl")
-cv2 = pytest.importorskip("cv2")
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -28,7 +29,7 @@ def egl():
     try:
         return preview._shared_context()
     except ToolkitError as e:
-        pytest.skip(f"no headless OpenGL: {e}")
+        skip_without_gl(f"no headless OpenGL: {e}")
 
 
 @pytest.fixture(scope="module")

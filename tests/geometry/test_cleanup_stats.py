@@ -83,7 +83,8 @@ def test_cleanup_bad_input(bad):
         v[3, 1] = float("nan")
     else:
         f[0, 0] = 10_000
-    with pytest.raises(ToolkitError):
+    match = {"empty": "the mesh is empty", "nan": "NaN/inf coordinates", "index": "face indices must be in"}[bad]
+    with pytest.raises(ToolkitError, match=match):
         clean_mesh(v, f)
 
 

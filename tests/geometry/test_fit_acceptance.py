@@ -17,19 +17,16 @@ import torch
 
 @pytest.mark.slow
 def test_fit_synthetic_subject_meets_acceptance(tmp_path):
-    pytest.importorskip("moderngl")
     from geometry.fit import FitConfig
     from geometry.fit_dataset import fit_dataset, read_subject
-    from toolkit.errors import ToolkitError
+    from tests.gl import require_gl
     from toolkit.scene import GaussianScene
     from train.data.format import write_subject_h5
     from train.data.generate import generate_subject
     from train.data.synthetic import SubjectParams
 
-    try:
-        rows, subj, attrs = generate_subject(SubjectParams.sample(0), n_frames=3, res=128, seed=0)
-    except ToolkitError as e:  # the generator renders through headless GL
-        pytest.skip(f"no headless GL: {e}")
+    require_gl()  # the generator renders through headless GL; only a missing GL skips
+    rows, subj, attrs = generate_subject(SubjectParams.sample(0), n_frames=3, res=128, seed=0)
     path = write_subject_h5(tmp_path / "subject.h5", rows, subject=subj, attrs=attrs)
     data = read_subject(path)
     assert data["landmarks"].shape == (68, 3) and data["viewmats"].shape[0] == 54

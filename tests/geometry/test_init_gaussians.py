@@ -91,7 +91,7 @@ def test_sampled_points_and_bad_input(subject):
     bad[5, 0] = float("nan")
     with pytest.raises(ToolkitError, match="landmarks"):
         init_gaussians(v, f, bad)
-    with pytest.raises(ToolkitError):
+    with pytest.raises(ToolkitError, match="empty mesh"):
         init_gaussians(v, f[:0], lmk)
 
 

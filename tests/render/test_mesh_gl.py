@@ -9,19 +9,11 @@ import pytest
 import torch
 
 import render.mesh_gl as mesh_gl
+from tests.gl import gl_available
 from toolkit.cameras import intrinsics, look_at, project_points
 from toolkit.errors import ToolkitError
 
-
-def _egl_ok() -> bool:
-    try:
-        mesh_gl.shared_context()
-        return True
-    except ToolkitError:
-        return False
-
-
-pytestmark = pytest.mark.skipif(not _egl_ok(), reason="no headless EGL OpenGL 3.3 context on this machine")
+pytestmark = pytest.mark.skipif(not gl_available(), reason="no headless EGL OpenGL 3.3 context on this machine")
 
 
 def cube(half: float = 0.5):

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import math
 
+import moderngl
 import numpy as np
 import pytest
 import torch
 
+from tests.gl import skip_without_gl
 from toolkit.errors import ToolkitError
-
-moderngl = pytest.importorskip("moderngl")
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +21,7 @@ def ctx():
     try:
         return preview._shared_context()
     except ToolkitError as e:  # no EGL on this machine: the message itself is tested below
-        pytest.skip(f"no headless OpenGL: {e}")
+        skip_without_gl(f"no headless OpenGL: {e}")
 
 
 # ------------------------------------------------------------------ an independent dense reference

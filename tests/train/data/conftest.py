@@ -4,20 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from toolkit.errors import ToolkitError
+from tests.gl import gl_available, skip_without_gl
 
-
-def _egl_ok() -> bool:
-    try:
-        from render.mesh_gl import shared_context
-
-        shared_context()
-        return True
-    except ToolkitError:
-        return False
-
-
-EGL = _egl_ok()
+EGL = gl_available()
 needs_gl = pytest.mark.skipif(not EGL, reason="no headless EGL OpenGL 3.3 context on this machine")
 
 
@@ -38,7 +27,7 @@ def subject(subject_params):
 @pytest.fixture(scope="session")
 def subject_file(tmp_path_factory, subject_params, subject):
     if not EGL:
-        pytest.skip("no headless EGL OpenGL 3.3 context on this machine")
+        skip_without_gl("no headless EGL OpenGL 3.3 context on this machine")
     from train.data.format import write_subject_h5
     from train.data.generate import generate_subject
 
