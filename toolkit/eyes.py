@@ -32,6 +32,9 @@ def fit_sphere(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     p = points.detach().to(torch.float64)
     mu = p.mean(0)
     q = p - mu  # centring keeps the normal equations well conditioned far from the origin
+    spread = torch.linalg.svdvals(q)  # lstsq would return a finite but arbitrary sphere for flat points
+    if not bool(torch.isfinite(spread).all()) or spread[2] <= 1e-9 * spread[0]:
+        raise ToolkitError("fit_sphere: the points do not determine a sphere (coplanar or degenerate)")
     A = torch.cat([2 * q, torch.ones(q.shape[0], 1, dtype=q.dtype)], 1)
     b = (q * q).sum(1, keepdim=True)
     sol = torch.linalg.lstsq(A, b).solution.squeeze(1)

@@ -43,6 +43,8 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11) -> torch.Te
     import kornia
 
     _check_pair(pred, target)
+    if min(pred.shape[-2:]) < 2:  # the window's reflect padding needs 2 pixels a side
+        raise ToolkitError(f"ssim: images must be at least 2x2 pixels, got {pred.shape[-2]}x{pred.shape[-1]}")
     window = min(window, pred.shape[-1] - (1 - pred.shape[-1] % 2), pred.shape[-2] - (1 - pred.shape[-2] % 2))
     window = max(window, 3)
     return kornia.metrics.ssim(pred, target, window).flatten(1).mean(1)

@@ -16,6 +16,17 @@ def test_fit_sphere_exact_and_degenerate():
     assert torch.allclose(c, c0, atol=1e-9) and r.item() == pytest.approx(0.012, rel=1e-7)
     with pytest.raises(ToolkitError, match="at least 4"):
         fit_sphere(torch.zeros(3, 3))
+    # Coplanar points (here 5 in the z = 0 plane, not on one circle) or repeated ones determine no sphere.
+    flat = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1.2, 0], [0.3, 0.5, 0]])
+    for bad in (flat, torch.ones(6, 3), flat + torch.tensor([5.0, -2, 1])):
+        with pytest.raises(ToolkitError, match="do not determine a sphere"):
+            fit_sphere(bad)
+    # A narrow cap (20 degrees across) still does, from float32 input.
+    t = torch.linspace(0, 2 * math.pi, 40)
+    cap = torch.stack([0.17 * t.cos(), 0.17 * t.sin(), torch.full_like(t, math.sqrt(1 - 0.17**2))], 1)
+    cap = torch.cat([cap, torch.tensor([[0.0, 0.0, 1.0]])])
+    c, r = fit_sphere(cap)
+    assert torch.allclose(c, torch.zeros(3), atol=1e-4) and r.item() == pytest.approx(1.0, abs=1e-4)
 
 
 def test_gaze_rotation_maps_frontal_to_gaze():

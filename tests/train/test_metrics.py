@@ -21,6 +21,9 @@ def test_ssim_identity_and_degradation():
     noisy = (x + 0.2 * torch.randn(2, 3, 32, 32, generator=g)).clamp(0, 1)
     assert (ssim(x, noisy) < 0.9).all()
     assert torch.isfinite(ssim(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4))).all()
+    assert torch.allclose(ssim(x[..., :2, :2], x[..., :2, :2]), torch.ones(2), atol=1e-5)  # the smallest size
+    with pytest.raises(ToolkitError, match="ssim: images must be at least 2x2 pixels, got 1x1"):
+        ssim(torch.zeros(1, 3, 1, 1), torch.zeros(1, 3, 1, 1))
 
 
 def test_composite_on_white_ignores_background():
