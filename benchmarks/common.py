@@ -6,6 +6,7 @@ under ``out/benchmarks/``. Timings are medians of repeated runs after a warm-up.
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import resource
@@ -17,6 +18,31 @@ from typing import Any, Callable, Sequence
 import torch
 
 OUT_DIR = Path(os.environ.get("DITGAZE_BENCH_OUT", "out/benchmarks"))
+
+
+def count(least: int = 1) -> Callable[[str], int]:
+    """An argparse type for a count flag: an integer >= ``least`` (else argparse's one-line usage error)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < least:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {least}, got {value}")
+        return value
+
+    return parse
+
+
+def positive(text: str) -> float:
+    """An argparse type for a duration, rate or budget flag: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+    return value
 
 
 def machine_info() -> str:
@@ -34,7 +60,9 @@ def machine_info() -> str:
 
 
 def timeit(fn: Callable[[], Any], *, repeats: int = 5, warmup: int = 1, sync_cuda: bool = False) -> float:
-    """Median wall-clock seconds of ``fn()`` over ``repeats`` runs after ``warmup`` runs."""
+    """Median wall-clock seconds of ``fn()`` over ``repeats`` (>= 1) runs after ``warmup`` runs."""
+    if repeats < 1:
+        raise ValueError(f"timeit: repeats must be >= 1, got {repeats}")
     for _ in range(warmup):
         fn()
     times = []
@@ -50,7 +78,7 @@ def timeit(fn: Callable[[], Any], *, repeats: int = 5, warmup: int = 1, sync_cud
 
 
 def peak_rss_gb() -> float:
-    """Peak resident memory of this process so far, in GB (Linux ru_maxrss is in KiB)."""
+    """Peak resident memory of this process so far, in GiB (Linux ru_maxrss is in KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
 
 

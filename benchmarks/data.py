@@ -7,7 +7,8 @@ Target (issue 5): 8 subjects × 10 frames × 18 cameras at 128² in under 60 s o
 
 Columns: time split into subject meshing, rendering + labels (GL), HDF5 writing; images/s overall; file size;
 and, as the error column, the largest landmark reprojection error (stored 3D landmarks through the stored K
-and extrinsics against the stored 2D landmarks, pixels). Mask/silhouette and iris/gaze errors are tested
+and extrinsics against the stored 2D landmarks, pixels: a consistency check of the stored labels, not of the
+images). Mask/silhouette and iris/gaze errors against the images are tested
 in tests/train/data/test_synthetic.py.
 """
 
@@ -24,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot  # noqa: E402
+from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot  # noqa: E402
 from toolkit.cameras import eth_xgaze_rig  # noqa: E402
 from toolkit.errors import run_cli  # noqa: E402
 from train.data.format import write_subject_h5  # noqa: E402
@@ -68,8 +69,8 @@ def run(res: int, n_subjects: int, n_frames: int, out: Path) -> dict:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--subjects", type=int, default=8, help="subjects at 128² (512² uses a quarter)")
-    ap.add_argument("--frames", type=int, default=10)
+    ap.add_argument("--subjects", type=count(1), default=8, help="subjects at 128² (512² uses a quarter)")
+    ap.add_argument("--frames", type=count(1), default=10)
     a = ap.parse_args(argv)
     print(machine_info())
     import os

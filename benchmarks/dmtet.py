@@ -29,7 +29,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import torch  # noqa: E402
 
-from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot, timeit  # noqa: E402
+from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot, timeit  # noqa: E402
 from geometry.dmtet import marching_tets  # noqa: E402
 from geometry.tets import subdivide, tet_grid  # noqa: E402
 from toolkit.errors import run_cli  # noqa: E402
@@ -187,10 +187,10 @@ def breakdown(res: int, repeats: int) -> list[dict]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--res", type=int, nargs="+", default=[16, 32, 64, 128])
+    ap.add_argument("--res", type=count(1), nargs="+", default=[16, 32, 64, 128])
     ap.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=list(SHAPES))
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: leave the default)")
+    ap.add_argument("--repeats", type=count(1), default=3)
+    ap.add_argument("--threads", type=count(0), default=0, help="torch threads (0: leave the default)")
     ap.add_argument("--breakdown-only", action="store_true", help="only the Kuhn target timing at max(--res)")
     a = ap.parse_args(argv)
     if a.threads:

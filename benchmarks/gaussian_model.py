@@ -21,24 +21,36 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot, timeit  # noqa: E402
-from toolkit.errors import run_cli  # noqa: E402
+from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot, timeit  # noqa: E402
+from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.procedural import demo_camera, demo_head_scene  # noqa: E402
 from train.gaussian_model import GaussianModel, GaussianModelConfig  # noqa: E402
+
+
+def _counts(flag: str, text: str, least: int) -> list[int]:
+    """A comma list of integers >= ``least``, or a one-line error naming ``flag``."""
+    try:
+        values = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        values = []
+    if not values or min(values) < least:
+        raise ToolkitError(f"{flag}: expected a comma list of integers >= {least}, got {text!r}")
+    return values
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--gaussians", default="5000,20000")
     ap.add_argument("--sizes", default="128,512")
-    ap.add_argument("--batch", type=int, default=2)
-    ap.add_argument("--hidden", type=int, default=128)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--batch", type=count(1), default=2)
+    ap.add_argument("--hidden", type=count(1), default=128)
+    ap.add_argument("--repeats", type=count(1), default=3)
     a = ap.parse_args(argv)
+    gaussians, sizes = _counts("--gaussians", a.gaussians, 1), _counts("--sizes", a.sizes, 16)
     print(machine_info())
     dev = "cuda" if torch.cuda.is_available() else "cpu"
     rows, series = [], {}
-    for n in (int(x) for x in a.gaussians.split(",")):
+    for n in gaussians:
         scene = demo_head_scene(n)
         torch.manual_seed(0)
         model = GaussianModel.from_scene(scene, GaussianModelConfig(hidden=a.hidden)).to(dev)
@@ -49,7 +61,7 @@ def main(argv=None) -> int:
         code = (torch.randn(B, 144, generator=g) * 0.5).to(dev)
         pose = torch.zeros(B, 6, device=dev)
         gaze = ((torch.rand(B, 2, generator=g) - 0.5) * 0.6).to(dev)
-        for size in (int(x) for x in a.sizes.split(",")):
+        for size in sizes:
             cam = demo_camera(size, size)
             vm, K = cam.viewmat.expand(B, 4, 4).to(dev), cam.K.expand(B, 3, 3).to(dev)
             sync = dev == "cuda"

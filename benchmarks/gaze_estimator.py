@@ -30,7 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot, timeit  # noqa: E402
+from benchmarks.common import OUT_DIR, count, format_table, machine_info, positive, save_plot, timeit  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.io import load_tensors, save_tensors  # noqa: E402
 from toolkit.rotations import angular_error_deg  # noqa: E402
@@ -145,19 +145,19 @@ def error_by_iris(pred: torch.Tensor, labels: torch.Tensor, iris: torch.Tensor, 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--subjects", type=int, default=32, help="procedural training subjects")
-    ap.add_argument("--frames", type=int, default=120, help="random gazes per training subject (2 cameras each)")
-    ap.add_argument("--test-subjects", type=int, default=8)
+    ap.add_argument("--subjects", type=count(1), default=32, help="procedural training subjects")
+    ap.add_argument("--frames", type=count(1), default=120, help="random gazes per training subject (2 cameras each)")
+    ap.add_argument("--test-subjects", type=count(1), default=8)
     ap.add_argument("--data", help="evaluate on this dataset's held-out split instead of procedural test subjects")
     ap.add_argument("--modes", default="eyes,face")
-    ap.add_argument("--steps", type=int, default=3000)
-    ap.add_argument("--budget-s", type=float, help="training seconds per mode: the steps follow from a timed "
+    ap.add_argument("--steps", type=count(1), default=3000)
+    ap.add_argument("--budget-s", type=positive, help="training seconds per mode: the steps follow from a timed "
                     "probe (overrides --steps)")
-    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--batch", type=count(1), default=64)
     ap.add_argument("--channels", help="comma list of stride-2 stage widths (default: the design's own)")
-    ap.add_argument("--lr", type=float, default=2e-3)
-    ap.add_argument("--input-size", type=int, default=64, help="face mode: input width")
-    ap.add_argument("--res", type=int, default=128, help="face-crop size of the rendered images (eyes mode: "
+    ap.add_argument("--lr", type=positive, default=2e-3)
+    ap.add_argument("--input-size", type=count(1), default=64, help="face mode: input width")
+    ap.add_argument("--res", type=count(1), default=128, help="face-crop size of the rendered images (eyes mode: "
                     "train.gaze_estimator.eye_config(res), the estimator stage's design at that size)")
     ap.add_argument("--landmark-noise", type=float, default=GazeEstimatorTrainConfig.landmark_noise,
                     help="training jitter of the landmarks, pixels")
@@ -167,15 +167,15 @@ def main(argv=None) -> int:
                     help="regress the camera-frame gaze directly (default: head-frame gaze + head pose, composed)")
     ap.add_argument("--no-mirror-average", action="store_true",
                     help="predict from the image alone (default: average with its mirror)")
-    ap.add_argument("--log-every", type=int, default=250)
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
+    ap.add_argument("--log-every", type=count(1), default=250)
+    ap.add_argument("--threads", type=count(0), default=1, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for <mode>.safetensors")
     ap.add_argument("--cache", help="folder keeping the rendered procedural sets between runs")
     ap.add_argument("--init", help="fine-tune this saved estimator (its design replaces --modes, --camera-frame, "
                     "--channels and --no-mirror-average; the rate schedule starts afresh)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
                     help="where the estimators train and run (default: cuda when available)")
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+    ap.add_argument("--workers", type=count(1), default=os.cpu_count() or 1,
                     help="processes rendering the procedural subjects (the images do not depend on it)")
     a = ap.parse_args(argv)
     if a.threads:
@@ -230,10 +230,10 @@ def main(argv=None) -> int:
             step_s = probe_step_s(train, cfg, tc, a.device, init=init)
             tc = dataclasses.replace(tc, steps=max(1, int(a.budget_s / step_s)))
             print(f"{mode}: {1e3 * step_s:.1f} ms per step (probe) -> {tc.steps} steps in {a.budget_s:g} s", flush=True)
-        start, stamps = time.perf_counter(), []
+        start, stamps, eval_s = time.perf_counter(), [], [0.0]
 
-        def progress(step, rec, st=stamps, t0=start, mode=mode):
-            st.append(time.perf_counter() - t0)
+        def progress(step, rec, st=stamps, t0=start, mode=mode, ev=eval_s):
+            st.append(time.perf_counter() - t0 - ev[0])  # training time: the held-out evaluations left out
             print(f"  {mode} step {step}: {st[-1]:.0f} s, loss {rec['loss']:.4f}, held-out gaze "
                   f"{rec['val_gaze_deg']:.2f} deg, head {rec['val_head_deg']:.2f} deg", flush=True)
 
@@ -241,8 +241,23 @@ def main(argv=None) -> int:
             print(f"{mode}: starting from {a.init}: held-out gaze "
                   f"{evaluate_gaze_estimator(init.to(a.device), *test, device=a.device)['val_gaze_deg']:.2f} deg",
                   flush=True)
-        model, hist = train_gaze_estimator(train[0], train[1], cfg, tc, landmarks=train[2], val=test,
-                                           callback=progress, device=a.device, init=init)
+        import train.gaze_estimator as ge
+
+        real_eval = ge.evaluate_gaze_estimator
+
+        def timed_eval(*args, ev=eval_s, real_eval=real_eval, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return real_eval(*args, **kwargs)
+            finally:
+                ev[0] += time.perf_counter() - t0
+
+        ge.evaluate_gaze_estimator = timed_eval  # the trainer calls it by its module name
+        try:
+            model, hist = train_gaze_estimator(train[0], train[1], cfg, tc, landmarks=train[2], val=test,
+                                               callback=progress, device=a.device, init=init)
+        finally:
+            ge.evaluate_gaze_estimator = real_eval
         for rec, t in zip(hist, stamps):
             rows.append({"mode": mode, "step": rec["step"], "train_s": t, "loss": rec["loss"],
                          "heldout_gaze_deg": rec["val_gaze_deg"], "heldout_head_deg": rec["val_head_deg"]})
@@ -258,7 +273,7 @@ def main(argv=None) -> int:
         with torch.no_grad():
             sec = timeit(lambda m=model, x=x, lm=lm: m(x, lm), repeats=5, sync_cuda=x.is_cuda)
         print(f"{mode}: held-out gaze {hist[-1]['val_gaze_deg']:.2f} deg, head {hist[-1]['val_head_deg']:.2f} deg; "
-              f"inference {a.batch / sec:.0f} images/s (batch {a.batch}, {a.device}, {torch.get_num_threads()} threads)")
+              f"inference {len(x) / sec:.0f} images/s (batch {len(x)}, {a.device}, {torch.get_num_threads()} threads)")
     print(format_table(rows, ["mode", "step", "train_s", "loss", "heldout_gaze_deg", "heldout_head_deg"]))
     png = save_plot(OUT_DIR / "gaze_estimator.png", series, xlabel="training time (s)",
                     ylabel="held-out gaze error (deg)", title=f"gaze estimator, {source}", logy=True)

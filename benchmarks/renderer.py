@@ -30,8 +30,8 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot, timeit  # noqa: E402
-from toolkit.errors import run_cli  # noqa: E402
+from benchmarks.common import OUT_DIR, count, format_table, machine_info, positive, save_plot, timeit  # noqa: E402
+from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.io import atomic_write_json  # noqa: E402
 from train.baseline_renderer import BaselineConfig, BaselineRenderer  # noqa: E402
 from train.codec import AutoencoderConfig, KLAutoencoder, train_autoencoder  # noqa: E402
@@ -231,19 +231,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smoke run: few steps, small sets")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    ap.add_argument("--threads", type=count(1), default=None, help="torch CPU threads (default: torch's choice)")
     ap.add_argument("--model", default="DiT-Gaze-tiny", help="DiT configuration trained for the error curve")
-    ap.add_argument("--train-size", type=int, default=64)
-    ap.add_argument("--train-images", type=int, default=2048)
-    ap.add_argument("--test-images", type=int, default=32)
-    ap.add_argument("--ae-steps", type=int, default=800)
-    ap.add_argument("--steps", type=int, default=600)
-    ap.add_argument("--batch", type=int, default=16)
-    ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--speed-batch", type=int, default=8)
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--train-size", type=count(1), default=64)
+    ap.add_argument("--train-images", type=count(1), default=2048)
+    ap.add_argument("--test-images", type=count(1), default=32)
+    ap.add_argument("--ae-steps", type=count(1), default=800)
+    ap.add_argument("--steps", type=count(1), default=600)
+    ap.add_argument("--batch", type=count(1), default=16)
+    ap.add_argument("--lr", type=positive, default=1e-3)
+    ap.add_argument("--speed-batch", type=count(1), default=8)
+    ap.add_argument("--repeats", type=count(1), default=5)
     ap.add_argument("--speed-models", nargs="+", default=["DiT-Gaze-tiny", "DiT-Gaze-paper", "DiT-Gaze-paper/4"])
-    ap.add_argument("--speed-codec-channels", type=int, nargs="+", default=[16, 8],
+    ap.add_argument("--speed-codec-channels", type=count(1), nargs="+", default=[16, 8],
                     help="full-resolution channels of the KL autoencoders timed (the first is the one trained)")
     ap.add_argument("--skip-training", action="store_true", help="speed table only")
     ap.add_argument("--no-bf16", dest="bf16", action="store_false", help="skip the bf16 autocast timings")
@@ -253,6 +253,10 @@ def main(argv=None) -> int:
         args.speed_models, args.bf16 = ["DiT-Gaze-tiny"], False
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.device not in ("cpu", "cuda") and not args.device.startswith("cuda:"):
+        raise ToolkitError(f"--device: expected cpu, cuda or cuda:N, got {args.device!r}")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise ToolkitError(f"--device {args.device}: CUDA is not available here; use --device cpu")
     device = torch.device(args.device)
     print(machine_info())
     print(f"load before: {uptime()}\n", flush=True)

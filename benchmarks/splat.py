@@ -29,7 +29,16 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, format_table, machine_info, peak_rss_gb, save_plot, timeit  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    OUT_DIR,
+    count,
+    format_table,
+    machine_info,
+    peak_rss_gb,
+    positive,
+    save_plot,
+    timeit,
+)
 
 
 def make_scene(kind: str, n: int, res: int, d: int, device: str):
@@ -183,8 +192,8 @@ def run_all(cfgs: list[dict]) -> list[dict]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small subset (about a minute)")
-    ap.add_argument("--threads", type=int, default=torch.get_num_threads())
-    ap.add_argument("--ref-budget", type=float, default=4e8, help="max pixel x Gaussian pairs for the dense ref")
+    ap.add_argument("--threads", type=count(1), default=torch.get_num_threads())
+    ap.add_argument("--ref-budget", type=positive, default=4e8, help="max pixel x Gaussian pairs for the dense ref")
     ap.add_argument("--cuda", action="store_true", help="also time on CUDA where available")
     ap.add_argument("--no-knobs", action="store_true")
     a = ap.parse_args(argv)

@@ -46,7 +46,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, format_table, machine_info, save_plot  # noqa: E402
+from benchmarks.common import OUT_DIR, count, format_table, machine_info, positive, save_plot  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 
 PARTS = ("fields", "splat", "renderer", "losses")
@@ -142,9 +142,8 @@ def time_steps(trainer, params, device, *, warmup: int, repeats: int, seed: int 
                clock=time.perf_counter) -> dict[str, float]:
     """Median seconds per part over ``repeats`` real training steps (after ``warmup``).
 
-    ``clock``: ``time.perf_counter`` (wall) or ``time.thread_time`` (this thread's CPU time: with one torch
-    thread on CPU, forward and backward both run on the calling thread, so it measures the work itself
-    and not the other jobs on a shared machine)."""
+    ``clock``: ``time.perf_counter`` (wall) or ``time.process_time`` (the process's CPU time, all its threads:
+    with one torch thread on CPU it measures the work itself and not the other jobs on a shared machine)."""
     from train.loop import step_generator
 
     timer = PartTimer(device, clock)
@@ -240,7 +239,7 @@ def breakdown(ctx, device, args) -> list[dict]:
             print(f"[bench] step breakdown: {name} / {kind} ...", flush=True)
             trainer, n_g = (demo_trainer(sub, device) if name == "demo" else make())
             params = [p for m in (trainer.model, trainer.renderer) for p in m.parameters() if p.requires_grad]
-            clock = time.thread_time if args.clock == "cpu" else time.perf_counter
+            clock = time.process_time if args.clock == "cpu" else time.perf_counter  # as the curves below
             t = time_steps(trainer, params, device, warmup=args.warmup, repeats=args.repeats, clock=clock)
             label = f"{name} ({res}², batch {batch}, {n_g} Gaussians, {dit if kind == 'dit' else 'U-Net'})"
             if name == "paper":
@@ -323,22 +322,22 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run-dir", default=str(OUT_DIR / "train_run"), help="a demo run with its first four stages")
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    ap.add_argument("--budget-s", type=float, default=180.0, help="training seconds per variant (default 180)")
+    ap.add_argument("--threads", type=count(1), default=1, help="torch CPU threads (default 1)")
+    ap.add_argument("--budget-s", type=positive, default=180.0, help="training seconds per variant (default 180)")
     ap.add_argument("--clock", choices=("cpu", "wall"), default=None,
                     help="training time as process CPU seconds (default on CPU: with one thread it equals "
                          "wall-clock on an idle core and is robust to other jobs on a shared machine) or wall-clock "
                          "(default on CUDA)")
-    ap.add_argument("--eval-every-s", type=float, default=45.0, help="training seconds between evaluations")
-    ap.add_argument("--pairs", type=int, default=12, help="evaluation pairs per held-out subject")
-    ap.add_argument("--max-steps", type=int, default=100_000, help="stop a variant earlier at this many steps")
+    ap.add_argument("--eval-every-s", type=positive, default=45.0, help="training seconds between evaluations")
+    ap.add_argument("--pairs", type=count(1), default=12, help="evaluation pairs per held-out subject")
+    ap.add_argument("--max-steps", type=count(1), default=100_000, help="stop a variant earlier at this many steps")
     ap.add_argument("--variants", default="dit,unet",
                     help="comma-separated NAME[:override;override...] (default dit,unet = gaussian.renderer=...)")
     ap.add_argument("--breakdown-renderers", default="dit,unet")
-    ap.add_argument("--paper-gaussians", type=int, default=20000)
-    ap.add_argument("--paper-batch", type=int, default=1)
-    ap.add_argument("--warmup", type=int, default=1)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--paper-gaussians", type=count(1), default=20000)
+    ap.add_argument("--paper-batch", type=count(1), default=1)
+    ap.add_argument("--warmup", type=count(0), default=1)
+    ap.add_argument("--repeats", type=count(1), default=3)
     ap.add_argument("--skip-breakdown", action="store_true")
     ap.add_argument("--skip-paper", action="store_true")
     ap.add_argument("--skip-curve", action="store_true")
