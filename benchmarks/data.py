@@ -46,6 +46,10 @@ def run(res: int, n_subjects: int, n_frames: int, out: Path) -> dict:
     rig = eth_xgaze_rig(radius=RIG_RADIUS)
     t_build = t_render = t_write = 0.0
     n_images, err = 0, 0.0
+    # One throw-away subject first: the first build and render pay one-time costs (caches, the GL context)
+    # that would otherwise skew a short run's throughput.
+    warm = SubjectParams.sample(999)
+    generate_subject(warm, n_frames=1, res=res, rig=rig, subject=build_subject(warm))
     t0 = time.perf_counter()
     for s in range(n_subjects):
         params = SubjectParams.sample(1000 + s)
