@@ -6,7 +6,6 @@ under ``out/benchmarks/``. Timings are medians of repeated runs after a warm-up.
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import resource
@@ -17,32 +16,37 @@ from typing import Any, Callable, Sequence
 
 import torch
 
+from toolkit.errors import ToolkitError
+
 OUT_DIR = Path(os.environ.get("DITGAZE_BENCH_OUT", "out/benchmarks"))
 
 
-def count(least: int = 1) -> Callable[[str], int]:
-    """An argparse type for a count flag: an integer >= ``least`` (else argparse's one-line usage error)."""
+def count(flag: str, least: int = 1) -> Callable[[str], int]:
+    """An argparse type for the count flag ``flag``: an integer >= ``least``, else a one-line ToolkitError."""
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < least:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {least}, got {value}")
+            value = None
+        if value is None or value < least:
+            raise ToolkitError(f"{flag}: expected an integer >= {least}, got {text!r}")
         return value
 
     return parse
 
 
-def positive(text: str) -> float:
-    """An argparse type for a duration, rate or budget flag: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
-    return value
+def positive(flag: str) -> Callable[[str], float]:
+    """An argparse type for the duration, rate or budget flag ``flag``: a finite number > 0."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        if not 0 < value < float("inf"):
+            raise ToolkitError(f"{flag}: expected a positive finite number, got {text!r}")
+        return value
+
+    return parse
 
 
 def machine_info() -> str:

@@ -73,8 +73,8 @@ def run(res: int, n_subjects: int, n_frames: int, out: Path) -> dict:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--subjects", type=count(1), default=8, help="subjects at 128² (512² uses a quarter)")
-    ap.add_argument("--frames", type=count(1), default=10)
+    ap.add_argument("--subjects", type=count("--subjects", 1), default=8, help="subjects at 128² (512² uses a quarter)")
+    ap.add_argument("--frames", type=count("--frames", 1), default=10)
     a = ap.parse_args(argv)
     print(machine_info())
     import os

@@ -187,10 +187,10 @@ def breakdown(res: int, repeats: int) -> list[dict]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--res", type=count(1), nargs="+", default=[16, 32, 64, 128])
+    ap.add_argument("--res", type=count("--res", 1), nargs="+", default=[16, 32, 64, 128])
     ap.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=list(SHAPES))
-    ap.add_argument("--repeats", type=count(1), default=3)
-    ap.add_argument("--threads", type=count(0), default=0, help="torch threads (0: leave the default)")
+    ap.add_argument("--repeats", type=count("--repeats", 1), default=3)
+    ap.add_argument("--threads", type=count("--threads", 0), default=0, help="torch threads (0: leave the default)")
     ap.add_argument("--breakdown-only", action="store_true", help="only the Kuhn target timing at max(--res)")
     a = ap.parse_args(argv)
     if a.threads:

@@ -145,19 +145,19 @@ def error_by_iris(pred: torch.Tensor, labels: torch.Tensor, iris: torch.Tensor, 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--subjects", type=count(1), default=32, help="procedural training subjects")
-    ap.add_argument("--frames", type=count(1), default=120, help="random gazes per training subject (2 cameras each)")
-    ap.add_argument("--test-subjects", type=count(1), default=8)
+    ap.add_argument("--subjects", type=count("--subjects", 1), default=32, help="procedural training subjects")
+    ap.add_argument("--frames", type=count("--frames", 1), default=120, help="random gazes per training subject (2 cameras each)")
+    ap.add_argument("--test-subjects", type=count("--test-subjects", 1), default=8)
     ap.add_argument("--data", help="evaluate on this dataset's held-out split instead of procedural test subjects")
     ap.add_argument("--modes", default="eyes,face")
-    ap.add_argument("--steps", type=count(1), default=3000)
-    ap.add_argument("--budget-s", type=positive, help="training seconds per mode: the steps follow from a timed "
+    ap.add_argument("--steps", type=count("--steps", 1), default=3000)
+    ap.add_argument("--budget-s", type=positive("--budget-s"), help="training seconds per mode: the steps follow from a timed "
                     "probe (overrides --steps)")
-    ap.add_argument("--batch", type=count(1), default=64)
+    ap.add_argument("--batch", type=count("--batch", 1), default=64)
     ap.add_argument("--channels", help="comma list of stride-2 stage widths (default: the design's own)")
-    ap.add_argument("--lr", type=positive, default=2e-3)
-    ap.add_argument("--input-size", type=count(1), default=64, help="face mode: input width")
-    ap.add_argument("--res", type=count(1), default=128, help="face-crop size of the rendered images (eyes mode: "
+    ap.add_argument("--lr", type=positive("--lr"), default=2e-3)
+    ap.add_argument("--input-size", type=count("--input-size", 1), default=64, help="face mode: input width")
+    ap.add_argument("--res", type=count("--res", 1), default=128, help="face-crop size of the rendered images (eyes mode: "
                     "train.gaze_estimator.eye_config(res), the estimator stage's design at that size)")
     ap.add_argument("--landmark-noise", type=float, default=GazeEstimatorTrainConfig.landmark_noise,
                     help="training jitter of the landmarks, pixels")
@@ -167,15 +167,15 @@ def main(argv=None) -> int:
                     help="regress the camera-frame gaze directly (default: head-frame gaze + head pose, composed)")
     ap.add_argument("--no-mirror-average", action="store_true",
                     help="predict from the image alone (default: average with its mirror)")
-    ap.add_argument("--log-every", type=count(1), default=250)
-    ap.add_argument("--threads", type=count(0), default=1, help="torch threads (0: torch default)")
+    ap.add_argument("--log-every", type=count("--log-every", 1), default=250)
+    ap.add_argument("--threads", type=count("--threads", 0), default=1, help="torch threads (0: torch default)")
     ap.add_argument("--save", help="folder for <mode>.safetensors")
     ap.add_argument("--cache", help="folder keeping the rendered procedural sets between runs")
     ap.add_argument("--init", help="fine-tune this saved estimator (its design replaces --modes, --camera-frame, "
                     "--channels and --no-mirror-average; the rate schedule starts afresh)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
                     help="where the estimators train and run (default: cuda when available)")
-    ap.add_argument("--workers", type=count(1), default=os.cpu_count() or 1,
+    ap.add_argument("--workers", type=count("--workers", 1), default=os.cpu_count() or 1,
                     help="processes rendering the procedural subjects (the images do not depend on it)")
     a = ap.parse_args(argv)
     if a.threads:

@@ -129,9 +129,9 @@ def _last_mid(sp) -> np.ndarray:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=count(1), nargs="+", default=[10000, 50000, 100000, 300000])
-    ap.add_argument("--res", type=count(1), default=512)
-    ap.add_argument("--frames", type=count(1), default=8)
+    ap.add_argument("--sizes", type=count("--sizes", 1), nargs="+", default=[10000, 50000, 100000, 300000])
+    ap.add_argument("--res", type=count("--res", 1), default=512)
+    ap.add_argument("--frames", type=count("--frames", 1), default=8)
     args = ap.parse_args(argv)
     from render.preview import _shared_context
 

@@ -91,15 +91,15 @@ def main(argv=None) -> int:
     ap.add_argument("--run-dir", default=None,
                     help="a trained run (train/run.py) on synthetic data (default: out/demo/run when `make demo` "
                          "made one, else the tiny preset is trained into out/benchmarks/redirect_tiny_run, ~30 s)")
-    ap.add_argument("--rows", type=count(1), default=4, help="input rows per held-out subject (spread over the file)")
+    ap.add_argument("--rows", type=count("--rows", 1), default=4, help="input rows per held-out subject (spread over the file)")
     ap.add_argument("--gazes", default="grid:3x3:25", help="target gazes (apps.redirect --gazes)")
-    ap.add_argument("--fit-steps", type=count(0), nargs="+", default=[0, 10, 20, 40])
-    ap.add_argument("--no-gaze-steps", type=count(0), nargs="*", default=[40],
+    ap.add_argument("--fit-steps", type=count("--fit-steps", 0), nargs="+", default=[0, 10, 20, 40])
+    ap.add_argument("--no-gaze-steps", type=count("--no-gaze-steps", 0), nargs="*", default=[40],
                     help="also fit these step counts without the gaze term (what the term adds)")
-    ap.add_argument("--natural-steps", type=count(0), nargs="*", default=[],
+    ap.add_argument("--natural-steps", type=count("--natural-steps", 0), nargs="*", default=[],
                     help="also fit these step counts as apps.redirect --natural-eyes does (a gaze term that may "
                          "only turn the eyes)")
-    ap.add_argument("--threads", type=count(1), default=2)
+    ap.add_argument("--threads", type=count("--threads", 1), default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)

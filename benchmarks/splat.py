@@ -192,8 +192,8 @@ def run_all(cfgs: list[dict]) -> list[dict]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small subset (about a minute)")
-    ap.add_argument("--threads", type=count(1), default=torch.get_num_threads())
-    ap.add_argument("--ref-budget", type=positive, default=4e8, help="max pixel x Gaussian pairs for the dense ref")
+    ap.add_argument("--threads", type=count("--threads", 1), default=torch.get_num_threads())
+    ap.add_argument("--ref-budget", type=positive("--ref-budget"), default=4e8, help="max pixel x Gaussian pairs for the dense ref")
     ap.add_argument("--cuda", action="store_true", help="also time on CUDA where available")
     ap.add_argument("--no-knobs", action="store_true")
     a = ap.parse_args(argv)

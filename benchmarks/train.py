@@ -322,22 +322,22 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run-dir", default=str(OUT_DIR / "train_run"), help="a demo run with its first four stages")
-    ap.add_argument("--threads", type=count(1), default=1, help="torch CPU threads (default 1)")
-    ap.add_argument("--budget-s", type=positive, default=180.0, help="training seconds per variant (default 180)")
+    ap.add_argument("--threads", type=count("--threads", 1), default=1, help="torch CPU threads (default 1)")
+    ap.add_argument("--budget-s", type=positive("--budget-s"), default=180.0, help="training seconds per variant (default 180)")
     ap.add_argument("--clock", choices=("cpu", "wall"), default=None,
                     help="training time as process CPU seconds (default on CPU: with one thread it equals "
                          "wall-clock on an idle core and is robust to other jobs on a shared machine) or wall-clock "
                          "(default on CUDA)")
-    ap.add_argument("--eval-every-s", type=positive, default=45.0, help="training seconds between evaluations")
-    ap.add_argument("--pairs", type=count(1), default=12, help="evaluation pairs per held-out subject")
-    ap.add_argument("--max-steps", type=count(1), default=100_000, help="stop a variant earlier at this many steps")
+    ap.add_argument("--eval-every-s", type=positive("--eval-every-s"), default=45.0, help="training seconds between evaluations")
+    ap.add_argument("--pairs", type=count("--pairs", 1), default=12, help="evaluation pairs per held-out subject")
+    ap.add_argument("--max-steps", type=count("--max-steps", 1), default=100_000, help="stop a variant earlier at this many steps")
     ap.add_argument("--variants", default="dit,unet",
                     help="comma-separated NAME[:override;override...] (default dit,unet = gaussian.renderer=...)")
     ap.add_argument("--breakdown-renderers", default="dit,unet")
-    ap.add_argument("--paper-gaussians", type=count(1), default=20000)
-    ap.add_argument("--paper-batch", type=count(1), default=1)
-    ap.add_argument("--warmup", type=count(0), default=1)
-    ap.add_argument("--repeats", type=count(1), default=3)
+    ap.add_argument("--paper-gaussians", type=count("--paper-gaussians", 1), default=20000)
+    ap.add_argument("--paper-batch", type=count("--paper-batch", 1), default=1)
+    ap.add_argument("--warmup", type=count("--warmup", 0), default=1)
+    ap.add_argument("--repeats", type=count("--repeats", 1), default=3)
     ap.add_argument("--skip-breakdown", action="store_true")
     ap.add_argument("--skip-paper", action="store_true")
     ap.add_argument("--skip-curve", action="store_true")
