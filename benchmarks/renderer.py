@@ -253,6 +253,7 @@ def main(argv=None) -> int:
         args.speed_models, args.bf16 = ["DiT-Gaze-tiny"], False
     if args.threads:
         torch.set_num_threads(args.threads)
+    make_dit(args.model, input_size=8)  # an unknown --model fails here, not after the speed table
     if args.device not in ("cpu", "cuda") and not args.device.startswith("cuda:"):
         raise ToolkitError(f"--device: expected cpu, cuda or cuda:N, got {args.device!r}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():

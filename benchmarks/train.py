@@ -355,6 +355,7 @@ def main(argv=None) -> int:
         args.clock = "wall" if device.type == "cuda" else "cpu"
     if args.clock == "cpu" and args.threads != 1:
         print("note: --clock cpu with several threads counts the CPU time of all of them")
+    variants = parse_variants(args.variants)  # before any measurement: a typo should not cost the breakdown
     ctx = open_prereqs(Path(args.run_dir), args.overrides)
     if not args.skip_breakdown:
         rows = breakdown(ctx, device, args)
@@ -366,7 +367,7 @@ def main(argv=None) -> int:
 
         test_files = run._split(ctx, "test")
         series, final = {}, []
-        for name, ovs in parse_variants(args.variants):
+        for name, ovs in variants:
             print(f"[bench] time to quality: {name} ({' '.join(ovs) or 'run config'}), {args.budget_s:.0f} {args.clock} s "
                   "budget",
                   flush=True)
