@@ -49,6 +49,15 @@ def positive(flag: str) -> Callable[[str], float]:
     return parse
 
 
+def check_device(device: str) -> torch.device:
+    """The ``--device`` flag's value as a device: cpu, cuda or cuda:N, the CUDA ones only where CUDA is."""
+    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
+        raise ToolkitError(f"--device: expected cpu, cuda or cuda:N, got {device!r}")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ToolkitError(f"--device {device}: CUDA is not available here; use --device cpu")
+    return torch.device(device)
+
+
 def machine_info() -> str:
     """One line naming the CPU, cores, torch version and threads (and the GPU where present)."""
     cpu = platform.processor() or platform.machine()

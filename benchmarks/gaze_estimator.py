@@ -30,7 +30,16 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, count, format_table, machine_info, positive, save_plot, timeit  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    OUT_DIR,
+    check_device,
+    count,
+    format_table,
+    machine_info,
+    positive,
+    save_plot,
+    timeit,
+)
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.io import load_tensors, save_tensors  # noqa: E402
 from toolkit.rotations import angular_error_deg  # noqa: E402
@@ -180,8 +189,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
-    if a.device.startswith("cuda") and not torch.cuda.is_available():
-        raise ToolkitError(f"--device {a.device}: CUDA is not available here; use --device cpu")
+    check_device(a.device)
     torch.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest convolutions once
     init = None
     if a.init:

@@ -30,8 +30,17 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, count, format_table, machine_info, positive, save_plot, timeit  # noqa: E402
-from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    OUT_DIR,
+    check_device,
+    count,
+    format_table,
+    machine_info,
+    positive,
+    save_plot,
+    timeit,
+)
+from toolkit.errors import run_cli  # noqa: E402
 from toolkit.io import atomic_write_json  # noqa: E402
 from train.baseline_renderer import BaselineConfig, BaselineRenderer  # noqa: E402
 from train.codec import AutoencoderConfig, KLAutoencoder, train_autoencoder  # noqa: E402
@@ -254,11 +263,7 @@ def main(argv=None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     make_dit(args.model, input_size=8)  # an unknown --model fails here, not after the speed table
-    if args.device not in ("cpu", "cuda") and not args.device.startswith("cuda:"):
-        raise ToolkitError(f"--device: expected cpu, cuda or cuda:N, got {args.device!r}")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        raise ToolkitError(f"--device {args.device}: CUDA is not available here; use --device cpu")
-    device = torch.device(args.device)
+    device = check_device(args.device)
     print(machine_info())
     print(f"load before: {uptime()}\n", flush=True)
 

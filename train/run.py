@@ -420,14 +420,15 @@ def _check_values(cfg: RunConfig) -> None:
     if not cfg.data.root and cfg.data.subjects < 2:
         raise ToolkitError(f"config key 'data.subjects': expected >= 2 synthetic subjects (at least one to train on "
                            f"and one held out), got {cfg.data.subjects}")
-    if cfg.data.frames < 1:
-        raise ToolkitError(f"config key 'data.frames': expected a count >= 1, got {cfg.data.frames}")
-    if not 16 <= cfg.data.res <= 2048:
-        raise ToolkitError(f"config key 'data.res': expected an image size in [16, 2048] pixels, got {cfg.data.res}")
+    from train.data.generate import RES_RANGE
+
+    lo, hi = RES_RANGE
+    if not lo <= cfg.data.res <= hi:
+        raise ToolkitError(f"config key 'data.res': expected an image size in [{lo}, {hi}] pixels, got {cfg.data.res}")
     for name in ("lr", "renderer_lr", "means_lr"):
         if not (rate := getattr(cfg.gaussian, name)) > 0:
             raise ToolkitError(f"config key 'gaussian.{name}': expected a learning rate > 0, got {rate}")
-    for key in ("geometry.steps", "codec.steps", "estimator.steps", "gaussian.steps", "gaussian.batch", "codec.batch",
+    for key in ("data.frames", "geometry.steps", "codec.steps", "estimator.steps", "gaussian.steps", "gaussian.batch", "codec.batch",
                 "estimator.batch", "eval.pairs_per_subject"):
         section, name = key.split(".")
         if not (count := getattr(getattr(cfg, section), name)) >= 1:

@@ -155,9 +155,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _check_flags(a) -> None:
     """Flag values argparse's types cannot catch, named as the user typed them."""
     if a.cmd == "synth":
+        from train.data.generate import RES_RANGE
+
         counts = {"--subjects": a.subjects, "--frames": a.frames, "--test-frames": a.test_frames}
-        if not 16 <= a.res <= 2048:
-            raise ToolkitError(f"--res: expected an image size in [16, 2048] pixels, got {a.res}")
+        if not RES_RANGE[0] <= a.res <= RES_RANGE[1]:
+            raise ToolkitError(f"--res: expected an image size in [{RES_RANGE[0]}, {RES_RANGE[1]}] pixels, got {a.res}")
     else:
         counts = {"--n": a.n, "--tile": a.tile}
     for flag, value in counts.items():

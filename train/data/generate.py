@@ -44,9 +44,13 @@ def rgb_to_u8(rgb: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8)
 
 
+RES_RANGE = (16, 2048)
+"""The image sizes the generator renders, pixels (inclusive)."""
+
+
 def _check_res(res: int) -> None:
-    if not 16 <= res <= 2048:
-        raise ToolkitError(f"res must be in [16, 2048], got {res}")
+    if not RES_RANGE[0] <= res <= RES_RANGE[1]:
+        raise ToolkitError(f"res must be in [{RES_RANGE[0]}, {RES_RANGE[1]}], got {res}")
 
 
 @contextlib.contextmanager
