@@ -331,3 +331,16 @@ def test_benchmark_runs_with_and_without_scikit_image(monkeypatch, tmp_path, cap
     assert r["samples"] == 17**3 and r["faces"] > 0 and r["face_err_mean"] < 0.1 * 2 / 16
     occ = bench.run_mc(bench.sphere, 16, 1, "trimesh")
     assert occ["faces"] > 0 and occ["face_err_mean"] > r["face_err_mean"]  # binary occupancy: worse
+
+
+@pytest.mark.parametrize("argv, msg", [(["--repeats", "0"], "--repeats: expected an integer >= 1, got '0'"),
+                                       (["--threads", "-1"], "--threads: expected an integer >= 0, got '-1'"),
+                                       (["--res", "8", "x"], "--res: expected an integer >= 1, got 'x'")])
+def test_benchmark_bad_counts_are_one_line_errors(capsys, argv, msg):
+    """The benchmarks' shared flag types (benchmarks.common.count): exit 2, one line naming the flag."""
+    import benchmarks.dmtet as bench
+    from toolkit.errors import run_cli
+
+    assert run_cli(bench.main, argv) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {msg}\n"

@@ -502,6 +502,7 @@ def test_benchmark_cache_returns_the_rendered_set_and_probe_times_steps(tmp_path
 @pytest.mark.parametrize("argv, msg", [(["--channels", "8,x"], "--channels: expected a comma list"),
                                        (["--channels", "8,0"], "--channels: expected positive"),
                                        (["--budget-s", "0"], "--budget-s: expected a positive"),
+                                       (["--steps", "0"], "--steps: expected an integer >= 1"),
                                        (["--init", "no/such/estimator.safetensors"], "no/such/estimator")])
 def test_benchmark_bad_options_are_one_line_errors(capsys, argv, msg):
     import benchmarks.gaze_estimator as bench
@@ -510,6 +511,14 @@ def test_benchmark_bad_options_are_one_line_errors(capsys, argv, msg):
     assert run_cli(bench.main, argv + ["--device", "cpu"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and msg in err
+
+
+def test_benchmark_unknown_device_is_a_one_line_error(capsys):
+    import benchmarks.gaze_estimator as bench
+    from toolkit.errors import run_cli
+
+    assert run_cli(bench.main, ["--device", "tpu"]) == 2
+    assert capsys.readouterr().err == "error: --device: expected cpu, cuda or cuda:N, got 'tpu'\n"
 
 
 def test_benchmark_fine_tunes_a_saved_estimator(tmp_path, monkeypatch, capsys):
