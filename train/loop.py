@@ -110,6 +110,7 @@ def train_loop(
     progress: bool = True,
     lr_factor: Callable[[int], float] | None = None,
     on_log: Callable[[int, dict[str, float]], None] | None = None,
+    after_step: Callable[[int], None] | None = None,
     is_main: bool = True,
     dist_info: DistInfo | None = None,
 ) -> dict[str, Any]:
@@ -121,6 +122,8 @@ def train_loop(
     rank together on a non-finite loss. Logged terms are rank 0's shard's.
     ``lr_factor(step)``: each parameter group learns at its rate on entry times this factor at that step (a
     function of the step alone, so a resumed run follows the uninterrupted one's rates exactly).
+    ``after_step(done)``: called after each step's optimizer update with the number of steps done, before that
+    step's checkpoint (a weight average's update goes here, so the checkpoint holds it).
     """
     run_dir = Path(run_dir)
     mgr = CheckpointManager(run_dir / "checkpoints")
@@ -189,6 +192,8 @@ def train_loop(
                     opt.step()
                 last = values
                 done = step + 1
+                if after_step is not None:
+                    after_step(done)
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix({k: f"{v:.4g}" for k, v in list(values.items())[:4]})

@@ -370,15 +370,28 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     mgr = CheckpointManager(stage_dir / "checkpoints")
     if ctx.resume and mgr.latest() is not None:
         trainer.fast_forward(int(mgr.latest().name[5:13]))
+    modules = {"model": model, "renderer": renderer}
+    final = modules
+    after_step = None
+    if g.ema_decay > 0:
+        from train.ema import averaged_copy, update_average
+
+        final = {"model": averaged_copy(model), "renderer": averaged_copy(renderer)}
+        modules = {**modules, "ema_model": final["model"], "ema_renderer": final["renderer"]}
+
+        def after_step(done: int) -> None:  # noqa: ARG001
+            for name in ("model", "renderer"):
+                update_average(final[name], modules[name], g.ema_decay)
+
     metrics = MetricsLogger(ctx.run_dir, tensorboard=True)
     try:
-        train_loop("gaussian", trainer.step, modules={"model": model, "renderer": renderer}, optimizers={"adam": opt},
+        train_loop("gaussian", trainer.step, modules=modules, optimizers={"adam": opt},
                    steps=g.steps, run_dir=stage_dir, seed=cfg.seed, ckpt_every=g.ckpt_every, log_every=g.log_every,
                    resume=ctx.resume, grad_clip=g.grad_clip, metrics=metrics, is_main=info.is_main,
-                   dist_info=info if info.enabled else None, lr_factor=lr_factor(g))
+                   dist_info=info if info.enabled else None, lr_factor=lr_factor(g), after_step=after_step)
         if info.is_main:  # the ranks hold the same weights; the others wait for this file at cleanup's barrier
-            save_training_checkpoint(stage_dir / "final.safetensors", step=g.steps,
-                                     modules={"model": model, "renderer": renderer}, extra={"renderer": g.renderer})
+            save_training_checkpoint(stage_dir / "final.safetensors", step=g.steps, modules=final,
+                                     extra={"renderer": g.renderer})
     finally:
         metrics.close()
         cleanup(info)
@@ -453,6 +466,9 @@ def _check_values(cfg: RunConfig) -> None:
     if cfg.gaussian.dit_feature_hidden < 1:
         raise ToolkitError(f"config key 'gaussian.dit_feature_hidden': expected a channel count >= 1, "
                            f"got {cfg.gaussian.dit_feature_hidden}")
+    if not 0.0 <= cfg.gaussian.ema_decay < 1.0:
+        raise ToolkitError(f"config key 'gaussian.ema_decay': expected a decay in [0, 1) (0: no average), "
+                           f"got {cfg.gaussian.ema_decay}")
     if not 0.0 <= cfg.gaussian.lr_final <= 1.0:
         raise ToolkitError(f"config key 'gaussian.lr_final': expected a factor in [0, 1] of the rates at the last "
                            f"step, got {cfg.gaussian.lr_final}")

@@ -174,6 +174,10 @@ class GaussianStageConfig:
     the new, longer curve from where it stopped."""
     lr_final: float = field(default=0.1, metadata=NEUTRAL)
     """cosine schedule: the rates' factor at the last step."""
+    ema_decay: float = field(default=0.0, metadata=NEUTRAL)
+    """decay of an exponential moving average of the model's and renderer's weights (DiT's EMA), updated after
+    every step from the initial weights; the stage's final checkpoint then holds the average instead of the last
+    step's weights. 0 keeps no average. A horizon of about 1 / (1 - decay) steps (``train.ema``)."""
     lambda_rgb: float = 1.0
     """low-resolution RGB supervision of the splatted feature maps' first three channels."""
     lambda_gaze: float = 0.002

@@ -266,6 +266,7 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("data.test_fraction=1.5", "'data.test_fraction': expected a share"),
         ("gaussian.onestep_fraction=1.5", "'gaussian.onestep_fraction': expected a share in"),
         ("gaussian.lr_final=-0.1", "'gaussian.lr_final': expected a factor in"),
+        ("gaussian.ema_decay=1", "'gaussian.ema_decay': expected a decay in"),
         ("gaussian.dit_feature_hidden=0", "'gaussian.dit_feature_hidden': expected a channel count"),
         ("gaussian.lr_schedule=linear", "'gaussian.lr_schedule': expected one of"),
         ("eval.tta_weights=[features,eye_colours]", "'eval.tta_weights': 'eye_colours' needs gaussian.eyeball_colours"),
@@ -337,27 +338,26 @@ def test_unknown_stage_and_missing_dataset(tmp_path):
         run.main([*TINY, "--run-dir", str(tmp_path), "--stages", "data", f"data.root={tmp_path / 'nope'}"])
 
 
-def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path):
+@pytest.mark.parametrize("average", [[], ["gaussian.ema_decay=0.5"]], ids=["last", "ema"])
+def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path, average):
     from train.checkpoint import CheckpointManager
 
     full = tmp_path / "full"
     shutil.copytree(tiny_run, full)
     part = tmp_path / "part"
     shutil.copytree(tiny_run, part)
-    assert run.main([*TINY, "--run-dir", str(full), "--stages", "gaussian", "--force", "gaussian",
-                     "gaussian.steps=4", "gaussian.ckpt_every=2"]) == 0
+    args = ["--stages", "gaussian", "--force", "gaussian", "gaussian.steps=4", "gaussian.ckpt_every=2", *average]
+    assert run.main([*TINY, "--run-dir", str(full), *args]) == 0
     shutil.rmtree(part / "gaussian")
     # A "crash" after step 2: run the 4-step schedule, keep only its step-2 checkpoint, and resume from it.
     mgr = CheckpointManager(part / "gaussian" / "checkpoints")
-    assert run.main([*TINY, "--run-dir", str(part), "--stages", "gaussian", "--force", "gaussian",
-                     "gaussian.steps=4", "gaussian.ckpt_every=2", "gaussian.log_every=2"]) == 0
+    assert run.main([*TINY, "--run-dir", str(part), *args, "gaussian.log_every=2"]) == 0
     for p in mgr.all():
         if not p.name.endswith("0002.safetensors"):
             p.unlink()
     log = part / "metrics.jsonl"
     before = len(log.read_text().splitlines())
-    assert run.main([*TINY, "--run-dir", str(part), "--stages", "gaussian", "--force", "gaussian", "--resume",
-                     "gaussian.steps=4", "gaussian.ckpt_every=2", "gaussian.log_every=2"]) == 0
+    assert run.main([*TINY, "--run-dir", str(part), "--resume", *args, "gaussian.log_every=2"]) == 0
     # It went on from step 2: only step 4 was logged again (a retrain from step 0 would match the weights too).
     resumed = [json.loads(line) for line in log.read_text().splitlines()[before:]]
     assert [r["step"] for r in resumed if r["stage"] == "gaussian"] == [4], resumed
@@ -367,6 +367,16 @@ def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path):
     b, _ = load_tensors(part / "gaussian" / "final.safetensors")
     weights = [k for k in a if k.startswith("module/")]
     assert weights and all(torch.equal(a[k], b[k]) for k in weights)
+    last, _ = load_tensors(CheckpointManager(full / "gaussian" / "checkpoints").latest())
+    moved = [k for k in weights if not torch.equal(last[k], a[k])]
+    if not average:  # the final model is the last step's
+        assert not moved and not any(k.startswith("module/ema_") for k in last)
+        return
+    # With the average, the final model is the checkpoint's average, which lags the last step's weights.
+    assert all(torch.equal(a[k], last[k.replace("module/", "module/ema_", 1)]) for k in weights)
+    assert any(k.startswith("module/model/") for k in moved) and any(k.startswith("module/renderer/") for k in moved)
+    model, renderer = run.load_trained(run.open_run(full), "cpu")
+    assert torch.equal(model.state_dict()["face_means"], a["module/model/face_means"])
 
 
 @pytest.mark.parametrize("renderer,upscale", [("dit", 1), ("unet", 1), ("dit", 2), ("unet", 2), ("dit", 4)])
