@@ -177,7 +177,9 @@ class GaussianStageConfig:
     ema_decay: float = field(default=0.0, metadata=NEUTRAL)
     """decay of an exponential moving average of the model's and renderer's weights (DiT's EMA), updated after
     every step from the initial weights; the stage's final checkpoint then holds the average instead of the last
-    step's weights. 0 keeps no average. A horizon of about 1 / (1 - decay) steps (``train.ema``)."""
+    step's weights. 0 keeps no average. A horizon of about 1 / (1 - decay) steps (``train.ema``). Off in the
+    demo: at 240 steps the average lags a model still improving, and 0.97 read +0.58 ± 0.28° worse over three
+    seeds (docs/evaluation.md, session 28)."""
     lambda_rgb: float = 1.0
     """low-resolution RGB supervision of the splatted feature maps' first three channels."""
     lambda_gaze: float = 0.002
