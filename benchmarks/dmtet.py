@@ -5,8 +5,10 @@
 
 Shapes: an off-centre sphere, a tilted torus and a head-like smooth blend (ellipsoid + nose + eyes).
 Surface error = |f(p)| / |grad f(p)| at the output vertices (exact distance for the sphere and torus,
-first-order estimate for the blend) and at face centroids (chordal error); ``order`` is
-log2(error at res/2 / error at res) of the centroid error: 2 means second-order decay.
+first-order estimate for the blend) and at face centroids (chordal error); ``order`` is the centroid error's
+log(error ratio) / log(res ratio) between a method's consecutive ``--res`` rows: 2 means second-order decay.
+``res`` is the lattice actually meshed: ``kuhn+subdiv`` subdivides a res // 2 grid once, so an odd ``--res``
+row reads res - 1.
 ``samples`` is the number of SDF evaluations (grid vertices). ``time_s`` is the extraction alone
 (``marching_tets``, or ``marching_cubes``), median of ``--repeats``; ``grid_s`` (tet grid from the disk
 cache, plus subdivision; the lattice for MC) and ``sdf_s`` (evaluating the analytic SDF) are timed
@@ -187,7 +189,7 @@ def breakdown(res: int, repeats: int) -> list[dict]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--res", type=count("--res", 1), nargs="+", default=[16, 32, 64, 128])
+    ap.add_argument("--res", type=count("--res", 2), nargs="+", default=[16, 32, 64, 128])
     ap.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=list(SHAPES))
     ap.add_argument("--repeats", type=count("--repeats", 1), default=3)
     ap.add_argument("--threads", type=count("--threads", 0), default=0, help="torch threads (0: leave the default)")
@@ -213,13 +215,15 @@ def main(argv=None) -> int:
                         break
                 else:
                     r = run_case(fn, name.split("+")[0], res, a.repeats, subdiv)
-                cell = 2.0 / res
-                order = math.log2(prev / r["face_err_mean"]) if prev else None
-                prev = r["face_err_mean"]
-                row = {"shape": shape, "method": name, "res": res, **r, "face_err/cell": r["face_err_mean"] / cell,
+                meshed = 2 * (res // 2) if subdiv else res  # the lattice the row's mesh came from
+                cell = 2.0 / meshed
+                order = (math.log(prev[1] / r["face_err_mean"]) / math.log(meshed / prev[0])
+                         if prev and meshed != prev[0] else None)
+                prev = (meshed, r["face_err_mean"])
+                row = {"shape": shape, "method": name, "res": meshed, **r, "face_err/cell": r["face_err_mean"] / cell,
                        "order": order}
                 rows.append(row)
-                print(f"  {shape} {name} res {res}: {r['time_s']:.4f} s, face error {r['face_err_mean']:.3g}", flush=True)
+                print(f"  {shape} {name} res {meshed}: {r['time_s']:.4f} s, face error {r['face_err_mean']:.3g}", flush=True)
                 xs, ys = series.setdefault(shape, {}).setdefault(name, ([], []))
                 xs.append(r["time_s"])
                 ys.append(r["face_err_mean"])

@@ -112,16 +112,22 @@ def run_config(cfg: dict) -> dict:
         (img.square().sum() + alpha.sum()).backward()
 
     reps = cfg.get("repeats", 3)
-    c0 = time.process_time()
-    t_fwd = timeit(fwd, repeats=reps, warmup=1, sync_cuda=sync)
-    c1 = time.process_time()
-    t_fb = timeit(fwd_bwd, repeats=reps, warmup=1, sync_cuda=sync)
-    c2 = time.process_time()
+
+    def timed(fn):
+        """(median wall seconds, mean CPU seconds) per call over the repeats, after one discarded warm-up call."""
+        fn()
+        c0 = time.process_time()
+        wall = timeit(fn, repeats=reps, warmup=0, sync_cuda=sync)
+        return wall, (time.process_time() - c0) / reps
+
+    t_fwd, c_fwd = timed(fwd)
+    t_fb, c_fb = timed(fwd_bwd)
     img, _, meta = fwd()
-    # CPU seconds of this process per call (mean over warm-up + repeats): on a loaded shared machine this is
-    # closer to what an idle machine's wall clock would show than the wall clock itself.
+    # CPU seconds of this process per call, summed over its threads: the work done, which a loaded shared
+    # machine inflates less than it inflates the wall clock. On an idle machine it is up to `threads` times
+    # the wall clock, so compare it between rows, not with the wall-clock columns.
     row = dict(scene=cfg["kind"], N=cfg["n"], res=cfg["res"], D=cfg["d"], fwd_s=t_fwd, fwd_bwd_s=t_fb,
-               fwd_cpu_s=(c1 - c0) / (reps + 1), fwd_bwd_cpu_s=(c2 - c1) / (reps + 1),
+               fwd_cpu_s=c_fwd, fwd_bwd_cpu_s=c_fb,
                peak_rss_gb=peak_rss_gb(), rss_over_base_gb=peak_rss_gb() - base_rss,
                pairs=meta["counters"]["intersections"], rounds=meta["counters"]["rounds"])
     if sync:

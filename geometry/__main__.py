@@ -74,10 +74,16 @@ def _cmd_fit(a) -> int:
 
     if a.steps < 1 or a.res < 4:
         raise ToolkitError(f"--steps must be >= 1 and --res >= 4, got {a.steps} and {a.res}")
+    if a.threads < 0:
+        raise ToolkitError(f"--threads must be >= 0 (0: torch's default), got {a.threads}")
     try:
         holdout = [int(c) for c in a.holdout.split(",") if c.strip()]
     except ValueError:
         raise ToolkitError(f"--holdout: expected comma-separated camera indices, got {a.holdout!r}") from None
+    if a.threads:
+        import torch
+
+        torch.set_num_threads(a.threads)
     cfg = FitConfig(steps=a.steps, extract_res=a.res, seed=a.seed)
     summary = fit_dataset(a.dataset, a.output, cfg, holdout_cams=holdout, log=print)
     summary.pop("history", None)
@@ -138,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--res", type=int, default=FitConfig.extract_res, help="extraction grid resolution")
     s.add_argument("--holdout", default="2,7,10,15", help="rig cameras held out of the fit for the IoU check")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--threads", type=int, default=0, help="torch CPU threads for the fit (0: torch's default)")
     s.set_defaults(fn=_cmd_fit)
     s = sub.add_parser("render", help="multi-view contact sheet of a mesh (render/mesh_gl.py)")
     s.add_argument("mesh")

@@ -73,11 +73,29 @@ def test_bad_inputs_in_process(tmp_path, capsys, sphere_ply):
     for args, expect in ((["clean", str(sphere_ply), str(tmp_path / "o.ply"), "--target-faces", "0"], "--target-faces"),
                          (["extract", str(tmp_path / "none.safetensors"), str(tmp_path / "o.txt")], "o.txt: unknown mesh"),
                          (["render", str(sphere_ply), str(tmp_path / "s.jpgg")], "s.jpgg: the contact sheet is a PNG"),
-                         (["render", str(sphere_ply), str(tmp_path / "s.png"), "--views", "0"], "--views must be >= 1")):
+                         (["render", str(sphere_ply), str(tmp_path / "s.png"), "--views", "0"], "--views must be >= 1"),
+                         (["fit", str(sphere_ply), str(tmp_path / "fit"), "--threads", "-1"], "--threads must be >= 0")):
         assert run_cli(main, args) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and expect in err and err.count("\n") == 1, err
     assert not list(tmp_path.glob("o.*")) and not list(tmp_path.glob("s.*"))
+
+
+def test_fit_runs_on_the_threads_it_is_given(tmp_path, monkeypatch):
+    import torch
+
+    import geometry.fit_dataset as fd
+
+    seen = []
+    monkeypatch.setattr(fd, "fit_dataset", lambda *a, **k: seen.append(torch.get_num_threads()) or {})
+    before = torch.get_num_threads()
+    try:
+        assert run_cli(main, ["fit", str(tmp_path / "d.h5"), str(tmp_path / "fit"), "--threads", "1"]) == 0
+        torch.set_num_threads(2)
+        assert run_cli(main, ["fit", str(tmp_path / "d.h5"), str(tmp_path / "fit"), "--threads", "0"]) == 0
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1, 2]
 
 
 def test_inspect_json_compare_clean(tmp_path, sphere_ply):

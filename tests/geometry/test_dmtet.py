@@ -333,9 +333,24 @@ def test_benchmark_runs_with_and_without_scikit_image(monkeypatch, tmp_path, cap
     assert occ["faces"] > 0 and occ["face_err_mean"] > r["face_err_mean"]  # binary occupancy: worse
 
 
+def test_benchmark_rows_name_the_lattice_meshed_and_orders_follow_any_res_ratio(monkeypatch, tmp_path, capsys):
+    """An odd --res: the subdivided grid meshes res - 1, and its row says so; orders use the actual ratio."""
+    import benchmarks.dmtet as bench
+
+    monkeypatch.setattr(bench, "OUT_DIR", tmp_path)
+    monkeypatch.setattr(bench, "have_skimage", lambda: False)
+    assert bench.main(["--res", "6", "11", "--repeats", "1", "--shapes", "sphere"]) == 0
+    rows = [[c.strip() for c in ln.split("|")[1:-1]] for ln in capsys.readouterr().out.splitlines()
+            if ln.startswith("| sphere |")]
+    res = {(r[1], r[2]) for r in rows}
+    assert {("kuhn", "6"), ("kuhn", "11"), ("kuhn+subdiv", "6"), ("kuhn+subdiv", "10")} <= res
+    kuhn11 = next(r for r in rows if r[1] == "kuhn" and r[2] == "11")
+    assert 1.85 < float(kuhn11[-1]) < 2.3  # second order over an 11/6 step (log2 of the error ratio reads 1.75)
+
+
 @pytest.mark.parametrize("argv, msg", [(["--repeats", "0"], "--repeats: expected an integer >= 1, got '0'"),
                                        (["--threads", "-1"], "--threads: expected an integer >= 0, got '-1'"),
-                                       (["--res", "8", "x"], "--res: expected an integer >= 1, got 'x'")])
+                                       (["--res", "8", "x"], "--res: expected an integer >= 2, got 'x'")])
 def test_benchmark_bad_counts_are_one_line_errors(capsys, argv, msg):
     """The benchmarks' shared flag types (benchmarks.common.count): exit 2, one line naming the flag."""
     import benchmarks.dmtet as bench
