@@ -40,7 +40,7 @@ import torch  # noqa: E402
 
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.host import keep_freed_memory  # noqa: E402
-from toolkit.io import atomic_write_json, atomic_write_text  # noqa: E402
+from toolkit.io import atomic_write_json, atomic_write_text, load_tensors  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
 from train.stages import RunContext, Stage, check_dependencies, finished_stages, run_stages  # noqa: E402
@@ -369,6 +369,10 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     stage_dir = ctx.run_dir / "gaussian"
     mgr = CheckpointManager(stage_dir / "checkpoints")
     if ctx.resume and mgr.latest() is not None:
+        if g.ema_decay > 0 and "ema_model" not in load_tensors(mgr.latest())[1].get("modules", []):
+            raise ToolkitError(f"{mgr.latest()}: written without a weight average, so it cannot resume with "
+                               f"gaussian.ema_decay={g.ema_decay}; resume with the run's earlier value (0), or "
+                               "rerun the stage without --resume")
         trainer.fast_forward(int(mgr.latest().name[5:13]))
     modules = {"model": model, "renderer": renderer}
     final = modules
@@ -391,7 +395,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
                    dist_info=info if info.enabled else None, lr_factor=lr_factor(g), after_step=after_step)
         if info.is_main:  # the ranks hold the same weights; the others wait for this file at cleanup's barrier
             save_training_checkpoint(stage_dir / "final.safetensors", step=g.steps, modules=final,
-                                     extra={"renderer": g.renderer})
+                                     extra={"renderer": g.renderer, "ema_decay": g.ema_decay})
     finally:
         metrics.close()
         cleanup(info)

@@ -9,7 +9,9 @@ from train.ema import averaged_copy, update_average
 def _net():
     torch.manual_seed(0)
     net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4))
-    net[1].weight.requires_grad_(False)  # a frozen weight is averaged like the rest (it stays as it is)
+    with torch.no_grad():
+        net[1].weight.copy_(torch.tensor([0.1, 0.3, 0.7, 1.9]))  # x d + x (1 - d) != x in float for these
+    net[1].weight.requires_grad_(False)  # a frozen weight is copied, never averaged
     return net
 
 
@@ -23,7 +25,7 @@ def test_average_is_a_frozen_copy_that_leaves_the_module_alone():
     assert not torch.equal(avg[0].weight, net[0].weight)  # a copy, not a view
 
 
-@pytest.mark.parametrize("decay", [0.0, 0.5, 0.9])
+@pytest.mark.parametrize("decay", [0.0, 0.5, 0.9, 0.97])
 def test_update_follows_the_closed_form_and_copies_buffers(decay):
     net = _net()
     avg = averaged_copy(net)
@@ -36,6 +38,9 @@ def test_update_follows_the_closed_form_and_copies_buffers(decay):
     expect = 2.0 + (a0 - 2.0) * decay**5
     torch.testing.assert_close(avg[0].weight, expect)
     assert torch.equal(avg[1].running_mean, net[1].running_mean)
+    with torch.no_grad():
+        net[1].weight.mul_(3.0)  # a frozen weight changed by hand: the average takes it bit for bit
+    update_average(avg, net, decay)
     assert torch.equal(avg[1].weight, net[1].weight)
 
 

@@ -338,7 +338,7 @@ def test_unknown_stage_and_missing_dataset(tmp_path):
         run.main([*TINY, "--run-dir", str(tmp_path), "--stages", "data", f"data.root={tmp_path / 'nope'}"])
 
 
-@pytest.mark.parametrize("average", [[], ["gaussian.ema_decay=0.5"]], ids=["last", "ema"])
+@pytest.mark.parametrize("average", [[], ["gaussian.ema_decay=0.75"]], ids=["last", "ema"])
 def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path, average):
     from train.checkpoint import CheckpointManager
 
@@ -347,7 +347,7 @@ def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path, ave
     part = tmp_path / "part"
     shutil.copytree(tiny_run, part)
     args = ["--stages", "gaussian", "--force", "gaussian", "gaussian.steps=4", "gaussian.ckpt_every=2", *average]
-    assert run.main([*TINY, "--run-dir", str(full), *args]) == 0
+    assert run.main([*TINY, "--run-dir", str(full), *args, "gaussian.ckpt_every=1"]) == 0  # keeps steps 3 and 4
     shutil.rmtree(part / "gaussian")
     # A "crash" after step 2: run the 4-step schedule, keep only its step-2 checkpoint, and resume from it.
     mgr = CheckpointManager(part / "gaussian" / "checkpoints")
@@ -367,16 +367,35 @@ def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path, ave
     b, _ = load_tensors(part / "gaussian" / "final.safetensors")
     weights = [k for k in a if k.startswith("module/")]
     assert weights and all(torch.equal(a[k], b[k]) for k in weights)
-    last, _ = load_tensors(CheckpointManager(full / "gaussian" / "checkpoints").latest())
+    before_last, last = (load_tensors(p)[0] for p in CheckpointManager(full / "gaussian" / "checkpoints").all()[-2:])
     moved = [k for k in weights if not torch.equal(last[k], a[k])]
     if not average:  # the final model is the last step's
         assert not moved and not any(k.startswith("module/ema_") for k in last)
         return
-    # With the average, the final model is the checkpoint's average, which lags the last step's weights.
+    # With the average, the final model is the checkpoint's average, which lags the last step's weights ...
     assert all(torch.equal(a[k], last[k.replace("module/", "module/ema_", 1)]) for k in weights)
     assert any(k.startswith("module/model/") for k in moved) and any(k.startswith("module/renderer/") for k in moved)
     model, renderer = run.load_trained(run.open_run(full), "cpu")
     assert torch.equal(model.state_dict()["face_means"], a["module/model/face_means"])
+    assert load_tensors(full / "gaussian" / "final.safetensors")[1]["extra"]["ema_decay"] == 0.75
+    # A checkpoint written without the average cannot resume with one: the error names the key.
+    none = tmp_path / "none"
+    shutil.copytree(tiny_run, none)
+    assert run.main([*TINY, "--run-dir", str(none), "--stages", "gaussian", "--force", "gaussian", "gaussian.steps=2"]) == 0
+    with pytest.raises(ToolkitError, match="written without a weight average.*gaussian.ema_decay=0.75"):
+        run.main([*TINY, "--run-dir", str(none), "--resume", "--stages", "gaussian", "gaussian.steps=4", *average])
+    # ... by exactly one update of decay 0.75 per step (not 0.25, not two, not none), after that step's optimizer
+    # step; frozen weights (the codec) are copied as they are.
+    trained = {f"module/{m}/{n}" for m, mod in (("model", model), ("renderer", renderer))
+               for n, p in mod.named_parameters() if p.requires_grad}
+    assert trained and len(trained) < len(weights)
+    for k in weights:
+        ema = k.replace("module/", "module/ema_", 1)
+        if k in trained:
+            expect = before_last[ema].clone().mul_(0.75).add_(last[k], alpha=0.25)
+        else:
+            expect = last[k] if k in last else a[k]
+        assert torch.equal(last[ema], expect), k
 
 
 @pytest.mark.parametrize("renderer,upscale", [("dit", 1), ("unet", 1), ("dit", 2), ("unet", 2), ("dit", 4)])
