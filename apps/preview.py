@@ -280,8 +280,11 @@ def write_contact_sheet(path, frames: np.ndarray, rows: int, cols: int, gap: int
 
 
 def write_video(path, frames: np.ndarray, fps: float) -> None:
-    """[F, H, W, 3] uint8 -> an MPEG-4 (mp4v) video through OpenCV, written to a temp file then renamed."""
+    """[F, H, W, 3] uint8 -> an MPEG-4 (mp4v) video through OpenCV: encoded to a temp file, its frames counted,
+    then written atomically."""
     import cv2
+
+    from toolkit.io import atomic_write_bytes
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -301,7 +304,8 @@ def write_video(path, frames: np.ndarray, fps: float) -> None:
         cap.release()
         if count != len(frames):
             raise ToolkitError(f"{path}: the video writer produced {count} of {len(frames)} frames")
-        os.replace(tmp, path)
+        # OpenCV writes by file name; the checked bytes go out through the atomic writer (mode, fsync, rename).
+        atomic_write_bytes(path, Path(tmp).read_bytes())
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -6,6 +6,7 @@ under ``out/benchmarks/``. Timings are medians of repeated runs after a warm-up.
 
 from __future__ import annotations
 
+import io
 import os
 import platform
 import resource
@@ -17,6 +18,7 @@ from typing import Any, Callable, Sequence
 import torch
 
 from toolkit.errors import ToolkitError
+from toolkit.io import atomic_write_bytes
 
 OUT_DIR = Path(os.environ.get("DITGAZE_BENCH_OUT", "out/benchmarks"))
 
@@ -122,8 +124,7 @@ def save_plot(path: str | Path, series: dict[str, tuple[Sequence[float], Sequenc
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = Path(path)  # its folder is made by the atomic writer
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
     for label, (xs, ys) in series.items():
         ax.plot(list(xs), list(ys), marker="o", label=label)
@@ -137,8 +138,10 @@ def save_plot(path: str | Path, series: dict[str, tuple[Sequence[float], Sequenc
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, format="png")
+    finally:
+        plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
     return path

@@ -183,7 +183,7 @@ def grid_topology(kind: str, res: int, *, cache_dir: str | os.PathLike | None = 
 
         try:  # int32 halves the file; a read-only cache folder only costs the rebuild next time
             save_tensors(path, {"coords": coords.int(), "tets": tets.int()}, {"kind": kind, "res": res})
-        except OSError:
+        except (OSError, ToolkitError):  # atomic_write reports an unwritable folder as a ToolkitError
             pass
     return coords, tets
 

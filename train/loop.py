@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import time
 from contextlib import contextmanager
@@ -44,7 +45,11 @@ def step_generator(seed: int, step: int, device: str | torch.device = "cpu") -> 
 
 
 class MetricsLogger:
-    """Appends one JSON object per logged step to ``metrics.jsonl``; mirrors scalars to TensorBoard if installed."""
+    """Appends one JSON object per logged step to ``metrics.jsonl``; mirrors scalars to TensorBoard if installed.
+
+    The one output not written through ``toolkit.io.atomic_write``: a log that grows during the run. Each record
+    is one ``write`` of a whole line on an ``O_APPEND`` descriptor, so a crash can tear at most the last line,
+    and the records before it stay whole. TensorBoard's event files are streamed by its own writer."""
 
     def __init__(self, run_dir: str | Path, tensorboard: bool = True):
         self.path = Path(run_dir) / "metrics.jsonl"
@@ -60,8 +65,12 @@ class MetricsLogger:
 
     def log(self, stage: str, step: int, values: dict[str, float]) -> None:
         rec = {"stage": stage, "step": step, "time": time.time(), **values}
-        with open(self.path, "a") as f:
-            f.write(json.dumps(rec) + "\n")
+        line = (json.dumps(rec) + "\n").encode()
+        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        try:
+            os.write(fd, line)
+        finally:
+            os.close(fd)
         if self._tb is not None:
             for k, v in values.items():
                 self._tb.add_scalar(f"{stage}/{k}", v, step)

@@ -80,12 +80,20 @@ def test_png_contact_sheet_differs_only_in_eye_regions(egl, head, tmp_path):
     assert res["scrubbing"]
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def test_mp4_sweep_is_a_valid_video(egl, head, tmp_path):
     from apps.preview import frame_camera, render_gaze_sweep
 
     S = 96
     out = tmp_path / "sweep.mp4"
     res = render_gaze_sweep(head, out, [10, -10], [-20, 20], S, S, fps=5)
+    # Written like every other output: the umask's mode (not mkstemp's 0600), no temporary file left beside it.
+    assert out.stat().st_mode & 0o777 == 0o666 & ~_umask() and sorted(tmp_path.iterdir()) == [out]
     cap = cv2.VideoCapture(str(out))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 4
     frames = []

@@ -57,6 +57,14 @@ def test_cache_roundtrip_and_corrupt_rebuild(tmp_path):
     assert not (tmp_path / "kuhn_3.safetensors").exists()
 
 
+def test_unwritable_cache_only_costs_the_rebuild(tmp_path):
+    """A cache folder that cannot be made (its parent is a file; as root, chmod would not stop the write)."""
+    (tmp_path / "afile").write_text("")
+    c1, t1 = grid_topology("kuhn", 3, cache_dir=tmp_path / "afile" / "cache")
+    c2, t2 = grid_topology("kuhn", 3, use_cache=False)
+    assert torch.equal(c1, c2) and torch.equal(t1, t2)
+
+
 @pytest.mark.parametrize("bad", [0, -1, 2.5, 10_000, True])
 def test_bad_res(bad):
     with pytest.raises(ToolkitError, match="res"):
