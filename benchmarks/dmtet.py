@@ -8,7 +8,7 @@ Surface error = |f(p)| / |grad f(p)| at the output vertices (exact distance for 
 first-order estimate for the blend) and at face centroids (chordal error); ``order`` is the centroid error's
 log(error ratio) / log(res ratio) between a method's consecutive ``--res`` rows: 2 means second-order decay.
 ``res`` is the lattice actually meshed: ``kuhn+subdiv`` subdivides a res // 2 grid once, so an odd ``--res``
-row reads res - 1.
+row reads res - 1. ``--res`` is at least 4: coarser grids miss the torus's surface altogether.
 ``samples`` is the number of SDF evaluations (grid vertices). ``time_s`` is the extraction alone
 (``marching_tets``, or ``marching_cubes``), median of ``--repeats``; ``grid_s`` (tet grid from the disk
 cache, plus subdivision; the lattice for MC) and ``sdf_s`` (evaluating the analytic SDF) are timed
@@ -189,7 +189,7 @@ def breakdown(res: int, repeats: int) -> list[dict]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--res", type=count("--res", 2), nargs="+", default=[16, 32, 64, 128])
+    ap.add_argument("--res", type=count("--res", 4), nargs="+", default=[16, 32, 64, 128])
     ap.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=list(SHAPES))
     ap.add_argument("--repeats", type=count("--repeats", 1), default=3)
     ap.add_argument("--threads", type=count("--threads", 0), default=0, help="torch threads (0: leave the default)")

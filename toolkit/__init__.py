@@ -1,9 +1,11 @@
-"""toolkit: the shared Gaussian scene format, cameras, rotations, atomic I/O and the error type.
+"""toolkit: the shared Gaussian scene format, cameras, rotations and gaze angles, eyeballs, atomic I/O, the
+error type, the procedural demo head and ``python -m toolkit``.
 
 Owns every convention the other packages speak (see README "Conventions"): OpenCV camera axes,
 wxyz quaternions, ETH-XGaze gaze pitch/yaw, safetensors + JSON storage, the graphdeco 3DGS PLY layout.
 
-May import: nothing of ours (only torch, numpy, safetensors and the standard library).
+May import: nothing of ours (torch, numpy, safetensors and the standard library; scipy lazily, in the
+procedural head's nearest-neighbour query).
 """
 
 from toolkit.errors import ToolkitError

@@ -350,7 +350,7 @@ def test_benchmark_rows_name_the_lattice_meshed_and_orders_follow_any_res_ratio(
 
 @pytest.mark.parametrize("argv, msg", [(["--repeats", "0"], "--repeats: expected an integer >= 1, got '0'"),
                                        (["--threads", "-1"], "--threads: expected an integer >= 0, got '-1'"),
-                                       (["--res", "8", "x"], "--res: expected an integer >= 2, got 'x'")])
+                                       (["--res", "8", "3"], "--res: expected an integer >= 4, got '3'")])
 def test_benchmark_bad_counts_are_one_line_errors(capsys, argv, msg):
     """The benchmarks' shared flag types (benchmarks.common.count): exit 2, one line naming the flag."""
     import benchmarks.dmtet as bench
