@@ -128,8 +128,9 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
 
     base = to_dict(GaussianStageConfig())
     older = {k: v for k, v in base.items() if k not in ("lr_schedule", "lr_final", "dit_feature_hidden",
-                                                         "eyeball_colours")}
+                                                         "eyeball_colours", "ema_decay")}
     assert config_hash(GaussianStageConfig()) == config_hash(older)
     assert config_hash(GaussianStageConfig(lr_schedule="cosine")) != config_hash(older)
     assert config_hash(GaussianStageConfig(dit_feature_hidden=16)) != config_hash(older)
     assert config_hash(GaussianStageConfig(eyeball_colours=True)) != config_hash(older)
+    assert config_hash(GaussianStageConfig(ema_decay=0.5)) != config_hash(older)
