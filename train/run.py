@@ -546,8 +546,10 @@ def _labels_note(labels: dict, cfg: RunConfig) -> str:
             f"readings, so that error enters it too. The renders read "
             f"{_fmt_deg(labels['render']['gaze_error_deg'])} off the targets' gaze labels (the targets: "
             f"{_fmt_deg(labels['target']['gaze_error_deg'])})."
-            + (" The fit's gaze term pushes the renders toward those labels as read by the loss estimator, of the "
-               "evaluation estimator's design" if term else "")
+            + (" The fit's gaze term pushes the renders toward "
+               + " and ".join(p for t, p in (("target", "those labels"), ("own", "the input's own gaze"))
+                              if t in ev.tta_gaze_terms)
+               + " as read by the loss estimator, of the evaluation estimator's design" if term else "")
             + (", so the renders' reading is no measure of how real their eyes look: see the eyes below."
                if term and may_paint else "")
             + (". It reaches " + ", ".join(sorted(reach)) + ", and cannot repaint the eyes: see the eyes below."

@@ -259,9 +259,10 @@ class EvalConfig:
     Limited to ``[code, eye_field]`` it can only turn the eyes. That alone does not keep them natural while
     ``eye_features`` is fitted: the photometric fit then paints the input's iris where the input shows it (demo
     run, the preset's weights: 9.60°). Session 21, demo run, fitting ``[features, eye_field, renderer]`` with the
-    term reaching ``[code, eye_field]`` at weight 0.002 (``NATURAL_EYES_FIT``): gaze 6.95°, PSNR
-    33.28 dB, natural eyes, against 5.81°, 33.55 dB for the demo preset's fit of then, with specks; the demo preset
-    fits this way since session 22, with the Gaussian stage at twice the rates: 5.77° (docs/evaluation.md).
+    term reaching ``[code, eye_field]`` at weight 0.002 (``NATURAL_EYES_FIT``, its term then reading ``target``
+    alone): gaze 6.95°, PSNR 33.28 dB, natural eyes, against 5.81°, 33.55 dB for the demo preset's fit of then,
+    with specks; the demo preset fits this way since session 22, with the Gaussian stage at twice the rates:
+    5.77° (docs/evaluation.md).
     The natural fit's images show eyes; a small augmentation test found no measured gain either way."""
     pairing_file: str = ""
     """GazeNeRF pairing file for real data; synthetic data pairs deterministically."""
@@ -272,7 +273,8 @@ NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weig
                     "reach": ("code", "eye_field"), "terms": ("target", "own"), "every": 2}
 """A test-time fit whose gaze term turns a new face's eyes but cannot repaint them
 (``train.evaluate.FitGaze.reach``): no coloured specks, and the iris keeps the trained model's colour rather
-than the new face's. Session 21, demo run: gaze 6.95°, PSNR 33.28 dB, against 5.81°, 33.55 dB for the demo
+than the new face's. Session 21, demo run (the term then read ``target`` alone): gaze 6.95°, PSNR 33.28 dB,
+against 5.81°, 33.55 dB for the demo
 preset's fit of then, whose side views show specks (docs/evaluation.md). ``apps.redirect --natural-eyes`` fits
 this way (``train.evaluate`` re-exports it), and so does the demo preset since session 22
 (:func:`natural_eyes_eval`). With a model trained with ``gaussian.eye_appearance`` the code also sets the eye
@@ -335,7 +337,7 @@ def demo_preset() -> RunConfig:
 
     Since session 28 the fit's gaze term also reads the fitting render against the loss estimator's reading of
     the input (``NATURAL_EYES_FIT["terms"]``): over five seeds, 48 pairs each, gaze 5.25° against 5.67°, paired
-    -0.43 ± 0.22°, lower on every seed, the PSNR unchanged, for ~20% more eval-stage time.
+    -0.43 ± 0.22°, lower on every seed, the PSNR unchanged, for ~15-30% more eval-stage time.
 
     Step counts (session 19): the 2-core machines this demo runs on differ ~2x in speed. On the slowest seen (an
     AVX2-only EPYC) session 18's counts (estimators 2000, Gaussian stage 320, fit 40) took 21 min for ``make

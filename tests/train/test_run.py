@@ -642,10 +642,14 @@ def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
     natural = dict(tta_weights=NATURAL_EYES_FIT["weights"], tta_gaze_weight=NATURAL_EYES_FIT["gaze_weight"],
                    tta_gaze_reach=NATURAL_EYES_FIT["reach"])
     painting = note(tta_gaze_weight=0.001)  # reach (): all it fits, the renderer included
-    assert "pushes the renders toward those labels" in painting and "no measure of how real" in painting
+    assert "pushes the renders toward those labels as read" in painting and "no measure of how real" in painting
     assert "cannot repaint" not in painting
-    turning = note(**natural)
-    assert "pushes the renders toward those labels" in turning and "no measure" not in turning
+    turning = note(**natural, tta_gaze_terms=NATURAL_EYES_FIT["terms"])
+    assert "pushes the renders toward those labels and the input's own gaze as read" in turning
+    assert "no measure" not in turning
+    # A term that reads only the input does not push the renders toward the targets' labels.
+    own = note(**natural, tta_gaze_terms=("own",))
+    assert "toward the input's own gaze as read" in own and "those labels" not in own
     assert "It reaches code, eye_field, and cannot repaint the eyes" in turning
     # With code-conditioned eye colours a term reaching the code can recolour the eyes.
     assert "no measure of how real" in note(eye_appearance=True, **natural)
