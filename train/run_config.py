@@ -274,10 +274,9 @@ NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weig
 """A test-time fit whose gaze term turns a new face's eyes but cannot repaint them
 (``train.evaluate.FitGaze.reach``): no coloured specks, and the iris keeps the trained model's colour rather
 than the new face's. Session 21, demo run (the term then read ``target`` alone): gaze 6.95°, PSNR 33.28 dB,
-against 5.81°, 33.55 dB for the demo
-preset's fit of then, whose side views show specks (docs/evaluation.md). ``apps.redirect --natural-eyes`` fits
-this way (``train.evaluate`` re-exports it), and so does the demo preset since session 22
-(:func:`natural_eyes_eval`). With a model trained with ``gaussian.eye_appearance`` the code also sets the eye
+against 5.81°, 33.55 dB for the demo preset's fit of then, whose side views show specks (docs/evaluation.md).
+``apps.redirect --natural-eyes`` fits this way (``train.evaluate`` re-exports it), and so does the demo preset
+since session 22 (:func:`natural_eyes_eval`). With a model trained with ``gaussian.eye_appearance`` the code also sets the eye
 colours, so a term reaching the code can recolour them, within that field's bound: the guarantee then no
 longer holds.
 
