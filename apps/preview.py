@@ -15,7 +15,6 @@ import argparse
 import math
 import os
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -280,17 +279,15 @@ def write_contact_sheet(path, frames: np.ndarray, rows: int, cols: int, gap: int
 
 
 def write_video(path, frames: np.ndarray, fps: float) -> None:
-    """[F, H, W, 3] uint8 -> an MPEG-4 (mp4v) video through OpenCV: encoded to a temp file, its frames counted,
-    then written atomically."""
+    """[F, H, W, 3] uint8 -> an MPEG-4 (mp4v) video through OpenCV: encoded to a temp file beside ``path``, its
+    frames counted, then renamed onto ``path`` (``toolkit.io.atomic_path``)."""
     import cv2
 
-    from toolkit.io import atomic_write_bytes
+    from toolkit.io import atomic_path
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".mp4", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".mp4") as tmp_path:  # OpenCV writes by file name
+        tmp = str(tmp_path)
         h, w = frames.shape[1:3]
         writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
         if not writer.isOpened():
@@ -304,11 +301,6 @@ def write_video(path, frames: np.ndarray, fps: float) -> None:
         cap.release()
         if count != len(frames):
             raise ToolkitError(f"{path}: the video writer produced {count} of {len(frames)} frames")
-        # OpenCV writes by file name; the checked bytes go out through the atomic writer (mode, fsync, rename).
-        atomic_write_bytes(path, Path(tmp).read_bytes())
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 # ---------------------------------------------------------------------------------------------- window

@@ -1,6 +1,7 @@
 """Atomic file writes and safetensors checkpoints.
 
-Every artefact the project writes goes through :func:`atomic_write` (or a helper built on it): data go
+Every artefact the project writes goes through :func:`atomic_write` (or a helper built on it), or through
+:func:`atomic_path` for writers that take a file name (OpenCV's video writer): data go
 to a temporary file in the destination's folder, are flushed and fsynced, then renamed over the target,
 so a crash or Ctrl-C never leaves a half-written file behind. Weights are safetensors; foreign torch
 checkpoints are read only with ``weights_only=True``.
@@ -39,27 +40,40 @@ def _new_file_mode(path: Path) -> int:
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
-    """Open a temporary file beside ``path``; on clean exit rename it onto ``path``, else delete it."""
+def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
+    """A temporary file name beside ``path`` (ending in ``suffix``), for writers that take a file name; on clean
+    exit the file is given ``path``'s mode, fsynced and renamed onto ``path``, else deleted."""
     path = Path(path)
     if path.is_dir():
         raise ToolkitError(f"{path}: is a directory, expected a file path to write")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
     except OSError as e:  # a parent that is a file, a read-only or missing mount, no permission
         raise ToolkitError(f"{path}: cannot write here ({e.strerror or e})") from None
     try:
-        with os.fdopen(fd, mode) as f:
-            os.fchmod(f.fileno(), _new_file_mode(path))
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
+        try:
+            os.fchmod(fd, _new_file_mode(path))
+        finally:
+            os.close(fd)
+        yield Path(tmp)
+        fd = os.open(tmp, os.O_RDONLY)  # fsync flushes the file's data whichever descriptor asks
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path``; on clean exit rename it onto ``path``, else delete it."""
+    with atomic_path(path) as tmp, open(tmp, mode) as f:
+        yield f
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -99,13 +113,22 @@ def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], meta
 
 def load_tensors(path: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     """Read a safetensors file written by :func:`save_tensors` -> (tensors, metadata)."""
+    return _read(path, device, tensors=True)
+
+
+def load_metadata(path: str | os.PathLike) -> dict[str, Any]:
+    """The metadata of a safetensors file written by :func:`save_tensors`, without reading its tensors."""
+    return _read(path, "cpu", tensors=False)[1]
+
+
+def _read(path, device, tensors: bool) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     from safetensors import safe_open
 
     path = check_readable_file(path, "safetensors file")
     try:
         with safe_open(str(path), framework="pt", device=str(device)) as f:
             raw_meta = f.metadata() or {}
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
+            out = {k: f.get_tensor(k) for k in f.keys()} if tensors else {}
     except Exception as e:  # safetensors raises its own types for garbage, truncation, bad headers
         raise ToolkitError(f"{path}: not a valid safetensors file ({type(e).__name__}: {str(e)[:120]})") from None
     try:
@@ -114,7 +137,7 @@ def load_tensors(path: str | os.PathLike, device: str | torch.device = "cpu") ->
         raise ToolkitError(f"{path}: metadata is not valid JSON ({e})") from None
     if not isinstance(meta, dict):
         raise ToolkitError(f"{path}: metadata 'json' is not a JSON object (got {type(meta).__name__})")
-    return tensors, meta
+    return out, meta
 
 
 def save_checkpoint(path: str | os.PathLike, state_dict: dict[str, torch.Tensor], info: dict[str, Any] | None = None) -> None:

@@ -38,6 +38,32 @@ def test_metadata_that_is_not_an_object_is_refused(tmp_path):
         load_tensors(tmp_path / "m.safetensors")
 
 
+def test_metadata_alone_reads_as_with_the_tensors(tmp_path):
+    from toolkit.io import load_metadata, load_tensors, save_tensors
+
+    save_tensors(tmp_path / "t.safetensors", {"w": torch.ones(3)}, {"step": 7, "modules": ["model"]})
+    assert load_metadata(tmp_path / "t.safetensors") == load_tensors(tmp_path / "t.safetensors")[1] == {
+        "step": 7, "modules": ["model"]}
+    (tmp_path / "bad.safetensors").write_bytes(b"garbage")
+    with pytest.raises(ToolkitError, match="bad.safetensors: not a valid safetensors file"):
+        load_metadata(tmp_path / "bad.safetensors")
+
+
+def test_atomic_path_hands_a_name_and_renames_only_on_success(tmp_path):
+    from toolkit.io import atomic_path
+
+    target = tmp_path / "v.mp4"
+    with atomic_path(target, suffix=".mp4") as tmp:
+        assert tmp.parent == tmp_path and tmp.suffix == ".mp4" and not target.exists()
+        tmp.write_bytes(b"new")
+    assert target.read_bytes() == b"new"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"partial")
+            raise RuntimeError("crash mid-write")
+    assert target.read_bytes() == b"new" and sorted(p.name for p in tmp_path.iterdir()) == ["v.mp4"]
+
+
 def test_checkpoint_round_trip_with_tied_weights(tmp_path):
     lin = torch.nn.Linear(3, 3)
     sd = {"a": lin.weight, "b": lin.weight, "c": torch.arange(4)}
