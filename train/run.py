@@ -40,7 +40,7 @@ import torch  # noqa: E402
 
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.host import keep_freed_memory  # noqa: E402
-from toolkit.io import atomic_write_json, atomic_write_text, load_tensors  # noqa: E402
+from toolkit.io import atomic_write_json, atomic_write_text, load_metadata  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
 from train.stages import RunContext, Stage, check_dependencies, finished_stages, run_stages  # noqa: E402
@@ -369,7 +369,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     stage_dir = ctx.run_dir / "gaussian"
     mgr = CheckpointManager(stage_dir / "checkpoints")
     if ctx.resume and mgr.latest() is not None:
-        if g.ema_decay > 0 and "ema_model" not in load_tensors(mgr.latest())[1].get("modules", []):
+        if g.ema_decay > 0 and "ema_model" not in load_metadata(mgr.latest()).get("modules", []):
             raise ToolkitError(f"{mgr.latest()}: written without a weight average, so it cannot resume with "
                                f"gaussian.ema_decay={g.ema_decay}; resume with the run's earlier value (0), or "
                                "rerun the stage without --resume")
