@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import time
 from dataclasses import asdict, dataclass
 from typing import Callable
 
@@ -557,6 +558,9 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         val: optional held-out (images, labels[, landmarks]) evaluated every ``log_every`` steps.
         init: start from this estimator's weights (fine-tuning; the learning-rate schedule starts afresh); its
             configuration must equal ``config``.
+        callback: called as ``callback(step, record)`` after each history record, the record with one more key,
+            ``val_s``: the wall seconds its held-out evaluation took (0 without ``val``), so a caller can time
+            training alone. Timings stay out of the history, which is deterministic for a seed.
     Returns:
         (model in eval mode, history: list of {"step", "loss", ["val_gaze_deg", "val_head_deg"]}).
     """
@@ -627,14 +631,16 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         opt.step()
         sched.step()
         if step % tc.log_every == 0 or step == tc.steps:
-            rec = {"step": step, "loss": float(loss.detach())}
+            rec, val_s = {"step": step, "loss": float(loss.detach())}, 0.0
             if val is not None:
+                t0 = time.perf_counter()
                 rec.update(evaluate_gaze_estimator(model, *val, device=device))
+                val_s = time.perf_counter() - t0
                 model.train()
             history.append(rec)
             log.info("gaze estimator step %d: %s", step, rec)
             if callback is not None:
-                callback(step, rec)
+                callback(step, dict(rec, val_s=val_s))
     model.eval()
     return model, history
 

@@ -118,8 +118,12 @@ def test_trainer_learns_and_is_deterministic():
     val = drawn_face_dataset(48, 32, n_subjects=4, seed=1)[:2]
     tc = GazeEstimatorTrainConfig(steps=50, batch_size=16, lr=3e-3, log_every=25, seed=3)
     before = evaluate_gaze_estimator(GazeEstimator(TINY), *val)
-    model, hist = train_gaze_estimator(imgs, labels, TINY, tc, val=val)
+    seen = []
+    model, hist = train_gaze_estimator(imgs, labels, TINY, tc, val=val, callback=lambda step, rec: seen.append(rec))
     after = hist[-1]
+    # The callback gets each record plus the evaluation's wall time, which the deterministic history leaves out.
+    assert [r["step"] for r in seen] == [25, 50] and all(r["val_s"] > 0 for r in seen)
+    assert [{k: v for k, v in r.items() if k != "val_s"} for r in seen] == hist and "val_s" not in after
     # 50 tiny steps learn the head pose (coarse layout) first; the fine iris cue needs the long runs of
     # benchmarks/gaze_estimator.py, so here gaze only has to improve on the untrained network.
     assert after["val_head_deg"] < 0.6 * before["val_head_deg"]
