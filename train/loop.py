@@ -63,6 +63,32 @@ class MetricsLogger:
             except Exception:  # tensorboard is an optional dependency (extra "eval")
                 self._tb = None
 
+    def start(self, stage: str, step: int) -> None:
+        """``stage`` trains from ``step`` on (0, or the step a resume starts at): its records after that step,
+        from a run that crashed or was re-run, are dropped, and so is a line torn by a crash, so the log holds
+        each step of the model being trained once. Rewritten atomically; other stages' records are kept."""
+        try:
+            text = self.path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return
+        lines = text.splitlines(keepends=True)
+        if lines and not lines[-1].endswith("\n"):
+            lines.pop()  # torn by a crash mid-write
+
+        def superseded(line: str) -> bool:
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                return False  # not ours to judge: kept as it is
+            return isinstance(rec, dict) and rec.get("stage") == stage and isinstance(rec.get("step"), int) \
+                and rec["step"] > step
+
+        kept = [line for line in lines if not superseded(line)]
+        if "".join(kept) != text:
+            from toolkit.io import atomic_write_text
+
+            atomic_write_text(self.path, "".join(kept))
+
     def log(self, stage: str, step: int, values: dict[str, float]) -> None:
         rec = {"stage": stage, "step": step, "time": time.time(), **values}
         line = (json.dumps(rec) + "\n").encode()
@@ -134,6 +160,10 @@ def train_loop(
     ``after_step(done)``: called after each step's optimizer update with the number of steps done, before that
     step's checkpoint (a weight average's update goes here, so the checkpoint holds it).
     """
+    if ckpt_every < 1 or log_every < 1:
+        raise ToolkitError(f"{stage}: ckpt_every and log_every must be step counts >= 1, got {ckpt_every}, {log_every}")
+    if grad_clip is not None and not (math.isfinite(grad_clip) and grad_clip >= 0):
+        raise ToolkitError(f"{stage}: grad_clip must be a gradient-norm bound >= 0 (0 or None: no clipping), got {grad_clip}")
     run_dir = Path(run_dir)
     mgr = CheckpointManager(run_dir / "checkpoints")
     start = 0
@@ -141,6 +171,8 @@ def train_loop(
     base_lrs = {name: [grp["lr"] for grp in opt.param_groups] for name, opt in optimizers.items()}
     if resume and mgr.latest() is not None:
         start = load_training_checkpoint(mgr.latest(), modules=modules, optimizers=optimizers)["step"]
+    if metrics is not None and is_main:
+        metrics.start(stage, start)
     params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
     last_ckpt = mgr.latest()
     last: dict[str, float] = {}

@@ -26,6 +26,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import math
 import os
 import re
 import sys
@@ -446,10 +447,13 @@ def _check_values(cfg: RunConfig) -> None:
         if not (rate := getattr(cfg.gaussian, name)) > 0:
             raise ToolkitError(f"config key 'gaussian.{name}': expected a learning rate > 0, got {rate}")
     for key in ("data.frames", "geometry.steps", "codec.steps", "estimator.steps", "gaussian.steps", "gaussian.batch", "codec.batch",
-                "estimator.batch", "eval.pairs_per_subject"):
+                "estimator.batch", "eval.pairs_per_subject", "gaussian.ckpt_every", "gaussian.log_every"):
         section, name = key.split(".")
         if not (count := getattr(getattr(cfg, section), name)) >= 1:
             raise ToolkitError(f"config key '{key}': expected a count >= 1, got {count}")
+    if not (math.isfinite(cfg.gaussian.grad_clip) and cfg.gaussian.grad_clip >= 0):
+        raise ToolkitError(f"config key 'gaussian.grad_clip': expected a gradient-norm bound >= 0 (0 = no clipping), "
+                           f"got {cfg.gaussian.grad_clip}")
     if cfg.eval.tta_steps < 0:
         raise ToolkitError(f"config key 'eval.tta_steps': expected a step count >= 0, got {cfg.eval.tta_steps}")
     u = cfg.gaussian.feature_upscale
@@ -718,7 +722,7 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     est_note = ""
     summary_path = ctx.run_dir / "estimators.json"
     if summary_path.exists():
-        est = json.loads(summary_path.read_text()).get("eval", {})
+        est = json.loads(summary_path.read_text(encoding="utf-8")).get("eval", {})
         if "val_gaze_deg" in est:
             # The gaze metric compares the evaluation estimator's outputs on render and target: it can only
             # be read against that estimator's own error on held-out labels.

@@ -95,6 +95,35 @@ def test_metrics_jsonl(tmp_path):
     assert [r["step"] for r in recs] == [5, 10] and all("mse" in r and "grad_norm" in r for r in recs)
 
 
+def test_a_resumed_stage_logs_each_step_once_and_drops_a_torn_line(tmp_path):
+    model, opt, f = _problem()
+    ml = MetricsLogger(tmp_path, tensorboard=False)
+    train_loop("t", f, modules={"m": model}, optimizers={"o": opt}, steps=6, run_dir=tmp_path, log_every=1,
+               ckpt_every=2, metrics=ml, progress=False)
+    ml.log("other", 9, {"x": 1.0})  # another stage's record survives
+    for p in CheckpointManager(tmp_path / "checkpoints").all():  # a "crash" after step 6, last checkpoint at 4
+        if not p.name.endswith("04.safetensors"):
+            p.unlink()
+    with open(tmp_path / "metrics.jsonl", "a") as fh:
+        fh.write('{"stage": "t", "st')  # torn mid-write
+    model, opt, f = _problem()
+    train_loop("t", f, modules={"m": model}, optimizers={"o": opt}, steps=8, run_dir=tmp_path, log_every=1,
+               ckpt_every=2, metrics=ml, progress=False, resume=True)
+    recs = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [(r["stage"], r["step"]) for r in recs] == [("t", s) for s in (1, 2, 3, 4)] + [("other", 9)] + [
+        ("t", s) for s in (5, 6, 7, 8)]
+
+
+@pytest.mark.parametrize("bad", [{"ckpt_every": 0}, {"log_every": 0}, {"grad_clip": -1.0}, {"grad_clip": float("nan")}])
+def test_loop_settings_that_cannot_work_are_refused_before_a_step(tmp_path, bad):
+    model, opt, f = _problem()
+    before = [p.detach().clone() for p in model.parameters()]
+    with pytest.raises(ToolkitError, match=f"t: .*{next(iter(bad))}"):
+        train_loop("t", f, modules={"m": model}, optimizers={"o": opt}, steps=3, run_dir=tmp_path, progress=False,
+                   **bad)
+    assert all(torch.equal(a, b) for a, b in zip(before, model.parameters()))
+
+
 def test_incompatible_and_corrupt_checkpoints(tmp_path):
     model, opt, _ = _problem()
     save_training_checkpoint(tmp_path / "c.safetensors", step=3, modules={"m": model}, optimizers={"o": opt})

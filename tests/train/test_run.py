@@ -279,6 +279,9 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("gaussian.batch=0", "'gaussian.batch': expected a count >= 1"),
         ("estimator.steps=-5", "'estimator.steps': expected a count >= 1"),
         ("eval.pairs_per_subject=0", "'eval.pairs_per_subject': expected a count >= 1"),
+        ("gaussian.ckpt_every=0", "'gaussian.ckpt_every': expected a count >= 1"),
+        ("gaussian.log_every=0", "'gaussian.log_every': expected a count >= 1"),
+        ("gaussian.grad_clip=-1", "'gaussian.grad_clip': expected a gradient-norm bound >= 0"),
         ("eval.tta_steps=-1", "'eval.tta_steps': expected a step count >= 0"),
         ("device=tpu", "'device': expected auto, cpu, cuda or cuda:N"),
         ("data.subjects=1", "'data.subjects': expected >= 2 synthetic subjects"),
@@ -356,11 +359,14 @@ def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path, ave
         if not p.name.endswith("0002.safetensors"):
             p.unlink()
     log = part / "metrics.jsonl"
-    before = len(log.read_text().splitlines())
+    logged = lambda: [json.loads(line)["time"] for line in log.read_text().splitlines()  # noqa: E731
+                      if json.loads(line)["stage"] == "gaussian"]
+    before = logged()
     assert run.main([*TINY, "--run-dir", str(part), "--resume", *args, "gaussian.log_every=2"]) == 0
-    # It went on from step 2: only step 4 was logged again (a retrain from step 0 would match the weights too).
-    resumed = [json.loads(line) for line in log.read_text().splitlines()[before:]]
-    assert [r["step"] for r in resumed if r["stage"] == "gaussian"] == [4], resumed
+    # It went on from step 2: step 2's record stays, step 4's is logged anew in place of the crashed run's (a
+    # retrain from step 0 would match the weights too), and no step is logged twice.
+    after = logged()
+    assert len(before) == len(after) == 2 and after[0] == before[0] and after[1] > before[1]
     from toolkit.io import load_tensors
 
     a, _ = load_tensors(full / "gaussian" / "final.safetensors")
