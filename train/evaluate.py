@@ -188,7 +188,8 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
                   renderer_lr: float = 1e-3, gaze: "FitGaze | None" = None) -> torch.Tensor:
     """Tune a copy of the shape code on the input image (its own gaze and view) for ``steps`` Adam steps.
 
-    Loss: L1 on white outside ``mask`` [B, 1, H, W] (the evaluation passes :func:`face_only_mask`) of the
+    Loss: L1 on white outside ``mask`` [B, 1, H, W] (the evaluation passes the input's head mask, or
+    :func:`face_only_mask` of it with ``tta_region="face"``) of the
     one-step render, plus L1 of the splatted RGB channels against the area-downsampled input (the training
     stage's ``rgb`` term), also outside the area-downsampled mask. ``weights`` (names from
     ``TTA_WEIGHT_GROUPS``) are tuned too, **in place** -- the Gaussian features at ``lr``, the renderer and the
@@ -199,6 +200,9 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     """
     if not lr > 0:
         raise ToolkitError(f"test-time fitting: expected a learning rate > 0 (code, features), got {lr}")
+    unknown = [g for g in weights if g not in TTA_WEIGHT_GROUPS]
+    if unknown:
+        raise ToolkitError(f"test-time fitting: unknown weight group(s) {unknown}, expected some of {list(TTA_WEIGHT_GROUPS)}")
     if gaze is not None and any(g != "code" and g not in weights for g in gaze.reach):
         raise ToolkitError(f"test-time fitting: the gaze term may reach only the code and fitted weights "
                            f"({['code', *weights]}), got {list(gaze.reach)}")
@@ -472,6 +476,10 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                      "landmarks": st("landmarks"), "in_head_mask": mask_in}
             out, render_time, own = _fit_and_render(model, renderer, batch, inp, fit_mask, res, sampling_steps, tta_steps,
                                                     tta_weights, tta_renderer_lr, own_gaze=own_gaze_row, gaze=tta_gaze)
+            bad = [i for i, ok in zip(indices, torch.isfinite(out).flatten(1).all(1).tolist()) if not ok]
+            if bad:  # a NaN render would drop out of the means below and leave a NaN median
+                raise ToolkitError(f"evaluate: {Path(f).name} pair(s) {bad}: the render is not finite (the test-time "
+                                   f"fit diverged?); try fewer eval.tta_steps or a lower eval.tta_renderer_lr")
             n_images += out.shape[0]
             total_render_time += render_time
             out_w, tgt_w = composite_on_white(out, mask), composite_on_white(tgt, mask)

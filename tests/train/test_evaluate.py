@@ -216,11 +216,13 @@ def test_decoder_group_needs_a_codec_with_a_decoder():
 
 def test_unknown_fitting_group_is_a_clear_error(subject_file):
     from toolkit.errors import ToolkitError
-    from train.evaluate import fitted_weights
+    from train.evaluate import fitted_weights, test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
     with pytest.raises(ToolkitError, match="unknown weight group 'geometry'"):
         fitted_weights(model, renderer, ["geometry"])
+    with pytest.raises(ToolkitError, match=r"unknown weight group\(s\) \['renderr'\]"):  # not silently the code alone
+        test_time_fit(model, renderer, {}, None, None, 64, 1, weights=("renderr",))
     assert fitted_weights(model, renderer, ["features", "features"]) == [model.face_features]  # each group once
     assert fitted_weights(model, renderer, ["eye_features"]) == [model.eye_features]
     renderer.requires_grad_(False)
@@ -755,3 +757,21 @@ def test_fid_is_reported_as_n_a_without_its_optional_package(monkeypatch):
     monkeypatch.setattr(ev, "fid", must_not_run)
     images = torch.rand(4, 3, 16, 16)
     assert ev._fid(images, images, log=lambda s: None) is None
+
+
+def test_a_diverged_fit_stops_the_evaluation_naming_the_pair(subject_file, monkeypatch):
+    """A non-finite render would drop out of the means and leave a NaN median: the evaluation stops instead."""
+    import train.evaluate as ev
+
+    real = ev._fit_and_render
+
+    def diverged(*args, **kwargs):
+        out, seconds, own = real(*args, **kwargs)
+        out = out.clone()
+        out[1] = float("nan")
+        return out, seconds, own
+
+    monkeypatch.setattr(ev, "_fit_and_render", diverged)
+    model, renderer, est = untrained_eval_parts()
+    with pytest.raises(ToolkitError, match=rf"{subject_file.name} pair\(s\) \[\d+\]: the render is not finite"):
+        ev.evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None)
