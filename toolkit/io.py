@@ -71,8 +71,9 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
 
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
-    """Open a temporary file beside ``path``; on clean exit rename it onto ``path``, else delete it."""
-    with atomic_path(path) as tmp, open(tmp, mode) as f:
+    """Open a temporary file beside ``path``; on clean exit rename it onto ``path``, else delete it. Text modes
+    write UTF-8 whatever the locale (reports hold degree signs)."""
+    with atomic_path(path) as tmp, open(tmp, mode, encoding=None if "b" in mode else "utf-8") as f:
         yield f
 
 

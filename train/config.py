@@ -161,7 +161,7 @@ def apply_overrides(cfg: T, overrides: list[str]) -> T:
 def load_yaml_config(cls: type[T], path: str | Path) -> T:
     path = check_readable_file(path, "config file")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as e:
         raise ToolkitError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(data, dict):

@@ -53,7 +53,7 @@ def _record_path(run_dir: Path, name: str) -> Path:
 def _finished_record(run_dir: Path, name: str) -> dict | None:
     """The stage's record when it finished and every output it wrote still exists, else None."""
     rec_path = _record_path(run_dir, name)
-    record = json.loads(rec_path.read_text()) if rec_path.exists() else None
+    record = json.loads(rec_path.read_text(encoding="utf-8")) if rec_path.exists() else None
     if record is None or not all((run_dir / p).exists() for p in record.get("outputs", {}).values()):
         return None
     return record

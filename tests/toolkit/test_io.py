@@ -106,3 +106,18 @@ def test_atomic_write_leaves_the_mode_a_plain_write_would(tmp_path, monkeypatch)
     assert stat.S_IMODE((tmp_path / "kept.txt").stat().st_mode) == 0o640
     assert (tmp_path / "kept.txt").read_text() == "c"
     assert toolkit.io._UMASK == os.umask(toolkit.io._UMASK)  # and the read left the umask as it was
+
+
+def test_text_is_written_as_utf8_whatever_the_locale(tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    code = (f"import sys; sys.path.insert(0, {str(root)!r}); from toolkit.io import atomic_write_text; "
+            f"atomic_write_text({str(tmp_path / 'r.md')!r}, '5.2\\u00b0 \\u00b1 0.2\\u00b0')")
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONIOENCODING": "ascii"}
+    r = subprocess.run([sys.executable, "-X", "utf8=0", "-c", code], env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "r.md").read_bytes() == "5.2° ± 0.2°".encode("utf-8")

@@ -60,7 +60,7 @@ def split_files(files: list[Path], split: str, split_file: str | os.PathLike | N
     sf = Path(split_file) if split_file else files[0].parent / "split.json"
     if sf.exists():
         try:
-            spec = json.loads(sf.read_text())
+            spec = json.loads(sf.read_text(encoding="utf-8"))
             names = set(spec[split])
         except (ValueError, KeyError, TypeError) as e:
             raise ToolkitError(f"{sf}: expected JSON {{\"train\": [...], \"test\": [...]}} ({e})") from e

@@ -38,7 +38,7 @@ def synthetic_pairs(n_rows: int, seed: int = 0) -> np.ndarray:
 def load_pairing(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Read a pairing file -> {subject stem: [P, 2] int64 (input row, target row)}."""
     path = check_readable_file(path, "pairing file")
-    text = path.read_text()
+    text = path.read_text(encoding="utf-8")
     out: dict[str, list] = {}
     try:
         if path.suffix == ".json":
