@@ -32,6 +32,8 @@ Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun 
 and the final file is assembled (atomically) when all chunks exist. ``OUT.parts/settings.json`` records the
 settings the chunks were made with; a rerun with other settings is refused rather than mixed in.
 Shardable: under ``torchrun`` each process renders the chunks ``k ≡ rank (mod world)`` and rank 0 assembles.
+Each chunk draws its random numbers (a diffusion renderer's noise while fitting) from its own stream, seeded
+by ``--seed`` and the chunk's number, so a resumed or sharded run writes what an uninterrupted one does.
 """
 
 from __future__ import annotations
@@ -213,8 +215,8 @@ def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
     csv = is_labels_csv(args.dataset)
     if csv:
         settings.update(focal=args.focal, distance=args.distance, fit_lr=args.fit_lr)
-    if args.fit_weights or csv:
-        settings["fit_steps"] = fit_steps
+    if args.fit_weights or csv:  # fitting draws the diffusion renderer's noise from the seed's streams
+        settings.update(fit_steps=fit_steps, seed=args.seed)
     if args.fit_weights:
         as_json = lambda d: {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}  # noqa: E731
         settings["eval"] = as_json({k: v for k, v in vars(ctx.config.eval).items()
@@ -235,9 +237,12 @@ def check_parts_settings(parts: Path, settings: dict) -> None:
     from toolkit.io import atomic_write_json
 
     path = parts / "settings.json"
+    if not path.is_file() and any(parts.glob("part_*.npz")):
+        raise ToolkitError(f"{parts} holds chunks but no settings.json, so what made them is unknown; delete "
+                           f"{parts} to start over")
     if path.is_file() and any(parts.glob("part_*.npz")):
         try:
-            before = json.loads(path.read_text())
+            before = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, ValueError) as e:
             raise ToolkitError(f"{path}: unreadable ({e}); delete {parts} to start over") from e
         changed = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
@@ -254,19 +259,25 @@ def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
 
     from toolkit.io import atomic_write
 
-    arrays: dict[str, list] = {}
-    for k in range(n_chunks):
-        with np.load(_chunk_path(parts, k)) as z:
-            for name in z.files:
-                arrays.setdefault(name, []).append(z[name])
-    cat = {k: np.concatenate(v) for k, v in arrays.items()}
+    n = 0
     with atomic_write(out_path, "wb") as f:
         with h5py.File(f, "w") as h:
-            for k, v in cat.items():
-                h.create_dataset(k, data=v, compression="lzf" if v.ndim >= 3 else None)
+            # One chunk in memory at a time: the datasets grow as the chunks are appended.
+            for k in range(n_chunks):
+                with np.load(_chunk_path(parts, k)) as z:
+                    for name in z.files:
+                        v = z[name]
+                        if name not in h:
+                            h.create_dataset(name, data=v, maxshape=(None, *v.shape[1:]),
+                                             compression="lzf" if v.ndim >= 3 else None)
+                            continue
+                        d = h[name]
+                        d.resize(d.shape[0] + v.shape[0], axis=0)
+                        d[-v.shape[0]:] = v
+                    n += int(z["face_patch"].shape[0])
             for k, v in attrs.items():
                 h.attrs[k] = v
-    return int(cat["face_patch"].shape[0])
+    return n
 
 
 def is_labels_csv(path: str | Path) -> bool:
@@ -305,7 +316,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--rows", type=int, default=0, help="use only the first N input rows (0 = all)")
     ap.add_argument("--batch", type=int, default=4, help="input rows per chunk")
     ap.add_argument("--steps", type=int, default=0, help="DDIM steps (0 = the run's setting)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0,
+                    help="seed of random: gazes and of the fitting's diffusion noise (drawn per chunk, so a "
+                         "resumed or sharded run writes what an uninterrupted one does)")
     ap.add_argument("--focal", type=float, default=None,
                     help="CSV input: focal length (pixels of the images) for rows without one "
                          "(default: the project's normalized camera, size x 0.6 / 0.26)")
@@ -385,6 +398,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     steps = sampling_steps(args, cfg)
     for k in tqdm(todo, desc=f"redirect (rank {info.rank})", disable=not info.is_main, initial=len(mine) - len(todo),
                   total=len(mine)):
+        # Each chunk's own random stream (a diffusion renderer's noise while fitting): its images then do not
+        # depend on which chunks this process rendered before it.
+        torch.manual_seed(args.seed * 1_000_003 + k)
         arrays = render_chunk(model, renderer, items(chunks[k]), chunks[k], gazes, cfg.data.res, steps, device, fit)
         with atomic_write(_chunk_path(parts, k), "wb") as f:
             np.savez(f, **arrays)
@@ -392,7 +408,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if info.is_main:
         n = assemble(parts, len(chunks), out, {"source_file": str(args.dataset), "run_dir": str(run_dir),
                                                "gazes_spec": args.gazes, "generator": "apps.redirect"})
-        for p in parts.iterdir():
+        # The settings go last: chunks left by an interrupted clean-up stay tied to what made them.
+        for p in sorted(parts.iterdir(), key=lambda p: p.name == "settings.json"):
             p.unlink()
         parts.rmdir()
         print(f"wrote {out}: {n} redirected images ({n_rows} rows × {len(gazes)} gazes)")

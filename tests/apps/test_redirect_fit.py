@@ -213,7 +213,8 @@ def test_fit_weights_bad_input_is_one_line_error(tiny_trained_run, tmp_path, cap
 @pytest.mark.skipif(not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
                     reason="torch.distributed/gloo unavailable")
 def test_redirect_sharded_over_two_torchrun_processes_writes_what_one_process_writes(tiny_trained_run, tmp_path):
-    """torchrun with 2 CPU processes: each renders its chunks, rank 0 assembles one file equal to one process's."""
+    """torchrun with 2 CPU processes: each renders its chunks, rank 0 assembles one file equal to one process's.
+    The rows are fitted: the fit draws the diffusion renderer's noise, from each chunk's own stream."""
     import os
     import subprocess
     import sys
@@ -226,7 +227,8 @@ def test_redirect_sharded_over_two_torchrun_processes_writes_what_one_process_wr
                            ("two", [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"])):
         outs[name] = tmp_path / f"{name}.h5"
         cmd = [*launcher, "-m", "apps.redirect", str(tiny_trained_run), str(src), str(outs[name]),
-               "--gazes", "grid:1x2:20", "--rows", "5", "--batch", "2"]  # 3 chunks: rank 0 renders two, rank 1 one
+               "--gazes", "grid:1x2:20", "--rows", "5", "--batch", "2",  # 3 chunks: rank 0 renders two, rank 1 one
+               "--fit-weights", "--fit-steps", "2"]
         env = {**os.environ, "OMP_NUM_THREADS": "1"}
         r = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300, env=env)
         if r.returncode != 0 and "terminate called without an active exception" in r.stderr:
@@ -274,3 +276,14 @@ def test_gazes_file_with_a_header_names_the_file(tmp_path):
         redirect.parse_gazes(f"file:{f}")
     f.write_text("# pitch,yaw\n10,20\n-5,0\n")
     assert np.allclose(np.degrees(redirect.parse_gazes(f"file:{f}")), [[10, 20], [-5, 0]], atol=1e-4)
+
+
+def test_chunks_without_their_settings_are_refused(tmp_path):
+    """A clean-up cut short after settings.json went would leave chunks no run could vouch for: refused, never
+    adopted by whatever settings come next."""
+    parts = tmp_path / "o.h5.parts"
+    parts.mkdir()
+    np.savez(parts / "part_00000.npz", face_patch=np.zeros((1, 4, 4, 3), np.uint8))
+    with pytest.raises(ToolkitError, match="holds chunks but no settings.json"):
+        redirect.check_parts_settings(parts, {"anything": 1})
+    assert not (parts / "settings.json").exists()
