@@ -341,7 +341,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     keep_freed_memory()
     if args.natural_eyes and not args.fit_weights:
         raise ToolkitError("--natural-eyes sets how --fit-weights fits each row; give --fit-weights too")
-    from train.distributed import barrier, cleanup, init_distributed
+    from train.distributed import all_ranks, barrier, cleanup, init_distributed
     from train.run import load_trained, open_run
 
     run_dir = Path(args.run_dir)
@@ -396,14 +396,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     mine = [k for k in range(len(chunks)) if k % info.world_size == info.rank]
     todo = [k for k in mine if not _chunk_path(parts, k).exists()]
     steps = sampling_steps(args, cfg)
-    for k in tqdm(todo, desc=f"redirect (rank {info.rank})", disable=not info.is_main, initial=len(mine) - len(todo),
-                  total=len(mine)):
-        # Each chunk's own random stream (a diffusion renderer's noise while fitting): its images then do not
-        # depend on which chunks this process rendered before it.
-        torch.manual_seed(args.seed * 1_000_003 + k)
-        arrays = render_chunk(model, renderer, items(chunks[k]), chunks[k], gazes, cfg.data.res, steps, device, fit)
-        with atomic_write(_chunk_path(parts, k), "wb") as f:
-            np.savez(f, **arrays)
+    failure = None
+    try:
+        for k in tqdm(todo, desc=f"redirect (rank {info.rank})", disable=not info.is_main,
+                      initial=len(mine) - len(todo), total=len(mine)):
+            # Each chunk's own random stream (a diffusion renderer's noise while fitting): its images then do not
+            # depend on which chunks this process rendered before it.
+            torch.manual_seed(args.seed * 1_000_003 + k)
+            arrays = render_chunk(model, renderer, items(chunks[k]), chunks[k], gazes, cfg.data.res, steps, device, fit)
+            with atomic_write(_chunk_path(parts, k), "wb") as f:
+                np.savez(f, **arrays)
+    except Exception as e:  # noqa: BLE001 -- re-raised below, once every rank knows
+        failure = e
+    # A rank that failed must not leave the others waiting at the barrier: all learn of it and stop.
+    if not all_ranks(failure is None, info):
+        if failure is not None:
+            raise failure
+        raise ToolkitError(f"redirect: another process failed (its error is above); the chunks done are kept in "
+                           f"{parts}: rerun the same command to resume")
     barrier(info)
     if info.is_main:
         n = assemble(parts, len(chunks), out, {"source_file": str(args.dataset), "run_dir": str(run_dir),

@@ -287,3 +287,40 @@ def test_chunks_without_their_settings_are_refused(tmp_path):
     with pytest.raises(ToolkitError, match="holds chunks but no settings.json"):
         redirect.check_parts_settings(parts, {"anything": 1})
     assert not (parts / "settings.json").exists()
+
+
+_FAILING_RANK = """
+import os, sys
+sys.path.insert(0, {root!r})
+from apps import redirect
+from toolkit.errors import ToolkitError, run_cli
+real = redirect.render_chunk
+def render_chunk(*a, **k):
+    if os.environ["RANK"] == "1":
+        raise ToolkitError("rank 1 failed on purpose")
+    return real(*a, **k)
+redirect.render_chunk = render_chunk
+sys.exit(run_cli(redirect.main, sys.argv[1:]))
+"""
+
+
+def test_a_failing_process_stops_its_torchrun_peers_instead_of_leaving_them_waiting(tiny_trained_run, tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    script = tmp_path / "failing_rank.py"
+    script.write_text(_FAILING_RANK.format(root=str(root)))
+    out = tmp_path / "o.h5"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", str(script),
+           str(tiny_trained_run), str(_test_subject(tiny_trained_run)), str(out), "--gazes", "grid:1x2:20",
+           "--rows", "4", "--batch", "2"]
+    # Without the agreement, rank 0 would wait at the barrier for gloo's 30-minute timeout.
+    r = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=240,
+                       env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert r.returncode != 0 and not out.exists()
+    assert "error: rank 1 failed on purpose" in r.stderr
+    assert "error: redirect: another process failed" in r.stderr and "rerun the same command to resume" in r.stderr
+    assert (tmp_path / "o.h5.parts" / "part_00000.npz").is_file()  # rank 0's chunk is kept for the rerun
