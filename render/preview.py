@@ -16,7 +16,8 @@ along the screen-space ellipse's axes and cut where alpha reaches 1/255 for that
 
 What a frame skips (``PreviewSplatter.stats`` records what happened):
 - the depth sort, when the previous order is still exactly sorted for the new view and Gaussians
-  (an O(N) check), or when the view moved less than ``resort_tolerance`` (approximate, for orbiting);
+  (an O(N) check), or when no Gaussian changed and the view moved less than ``resort_tolerance``
+  (approximate, for orbiting);
 - uploads of Gaussians that did not change (rows of the data texture that hold a changed Gaussian);
 - when only ``dynamic`` Gaussians (the eyes) changed under the same camera: everything outside the
   screen rectangle covering their footprints before and after the change. Inside it, a per-camera
@@ -37,7 +38,9 @@ import numpy as np
 from render import preview_shaders as sh
 from render.preview_footprints import (  # noqa: F401 (re-exported: part of the preview API)
     as_float32,
+    back_to_front,
     covariances,
+    is_back_to_front,
     merge_rects,
     pack_gaussians,
     project_footprints,
@@ -111,7 +114,8 @@ class PreviewSplatter:
         near_plane, far_plane, eps2d: as in ``render.splat.rasterize``.
         resort_tolerance: keep the last depth order while the view direction turned less than this many
             radians and the camera centre moved less than this fraction of its distance to the scene
-            centre (approximate, for smooth orbiting). 0 (default) re-sorts whenever the order changed.
+            centre (approximate, for smooth orbiting), and no Gaussian changed. 0 (default) re-sorts whenever
+            the order changed.
     """
 
     def __init__(self, width: int, height: int, *, ctx=None, near_plane: float = 0.01, far_plane: float = 1e10,
@@ -224,16 +228,17 @@ class PreviewSplatter:
         dist = max(float(np.linalg.norm(c0 - centre)), 1e-9)
         return math.acos(cos) < self.resort_tolerance and float(np.linalg.norm(c1 - c0)) < self.resort_tolerance * dist
 
-    def _sorted_ids(self, viewmat: np.ndarray, structure_changed: bool) -> tuple[np.ndarray, np.ndarray, bool]:
-        """-> (visible ids back to front, depth [N], whether a new order was uploaded)."""
+    def _sorted_ids(self, viewmat: np.ndarray, structure_changed: bool, moved: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """-> (visible ids back to front, depth [N], whether a new order was uploaded). ``moved``: some
+        Gaussians changed since the last order, so ``resort_tolerance`` (a view's) does not apply."""
         depth = self._depth(viewmat)
         visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
         if self._order is not None and not structure_changed:
-            if self._view_close(viewmat):
+            if not moved and self._view_close(viewmat):  # the tolerance is for the view alone
                 return self._order, depth, False
-            d = depth[self._order]
             # The old order is still exact when it is sorted and holds exactly the visible set.
-            if (d.size == 0 or bool(np.all(d[:-1] >= d[1:]))) and self._order.size == int(visible.sum()) \
+            if is_back_to_front(self._order, depth[self._order]) and self._order.size == int(visible.sum()) \
                     and bool(visible[self._order].all()):
                 return self._order, depth, False
         order = sort_back_to_front(np.flatnonzero(visible), depth)
@@ -425,7 +430,8 @@ class PreviewSplatter:
             rect = self._draw_incremental(changed, old_rows, dyn, dynamic_spheres, viewmat, K, cam)
         else:
             st["path"] = "full"
-            _, _, st["resorted"] = self._sorted_ids(viewmat, structure_changed=changed is None)
+            _, _, st["resorted"] = self._sorted_ids(viewmat, structure_changed=changed is None,
+                                                    moved=changed is not None and changed.size > 0)
             t2 = time.perf_counter()
             st["sort_s"] = t2 - t1
             self._set_camera_uniforms(viewmat, K)
@@ -470,7 +476,7 @@ class PreviewSplatter:
             dz = self._depth(viewmat, dyn_ids)
             dyn_vis = dyn_ids[(dz > self.near) & (dz < self.far) & (self._rows[dyn_ids, 10] > 0)]
             mids = np.sort(np.concatenate([L["mid_static"][hit], dyn_vis]))
-            self._lists["mid"].set(mids[np.argsort(-self._depth(viewmat, mids), kind="stable")])
+            self._lists["mid"].set(back_to_front(mids, self._depth(viewmat, mids)))
         t3 = time.perf_counter()
         st["sort_s"] = (t3 - t2) + (t2 - t1 - st["layers_s"])
         st["n_mid"] = int(mids.size)

@@ -123,5 +123,20 @@ def merge_rects(a, b):
 
 
 def sort_back_to_front(ids: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """ids sorted by decreasing depth; ties keep id order (so any subset sorts like the whole)."""
-    return ids[np.argsort(-depth[ids], kind="stable")]
+    """ids sorted by decreasing ``depth`` [N] (indexed by id): :func:`back_to_front` of ``depth[ids]``."""
+    return back_to_front(ids, depth[ids])
+
+
+def back_to_front(ids: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``ids`` in drawing order for back-to-front blending, ``d`` their depths: decreasing depth, and among
+    equal depths decreasing id, so the lower id ends in front as in ``render.splat.rasterize`` (which blends
+    front to back, ties in index order). Any subset sorts like the whole."""
+    return ids[np.lexsort((-ids, -d))]
+
+
+def is_back_to_front(ids: np.ndarray, d: np.ndarray) -> bool:
+    """Whether ``ids`` (depths ``d``) are already in :func:`back_to_front` order."""
+    if ids.size < 2:
+        return True
+    ahead = (d[:-1] > d[1:]) | ((d[:-1] == d[1:]) & (ids[:-1] > ids[1:]))
+    return bool(ahead.all())

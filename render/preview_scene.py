@@ -27,8 +27,10 @@ class FeatureColors:
             self.basis = np.eye(self.dim, 3) if self.dim == 2 else np.ones((1, 3))
         else:
             sub = f[np.random.default_rng(0).permutation(f.shape[0])[:20000]] - self.mean
-            _, _, vt = np.linalg.svd(sub, full_matrices=False)
-            basis = vt[:3].T
+            basis = np.zeros((self.dim, 3))
+            if sub.shape[0]:
+                _, _, vt = np.linalg.svd(sub, full_matrices=False)
+                basis[:, :min(3, vt.shape[0])] = vt[:3].T  # fewer than 3 Gaussians span fewer than 3 axes
             basis *= np.sign(basis[np.abs(basis).argmax(0), range(3)])  # a deterministic sign per axis
             self.basis = basis
         proj = (f - self.mean) @ self.basis if f.shape[0] else np.zeros((1, 3))
