@@ -176,10 +176,13 @@ class GazeScene:
 
         return redirect_eyes(self.scene, (pitch, yaw), info=self.eye_info) if self.can_scrub else self.scene
 
-    def draw(self, splatter, camera, pitch: float = 0.0, yaw: float = 0.0):
+    def draw(self, splatter, camera, pitch: float = 0.0, yaw: float = 0.0, *, fresh: bool = False):
+        """Draw the scene at this gaze. Only the eye rows are compared with the splatter's last inputs, unless
+        ``fresh``: the splatter may last have drawn something else (a splatter the caller passed in)."""
         means, quats = self.arrays_at(pitch, yaw)
         return splatter.draw(means, quats, self.arrays[2], self.arrays[3], self.colors, camera.viewmat,
-                             camera.K, dynamic=self.dynamic, dynamic_spheres=self.spheres, may_change=self.eye_ids)
+                             camera.K, dynamic=self.dynamic, dynamic_spheres=self.spheres,
+                             may_change=None if fresh else self.eye_ids)
 
     @property
     def eye_ids(self) -> np.ndarray:
@@ -240,7 +243,7 @@ def render_gaze_sweep(scene, out_path, pitches: Sequence[float], yaws: Sequence[
             row = []
             for y in yaws:
                 g = (float(p) * scale, float(y) * scale)
-                gs.draw(splatter, camera, *g)
+                gs.draw(splatter, camera, *g, fresh=not frames and not row)  # the first frame compares all rows
                 rgba = splatter.read()
                 rgb = rgba[..., :3] + (1 - rgba[..., 3:]) * bg
                 row.append(((np.clip(rgb, 0, 1) * 255) + 0.5).astype(np.uint8))

@@ -80,6 +80,27 @@ def test_png_contact_sheet_differs_only_in_eye_regions(egl, head, tmp_path):
     assert res["scrubbing"]
 
 
+def test_a_passed_in_splatter_that_drew_another_scene_shows_this_one(egl, head, tmp_path):
+    """The sweep compares only the eye rows frame to frame; its first frame must compare them all, since a
+    caller's splatter may last have drawn another scene of the same size."""
+    from apps.preview import render_gaze_sweep
+    from render.preview import PreviewSplatter
+    from toolkit.scene import GaussianScene
+
+    S = 64
+    other = GaussianScene(**{**{k: getattr(head, k) for k in ("means", "quats", "log_scales", "opacity_logits",
+                                                               "part", "metadata")},
+                             "features": head.features.flip(-1)})  # another face of the same size
+    splatter = PreviewSplatter(S, S)
+    try:
+        render_gaze_sweep(other, tmp_path / "a.png", [0], [0, 10], S, S, splatter=splatter)
+        reused = render_gaze_sweep(head, tmp_path / "b.png", [0], [0, 10], S, S, splatter=splatter)["frames"]
+    finally:
+        splatter.release()
+    fresh = render_gaze_sweep(head, tmp_path / "c.png", [0], [0, 10], S, S)["frames"]
+    np.testing.assert_array_equal(reused, fresh)
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
