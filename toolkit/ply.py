@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +81,9 @@ def write_scene_ply(scene, path: str | os.PathLike) -> None:
     meta_json = json.dumps(meta, sort_keys=True, separators=(",", ":"))
     if "\n" in meta_json or "\r" in meta_json:
         raise ToolkitError("scene metadata cannot be written to a PLY header (contains a newline)")
+    if len(meta_json) > _MAX_HEADER_BYTES // 2:  # readers read a bounded header
+        raise ToolkitError(f"scene metadata cannot be written to a PLY header: {len(meta_json)} bytes of JSON, "
+                           f"expected at most {_MAX_HEADER_BYTES // 2}")
     header = ["ply", "format binary_little_endian 1.0", f"comment {_META_TAG} {meta_json}", f"element vertex {n}"]
     header += [f"property float {name}" for name, _ in cols]
     header += ["end_header"]
@@ -90,11 +94,13 @@ def write_scene_ply(scene, path: str | os.PathLike) -> None:
 
 
 def _parse_header(raw: bytes, path: Path) -> tuple[str, list[tuple[str, int, list[tuple[str, str]]]], list[str], int]:
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise ToolkitError(f"{path}: not a PLY file (missing 'ply' magic or 'end_header')")
-    nl = raw.find(b"\n", end)
-    if nl < 0:
+    # The header ends at the first *line* "end_header": a comment may contain the word.
+    m = re.search(rb"\nend_header[ \t]*\r?(\n|$)", raw)
+    if not raw.startswith(b"ply") or m is None:
+        raise ToolkitError(f"{path}: not a PLY file (missing 'ply' magic or 'end_header' within the first "
+                           f"{len(raw)} bytes)")
+    nl = m.end(1) - 1
+    if not m.group(1):
         raise ToolkitError(f"{path}: truncated PLY header")
     try:
         text = raw[:nl].decode("ascii")
@@ -126,6 +132,9 @@ def _parse_header(raw: bytes, path: Path) -> tuple[str, list[tuple[str, int, lis
                 elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
             else:
                 raise ToolkitError(f"{path}: bad property line {lineno}: {line!r}")
+            if [name for name, _ in elements[-1][2]].count(elements[-1][2][-1][0]) > 1:
+                raise ToolkitError(f"{path}: property {elements[-1][2][-1][0]!r} of element {elements[-1][0]!r} "
+                                   f"is declared twice (line {lineno})")
         else:
             raise ToolkitError(f"{path}: unexpected PLY header line {lineno}: {line!r}")
     if fmt is None:
@@ -155,7 +164,8 @@ def read_ply_vertices(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], l
         if len(rows) < n:
             raise ToolkitError(f"{path}: truncated: header declares {n} vertices, found {len(rows)} rows")
         try:
-            arr = np.array([[float(v) for v in r.split()] for r in rows], dtype=np.float64).reshape(n, -1)
+            arr = np.array([[float(v) for v in r.split()] for r in rows], dtype=np.float64).reshape(n, -1) if n \
+                else np.zeros((0, len(props)))
         except ValueError:
             raise ToolkitError(f"{path}: vertex rows are not {len(props)} numbers each") from None
         if arr.shape[1] != len(props):

@@ -149,7 +149,9 @@ class GaussianScene:
         if quats is None:
             quats = torch.zeros(n, 4, dtype=means.dtype, device=means.device)
             quats[:, 0] = 1
-        o = opacities.clamp(eps, 1 - eps)
+        # 1 - eps must differ from 1 in the opacities' own precision, or an opacity of 1 inverts to +inf.
+        e = max(eps, torch.finfo(opacities.dtype).eps) if opacities.is_floating_point() else eps
+        o = opacities.clamp(e, 1 - e)
         return cls(
             means=means,
             quats=quats,

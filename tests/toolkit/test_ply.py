@@ -123,6 +123,8 @@ def test_nan_field(tmp_path):
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1.0\n", "missing vertex properties"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty floot x\nend_header\n1.0\n", "bad property"),
         (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1.0\nabc\n", "not 1 numbers"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\nend_header\n1 2\n",
+         "property 'x' of element 'vertex' is declared twice"),
     ],
 )
 def test_garbled_ply(tmp_path, content, msg):
@@ -148,3 +150,20 @@ def test_ply_write_failure_leaves_no_file(tmp_path):
     with pytest.raises(ToolkitError):
         s.to_ply(tmp_path / "x.ply")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_metadata_naming_end_header_round_trips_and_oversized_metadata_is_refused(tmp_path):
+    s = random_scene(4)
+    s.metadata["note"] = "see end_header"  # the word, not the header's last line
+    s.to_ply(tmp_path / "m.ply")
+    assert GaussianScene.from_ply(tmp_path / "m.ply").metadata["note"] == "see end_header"
+    s.metadata["note"] = "x" * (1 << 20)
+    with pytest.raises(ToolkitError, match="metadata cannot be written to a PLY header: .* bytes"):
+        s.to_ply(tmp_path / "big.ply")
+    assert not (tmp_path / "big.ply").exists()
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+def test_empty_foreign_ply_loads_as_an_empty_scene(tmp_path, fmt):
+    write_graphdeco_ply(tmp_path / "e.ply", n=0, degree=0, fmt=fmt)
+    assert GaussianScene.from_ply(tmp_path / "e.ply").means.shape == (0, 3)

@@ -33,6 +33,10 @@ def test_activated_properties():
     t = GaussianScene.from_activated(s.means, s.scales, s.opacities, s.features, s.quats, s.part)
     assert torch.allclose(t.opacities, s.opacities, atol=1e-6)
     assert torch.allclose(t.scales, s.scales, rtol=1e-6)
+    # Saturated opacities (a trained model's sigmoid at a large logit) invert to finite logits in float32.
+    sat = GaussianScene.from_activated(s.means[:3], s.scales[:3], torch.tensor([1.0, 0.0, 0.5]), s.features[:3])
+    assert torch.isfinite(sat.opacity_logits).all() and sat.validate()
+    assert sat.opacities[0] > 0.9999 and sat.opacities[1] < 1e-6
 
 
 def test_select_cat_clone_to():
