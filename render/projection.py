@@ -18,6 +18,9 @@ RADIUS_SIGMAS = 3.33
 # The EWA Jacobian is evaluated at the mean clamped to 1.3x the half field of view (3DGS / gsplat):
 # a Gaussian far outside the frustum would otherwise get a huge, meaningless 2D footprint.
 FOV_CLAMP = 0.3
+MAX_FOOTPRINT = 1e9
+"""Culling bound on the entries of J W R S (pixels): the 2x2 minors square them twice, and 1e9^4 stays well
+inside float32's range (3.4e38)."""
 
 
 @dataclass
@@ -57,7 +60,8 @@ def project_gaussians(
     Conventions: Sigma = R S S^T R^T; cov2d = J W Sigma W^T J^T with the Jacobian J of the pinhole map taken
     at the mean whose tangent x/z is clamped to [-(cx/fx + 0.3 t), (W - cx)/fx + 0.3 t], t = W / (2 fx)
     (same for y); then cov2d + eps2d * I ("dilation"); conic = inverse of the dilated cov2d; per-axis radius
-    ceil(3.33 sqrt(cov2d_ii)). Culled (radius 0): z <= near or z >= far, det <= 0, box fully off-image.
+    ceil(3.33 sqrt(cov2d_ii)). Culled (radius 0): z <= near or z >= far, det <= 0, box fully off-image, and
+    a footprint so large that float32 would overflow (an entry of J W R S >= ``MAX_FOOTPRINT`` pixels).
     means2d = K[:2] @ (x/z, y/z, 1) uses the unclamped mean (skew K[0, 1] included, ignored in J as gsplat).
     """
     R = viewmats[:, :3, :3]  # [C, 3, 3]
@@ -84,6 +88,10 @@ def project_gaussians(
     # cov2d = (J W R S)(J W R S)^T: built from a factor, so it is PSD to rounding for any scale.
     M = quat_to_matrix(quats) * scales[..., None, :]  # [(C,) N, 3, 3] = R S
     F = J @ torch.einsum("cij,cnjk->cnik" if per_camera else "cij,njk->cnik", R, M)  # [C, N, 2, 3]
+    # A footprint beyond ~1e9 px would overflow float32 in the minors below (and 0 * inf = NaN in their
+    # backward even when culled): such Gaussians are culled, with their F zeroed before any product.
+    sane = torch.isfinite(F).all(-1).all(-1) & (F.abs().amax((-2, -1)) < MAX_FOOTPRINT)
+    F = torch.where(sane[..., None, None], F, torch.zeros_like(F))
     f0, f1 = F[..., 0, :], F[..., 1, :]
     sxx = (f0 * f0).sum(-1) + eps2d
     sxy = (f0 * f1).sum(-1)
@@ -94,7 +102,7 @@ def project_gaussians(
                           f0[..., 0] * f1[..., 2] - f0[..., 2] * f1[..., 0],
                           f0[..., 1] * f1[..., 2] - f0[..., 2] * f1[..., 1]], -1)
     det = (minors * minors).sum(-1) + eps2d * ((f0 * f0).sum(-1) + (f1 * f1).sum(-1)) + eps2d * eps2d
-    valid = in_depth & (det > 0) & torch.isfinite(det)
+    valid = in_depth & sane & (det > 0) & torch.isfinite(det)
     det_s = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([syy / det_s, -sxy / det_s, sxx / det_s], -1)
     cov2d = torch.stack([sxx, sxy, syy], -1)

@@ -37,6 +37,21 @@ def test_uniform_extreme_scales(log_scale):
         assert (alpha > 0.5).all()
 
 
+@pytest.mark.parametrize("huge", [1e10, 1e20, 1e30])
+def test_absurdly_large_gaussians_are_culled_with_finite_gradients(huge):
+    """Footprints whose covariance minors would overflow float32 are culled; their 0 * inf must not reach
+    the gradients of the others or their own."""
+    means, quats, scales, opac, feats = ref.random_cloud(30, 3, seed=4)
+    V, K = ref.camera(24, 20)
+    scales = scales.clone()
+    scales[[3, 17]] = huge
+    img, _, _, _ = _run(means, quats, scales, opac, feats, V, K, 24, 20)
+    keep = torch.ones(30, dtype=torch.bool)
+    keep[[3, 17]] = False
+    without, _, _ = rasterize(means[keep], quats[keep], scales[keep], opac[keep], feats[keep], V, K, 24, 20)
+    assert torch.allclose(img, without, atol=1e-6)
+
+
 def test_mixed_needles_discs_and_blobs_match_reference():
     means, quats, scales, opac, feats = ref.random_cloud(40, 3, seed=2)
     scales[0:10] = torch.tensor([1e-7, 1e-7, 0.5])  # needles
