@@ -60,10 +60,10 @@ def _cmd_extract(a) -> int:
     from geometry.sdf import SDFNet, extract_mesh
 
     check_mesh_extension(a.output)
-    if a.res < 2:
-        raise ToolkitError(f"--res must be >= 2, got {a.res}")
+    if a.res != 0 and a.res < 2:
+        raise ToolkitError(f"--res must be 0 (the checkpoint's grid) or >= 2, got {a.res}")
     net = SDFNet.load(a.ckpt)
-    v, f, _ = extract_mesh(net, a.res, a.kind, use_offsets=not a.no_offsets)
+    v, f, _ = extract_mesh(net, a.res or net.config.grid_res, a.kind, use_offsets=not a.no_offsets)
     save_mesh(a.output, v, f)
     print(f"wrote {a.output}: {v.shape[0]} vertices, {f.shape[0]} faces")
     return 0
@@ -133,7 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("extract", help="mesh the zero set of an SDF checkpoint with DMTet")
     s.add_argument("ckpt")
     s.add_argument("output")
-    s.add_argument("--res", type=int, default=128)
+    s.add_argument("--res", type=int, default=0,
+                   help="tet grid resolution (0: the grid the checkpoint's offsets were trained for; finer grids "
+                        "clamp the offsets to half a cell)")
     s.add_argument("--kind", choices=("kuhn", "bcc"), default="kuhn")
     s.add_argument("--no-offsets", action="store_true", help="ignore the network's tet-vertex offsets")
     s.set_defaults(fn=_cmd_extract)

@@ -198,6 +198,8 @@ def extract_mesh(net: SDFNet, res: int = 64, kind: str = "kuhn", *, use_offsets:
     With ``differentiable``, the network is evaluated without gradients on the whole grid, then again
     with gradients only at the vertices of the tets the surface crosses: the mesh is differentiable
     w.r.t. the network at a fraction of a full-grid backward pass.
+    The offsets are bounded to half a cell of the network's ``grid_res``; on a finer grid they are clamped
+    to half a cell of ``res``, so no vertex crosses into a neighbour's cell and no tet inverts.
     Returns verts [M, 3], faces [F, 3], features [M, F] (or None).
     """
     if grid is None:
@@ -205,9 +207,15 @@ def extract_mesh(net: SDFNet, res: int = 64, kind: str = "kuhn", *, use_offsets:
     verts, tets = grid
     verts = verts.to(net.center.device)
     sdf, offset, feat = net.evaluate(verts)
+    bound = net.half_size / res if res > net.config.grid_res else None
+
+    def moved(offset):
+        if not use_offsets:
+            return verts
+        return verts + (offset if bound is None else torch.maximum(torch.minimum(offset, bound), -bound))
+
     if not differentiable:
-        v = verts + offset if use_offsets else verts
-        return marching_tets(v, tets, sdf, feat if with_features else None)
+        return marching_tets(moved(offset), tets, sdf, feat if with_features else None)
     with torch.no_grad():
         inside = (sdf < 0).to(torch.uint8)[tets]
         n_in = inside.sum(1)
@@ -216,5 +224,4 @@ def extract_mesh(net: SDFNet, res: int = 64, kind: str = "kuhn", *, use_offsets:
     sdf = sdf.index_put((active,), s2)
     offset = offset.index_put((active,), o2)
     feat = feat.index_put((active,), f2) if with_features else None
-    v = verts + offset if use_offsets else verts
-    return marching_tets(v, tets, sdf, feat)
+    return marching_tets(moved(offset), tets, sdf, feat)

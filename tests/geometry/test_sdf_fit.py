@@ -189,3 +189,23 @@ def test_laplacian_term_runs_and_is_finite():
     res = fit_sdf_to_targets(pts, target, cfg, sphere=SphereInit((0, 0, 0), 0.08))
     assert "laplacian" in res.history[-1] and all(np.isfinite(h["laplacian"]) for h in res.history if "laplacian" in h)
     assert res.skipped_steps == 0 and torch.isfinite(res.verts).all()
+
+
+def test_offsets_stay_within_half_a_cell_of_a_finer_extraction_grid(monkeypatch):
+    """Offsets are bounded for the network's grid_res; on a finer grid they would cross whole cells and invert
+    tets, so extraction clamps them to half a cell of its own grid."""
+    import geometry.sdf as sdf_mod
+    from geometry.tets import tet_grid
+
+    net = SDFNet(SDFNetConfig(hidden=16, feature_dim=2, box_min=(-1, -1, -1), box_max=(1, 1, 1), grid_res=8))
+    real = net.evaluate
+    monkeypatch.setattr(net, "evaluate", lambda x, chunk=65536: (lambda s, o, f: (
+        s, torch.ones_like(o) * net.half_size / net.config.grid_res, f))(*real(x)))  # every offset at its bound
+    seen = {}
+    real_mt = sdf_mod.marching_tets
+    monkeypatch.setattr(sdf_mod, "marching_tets", lambda v, t, s, f: seen.update(v=v) or real_mt(v, t, s, f))
+    for res in (4, 8, 32):
+        extract_mesh(net, res)
+        grid_v, _ = tet_grid("kuhn", res, net.config.box_min, net.config.box_max)
+        shift = float((seen["v"] - grid_v).abs().max())
+        assert shift == pytest.approx(1 / max(res, 8), rel=1e-5)  # half a cell: the box is 2 wide
