@@ -165,7 +165,9 @@ class GazeScene:
             idx = self.eye_index[name]
             c = eye["center"].detach().cpu().numpy().astype(np.float32)
             means[idx] = affine_rows(means[idx] - c, R, c)
-            bw, bx, by, bz = quats[idx].T
+            b = quats[idx]
+            b[(b == 0).all(1)] = (1, 0, 0, 0)  # an all-zero quaternion is the identity, and turns like one
+            bw, bx, by, bz = b.T
             quats[idx] = np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
                                    aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], 1)
         return means, quats

@@ -97,9 +97,13 @@ def gaze_rotation(pitchyaw: torch.Tensor) -> torch.Tensor:
 
 
 def rotate_about(means: torch.Tensor, quats: torch.Tensor, R: torch.Tensor, center: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rigidly rotate Gaussians ([M, 3] means, [M, 4] wxyz quats) by R [3, 3] about ``center`` [3]."""
+    """Rigidly rotate Gaussians ([M, 3] means, [M, 4] wxyz quats) by R [3, 3] about ``center`` [3]. An all-zero
+    quaternion means the identity (``toolkit.rotations.normalize_quat``) and turns like one."""
     new_means = (means - center) @ R.T + center
     q = matrix_to_quat(R)
+    identity = torch.zeros_like(quats)
+    identity[..., 0] = 1
+    quats = torch.where((quats == 0).all(-1, keepdim=True), identity, quats)
     new_quats = quat_multiply(q.expand_as(quats), quats)
     return new_means, new_quats
 

@@ -305,6 +305,9 @@ def test_gaze_scene_matches_redirect_eyes(head):
     from apps.preview import GazeScene
     from toolkit.eyes import redirect_eyes
 
+    head = head.clone()
+    eye = int(torch.nonzero(head.part == 1)[0])
+    head.quats[eye] = 0  # an all-zero quaternion is the identity orientation: it must turn with the eye too
     gs = GazeScene.prepare(head)
     for g in [(0.3, -0.2), (-0.5, 0.6)]:
         means, quats = gs.arrays_at(*g)
@@ -312,3 +315,4 @@ def test_gaze_scene_matches_redirect_eyes(head):
         np.testing.assert_allclose(means, ref.means.numpy(), atol=1e-6)
         np.testing.assert_allclose(quats, ref.quats.numpy(), atol=1e-6)
         assert not np.array_equal(means, head.means.numpy())
+        assert abs(quats[eye, 0]) < 0.999 and np.linalg.norm(quats[eye]) == pytest.approx(1, abs=1e-6)
