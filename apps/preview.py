@@ -193,6 +193,8 @@ class GazeScene:
 
 
 NO_EYES = "scene has no eye Gaussians (part 1 or 2): gaze scrubbing is disabled"
+IDLE_WAIT_S = 0.1
+"""Longest sleep of the window loop after a frame that changed nothing; any input event ends it at once."""
 
 
 # ---------------------------------------------------------------------------------------------- headless
@@ -389,7 +391,8 @@ def run_window(scene, width: int = 512, height: int = 512, *, background=(1.0, 1
     """Open a glfw window and scrub gaze live until closed (or for ``max_frames`` frames).
 
     ``events`` (for tests): {frame index: [(callback name, args...), ...]} fed to :class:`WindowControls`
-    before that frame, exactly as glfw would call them. Returns the final state and frame statistics.
+    before that frame, exactly as glfw would call them. Returns the final state and frame statistics
+    (``idle_waits``: frames that slept waiting for input because the one before changed nothing).
     """
     import glfw
     import moderngl
@@ -430,11 +433,16 @@ def run_window(scene, width: int = 512, height: int = 512, *, background=(1.0, 1
         target = scene.means.detach().cpu().double().quantile(0.5, 0)
         bg = tuple(float(b) for b in background)
         frames, paths, shots, last_title, times, eye_rect = 0, {}, [], 0.0, [], None
+        idle, idle_waits = False, 0
         try:
             while not glfw.window_should_close(win) and not state.quit:
                 if max_frames is not None and frames >= max_frames:
                     break
-                glfw.poll_events()
+                if idle:  # the last frame changed nothing: sleep until an event arrives instead of spinning a core
+                    glfw.wait_events_timeout(IDLE_WAIT_S)
+                    idle_waits += 1
+                else:
+                    glfw.poll_events()
                 for name, *args in (events or {}).get(frames, []):
                     getattr(controls, name)(win, *args)
                 t0 = time.perf_counter()
@@ -442,6 +450,7 @@ def run_window(scene, width: int = 512, height: int = 512, *, background=(1.0, 1
                 gs.draw(splatter, cam, state.pitch, state.yaw)
                 path = splatter.stats.get("path", "full")
                 paths[path] = paths.get(path, 0) + 1
+                idle = path == "unchanged"
                 if path == "incremental":
                     eye_rect = splatter.last_rect
                 fbw, fbh = glfw.get_framebuffer_size(win)
@@ -465,7 +474,7 @@ def run_window(scene, width: int = 512, height: int = 512, *, background=(1.0, 1
             splatter.release()
             glfw.destroy_window(win)
         return {"state": state, "frames": frames, "paths": paths, "screenshots": shots,
-                "fps": len(times) / max(sum(times), 1e-9), "scrubbing": gs.can_scrub}
+                "fps": len(times) / max(sum(times), 1e-9), "scrubbing": gs.can_scrub, "idle_waits": idle_waits}
     finally:
         glfw.terminate()
 

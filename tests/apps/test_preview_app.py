@@ -278,7 +278,8 @@ except ToolkitError as e:
     sys.exit(0)
 s = res["state"]
 print(json.dumps({"frames": res["frames"], "quit": s.quit, "overlay": s.overlay, "pitch": s.pitch, "yaw": s.yaw,
-                  "orbit_yaw": s.orbit_yaw, "paths": res["paths"], "shots": [str(p) for p in res["screenshots"]]}))
+                  "orbit_yaw": s.orbit_yaw, "paths": res["paths"], "shots": [str(p) for p in res["screenshots"]],
+                  "idle_waits": res["idle_waits"]}))
 """
 
 
@@ -296,6 +297,8 @@ def test_window_scrubs_gaze_with_synthetic_events(xdisplay, tmp_path):
     assert res["pitch"] == pytest.approx(math.radians(2.5)) and res["yaw"] == pytest.approx(math.radians(-5 - 2))
     assert res["orbit_yaw"] == pytest.approx(math.radians(-2))
     assert res["paths"].get("incremental", 0) >= 2 and res["paths"].get("full", 0) >= 2
+    # Frame 5 gets no input and changes nothing: the loop then sleeps for input instead of spinning.
+    assert res["paths"].get("unchanged", 0) >= 1 and res["idle_waits"] >= 1
     (shot,) = res["shots"]
     img = cv2.imread(shot)
     assert img.shape == (80, 96, 3) and img.std() > 10
