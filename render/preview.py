@@ -163,6 +163,9 @@ class PreviewSplatter:
             if obj is not None:
                 obj.release()
         self._data_tex = None
+        self._release_layers()
+
+    def _release_layers(self) -> None:
         if self._layers is not None:
             for k in ("back_fbo", "back_tex", "front_fbo", "front_tex"):
                 self._layers[k].release()
@@ -408,7 +411,8 @@ class PreviewSplatter:
         self.stats = st = {"n": n, "sort_s": 0.0, "upload_s": 0.0, "draw_s": 0.0, "read_s": 0.0,
                            "resorted": False, "layers_built": False, "layers_s": 0.0}
         if n == 0:
-            self._inputs, self._order, self._layers = None, None, None
+            self._release_layers()  # their textures too: a preview may sit on an empty scene for long
+            self._inputs, self._order = None, None
             self._fbo.clear(0.0, 0.0, 0.0, 0.0)
             self._camera = None
             st["path"] = "empty"

@@ -173,6 +173,13 @@ def test_gaze_only_frames_equal_full_redraws(ctx):
         prev = img
     live.render_scene(moved, cam)
     assert live.stats["path"] == "unchanged"
+    # An empty frame frees the depth layers' GL textures, and the next frame builds them anew.
+    layers = [live._layers[k] for k in ("back_tex", "front_tex", "back_fbo", "front_fbo")]
+    e = np.zeros((0, 3), np.float32)
+    live.render(e, np.zeros((0, 4)), e, np.zeros(0), e, cam.viewmat, cam.K)
+    assert live._layers is None and all(type(x.mglo).__name__ == "InvalidObject" for x in layers)
+    img = live.render_scene(moved, cam, background=(0.1, 0.2, 0.3))
+    np.testing.assert_allclose(img, prev, atol=2e-6, rtol=0)
 
 
 def test_generic_dynamic_set_without_spheres_rebuilds_layers(ctx):
