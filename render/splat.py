@@ -47,7 +47,9 @@ def _check_shape(name: str, t: Any, shape: Sequence[int | None]) -> None:
 
 def _check_finite(named: dict[str, torch.Tensor]) -> None:
     # One device sync for all inputs; the per-field scan only runs once something is wrong.
-    flags = torch.stack([torch.isfinite(t).all() for t in named.values() if t.numel()] or
+    # Cameras may sit on another device than the Gaussians (rasterize moves them): gather on the first's.
+    dev = next(iter(named.values())).device
+    flags = torch.stack([torch.isfinite(t).all().to(dev) for t in named.values() if t.numel()] or
                         [torch.tensor(True)])
     if bool(flags.all()):
         return

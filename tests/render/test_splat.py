@@ -357,6 +357,9 @@ def test_cuda_matches_cpu():
     gb = torch.autograd.grad(b.sum() + bb.sum(), gpu)
     for x, y in zip(ga, gb):
         assert torch.allclose(x, y.cpu(), rtol=1e-3, atol=1e-4)
+    # Cameras left on the CPU are moved to the Gaussians' device, the finiteness check included.
+    c, _, _ = rasterize(*gpu, V, K, 64, 48)
+    assert c.is_cuda and torch.equal(b, c)
 
 
 def test_binning_in_candidate_groups_is_identical(monkeypatch):
