@@ -2,7 +2,8 @@
 its inputs are unchanged.
 
 A stage's *fingerprint* hashes its config section plus the fingerprints of the stages it reads from,
-so changing an upstream setting re-runs everything downstream and nothing else. The record
+so changing an upstream setting re-runs everything downstream and nothing else. A stage that runs (a forced
+one too) first drops the records of the stages downstream of it, since they read its old outputs. The record
 ``run_dir/stages/<name>.json`` (written atomically after the stage finished) holds the fingerprint and
 the output files; a stage is up to date when the record matches and every output file exists.
 """
@@ -53,7 +54,13 @@ def _record_path(run_dir: Path, name: str) -> Path:
 def _finished_record(run_dir: Path, name: str) -> dict | None:
     """The stage's record when it finished and every output it wrote still exists, else None."""
     rec_path = _record_path(run_dir, name)
-    record = json.loads(rec_path.read_text(encoding="utf-8")) if rec_path.exists() else None
+    try:
+        record = json.loads(rec_path.read_text(encoding="utf-8")) if rec_path.exists() else None
+    except (OSError, ValueError) as e:
+        raise ToolkitError(f"{rec_path}: unreadable stage record ({e}); delete it to run stage '{name}' again") from None
+    if record is not None and not isinstance(record, dict):
+        raise ToolkitError(f"{rec_path}: expected a JSON object, got {type(record).__name__}; delete it to run "
+                           f"stage '{name}' again")
     if record is None or not all((run_dir / p).exists() for p in record.get("outputs", {}).values()):
         return None
     return record
@@ -117,6 +124,10 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
             status[stage.name] = "skipped"
             continue
         ctx.log(f"[{stage.name}] running")
+        # What read this stage's old outputs is stale once it runs (a forced run too: same config, new
+        # outputs), even if this run fails half-way: drop their records first, so they run again.
+        for name in _dependents(stages, stage.name):
+            _record_path(ctx.run_dir, name).unlink(missing_ok=True)
         t0 = time.perf_counter()
         outputs = stage.run(ctx)
         for k, p in outputs.items():
@@ -127,6 +138,15 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
         ctx.outputs[stage.name] = outputs
         status[stage.name] = "ran"
     return status
+
+
+def _dependents(stages: list[Stage], name: str) -> list[str]:
+    """The stages that read ``name``'s outputs, directly or through others."""
+    found: list[str] = []
+    for stage in stages:  # in pipeline order: a stage's dependencies come before it
+        if any(d == name or d in found for d in stage.depends):
+            found.append(stage.name)
+    return found
 
 
 def finished_stages(stages: list[Stage], ctx: RunContext) -> list[str]:

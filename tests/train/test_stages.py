@@ -47,6 +47,24 @@ def test_skip_when_unchanged_and_rerun_downstream(tmp_path):
     assert run_stages(_stages(calls), ["second"], ctx(Cfg(a=A(2), b=6))) == {"second": "ran"}
 
 
+def test_a_forced_upstream_stage_reruns_what_reads_it(tmp_path):
+    """Same config, new outputs: whatever read the old ones must run again, now or when next selected."""
+    calls = []
+    ctx = RunContext(tmp_path, Cfg(), log=lambda m: None)
+    run_stages(_stages(calls), ["first", "second"], ctx)
+    assert run_stages(_stages(calls), ["first", "second"], ctx, force=["first"]) == {"first": "ran", "second": "ran"}
+    assert run_stages(_stages(calls), ["first"], ctx, force=["first"]) == {"first": "ran"}
+    assert run_stages(_stages(calls), ["second"], ctx) == {"second": "ran"}
+    assert calls == ["first", "second", "first", "second", "first", "second"]
+
+
+def test_a_corrupt_stage_record_is_one_clear_error(tmp_path):
+    run_stages(_stages([]), ["first"], RunContext(tmp_path, Cfg(), log=lambda m: None))
+    (tmp_path / "stages" / "first.json").write_text("{trunc")
+    with pytest.raises(ToolkitError, match=r"first\.json: unreadable stage record .*delete it"):
+        run_stages(_stages([]), ["first"], RunContext(tmp_path, Cfg(), log=lambda m: None))
+
+
 def test_missing_dependency_and_unknown_stage(tmp_path):
     with pytest.raises(ToolkitError, match="needs stage 'first'"):
         run_stages(_stages([]), ["second"], RunContext(tmp_path, Cfg(), log=lambda m: None))
