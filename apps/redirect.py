@@ -291,7 +291,9 @@ def open_source(ctx, args):
     if not is_labels_csv(args.dataset):
         from train.data.dataset import GazeDataset
 
-        return GazeDataset([args.dataset], res=cfg.data.res, with_mesh=True)
+        ds = GazeDataset([args.dataset], res=cfg.data.res, with_mesh=True)
+        ds.check_unit_scale("redirection with the Gaussian model (its head is posed rigidly)")
+        return ds
     from apps.labels_csv import LabelsCsvSource
     from geometry.mesh_stats import load_mesh
     from toolkit.scene import GaussianScene

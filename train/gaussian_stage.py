@@ -73,6 +73,7 @@ def load_split(files: list[Path], split: str, res: int) -> TrainBatchData:
     from train.data.dataset import GazeDataset
 
     ds = GazeDataset(files, split=split, res=res)
+    ds.check_unit_scale("the Gaussian model (its head is posed rigidly)")
     items = [ds[i] for i in range(len(ds))]
     st = lambda k: torch.stack([torch.as_tensor(it[k]) for it in items]).float()  # noqa: E731
     eyes = (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)

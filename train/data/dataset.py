@@ -102,8 +102,9 @@ class GazeDataset(torch.utils.data.Dataset):
     ``right_eye_mask`` [1, R, R] float32 in {0, 1} (soft at resized edges); ``landmarks`` [68, 2] pixels of
     the R × R image; ``landmarks_3d`` [68, 3]; ``K`` [3, 3] (for R × R); ``w2c_R`` [3, 3]; ``w2c_T`` [3];
     ``viewmat`` [4, 4]; ``pitchyaw_head`` [2]; ``face_head_pose`` [2]; ``pose`` [6]; ``scale`` [1];
-    ``latent_code`` [144]; ``cam_index``, ``frame_index``, ``subject``, ``row`` int64 scalars; and, where the
-    file has them, ``pitchyaw_cam`` [2], ``expression_params`` [4], ``light_dir`` [3].
+    ``latent_code`` [144]; ``cam_index``, ``frame_index``, ``subject``, ``row`` int64 scalars;
+    ``pitchyaw_cam`` [2] (the file's, else the head-frame gaze turned by w2c ∘ pose); and, where the file has
+    them, ``expression_params`` [4], ``light_dir`` [3].
     """
 
     def __init__(self, paths, split: str = "all", res: int | None = None, *, composite: bool = True,
@@ -120,6 +121,19 @@ class GazeDataset(torch.utils.data.Dataset):
 
     def __len__(self) -> int:
         return len(self.index)
+
+    def check_unit_scale(self, what: str) -> None:
+        """Raise a ToolkitError when a row's head ``scale`` is not 1: ``what`` (a consumer that poses the head
+        rigidly, as the Gaussian model does) does not support scaled heads yet. The geometry stage does."""
+        for k in range(len(self.files)):
+            try:
+                scale = np.asarray(self._file(k)["scale"][:], np.float64).reshape(-1)
+            except (OSError, KeyError, ValueError) as e:
+                raise ToolkitError(f"{self.files[k]}: cannot read key 'scale' ({e})") from e
+            bad = np.flatnonzero(np.abs(scale - 1) > 1e-6)
+            if bad.size:
+                raise ToolkitError(f"{self.files[k]}: key 'scale' is {scale[bad[0]]:g} at row {int(bad[0])} "
+                                   f"({bad.size} rows != 1): {what} supports unscaled heads only (scale 1)")
 
     def _file(self, k: int):
         import h5py
@@ -205,6 +219,11 @@ class GazeDataset(torch.utils.data.Dataset):
         for o in ("pitchyaw_cam", "expression_params", "light_dir"):
             if o in r:
                 out[o] = t(r[o])
+        if "pitchyaw_cam" not in out:  # optional in the format: the head-frame gaze seen from this camera
+            from toolkit.rotations import pitchyaw_to_vector, so3_exp, vector_to_pitchyaw
+
+            R = out["w2c_R"] @ so3_exp(out["pose"][None, :3])[0]
+            out["pitchyaw_cam"] = vector_to_pitchyaw(R @ pitchyaw_to_vector(out["pitchyaw_head"]))
         if self.with_mesh:
             out["vertice"] = t(r["vertice"])
         return out

@@ -102,7 +102,11 @@ def open_h5(path: str | os.PathLike):
 
 
 def _check_dataset(path, f, key: str, spec: tuple, kinds: str, sizes: dict, n: int | None) -> int:
+    import h5py
+
     ds = f[key]
+    if not isinstance(ds, h5py.Dataset):
+        raise ToolkitError(f"{path}: key '{key}' is a {type(ds).__name__}, expected a dataset of rows")
     shape = tuple(ds.shape)
     if key == "scale" and len(shape) == 1:  # (N,) is accepted for scale
         shape = shape + (1,)
@@ -118,7 +122,7 @@ def _check_dataset(path, f, key: str, spec: tuple, kinds: str, sizes: dict, n: i
                                    f"(shape {list(ds.shape)})")
         elif s != d:
             raise ToolkitError(f"{path}: key '{key}' has shape {list(ds.shape)}, expected trailing {list(spec)}")
-    if ds.dtype.kind not in kinds:
+    if ds.dtype.kind not in kinds or (kinds == "u" and ds.dtype != np.uint8):  # images are 8-bit, read / 255
         raise ToolkitError(f"{path}: key '{key}' has dtype {ds.dtype}, expected "
                            + {"u": "uint8", "f": "float", "iu": "integer"}[kinds])
     if n is not None and shape[0] != n:

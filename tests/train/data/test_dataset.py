@@ -112,8 +112,23 @@ def test_optional_keys_are_optional(tmp_path, subject_file):
     rows["scale"] = rows["scale"][:, 0]  # (N,) is accepted too
     p = _write(tmp_path, "real_like.h5", rows)
     s = GazeDataset(p)[0]
-    assert "pitchyaw_cam" not in s and s["image"].shape == (3, 96, 96)
+    assert s["image"].shape == (3, 96, 96)
     assert int(GazeDataset(p)[20]["cam_index"]) == 2 and s["scale"].shape == (1,)
+    # Without it, the camera-frame gaze is the head-frame gaze turned by w2c ∘ pose: the generator's label.
+    full = GazeDataset(subject_file)
+    for i in (0, 20):
+        assert torch.allclose(GazeDataset(p)[i]["pitchyaw_cam"], full[i]["pitchyaw_cam"], atol=1e-5)
+
+
+def test_scaled_heads_are_refused_by_what_poses_them_rigidly(tmp_path, subject_file):
+    rows, _ = _copy_rows(subject_file)
+    rows["scale"] = rows["scale"].copy()
+    rows["scale"][3] = 1.2
+    p = _write(tmp_path, "scaled.h5", rows)
+    ds = GazeDataset(p)  # readable: the geometry stage supports scaled heads
+    GazeDataset(subject_file).check_unit_scale("x")
+    with pytest.raises(ToolkitError, match=r"scaled\.h5: key 'scale' is 1\.2 at row 3 \(1 rows != 1\): the model"):
+        ds.check_unit_scale("the model")
 
 
 @pytest.mark.parametrize(
@@ -123,6 +138,7 @@ def test_optional_keys_are_optional(tmp_path, subject_file):
         (lambda r: r.__setitem__("facial_landmarks", r["facial_landmarks"][:, :60]), "'facial_landmarks' has shape"),
         (lambda r: r.__setitem__("head_mask", r["head_mask"][:, :50]), "'head_mask' has H = 50"),
         (lambda r: r.__setitem__("face_patch", r["face_patch"].astype(np.float32)), "'face_patch' has dtype float32"),
+        (lambda r: r.__setitem__("face_patch", r["face_patch"].astype(np.uint16)), "'face_patch' has dtype uint16"),
         (lambda r: r.__setitem__("pitchyaw_head", r["pitchyaw_head"] + 4.0), "'pitchyaw_head' is out of range"),
         (lambda r: r["pose"].__setitem__((0, 0), np.nan), "'pose' contains NaN"),
         (lambda r: r.__setitem__("w2c_Rmat", r["w2c_Rmat"] * 2), "'w2c_Rmat' is not a rotation"),
@@ -143,6 +159,19 @@ def test_schema_violations_name_file_and_key(tmp_path, subject_file, edit, match
     with pytest.raises(ToolkitError, match=match) as e:
         GazeDataset(p)
     assert "bad.h5" in str(e.value)
+
+
+def test_a_group_where_rows_belong_is_one_clear_error(tmp_path, subject_file):
+    rows, _ = _copy_rows(subject_file)
+    p = tmp_path / "grouped.h5"
+    with h5py.File(p, "w") as f:
+        for k, v in rows.items():
+            if k == "pose":
+                f.create_group("pose").create_dataset("x", data=v)
+            else:
+                f.create_dataset(k, data=v)
+    with pytest.raises(ToolkitError, match=r"grouped\.h5: key 'pose' is a Group, expected a dataset of rows"):
+        GazeDataset(p)
 
 
 def test_row_count_mismatch_and_empty_subject(tmp_path, subject_file):
