@@ -450,11 +450,16 @@ class GaussianModel(nn.Module):
         missing = [k for k in need if k not in state]
         if missing:
             raise ToolkitError(f"{path}: missing tensor(s) {missing}")
+        _check_stored_shapes(path, state)
         face = {k[5:]: state[k] for k in need[:5]}
         eyes = {k[4:]: state[k] for k in need[5:9]}
         eyes["side"] = state["eye_side"]
-        model = cls(GaussianModelConfig(**raw), face, eyes, state["eye_centers"], state["landmarks"],
-                    float(info.get("units_per_metre", 1.0)), rasterizer)
+        try:
+            model = cls(GaussianModelConfig(**raw), face, eyes, state["eye_centers"], state["landmarks"],
+                        float(info.get("units_per_metre", 1.0)), rasterizer)
+        except (TypeError, ValueError, RuntimeError) as e:  # a config value of the wrong type, say
+            raise ToolkitError(f"{path}: cannot build the model from its config and tensors "
+                               f"({str(e).splitlines()[0][:160]})") from None
         # Checkpoints written before socket_weights existed: the buffer recomputed from their means.
         state.setdefault("socket_weights", model.socket_weights)
         try:
@@ -482,3 +487,28 @@ class GaussianModel(nn.Module):
                       "feature_kind": "neural", "source": "train.gaussian_model.GaussianModel.export_scene",
                       "config": asdict(self.config)},
         )
+
+
+def _check_stored_shapes(path, state: dict[str, torch.Tensor]) -> None:
+    """The stored Gaussians agree with each other: the face tensors share one count Nf, the eye tensors and
+    ``eye_side`` one count Ne, ``eye_centers`` is [2, 3] and ``landmarks`` [L, 3]."""
+    def rows(keys, trailing):
+        n = None
+        for k, tail in zip(keys, trailing, strict=True):
+            t = state[k]
+            ok = t.dim() == 1 + len(tail) and all(a is None or a == b for a, b in zip(tail, t.shape[1:]))
+            if not ok or (n is not None and t.shape[0] != n):
+                want = "[" + ", ".join(["N"] + ["*" if a is None else str(a) for a in tail]) + "]"
+                raise ToolkitError(f"{path}: tensor '{k}' has shape {list(t.shape)}, expected {want}"
+                                   + (f" with N = {n}" if n is not None else ""))
+            n = t.shape[0]
+
+    rows(["face_means", "face_quats", "face_log_scales", "face_opacity_logits", "face_features"],
+         [(3,), (4,), (3,), (), (None,)])
+    rows(["eye_means", "eye_log_scales", "eye_opacity_logits", "eye_features", "eye_side"],
+         [(3,), (), (), (None,), ()])  # eye Gaussians are isotropic: one log-scale each
+    for k, shape in (("eye_centers", (2, 3)), ("landmarks", (None, 3))):
+        t = state[k]
+        if t.dim() != 2 or any(a is not None and a != b for a, b in zip(shape, t.shape)):
+            raise ToolkitError(f"{path}: tensor '{k}' has shape {list(t.shape)}, expected "
+                               f"[{', '.join('*' if a is None else str(a) for a in shape)}]")

@@ -362,6 +362,27 @@ def test_eye_pixels_train_the_face_field_only_when_eyes_follow():
         small_model(scene, socket_sigma_m=0.0)
 
 
+@pytest.mark.parametrize("key,value,match", [
+    ("eye_centers", torch.zeros(3), r"tensor 'eye_centers' has shape \[3\], expected \[2, 3\]"),
+    ("face_means", torch.zeros(5, 2), r"tensor 'face_means' has shape \[5, 2\], expected \[N, 3\]"),
+    ("eye_side", torch.zeros(3, dtype=torch.long), r"tensor 'eye_side' has shape \[3\], expected \[N\] with N = "),
+    ("landmarks", torch.zeros(4, 2), r"tensor 'landmarks' has shape \[4, 2\], expected \[\*, 3\]"),
+    ("config", {"hidden": "32"}, r"cannot build the model from its config"),
+])
+def test_a_checkpoint_whose_parts_disagree_is_one_clear_error(tmp_path, key, value, match):
+    from toolkit.io import load_checkpoint, save_checkpoint
+
+    small_model(demo_head_scene(600)).save(tmp_path / "gm.safetensors")
+    state, info = load_checkpoint(tmp_path / "gm.safetensors")
+    if key == "config":
+        info["config"] = {**info["config"], **value}
+    else:
+        state[key] = value
+    save_checkpoint(tmp_path / "bad.safetensors", state, info)
+    with pytest.raises(ToolkitError, match=r"bad\.safetensors: " + match):
+        GaussianModel.load(tmp_path / "bad.safetensors")
+
+
 def test_checkpoint_without_socket_weights_still_loads(tmp_path):
     from toolkit.io import load_checkpoint, save_checkpoint
 
