@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.io import load_tensors, save_tensors
+from toolkit.io import load_metadata, load_tensors, save_tensors
 
 _NAME = re.compile(r"ckpt_(\d{8})\.safetensors$")
 
@@ -141,8 +141,13 @@ def load_training_checkpoint(
         key = f"optim/{name}"
         if key not in meta.get("optim", {}):
             raise ToolkitError(f"{path}: has no state for optimizer '{name}'")
-        opt.load_state_dict(_unflatten_optimizer(key, tensors, meta["optim"]))
+        try:
+            opt.load_state_dict(_unflatten_optimizer(key, tensors, meta["optim"]))
+        except (ValueError, KeyError, TypeError) as e:  # another grouping of the parameters, say
+            raise ToolkitError(f"{path}: incompatible state for optimizer '{name}' ({str(e).splitlines()[0][:160]})") from None
     if restore_rng:
+        if "rng" not in meta:
+            raise ToolkitError(f"{path}: has no random-number state to resume from (metadata key 'rng')")
         set_rng_state(tensors, meta["rng"])
     return {"step": int(meta["step"]), "extra": meta.get("extra", {})}
 
@@ -163,8 +168,15 @@ class CheckpointManager:
         return sorted((p for p in self.folder.iterdir() if _NAME.search(p.name)), key=lambda p: p.name)
 
     def latest(self) -> Path | None:
-        ckpts = self.all()
-        return ckpts[-1] if ckpts else None
+        """The newest checkpoint whose header reads (writes are atomic, so an unreadable one was damaged
+        afterwards: the one before it is the one to resume from)."""
+        for p in reversed(self.all()):
+            try:
+                load_metadata(p)
+            except ToolkitError:
+                continue
+            return p
+        return None
 
     def save(self, step: int, **kwargs: Any) -> Path:
         path = self.path_for(step)

@@ -132,6 +132,15 @@ def test_incompatible_and_corrupt_checkpoints(tmp_path):
         load_training_checkpoint(tmp_path / "c.safetensors", modules={"m": other})
     with pytest.raises(ToolkitError, match="no weights for module 'x'"):
         load_training_checkpoint(tmp_path / "c.safetensors", modules={"x": model})
+    two_groups = torch.optim.Adam([{"params": [model[0].weight]}, {"params": [model[0].bias]}], lr=1e-2)
+    with pytest.raises(ToolkitError, match=r"c\.safetensors: incompatible state for optimizer 'o'"):
+        load_training_checkpoint(tmp_path / "c.safetensors", modules={"m": model}, optimizers={"o": two_groups})
+    from toolkit.io import load_tensors, save_tensors
+
+    tensors, meta = load_tensors(tmp_path / "c.safetensors")
+    save_tensors(tmp_path / "norng.safetensors", tensors, {k: v for k, v in meta.items() if k != "rng"})
+    with pytest.raises(ToolkitError, match=r"norng\.safetensors: has no random-number state .*'rng'"):
+        load_training_checkpoint(tmp_path / "norng.safetensors", modules={"m": model})
     raw = (tmp_path / "c.safetensors").read_bytes()
     (tmp_path / "c.safetensors").write_bytes(raw[: len(raw) // 2])
     with pytest.raises(ToolkitError, match="not a valid safetensors"):
@@ -144,6 +153,9 @@ def test_manager_keeps_newest(tmp_path):
     for s in (1, 2, 3):
         mgr.save(s, modules={"m": model}, optimizers={"o": opt})
     assert [p.name for p in mgr.all()] == ["ckpt_00000002.safetensors", "ckpt_00000003.safetensors"]
+    # A newest checkpoint damaged after it was written: resume from the one before it.
+    mgr.path_for(3).write_bytes(b"")
+    assert mgr.latest() == mgr.path_for(2)
 
 
 _SCRIPT = textwrap.dedent(
