@@ -53,20 +53,28 @@ class DiffusionConfig:
             raise ToolkitError(f"DiffusionConfig.num_timesteps: expected >= 2, got {self.num_timesteps}")
         if self.schedule not in ("linear", "scaled_linear", "cosine"):
             raise ToolkitError(f"DiffusionConfig.schedule: expected linear, scaled_linear or cosine, got {self.schedule!r}")
+        for name in ("beta_start", "beta_end"):
+            b = getattr(self, name)
+            if b is not None and not 0.0 <= b < 1.0:
+                raise ToolkitError(f"DiffusionConfig.{name}: expected a beta in [0, 1), got {b}")
         if self.prediction not in ("eps", "v"):
             raise ToolkitError(f"DiffusionConfig.prediction: expected 'eps' or 'v', got {self.prediction!r}")
         if self.zero_terminal_snr and self.prediction == "eps":
             raise ToolkitError("DiffusionConfig: zero_terminal_snr needs prediction='v' (x0 is undefined from eps at zero SNR)")
 
 
+def _or(value: float | None, default: float) -> float:
+    return default if value is None else value  # an explicit 0.0 is a value, not "unset"
+
+
 def make_betas(config: DiffusionConfig) -> torch.Tensor:
     """The schedule's ``beta [T]`` in float64."""
     T = config.num_timesteps
     if config.schedule == "linear":
-        b0, b1 = config.beta_start or 1e-4, config.beta_end or 2e-2
+        b0, b1 = _or(config.beta_start, 1e-4), _or(config.beta_end, 2e-2)
         betas = torch.linspace(b0, b1, T, dtype=torch.float64)
     elif config.schedule == "scaled_linear":
-        b0, b1 = config.beta_start or 0.00085, config.beta_end or 0.012
+        b0, b1 = _or(config.beta_start, 0.00085), _or(config.beta_end, 0.012)
         betas = torch.linspace(b0**0.5, b1**0.5, T, dtype=torch.float64) ** 2
     else:
         s = 0.008

@@ -137,7 +137,13 @@ def test_sample_timesteps_range():
 @pytest.mark.parametrize("bad,match", [(dict(prediction="eps"), "zero_terminal_snr"),
                                        (dict(schedule="quadratic"), "schedule"),
                                        (dict(num_timesteps=1), "num_timesteps"),
-                                       (dict(prediction="x0"), "prediction")])
+                                       (dict(prediction="x0"), "prediction"),
+                                       (dict(beta_end=1.0), "beta_end: expected a beta in")])
 def test_bad_config(bad, match):
     with pytest.raises(ToolkitError, match=match):
         GaussianDiffusion(DiffusionConfig(**bad))
+
+
+def test_an_explicit_zero_beta_is_used_not_replaced_by_the_default():
+    betas = make_betas(DiffusionConfig(schedule="linear", beta_start=0.0, zero_terminal_snr=False))
+    assert float(betas[0]) == 0.0 and float(make_betas(DiffusionConfig(schedule="linear", zero_terminal_snr=False))[0]) == 1e-4

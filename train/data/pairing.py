@@ -54,7 +54,13 @@ def load_pairing(path: str | os.PathLike) -> dict[str, np.ndarray]:
                 if len(parts) != 3:
                     raise ValueError(f"line {ln}: expected 'subject input_row target_row'")
                 out.setdefault(parts[0], []).append((int(parts[1]), int(parts[2])))
-        pairs = {k: np.asarray(v, dtype=np.int64).reshape(-1, 2) for k, v in out.items()}
+        pairs = {}
+        for k, v in out.items():
+            a = np.asarray(v)
+            if a.ndim != 2 or a.shape[1] != 2 or (a.size and a.dtype.kind not in "iu"):
+                raise ValueError(f"subject '{k}': expected a list of [input_row, target_row] integer pairs, "
+                                 f"got an array of shape {list(a.shape)} and dtype {a.dtype}")
+            pairs[k] = a.astype(np.int64).reshape(-1, 2)
     except (ValueError, TypeError) as e:
         raise ToolkitError(f"{path}: not a pairing file ({e})") from e
     for k, v in pairs.items():

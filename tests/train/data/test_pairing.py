@@ -37,6 +37,10 @@ def test_pairing_files(tmp_path):
     (tmp_path / "bad.txt").write_text("subject0001 0\n")
     with pytest.raises(ToolkitError, match="bad.txt: not a pairing file"):
         load_pairing(tmp_path / "bad.txt")
+    for name, text in (("triples.json", '{"s": [[1, 2, 3], [4, 5, 6]]}'), ("floats.json", '{"s": [[1.9, 7.5]]}')):
+        (tmp_path / name).write_text(text)  # not silently reshaped or truncated into other pairs
+        with pytest.raises(ToolkitError, match=rf"{name}: not a pairing file \(subject 's': expected a list of"):
+            load_pairing(tmp_path / name)
     (tmp_path / "neg.json").write_text('{"s": [[0, -1]]}')
     with pytest.raises(ToolkitError, match="negative"):
         load_pairing(tmp_path / "neg.json")
