@@ -125,20 +125,26 @@ def test_csv_input_writes_labelled_redirected_dataset(tiny_trained_run, crops, t
     assert len(GazeDataset([out])) == 12  # the output passes the loader's schema and range checks
 
 
-def test_folder_argument_and_resumed_chunks(tiny_trained_run, crops, tmp_path):
+def test_folder_argument_and_resumed_chunks(tiny_trained_run, crops, tmp_path, monkeypatch):
     """A folder holding labels.csv works; finished chunks in OUT.parts are kept, not re-rendered."""
     folder, _ = crops
     out = tmp_path / "o.h5"
     args = [str(tiny_trained_run), str(folder), str(out), "--gazes", "grid:1x2:10", "--batch", "2", "--fit-steps", "1"]
     parts = tmp_path / "o.h5.parts"
-    parts.mkdir()
-    # A previous (interrupted) run left chunk 1 (row 2): a sentinel proves it is reused as is.
-    first = tmp_path / "first.h5"
-    assert redirect.main([*args[:2], str(first), *args[3:]]) == 0
-    with h5py.File(first) as h:
-        chunk1 = {k: h[k][4:] for k in h.keys()}
+
+    def crash(*a, **k):
+        raise KeyboardInterrupt  # killed after the chunks, before the final file
+
+    with monkeypatch.context() as m:
+        m.setattr(redirect, "assemble", crash)
+        with pytest.raises(KeyboardInterrupt):
+            redirect.main(args)
+    # The interrupted run left its settings and chunks: a sentinel in chunk 1 (row 2) proves it is reused as is.
+    with np.load(parts / "part_00001.npz") as z:
+        chunk1 = {k: z[k] for k in z.files}
     chunk1["face_patch"] = np.zeros_like(chunk1["face_patch"])
     np.savez(parts / "part_00001.npz", **chunk1)
+    (parts / "part_00000.npz").unlink()  # and chunk 0 is rendered again
     assert redirect.main(args) == 0
     with h5py.File(out) as h:
         assert h["face_patch"].shape[0] == 6
