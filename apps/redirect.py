@@ -260,9 +260,10 @@ def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
     from toolkit.io import atomic_write
 
     n = 0
-    with atomic_write(out_path, "wb") as f:
+    with atomic_write(out_path, "w+b") as f:
         with h5py.File(f, "w") as h:
-            # One chunk in memory at a time: the datasets grow as the chunks are appended.
+            # One chunk in memory at a time: the datasets grow as the chunks are appended (h5py reads back
+            # what it wrote as they grow: the temp file is opened for reading too).
             for k in range(n_chunks):
                 with np.load(_chunk_path(parts, k)) as z:
                     for name in z.files:

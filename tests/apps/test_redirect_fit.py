@@ -91,7 +91,7 @@ def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_e
     # The chunks' settings record the natural fit itself: a resume after NATURAL_EYES_FIT changed is refused.
     import argparse
 
-    ns = argparse.Namespace(dataset=str(src), batch=1, steps=0, fit_weights=True, natural_eyes=True)
+    ns = argparse.Namespace(dataset=str(src), batch=1, steps=0, fit_weights=True, natural_eyes=True, seed=0)
     settings = redirect.redirect_settings(run.open_run(tiny_trained_run), ns, ns, np.zeros((2, 2)), 1, 2)
     assert settings["natural_eyes"] and settings["natural_eyes_fit"]["reach"] == list(nat["reach"])
     assert "natural_eyes_fit" not in redirect.redirect_settings(run.open_run(tiny_trained_run), ns,
