@@ -10,6 +10,7 @@ import torch
 
 from apps import redirect
 from apps.labels_csv import head_rotation, read_labels
+from tests.apps.helpers import interrupt_redirect_before_assembly
 from toolkit import ToolkitError
 from toolkit.errors import run_cli
 from toolkit.rotations import pitchyaw_to_vector, so3_exp, vector_to_pitchyaw
@@ -132,13 +133,7 @@ def test_folder_argument_and_resumed_chunks(tiny_trained_run, crops, tmp_path, m
     args = [str(tiny_trained_run), str(folder), str(out), "--gazes", "grid:1x2:10", "--batch", "2", "--fit-steps", "1"]
     parts = tmp_path / "o.h5.parts"
 
-    def crash(*a, **k):
-        raise KeyboardInterrupt  # killed after the chunks, before the final file
-
-    with monkeypatch.context() as m:
-        m.setattr(redirect, "assemble", crash)
-        with pytest.raises(KeyboardInterrupt):
-            redirect.main(args)
+    interrupt_redirect_before_assembly(args, monkeypatch)
     # The interrupted run left its settings and chunks: a sentinel in chunk 1 (row 2) proves it is reused as is.
     with np.load(parts / "part_00001.npz") as z:
         chunk1 = {k: z[k] for k in z.files}

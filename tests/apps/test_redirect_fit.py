@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from apps import redirect
+from tests.apps.helpers import interrupt_redirect_before_assembly
 from toolkit.errors import ToolkitError, run_cli
 from train import run
 
@@ -127,13 +128,7 @@ def test_resumed_run_with_other_settings_is_refused(tiny_trained_run, tmp_path, 
     out = tmp_path / "o.h5"
     args = [str(tiny_trained_run), str(src), str(out), "--gazes", "grid:1x2:10", "--rows", "2", "--batch", "1"]
 
-    def crash(*a, **k):
-        raise KeyboardInterrupt  # killed after the chunks, before the final file
-
-    with monkeypatch.context() as m:
-        m.setattr(redirect, "assemble", crash)
-        with pytest.raises(KeyboardInterrupt):
-            redirect.main(args)
+    interrupt_redirect_before_assembly(args, monkeypatch)
     capsys.readouterr()  # the interrupted run's progress bar
     parts = tmp_path / "o.h5.parts"
     assert (parts / "settings.json").is_file() and len(list(parts.glob("part_*.npz"))) == 2 and not out.exists()
