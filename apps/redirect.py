@@ -246,6 +246,9 @@ def check_parts_settings(parts: Path, settings: dict) -> None:
         except (OSError, ValueError) as e:
             raise ToolkitError(f"{path}: unreadable ({e}); delete {parts} to start over") from e
         changed = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
+        if any(k not in before for k in changed):
+            raise ToolkitError(f"{parts} holds chunks from an older version of apps.redirect (its settings.json lacks "
+                               f"{', '.join(k for k in changed if k not in before)}); delete {parts} to start over")
         if changed:
             raise ToolkitError(f"{parts} holds chunks of a run with other settings ({', '.join(changed)} differ); "
                                f"rerun with the same settings to resume, or delete {parts} to start over")
@@ -269,7 +272,10 @@ def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
                     for name in z.files:
                         v = z[name]
                         if name not in h:
-                            h.create_dataset(name, data=v, maxshape=(None, *v.shape[1:]),
+                            # Growing datasets need chunks: one image each (as write_subject_h5 stores them),
+                            # small rows ~64 KiB at a time (h5py's guess from the first part may be 1 row).
+                            rows = 1 if v.ndim >= 3 else max(1, min(4096, (1 << 16) // max(1, v[0].nbytes)))
+                            h.create_dataset(name, data=v, maxshape=(None, *v.shape[1:]), chunks=(rows, *v.shape[1:]),
                                              compression="lzf" if v.ndim >= 3 else None)
                             continue
                         d = h[name]

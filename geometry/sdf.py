@@ -199,7 +199,8 @@ def extract_mesh(net: SDFNet, res: int = 64, kind: str = "kuhn", *, use_offsets:
     with gradients only at the vertices of the tets the surface crosses: the mesh is differentiable
     w.r.t. the network at a fraction of a full-grid backward pass.
     The offsets are bounded to half a cell of the network's ``grid_res``; on a finer grid they are clamped
-    to half a cell of ``res``, so no vertex crosses into a neighbour's cell and no tet inverts.
+    to half a cell of ``res``, the same bound relative to the grid, so a vertex never moves past the middle
+    of its cell (DMTet's bound; saturated offsets can still invert a tet, at any resolution).
     Returns verts [M, 3], faces [F, 3], features [M, F] (or None).
     """
     if grid is None:

@@ -586,7 +586,8 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
 
 def _target_labels(items: list[dict], device) -> torch.Tensor | None:
     """[B, 4] the targets' camera-frame labels (gaze pitch/yaw, head pitch/yaw) as the estimators are trained
-    on them, or None when a target row has no gaze label (``pitchyaw_cam`` is optional in the data format).
+    on them, or None when a target has no ``pitchyaw_cam`` (``GazeDataset`` rows always carry one: the file's, or
+    derived from the head-frame gaze when the file has none; other target sources may not).
     The head-pose label is the input's: a pair's target shares its input's view and head pose."""
     if not all("pitchyaw_cam" in it["target"] for it in items):
         return None

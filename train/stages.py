@@ -58,8 +58,8 @@ def _finished_record(run_dir: Path, name: str) -> dict | None:
         record = json.loads(rec_path.read_text(encoding="utf-8")) if rec_path.exists() else None
     except (OSError, ValueError) as e:
         raise ToolkitError(f"{rec_path}: unreadable stage record ({e}); delete it to run stage '{name}' again") from None
-    if record is not None and not isinstance(record, dict):
-        raise ToolkitError(f"{rec_path}: expected a JSON object, got {type(record).__name__}; delete it to run "
+    if record is not None and not (isinstance(record, dict) and isinstance(record.get("outputs"), dict)):
+        raise ToolkitError(f"{rec_path}: expected a JSON object with an 'outputs' object; delete it to run "
                            f"stage '{name}' again")
     if record is None or not all((run_dir / p).exists() for p in record.get("outputs", {}).values()):
         return None
@@ -107,6 +107,7 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
     if unknown:
         raise ToolkitError(f"unknown stage(s) {unknown}; stages are {list(by_name)} or 'all'")
     check_dependencies(stages, selected, ctx)
+    _check_nothing_goes_stale_midway(stages, selected, ctx, force)
     prints: dict[str, str] = {}
     status: dict[str, str] = {}
     for stage in stages:
@@ -138,6 +139,30 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
         ctx.outputs[stage.name] = outputs
         status[stage.name] = "ran"
     return status
+
+
+def _check_nothing_goes_stale_midway(stages: list[Stage], selected: list[str], ctx: RunContext,
+                                     force: list[str]) -> None:
+    """Refuse, before anything runs, a selection where a stage that will run feeds a stage left out of the
+    selection that a selected stage reads: running the first drops the second's record (its outputs are
+    stale), and the third would fail half-way through the run."""
+    prints: dict[str, str] = {}
+    will_run: set[str] = set()
+    stale: dict[str, str] = {}  # unselected stage -> the stage whose re-run makes it stale
+    for stage in stages:
+        prints[stage.name] = fp = fingerprint(stage, ctx.config, prints)
+        cause = next((d if d in will_run else stale[d] for d in stage.depends if d in will_run or d in stale), None)
+        if stage.name not in selected:
+            if cause is not None:
+                stale[stage.name] = cause
+            continue
+        for d in stage.depends:
+            if d in stale:
+                raise ToolkitError(f"stage '{stage.name}' needs stage '{d}', which reads stage '{stale[d]}' that this "
+                                   f"run re-runs: select '{d}' too (--stages ...,{d},...)")
+        record = _finished_record(ctx.run_dir, stage.name)
+        if cause is not None or stage.name in force or record is None or record.get("fingerprint") != fp:
+            will_run.add(stage.name)
 
 
 def _dependents(stages: list[Stage], name: str) -> list[str]:

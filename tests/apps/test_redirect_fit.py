@@ -282,6 +282,10 @@ def test_chunks_without_their_settings_are_refused(tmp_path):
     with pytest.raises(ToolkitError, match="holds chunks but no settings.json"):
         redirect.check_parts_settings(parts, {"anything": 1})
     assert not (parts / "settings.json").exists()
+    # Settings an older version wrote lack a key no flag can now match: say so, not "rerun with the same".
+    (parts / "settings.json").write_text('{"anything": 1}')
+    with pytest.raises(ToolkitError, match=r"from an older version of apps.redirect \(its settings.json lacks seed\)"):
+        redirect.check_parts_settings(parts, {"anything": 1, "seed": 0})
 
 
 _FAILING_RANK = """
@@ -319,3 +323,22 @@ def test_a_failing_process_stops_its_torchrun_peers_instead_of_leaving_them_wait
     assert "error: rank 1 failed on purpose" in r.stderr
     assert "error: redirect: another process failed" in r.stderr and "rerun the same command to resume" in r.stderr
     assert (tmp_path / "o.h5.parts" / "part_00000.npz").is_file()  # rank 0's chunk is kept for the rerun
+
+
+def test_assembly_streams_the_chunks_into_one_file_with_sensible_hdf5_chunks(tmp_path):
+    parts = tmp_path / "o.h5.parts"
+    parts.mkdir()
+    rng = np.random.default_rng(0)
+    chunks = [{"face_patch": rng.integers(0, 255, (n, 8, 8, 3), dtype=np.uint8),
+               "pitchyaw_head": rng.normal(size=(n, 2)).astype(np.float32), "scale": np.ones((n, 1), np.float32)}
+              for n in (1, 3, 2)]
+    for k, c in enumerate(chunks):
+        np.savez(parts / f"part_{k:05d}.npz", **c)
+    assert redirect.assemble(parts, 3, tmp_path / "o.h5", {"generator": "test"}) == 6
+    with h5py.File(tmp_path / "o.h5") as h:
+        for key in chunks[0]:
+            np.testing.assert_array_equal(h[key][:], np.concatenate([c[key] for c in chunks]))
+            assert h[key].dtype == chunks[0][key].dtype
+        assert h["face_patch"].chunks == (1, 8, 8, 3) and h["face_patch"].compression == "lzf"
+        assert h["scale"].chunks[0] == 4096 and h["scale"].compression is None  # not 1 row per chunk
+        assert h.attrs["generator"] == "test"

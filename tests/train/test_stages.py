@@ -58,10 +58,30 @@ def test_a_forced_upstream_stage_reruns_what_reads_it(tmp_path):
     assert calls == ["first", "second", "first", "second", "first", "second"]
 
 
+def test_a_selection_that_would_go_stale_midway_is_refused_before_anything_runs(tmp_path):
+    """first -> second -> third, with second left out: re-running first would leave third reading a stale
+    second, so the run is refused up front (and nothing is dropped or run)."""
+    calls = []
+    third = Stage("third", lambda c: calls.append("third") or (c.run_dir / "third.txt").write_text("3") and
+                  {"out": "third.txt"}, depends=("second",))
+    stages = [*_stages(calls), third]
+    ctx = RunContext(tmp_path, Cfg(), log=lambda m: None)
+    run_stages(stages, ["first", "second", "third"], ctx)
+    with pytest.raises(ToolkitError, match="stage 'third' needs stage 'second', which reads stage 'first' that "
+                                           "this run re-runs: select 'second' too"):
+        run_stages(stages, ["first", "third"], ctx, force=["first"])
+    assert calls == ["first", "second", "third"] and (tmp_path / "stages" / "second.json").exists()
+    assert run_stages(stages, ["first", "second", "third"], ctx, force=["first"]) == {
+        "first": "ran", "second": "ran", "third": "ran"}
+
+
 def test_a_corrupt_stage_record_is_one_clear_error(tmp_path):
     run_stages(_stages([]), ["first"], RunContext(tmp_path, Cfg(), log=lambda m: None))
     (tmp_path / "stages" / "first.json").write_text("{trunc")
     with pytest.raises(ToolkitError, match=r"first\.json: unreadable stage record .*delete it"):
+        run_stages(_stages([]), ["first"], RunContext(tmp_path, Cfg(), log=lambda m: None))
+    (tmp_path / "stages" / "first.json").write_text('{"fingerprint": "x"}')
+    with pytest.raises(ToolkitError, match=r"first\.json: expected a JSON object with an 'outputs' object"):
         run_stages(_stages([]), ["first"], RunContext(tmp_path, Cfg(), log=lambda m: None))
 
 

@@ -57,6 +57,8 @@ def load_pairing(path: str | os.PathLike) -> dict[str, np.ndarray]:
         pairs = {}
         for k, v in out.items():
             a = np.asarray(v)
+            if a.size == 0:  # a subject without pairs, as save_pairing writes it
+                a = np.zeros((0, 2), np.int64)
             if a.ndim != 2 or a.shape[1] != 2 or (a.size and a.dtype.kind not in "iu"):
                 raise ValueError(f"subject '{k}': expected a list of [input_row, target_row] integer pairs, "
                                  f"got an array of shape {list(a.shape)} and dtype {a.dtype}")

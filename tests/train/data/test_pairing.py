@@ -32,6 +32,8 @@ def test_pairing_files(tmp_path):
     save_pairing(tmp_path / "p.json", {"subject0003": gazenerf_pairs(5)})
     got = load_pairing(tmp_path / "p.json")
     np.testing.assert_array_equal(got["subject0003"], gazenerf_pairs(5))
+    save_pairing(tmp_path / "empty.json", {"a": gazenerf_pairs(2), "b": np.zeros((0, 2), np.int64)})
+    assert load_pairing(tmp_path / "empty.json")["b"].shape == (0, 2)  # what save_pairing writes loads back
     (tmp_path / "p.txt").write_text("# subject input target\nsubject0001 0 101\nsubject0001 1 150\n")
     np.testing.assert_array_equal(load_pairing(tmp_path / "p.txt")["subject0001"], [[0, 101], [1, 150]])
     (tmp_path / "bad.txt").write_text("subject0001 0\n")
