@@ -198,6 +198,10 @@ def sampling_steps(args, cfg) -> int:
     return args.steps or cfg.gaussian.sampling_steps
 
 
+SETTINGS_VERSION = 2
+"""Of ``OUT.parts/settings.json``: 2 since the fitting's noise is seeded per chunk (version 1 had no field)."""
+
+
 def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps: int) -> dict:
     """What the chunks' contents depend on, resolved (the same input or setting spelt another way is the same):
     the run (its trained checkpoint's size and time), the input file, the gazes themselves, the rows, the
@@ -207,7 +211,7 @@ def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
 
     ckpt = ctx.path("gaussian", "checkpoint")
     st = ckpt.stat()
-    settings = {"run_dir": str(ctx.run_dir.resolve()), "checkpoint": [st.st_size, st.st_mtime_ns],
+    settings = {"version": SETTINGS_VERSION, "run_dir": str(ctx.run_dir.resolve()), "checkpoint": [st.st_size, st.st_mtime_ns],
                 "dataset": str(Path(getattr(src, "path", args.dataset)).resolve()),
                 "gazes_sha1": hashlib.sha1(np.ascontiguousarray(gazes, np.float64).tobytes()).hexdigest(),
                 "rows": n_rows, "batch": args.batch, "steps": sampling_steps(args, ctx.config),
@@ -246,9 +250,10 @@ def check_parts_settings(parts: Path, settings: dict) -> None:
         except (OSError, ValueError) as e:
             raise ToolkitError(f"{path}: unreadable ({e}); delete {parts} to start over") from e
         changed = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
-        if any(k not in before for k in changed):
-            raise ToolkitError(f"{parts} holds chunks from an older version of apps.redirect (its settings.json lacks "
-                               f"{', '.join(k for k in changed if k not in before)}); delete {parts} to start over")
+        if before.get("version") != settings.get("version"):
+            raise ToolkitError(f"{parts} holds chunks from another version of apps.redirect (settings version "
+                               f"{before.get('version', 1)}, this one writes {settings.get('version')}); delete {parts} "
+                               f"to start over")
         if changed:
             raise ToolkitError(f"{parts} holds chunks of a run with other settings ({', '.join(changed)} differ); "
                                f"rerun with the same settings to resume, or delete {parts} to start over")

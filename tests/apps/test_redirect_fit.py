@@ -284,8 +284,9 @@ def test_chunks_without_their_settings_are_refused(tmp_path):
     assert not (parts / "settings.json").exists()
     # Settings an older version wrote lack a key no flag can now match: say so, not "rerun with the same".
     (parts / "settings.json").write_text('{"anything": 1}')
-    with pytest.raises(ToolkitError, match=r"from an older version of apps.redirect \(its settings.json lacks seed\)"):
-        redirect.check_parts_settings(parts, {"anything": 1, "seed": 0})
+    with pytest.raises(ToolkitError, match=r"from another version of apps.redirect \(settings version 1, this one "
+                                           r"writes 2\); delete"):
+        redirect.check_parts_settings(parts, {"anything": 1, "version": redirect.SETTINGS_VERSION})
 
 
 _FAILING_RANK = """
