@@ -422,7 +422,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 np.savez(f, **arrays)
     except Exception as e:  # noqa: BLE001 -- re-raised below, once every rank knows
         failure = e
-    # A rank that failed must not leave the others waiting at the barrier: all learn of it and stop.
+    # A rank that failed must not leave the others waiting at the barrier (torchrun's agent would kill them;
+    # other launchers would not): all learn of it and stop on their own, their finished chunks kept.
     if not all_ranks(failure is None, info):
         if failure is not None:
             raise failure

@@ -317,7 +317,8 @@ def test_a_failing_process_stops_its_torchrun_peers_instead_of_leaving_them_wait
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", str(script),
            str(tiny_trained_run), str(_test_subject(tiny_trained_run)), str(out), "--gazes", "grid:1x2:20",
            "--rows", "4", "--batch", "2"]
-    # Without the agreement, rank 0 would wait at the barrier for gloo's 30-minute timeout.
+    # Without the agreement torchrun's agent kills rank 0 when rank 1 exits (under other launchers it would wait at
+    # the barrier): with it, rank 0 stops on its own, says why and keeps its finished chunk.
     r = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=240,
                        env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert r.returncode != 0 and not out.exists()
