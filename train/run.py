@@ -447,10 +447,16 @@ def _check_values(cfg: RunConfig) -> None:
         if not (rate := getattr(cfg.gaussian, name)) > 0:
             raise ToolkitError(f"config key 'gaussian.{name}': expected a learning rate > 0, got {rate}")
     for key in ("data.frames", "geometry.steps", "codec.steps", "estimator.steps", "gaussian.steps", "gaussian.batch", "codec.batch",
-                "estimator.batch", "eval.pairs_per_subject", "gaussian.ckpt_every", "gaussian.log_every"):
+                "estimator.batch", "eval.pairs_per_subject", "gaussian.ckpt_every", "gaussian.log_every",
+                "eval.sweep_frames"):
         section, name = key.split(".")
         if not (count := getattr(getattr(cfg, section), name)) >= 1:
             raise ToolkitError(f"config key '{key}': expected a count >= 1, got {count}")
+    if cfg.geometry.subject < 0:
+        raise ToolkitError(f"config key 'geometry.subject': expected a training-subject index >= 0, got {cfg.geometry.subject}")
+    if cfg.eval.pairing_file:
+        raise ToolkitError(f"config key 'eval.pairing_file': pairing files are not read by the eval stage yet (it pairs "
+                           f"synthetic subjects itself); leave it empty, got {cfg.eval.pairing_file!r}")
     if not (math.isfinite(cfg.gaussian.grad_clip) and cfg.gaussian.grad_clip >= 0):
         raise ToolkitError(f"config key 'gaussian.grad_clip': expected a gradient-norm bound >= 0 (0 = no clipping), "
                            f"got {cfg.gaussian.grad_clip}")

@@ -265,7 +265,8 @@ class EvalConfig:
     5.77° (docs/evaluation.md).
     The natural fit's images show eyes; a small augmentation test found no measured gain either way."""
     pairing_file: str = ""
-    """GazeNeRF pairing file for real data; synthetic data pairs deterministically."""
+    """GazeNeRF pairing file for real data: reserved, not read yet (a non-empty value is refused); synthetic
+    data pairs deterministically."""
     sweep_frames: int = 9
 
 
