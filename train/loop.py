@@ -169,12 +169,12 @@ def train_loop(
     start = 0
     # The rates on entry, before a checkpoint's optimizer state (with the rates of its last step) replaces them.
     base_lrs = {name: [grp["lr"] for grp in opt.param_groups] for name, opt in optimizers.items()}
-    if resume and mgr.latest() is not None:
-        start = load_training_checkpoint(mgr.latest(), modules=modules, optimizers=optimizers)["step"]
+    last_ckpt = mgr.latest()  # reads checkpoint headers: once
+    if resume and last_ckpt is not None:
+        start = load_training_checkpoint(last_ckpt, modules=modules, optimizers=optimizers)["step"]
     if metrics is not None and is_main:
         metrics.start(stage, start)
     params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
-    last_ckpt = mgr.latest()
     last: dict[str, float] = {}
 
     def save(step: int) -> Path | None:

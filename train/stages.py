@@ -61,7 +61,7 @@ def _finished_record(run_dir: Path, name: str) -> dict | None:
     if record is not None and not (isinstance(record, dict) and isinstance(record.get("outputs"), dict)):
         raise ToolkitError(f"{rec_path}: expected a JSON object with an 'outputs' object; delete it to run "
                            f"stage '{name}' again")
-    if record is None or not all((run_dir / p).exists() for p in record.get("outputs", {}).values()):
+    if record is None or not all((run_dir / p).exists() for p in record["outputs"].values()):
         return None
     return record
 

@@ -220,10 +220,10 @@ class GazeDataset(torch.utils.data.Dataset):
             if o in r:
                 out[o] = t(r[o])
         if "pitchyaw_cam" not in out:  # optional in the format: the head-frame gaze seen from this camera
-            from toolkit.rotations import pitchyaw_to_vector, so3_exp, vector_to_pitchyaw
+            from train.losses import gaze_to_camera, head_to_camera_rotation
 
-            R = out["w2c_R"] @ so3_exp(out["pose"][None, :3])[0]
-            out["pitchyaw_cam"] = vector_to_pitchyaw(R @ pitchyaw_to_vector(out["pitchyaw_head"]))
+            R = head_to_camera_rotation(out["viewmat"][None], out["pose"][None])
+            out["pitchyaw_cam"] = gaze_to_camera(out["pitchyaw_head"][None], R)[0]
         if self.with_mesh:
             out["vertice"] = t(r["vertice"])
         return out

@@ -62,7 +62,7 @@ def load_pairing(path: str | os.PathLike) -> dict[str, np.ndarray]:
             if a.ndim != 2 or a.shape[1] != 2 or (a.size and a.dtype.kind not in "iu"):
                 raise ValueError(f"subject '{k}': expected a list of [input_row, target_row] integer pairs, "
                                  f"got an array of shape {list(a.shape)} and dtype {a.dtype}")
-            pairs[k] = a.astype(np.int64).reshape(-1, 2)
+            pairs[k] = a.astype(np.int64)
     except (ValueError, TypeError) as e:
         raise ToolkitError(f"{path}: not a pairing file ({e})") from e
     for k, v in pairs.items():
