@@ -102,8 +102,9 @@ class GaussianTrainer:
 
     def __init__(self, cfg: GaussianStageConfig, model: GaussianModel, renderer: torch.nn.Module,
                  estimator: torch.nn.Module, data: TrainBatchData, device: torch.device, total_steps: int,
-                 shard: slice | None = None):
-        """``shard`` (torchrun, :func:`train.distributed.shard`): this rank's slice of the global batch of
+                 shard: slice | None = None, seed: int = 0):
+        """``seed`` seeds the intermediate-gaze sampler (the run's seed: each seed draws its own gazes).
+        ``shard`` (torchrun, :func:`train.distributed.shard`): this rank's slice of the global batch of
         ``cfg.batch``. Every random draw is made for the whole global batch and sliced (the samples, the
         timesteps, the diffusion noise, the sampled gazes), so with the gradients averaged over the ranks a
         step equals one process's step on the global batch up to float sums (tested)."""
@@ -114,7 +115,7 @@ class GaussianTrainer:
         self.gaze_loss = GazeLoss(estimator).to(device)
         self.ortho = OrthogonalityLoss(*model.orthogonality_layers()) if cfg.orthogonality else None
         self.sampler = GazeSampler(GazeSamplerConfig(mode=cfg.sampler_mode, range_deg=cfg.sampler_range_deg,
-                                                     progressive=True, seed=0))
+                                                     progressive=True, seed=seed))
 
     def fast_forward(self, steps: int) -> None:
         """Replay the sampler's draws of ``steps`` earlier steps so a resumed run sees the same gazes."""

@@ -365,7 +365,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
         seen = init_rgb(model, data)
         ctx.log(f"[gaussian] RGB channels initialized from the training images ({100 * seen:.0f}% of the Gaussians seen)")
     trainer = GaussianTrainer(g, model, renderer, _estimator(ctx, "loss", device), data, device, g.steps,
-                              shard=shard(g.batch, info) if info.enabled else None)
+                              shard=shard(g.batch, info) if info.enabled else None, seed=cfg.seed)
     opt = torch.optim.Adam(optimizer_groups(model, renderer, g))
     stage_dir = ctx.run_dir / "gaussian"
     mgr = CheckpointManager(stage_dir / "checkpoints")

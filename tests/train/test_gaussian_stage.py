@@ -66,3 +66,19 @@ def test_lr_factor_constant_and_cosine():
     assert f(50) == pytest.approx(0.2)  # past the end (the time-budgeted benchmark's steps): the final factor
     one = lr_factor(GaussianStageConfig(steps=1, lr_schedule="cosine", lr_final=0.0))
     assert one(0) == pytest.approx(1.0)  # a single step trains at the configured rate
+
+
+def test_the_intermediate_gaze_sampler_follows_the_trainer_seed():
+    """Each run seed draws its own intermediate gazes (until session 30 every seed drew seed 0's)."""
+    from train.gaussian_stage import GaussianTrainer
+
+    model, renderer = small_model(demo_head_scene(300)), BaselineRenderer()
+    estimator = torch.nn.Linear(2, 2)
+
+    def draws(seed):
+        t = GaussianTrainer(GaussianStageConfig(), model, renderer, estimator, None, torch.device("cpu"), 10,
+                            seed=seed)
+        return t.sampler.sample(8, progress=1.0)
+
+    assert torch.equal(draws(1), draws(1))
+    assert not torch.allclose(draws(0), draws(1))
