@@ -431,6 +431,19 @@ def load_trained(ctx: RunContext, device):
     return model.eval(), renderer.eval()
 
 
+COUNT_KEYS = ("data.frames", "geometry.steps", "geometry.pool", "geometry.gaussians", "codec.steps", "codec.batch",
+              "codec.base_channels", "estimator.steps", "estimator.batch", "estimator.input_size",
+              "estimator.synthetic_frames", "estimator.cameras_per_frame", "gaussian.steps", "gaussian.batch",
+              "gaussian.sampling_steps", "gaussian.gaussians_hidden", "gaussian.ckpt_every", "gaussian.log_every",
+              "eval.pairs_per_subject", "eval.sweep_frames")
+"""Config keys that count something and must be >= 1 (checked before any work)."""
+
+WEIGHT_KEYS = ("geometry.pretrain_steps", "estimator.synthetic_subjects", "gaussian.ortho_weight",
+               "gaussian.weak_weight", "gaussian.lambda_rgb", "gaussian.lambda_gaze", "gaussian.lambda_ssim",
+               "gaussian.diffusion_weight")
+"""Config keys that may be 0 (off) but not negative or non-finite."""
+
+
 def _check_values(cfg: RunConfig) -> None:
     """Values the type check cannot catch, before any work."""
     if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", cfg.device):
@@ -446,12 +459,25 @@ def _check_values(cfg: RunConfig) -> None:
     for name in ("lr", "renderer_lr", "means_lr"):
         if not (rate := getattr(cfg.gaussian, name)) > 0:
             raise ToolkitError(f"config key 'gaussian.{name}': expected a learning rate > 0, got {rate}")
-    for key in ("data.frames", "geometry.steps", "codec.steps", "estimator.steps", "gaussian.steps", "gaussian.batch", "codec.batch",
-                "estimator.batch", "eval.pairs_per_subject", "gaussian.ckpt_every", "gaussian.log_every",
-                "eval.sweep_frames"):
-        section, name = key.split(".")
-        if not (count := getattr(getattr(cfg, section), name)) >= 1:
+    value = lambda key: getattr(getattr(cfg, key.split(".")[0]), key.split(".")[1])  # noqa: E731
+    for key in COUNT_KEYS:
+        if not (count := value(key)) >= 1:
             raise ToolkitError(f"config key '{key}': expected a count >= 1, got {count}")
+    for key in WEIGHT_KEYS:
+        if not (math.isfinite(w := value(key)) and w >= 0):
+            raise ToolkitError(f"config key '{key}': expected a finite value >= 0, got {w}")
+    if not 4 <= cfg.geometry.extract_res <= 512:
+        raise ToolkitError(f"config key 'geometry.extract_res': expected a tet-grid resolution in [4, 512], "
+                           f"got {cfg.geometry.extract_res}")
+    if not 0.0 < cfg.gaussian.sampler_range_deg <= 89.0:
+        raise ToolkitError(f"config key 'gaussian.sampler_range_deg': expected (0, 89] degrees, "
+                           f"got {cfg.gaussian.sampler_range_deg}")
+    if not 0.0 <= cfg.data.light_jitter <= 2.0:
+        raise ToolkitError(f"config key 'data.light_jitter': expected a value in [0, 2], got {cfg.data.light_jitter}")
+    f = cfg.codec.downsample
+    if cfg.codec.kind == "ae" and (f < 1 or f & (f - 1) or cfg.data.res % f):
+        raise ToolkitError(f"config key 'codec.downsample': expected a power of two dividing data.res={cfg.data.res}, "
+                           f"got {f}")
     if cfg.geometry.subject < 0:
         raise ToolkitError(f"config key 'geometry.subject': expected a training-subject index >= 0, got {cfg.geometry.subject}")
     if cfg.eval.pairing_file:

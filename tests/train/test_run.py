@@ -290,6 +290,22 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("data.subjects=1", "'data.subjects': expected >= 2 synthetic subjects"),
         ("data.frames=0", "'data.frames': expected a count >= 1"),
         ("data.res=8", "'data.res': expected an image size in"),
+        ("geometry.gaussians=0", "'geometry.gaussians': expected a count >= 1"),
+        ("geometry.pool=0", "'geometry.pool': expected a count >= 1"),
+        ("codec.base_channels=0", "'codec.base_channels': expected a count >= 1"),
+        ("estimator.synthetic_frames=0", "'estimator.synthetic_frames': expected a count >= 1"),
+        ("gaussian.sampling_steps=0", "'gaussian.sampling_steps': expected a count >= 1"),
+        ("gaussian.gaussians_hidden=0", "'gaussian.gaussians_hidden': expected a count >= 1"),
+        ("geometry.pretrain_steps=-1", "'geometry.pretrain_steps': expected a finite value >= 0"),
+        ("estimator.synthetic_subjects=-2", "'estimator.synthetic_subjects': expected a finite value >= 0"),
+        ("gaussian.lambda_gaze=-0.1", "'gaussian.lambda_gaze': expected a finite value >= 0"),
+        ("gaussian.ortho_weight=-1", "'gaussian.ortho_weight': expected a finite value >= 0"),
+        ("geometry.extract_res=2", "'geometry.extract_res': expected a tet-grid resolution in"),
+        ("geometry.extract_res=1024", "'geometry.extract_res': expected a tet-grid resolution in"),
+        ("gaussian.sampler_range_deg=0", "'gaussian.sampler_range_deg': expected"),
+        ("gaussian.sampler_range_deg=95", "'gaussian.sampler_range_deg': expected"),
+        ("data.light_jitter=-0.5", "'data.light_jitter': expected a value in"),
+        ("codec.downsample=3", "'codec.downsample': expected a power of two dividing"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
@@ -302,6 +318,11 @@ def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
     assert not d.exists()
     with pytest.raises(ToolkitError, match=msg):
         run.main([*TINY, "--run-dir", str(d), override])
+
+
+@pytest.mark.parametrize("name", sorted(run.PRESETS))
+def test_every_preset_passes_the_value_checks(name):
+    run._check_values(run.preset(name))
 
 
 def test_lids_without_dense_eyes_fail_before_any_work(tmp_path):
