@@ -185,7 +185,7 @@ def demo_trainer(ctx, device):
     model, renderer = run._gaussian_modules(ctx, device)
     data = load_split(run._split(ctx, "train"), "all", cfg.data.res)
     trainer = GaussianTrainer(cfg.gaussian, model, renderer, run._estimator(ctx, "loss", device), data, device,
-                              cfg.gaussian.steps)
+                              cfg.gaussian.steps, seed=cfg.seed)
     n = model.num_face + model.num_eye
     return trainer, n
 
@@ -269,7 +269,8 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
     data = load_split(run._split(sub, "train"), "all", cfg.data.res)
     if g.rgb_init:
         init_rgb(model, data)
-    trainer = GaussianTrainer(g, model, renderer, run._estimator(sub, "loss", device), data, device, g.steps)
+    trainer = GaussianTrainer(g, model, renderer, run._estimator(sub, "loss", device), data, device, g.steps,
+                              seed=cfg.seed)
     est = run._estimator(sub, "eval", device)
     opt = torch.optim.Adam(optimizer_groups(model, renderer, g))
     points: list[dict] = []

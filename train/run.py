@@ -466,6 +466,37 @@ def _check_values(cfg: RunConfig) -> None:
     for key in WEIGHT_KEYS:
         if not (math.isfinite(w := value(key)) and w >= 0):
             raise ToolkitError(f"config key '{key}': expected a finite value >= 0, got {w}")
+    for key in ("seed", "data.seed"):
+        if (seed := cfg.seed if key == "seed" else cfg.data.seed) < 0:
+            raise ToolkitError(f"config key '{key}': expected a seed >= 0, got {seed}")
+    lower = {"geometry.gaussians": (16, "Gaussians (the initialization needs 16 surface points)"),
+             "geometry.pool": (1000, "pool points (the SDF fit draws its batches and surface seeds from them)")}
+    for key, (least, what) in lower.items():
+        if (n := value(key)) < least:
+            raise ToolkitError(f"config key '{key}': expected >= {least} {what}, got {n}")
+    from train.data.generate import RIG_RADIUS, eth_xgaze_rig
+
+    n_cams = len(eth_xgaze_rig(radius=RIG_RADIUS))
+    if cfg.estimator.cameras_per_frame > n_cams:
+        raise ToolkitError(f"config key 'estimator.cameras_per_frame': expected at most the rig's {n_cams} cameras, "
+                           f"got {cfg.estimator.cameras_per_frame}")
+    if cfg.estimator.crop != "eyes":
+        from train.gaze_estimator import EYE_BAND, GazeEstimator, GazeEstimatorConfig
+
+        crop = EYE_BAND if cfg.estimator.crop == "eye_band" else (0.0, 1.0, 0.0, 1.0)
+        try:  # the network's constructor holds the size rule; building it costs milliseconds
+            GazeEstimator(GazeEstimatorConfig(input_size=cfg.estimator.input_size, crop=crop))
+        except ToolkitError as err:
+            raise ToolkitError(f"config key 'estimator.input_size': {err}") from None
+    if cfg.gaussian.renderer == "dit":
+        from train.diffusion import DiffusionConfig
+
+        if cfg.gaussian.sampling_steps > (T := DiffusionConfig().num_timesteps):
+            raise ToolkitError(f"config key 'gaussian.sampling_steps': expected at most the diffusion's {T} "
+                               f"timesteps, got {cfg.gaussian.sampling_steps}")
+    if cfg.codec.kind == "sd-vae" and cfg.data.res % 8:
+        raise ToolkitError(f"config key 'data.res': the SD-VAE codec downsamples 8x, so the image size must be a "
+                           f"multiple of 8, got {cfg.data.res}")
     if not 4 <= cfg.geometry.extract_res <= 512:
         raise ToolkitError(f"config key 'geometry.extract_res': expected a tet-grid resolution in [4, 512], "
                            f"got {cfg.geometry.extract_res}")

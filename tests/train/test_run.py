@@ -306,6 +306,12 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("gaussian.sampler_range_deg=95", "'gaussian.sampler_range_deg': expected"),
         ("data.light_jitter=-0.5", "'data.light_jitter': expected a value in"),
         ("codec.downsample=3", "'codec.downsample': expected a power of two dividing"),
+        ("seed=-1", "'seed': expected a seed >= 0"),
+        ("data.seed=-3", "'data.seed': expected a seed >= 0"),
+        ("geometry.gaussians=8", "'geometry.gaussians': expected >= 16"),
+        ("geometry.pool=2", "'geometry.pool': expected >= 1000"),
+        ("estimator.cameras_per_frame=40", "'estimator.cameras_per_frame': expected at most the rig's"),
+        ("gaussian.sampling_steps=2000", "'gaussian.sampling_steps': expected at most the diffusion's 1000"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
@@ -318,6 +324,27 @@ def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
     assert not d.exists()
     with pytest.raises(ToolkitError, match=msg):
         run.main([*TINY, "--run-dir", str(d), override])
+
+
+@pytest.mark.parametrize(
+    "overrides, msg",
+    [
+        (["codec.kind=sd-vae", "codec.sd_vae_path=x", "data.res=36"], "'data.res': the SD-VAE codec downsamples 8x"),
+        (["estimator.crop=face", "estimator.input_size=8"], "'estimator.input_size': GazeEstimatorConfig: input"),
+        (["estimator.crop=eye_band", "estimator.input_size=20"], "'estimator.input_size': GazeEstimatorConfig: input"),
+    ],
+)
+def test_settings_that_fail_together_fail_before_any_work(tmp_path, overrides, msg):
+    d = tmp_path / "never"
+    with pytest.raises(ToolkitError, match=msg):
+        run.main([*TINY, "--run-dir", str(d), *overrides])
+    assert not d.exists()
+
+
+def test_an_eye_patch_estimator_ignores_input_size():
+    cfg = run.preset("tiny")
+    cfg.estimator.crop, cfg.estimator.input_size = "eyes", 8
+    run._check_values(cfg)
 
 
 @pytest.mark.parametrize("name", sorted(run.PRESETS))
