@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -280,13 +281,7 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
     ``threads`` torch threads): its training split plus its own extra procedural subjects, validated on the
     held-out split (``data``: :func:`_estimator_data`, loaded here when None). Returns (file name in
     ``run_dir``, its last history record with ``train_images``)."""
-    from train.gaze_estimator import (
-        EYE_BAND,
-        GazeEstimatorConfig,
-        GazeEstimatorTrainConfig,
-        eye_config,
-        train_gaze_estimator,
-    )
+    from train.gaze_estimator import GazeEstimatorTrainConfig, train_gaze_estimator
 
     torch.set_num_threads(threads)
     e, res = config.estimator, config.data.res
@@ -302,16 +297,25 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
             cameras_per_frame=e.cameras_per_frame, res=res, seed=seed, log=log, workers=threads)
         images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
         lms = torch.cat([lms, extra_lms])
-    crop = EYE_BAND if e.crop == "eye_band" else (0.0, 1.0, 0.0, 1.0)
-    design = eye_config(res) if e.crop == "eyes" else GazeEstimatorConfig(input_size=e.input_size, crop=crop)
     model, hist = train_gaze_estimator(
-        images, targets, dataclasses.replace(design, mirror_average=e.mirror_average),
+        images, targets, dataclasses.replace(_estimator_design(config), mirror_average=e.mirror_average),
         GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=config.seed * 10 + seed,
                                  log_every=max(1, e.steps), blur_prob=e.blur_prob, blur_sigma=e.blur_sigma),
         landmarks=lms, val=val, device=device)
     file = f"estimator_{role}.safetensors"
     model.save(Path(run_dir) / file, {"role": role, "train_images": len(images)})
     return file, dict(hist[-1] if hist else {}, train_images=len(images))
+
+
+def _estimator_design(config: RunConfig):
+    """The estimator stage's network design for ``config.estimator.crop``: eye patches sized for the image, or a
+    face / eye-band crop resized to ``estimator.input_size``."""
+    from train.gaze_estimator import EYE_BAND, GazeEstimatorConfig, eye_config
+
+    e = config.estimator
+    if e.crop == "eyes":
+        return eye_config(config.data.res)
+    return GazeEstimatorConfig(input_size=e.input_size, crop=EYE_BAND if e.crop == "eye_band" else (0.0, 1.0, 0.0, 1.0))
 
 
 def _given_estimator(ctx: RunContext, role: str) -> str:
@@ -459,7 +463,7 @@ def _check_values(cfg: RunConfig) -> None:
     for name in ("lr", "renderer_lr", "means_lr"):
         if not (rate := getattr(cfg.gaussian, name)) > 0:
             raise ToolkitError(f"config key 'gaussian.{name}': expected a learning rate > 0, got {rate}")
-    value = lambda key: getattr(getattr(cfg, key.split(".")[0]), key.split(".")[1])  # noqa: E731
+    value = lambda key: functools.reduce(getattr, key.split("."), cfg)  # noqa: E731
     for key in COUNT_KEYS:
         if not (count := value(key)) >= 1:
             raise ToolkitError(f"config key '{key}': expected a count >= 1, got {count}")
@@ -467,7 +471,7 @@ def _check_values(cfg: RunConfig) -> None:
         if not (math.isfinite(w := value(key)) and w >= 0):
             raise ToolkitError(f"config key '{key}': expected a finite value >= 0, got {w}")
     for key in ("seed", "data.seed"):
-        if (seed := cfg.seed if key == "seed" else cfg.data.seed) < 0:
+        if (seed := value(key)) < 0:
             raise ToolkitError(f"config key '{key}': expected a seed >= 0, got {seed}")
     lower = {"geometry.gaussians": (16, "Gaussians (the initialization needs 16 surface points)"),
              "geometry.pool": (1000, "pool points (the SDF fit draws its batches and surface seeds from them)")}
@@ -481,11 +485,10 @@ def _check_values(cfg: RunConfig) -> None:
         raise ToolkitError(f"config key 'estimator.cameras_per_frame': expected at most the rig's {n_cams} cameras, "
                            f"got {cfg.estimator.cameras_per_frame}")
     if cfg.estimator.crop != "eyes":
-        from train.gaze_estimator import EYE_BAND, GazeEstimator, GazeEstimatorConfig
+        from train.gaze_estimator import GazeEstimator
 
-        crop = EYE_BAND if cfg.estimator.crop == "eye_band" else (0.0, 1.0, 0.0, 1.0)
         try:  # the network's constructor holds the size rule; building it costs milliseconds
-            GazeEstimator(GazeEstimatorConfig(input_size=cfg.estimator.input_size, crop=crop))
+            GazeEstimator(_estimator_design(cfg))
         except ToolkitError as err:
             raise ToolkitError(f"config key 'estimator.input_size': {err}") from None
     if cfg.gaussian.renderer == "dit":
@@ -505,10 +508,11 @@ def _check_values(cfg: RunConfig) -> None:
                            f"got {cfg.gaussian.sampler_range_deg}")
     if not 0.0 <= cfg.data.light_jitter <= 2.0:
         raise ToolkitError(f"config key 'data.light_jitter': expected a value in [0, 2], got {cfg.data.light_jitter}")
-    f = cfg.codec.downsample
-    if cfg.codec.kind == "ae" and (f < 1 or f & (f - 1) or cfg.data.res % f):
-        raise ToolkitError(f"config key 'codec.downsample': expected a power of two dividing data.res={cfg.data.res}, "
-                           f"got {f}")
+    # the SD-VAE and pixel codecs fix their own factor; only the trained autoencoder reads codec.downsample
+    powers_of_two = ["gaussian.feature_upscale"] + (["codec.downsample"] if cfg.codec.kind == "ae" else [])
+    for key in powers_of_two:
+        if (f := value(key)) < 1 or f & (f - 1) or cfg.data.res % f:
+            raise ToolkitError(f"config key '{key}': expected a power of two dividing data.res={cfg.data.res}, got {f}")
     if cfg.geometry.subject < 0:
         raise ToolkitError(f"config key 'geometry.subject': expected a training-subject index >= 0, got {cfg.geometry.subject}")
     if cfg.eval.pairing_file:
@@ -519,10 +523,6 @@ def _check_values(cfg: RunConfig) -> None:
                            f"got {cfg.gaussian.grad_clip}")
     if cfg.eval.tta_steps < 0:
         raise ToolkitError(f"config key 'eval.tta_steps': expected a step count >= 0, got {cfg.eval.tta_steps}")
-    u = cfg.gaussian.feature_upscale
-    if u < 1 or u & (u - 1) or cfg.data.res % u:
-        raise ToolkitError(f"config key 'gaussian.feature_upscale': expected a power of two dividing data.res="
-                           f"{cfg.data.res}, got {u}")
     if cfg.geometry.lid_gaussians < 0 or (cfg.geometry.lid_gaussians > 0 and cfg.geometry.eye_gaussians == 0):
         raise ToolkitError(f"config key 'geometry.lid_gaussians': expected 0, or > 0 with geometry.eye_gaussians > 0, "
                            f"got {cfg.geometry.lid_gaussians} with geometry.eye_gaussians={cfg.geometry.eye_gaussians}")
