@@ -85,6 +85,12 @@ def _image_size(path: Path, what: str) -> tuple[int, int]:
     return int(img.shape[0]), int(img.shape[1])
 
 
+def labels_csv_file(path: str | os.PathLike) -> Path:
+    """The labels CSV a dataset argument names, resolved: the file itself, or ``labels.csv`` in a folder."""
+    p = Path(path)
+    return (p / "labels.csv" if p.is_dir() else p).resolve()
+
+
 def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, distance: float | None = None,
                 default_distance: float = 0.6, default_crop: float = 0.26) -> tuple[list[LabelRow], int]:
     """Validate a labels CSV and every file it names -> (rows, image size S).
@@ -92,9 +98,7 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
     ``focal``/``distance`` are the defaults for rows that leave those cells empty; without them the
     project's normalized camera (``default_distance``, ``default_crop``) decides the focal length.
     """
-    p = Path(csv_path)
-    if p.is_dir():
-        p = p / "labels.csv"
+    p = labels_csv_file(csv_path)
     if not p.is_file():
         raise ToolkitError(f"{p}: no such labels CSV (expected columns {', '.join(REQUIRED_COLUMNS)}, ...)")
     for name, v in (("--focal", focal), ("--distance", distance)):
@@ -107,6 +111,9 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
             raw = [(reader.line_num, r) for r in reader]
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise ToolkitError(f"{p}: not a readable CSV file ({e})") from None
+    twice = sorted({c for c in header if header.count(c) > 1})
+    if twice:  # csv.DictReader would keep the last of them silently
+        raise ToolkitError(f"{p}: column(s) {twice} appear more than once in the header")
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
         raise ToolkitError(f"{p}: missing column(s) {missing}; the header has {header}")
@@ -121,6 +128,8 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
     rows: list[LabelRow] = []
     size: tuple[int, int] | None = None
     for line, r in raw:
+        if None in r:  # cells beyond the header's: csv.DictReader files them under None, and they would be lost
+            raise ToolkitError(f"{p} line {line}: {len(header) + len(r[None])} cells, the header has {len(header)}")
         r = {(k or "").strip(): (v or "").strip() if isinstance(v, str) else "" for k, v in r.items()}
         where = f"{p} line {line}"
 
@@ -228,7 +237,7 @@ class LabelsCsvSource:
                  default_crop: float = 0.26):
         self.rows, self.size = read_labels(csv_path, focal=focal, distance=distance,
                                            default_distance=default_distance, default_crop=default_crop)
-        self.path = Path(csv_path)
+        self.path = labels_csv_file(csv_path)  # the folder and its labels.csv are the same input
         self.res = int(res)
         self.landmarks_head = landmarks_head.float()  # [68, 3], the run's geometry (head frame)
         self.mesh_head = mesh_head.float()  # [V, 3]
@@ -236,6 +245,21 @@ class LabelsCsvSource:
 
     def __len__(self) -> int:
         return len(self.rows)
+
+    def stamp(self) -> str:
+        """A hash of what the rows' contents depend on: the CSV's text, each image's and mask's path, size and
+        modification time, and the codes (a resumed redirect compares it, ``apps.redirect.input_stamp``)."""
+        import hashlib
+
+        h = hashlib.sha1(self.path.read_bytes())
+        for r in self.rows:
+            for q in (r.image, r.mask):
+                if q is not None:
+                    st = q.stat()
+                    h.update(f"{q.resolve()}:{st.st_size}:{st.st_mtime_ns};".encode())
+            if r.code is not None:
+                h.update(r.code.tobytes())
+        return h.hexdigest()
 
     def _image(self, r: LabelRow) -> torch.Tensor:
         from train.data.dataset import resize_image
@@ -316,6 +340,10 @@ class LabelsCsvSource:
                      "in_viewmat": geo["viewmat"][sel], "K": geo["K"][sel]}
             with torch.enable_grad():
                 code[sel] = test_time_fit(model, renderer, batch, image[sel], mask[sel], res, fit_steps, lr=fit_lr)
+            bad = [rows[i].line for i in fit if not torch.isfinite(code[i]).all()]
+            if bad:
+                raise ToolkitError(f"{self.path} line {bad[0]}: the fit of the row's code diverged (non-finite); "
+                                   "try a lower --fit-lr or fewer --fit-steps")
         head_a, face_a, eyes_a = silhouettes(code)
         R, t = geo["R"].cpu(), geo["t"].cpu()
         out = []

@@ -42,6 +42,7 @@ import argparse
 import contextlib
 import math
 import sys
+import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -55,6 +56,18 @@ from toolkit.rotations import so3_exp
 GRID_EXAMPLE = "grid:5x5:30 (pitch rows × yaw columns over ±30°), random:200:35 (200 gazes uniform in ±35°), file:gazes.csv"
 
 
+MAX_GAZES = 100_000
+"""Target gazes per input row (``--gazes``): more is a typo, not a dataset (each row is rendered at every one)."""
+
+
+def _spec_range(spec: str, deg: str) -> float:
+    """The ± range of a grid or random spec, degrees -> radians: finite and below 90°."""
+    r = float(deg)  # a ValueError names the spec's expected form (parse_gazes)
+    if not (math.isfinite(r) and 0 <= r < 90):
+        raise ToolkitError(f"--gazes {spec!r}: expected a range in [0, 90) degrees, got {deg}")
+    return math.radians(r)
+
+
 def parse_gazes(spec: str, seed: int = 0) -> np.ndarray:
     """A gaze spec -> [G, 2] (pitch, yaw) radians, head frame."""
     kind, _, rest = spec.partition(":")
@@ -64,23 +77,31 @@ def parse_gazes(spec: str, seed: int = 0) -> np.ndarray:
             ny, nx = (int(v) for v in dims.lower().split("x"))
             if ny < 1 or nx < 1:
                 raise ToolkitError(f"--gazes {spec!r}: a grid needs at least 1 row and 1 column, got {ny}x{nx}")
-            r = math.radians(float(rng))
+            r = _spec_range(spec, rng)
+            if ny * nx > MAX_GAZES:
+                raise ToolkitError(f"--gazes {spec!r}: {ny * nx} gazes; at most {MAX_GAZES} per input row")
             p = np.linspace(-r, r, ny) if ny > 1 else np.zeros(1)
             y = np.linspace(-r, r, nx) if nx > 1 else np.zeros(1)
             out = np.stack(np.meshgrid(p, y, indexing="ij"), -1).reshape(-1, 2)
         elif kind == "random":
             n, rng = rest.split(":")
-            r = math.radians(float(rng))
-            out = np.random.default_rng(seed).uniform(-r, r, size=(int(n), 2))
+            n, r = int(n), _spec_range(spec, rng)
+            if not 1 <= n <= MAX_GAZES:
+                raise ToolkitError(f"--gazes {spec!r}: expected 1..{MAX_GAZES} random gazes per input row, got {n}")
+            out = np.random.default_rng(seed).uniform(-r, r, size=(n, 2))
         elif kind == "file":
             path = Path(rest)
             if not path.is_file():
                 raise ToolkitError(f"--gazes file {path}: no such file")
             try:
-                vals = np.loadtxt(path, delimiter=",", ndmin=2, comments="#")
+                with warnings.catch_warnings():  # numpy warns of an empty file; the check below says it in one line
+                    warnings.simplefilter("ignore", UserWarning)
+                    vals = np.loadtxt(path, delimiter=",", ndmin=2, comments="#")
             except ValueError as e:  # a header line, a stray word: numpy says which line
                 raise ToolkitError(f"--gazes file {path}: expected lines of 'pitch,yaw' in degrees (# starts a "
                                    f"comment): {e}") from None
+            if vals.size == 0:
+                raise ToolkitError(f"--gazes file {path}: no gazes in the file (expected lines of 'pitch,yaw' in degrees)")
             if vals.shape[1] != 2:
                 raise ToolkitError(f"--gazes file {path}: expected two columns (pitch, yaw in degrees), got {vals.shape[1]}")
             out = np.radians(vals)
@@ -133,6 +154,31 @@ def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = Tr
     return fit
 
 
+RENDER_BATCH = 32
+"""Gazes of one input row rendered in one forward pass: a long gaze list (random:2000:35) is rendered in
+slices of this many, so memory does not grow with it."""
+
+
+def render_gazes(model, renderer, code: torch.Tensor, pose: torch.Tensor, gz: torch.Tensor, V: torch.Tensor,
+                 K: torch.Tensor, res: int, steps: int) -> torch.Tensor:
+    """One input row at G gazes -> [G, 3, res, res] images, ``RENDER_BATCH`` gazes at a time; ``code``
+    [G, C], ``pose`` [G, 6], ``gz`` [G, 2], ``V`` [G, 4, 4], ``K`` [G, 3, 3]. A diffusion renderer's
+    starting noise is drawn for all G at once (its ``seed=0`` stream), so the images do not depend on the
+    slicing."""
+    G, noise, out = gz.shape[0], None, []
+    for a in range(0, G, RENDER_BATCH):
+        s = slice(a, min(a + RENDER_BATCH, G))
+        maps = model(code[s], pose[s], gz[s], V[s], K[s], res, res, renders=("head",))
+        if hasattr(renderer, "diffusion"):
+            if noise is None:
+                shape = renderer.latent_shape(maps["head"])
+                noise = torch.randn((G, *shape[1:]), generator=torch.Generator().manual_seed(0))
+            out.append(renderer.render(maps["head"], code[s], gaze=gz[s], pose=pose[s], steps=steps, noise=noise[s]))
+        else:
+            out.append(renderer.render(maps["head"], code[s], gaze=gz[s], pose=pose[s]))
+    return torch.cat(out)
+
+
 def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.ndarray, res: int, steps: int,
                  device, fit: Callable[[dict, torch.Tensor], torch.Tensor] | None = None) -> dict:
     """Render every (row, gaze) pair of the input ``items`` (``GazeDataset`` items or
@@ -160,11 +206,9 @@ def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.
                     raise ToolkitError(f"--fit-weights: the fit of input row {r} diverged (non-finite code); try "
                                        "fewer --fit-steps or a lower eval.tta_renderer_lr")
             with torch.no_grad():
-                maps = model(code, pose, gz, V, K, res, res, renders=("head",))
-                if hasattr(renderer, "diffusion"):
-                    img = renderer.render(maps["head"], code, gaze=gz, pose=pose, steps=steps)
-                else:
-                    img = renderer.render(maps["head"], code, gaze=gz, pose=pose)
+                img = render_gazes(model, renderer, code, pose, gz, V, K, res, steps)
+        if not torch.isfinite(img).all():  # NaN would be written as black pixels
+            raise ToolkitError(f"input row {r}: the render is not finite (a non-finite code or a diverged fit?)")
         mask = torch.as_tensor(it["head_mask"]).float().to(device)
         img = img * mask + (1 - mask)
         R = V[:, :3, :3] @ so3_exp(pose[:, :3])
@@ -198,8 +242,26 @@ def sampling_steps(args, cfg) -> int:
     return args.steps or cfg.gaussian.sampling_steps
 
 
-SETTINGS_VERSION = 2
-"""Of ``OUT.parts/settings.json``: 2 since the fitting's noise is seeded per chunk (version 1 had no field)."""
+SETTINGS_VERSION = 3
+"""Of ``OUT.parts/settings.json``: 2 since the fitting's noise is seeded per chunk (version 1 had no field), 3
+since the input's contents are stamped (``input_stamp``), not only its path."""
+
+
+def input_stamp(src, dataset: str | Path) -> str:
+    """What the input rows' contents depend on, for a resumed run to notice an input replaced or edited under
+    the same path: a CSV source's own stamp (its text, the files it names, the codes), else each HDF5 file's
+    size and modification time."""
+    import hashlib
+
+    if hasattr(src, "stamp"):
+        return src.stamp()
+    p = Path(dataset)
+    files = sorted(p.glob("*.h5")) if p.is_dir() else [p]  # a folder: the files GazeDataset reads
+    h = hashlib.sha1()
+    for f in files:
+        st = f.stat()
+        h.update(f"{f.resolve()}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()
 
 
 def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps: int) -> dict:
@@ -213,6 +275,7 @@ def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
     st = ckpt.stat()
     settings = {"version": SETTINGS_VERSION, "run_dir": str(ctx.run_dir.resolve()), "checkpoint": [st.st_size, st.st_mtime_ns],
                 "dataset": str(Path(getattr(src, "path", args.dataset)).resolve()),
+                "input_stamp": input_stamp(src, args.dataset),
                 "gazes_sha1": hashlib.sha1(np.ascontiguousarray(gazes, np.float64).tobytes()).hexdigest(),
                 "rows": n_rows, "batch": args.batch, "steps": sampling_steps(args, ctx.config),
                 "fit_weights": args.fit_weights, "natural_eyes": args.natural_eyes}
@@ -369,8 +432,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise ToolkitError(f"out {args.out}: expected an HDF5 file name ending in .h5 or .hdf5")
     if Path(args.out).is_dir():  # before any rendering: the file is only written once every chunk is done
         raise ToolkitError(f"out {args.out}: is a directory, expected the path of the HDF5 file to write")
-    if not args.fit_lr > 0:
-        raise ToolkitError(f"--fit-lr must be > 0, got {args.fit_lr}")
+    if not (math.isfinite(args.fit_lr) and 0 < args.fit_lr <= 1):
+        raise ToolkitError(f"--fit-lr must be in (0, 1], got {args.fit_lr}")
+    if not 0 <= args.seed < 2**32:  # each chunk's stream is seeded from it (and numpy takes it for random: gazes)
+        raise ToolkitError(f"--seed must be in [0, 2^32), got {args.seed}")
+    if Path(args.out).resolve() == Path(args.dataset).resolve():
+        raise ToolkitError(f"out {args.out}: is the input dataset; the output would replace it, give another path")
     gazes = parse_gazes(args.gazes, args.seed)
     ctx = open_run(run_dir)
     cfg = ctx.config
@@ -416,7 +483,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                       initial=len(mine) - len(todo), total=len(mine)):
             # Each chunk's own random stream (a diffusion renderer's noise while fitting): its images then do not
             # depend on which chunks this process rendered before it.
-            torch.manual_seed(args.seed * 1_000_003 + k)
+            torch.manual_seed((args.seed * 1_000_003 + k) % 2**63)
             arrays = render_chunk(model, renderer, items(chunks[k]), chunks[k], gazes, cfg.data.res, steps, device, fit)
             with atomic_write(_chunk_path(parts, k), "wb") as f:
                 np.savez(f, **arrays)

@@ -1,6 +1,7 @@
 """apps.redirect on a folder of face crops with a labels CSV, built from the project's own synthetic data."""
 
 import math
+import shutil
 
 import cv2
 import h5py
@@ -169,6 +170,8 @@ def _csv(folder, text):
         ("bad_mask", "line 2, column 'mask': .*mask_small.png is 32x32; expected the image's size 64x64"),
         ("no_csv", "no such labels CSV"),
         ("empty", "no data rows"),
+        ("extra_cell", "line 2: 8 cells, the header has 7"),
+        ("duplicate_column", r"column\(s\) \['head_yaw'\] appear more than once in the header"),
     ],
 )
 def test_bad_csv_input_is_one_line_error(tiny_trained_run, crops, tmp_path, capsys, case, expect):
@@ -193,6 +196,8 @@ def test_bad_csv_input_is_one_line_error(tiny_trained_run, crops, tmp_path, caps
         "no_code_no_gaze": f"{HEADER}\na.png,10,-5,,,,\n",
         "bad_mask": f"{HEADER}\na.png,10,-5,3,4,,mask_small.png\n",
         "empty": f"{HEADER}\n",
+        "extra_cell": f"{HEADER}\na.png,10,-5,3,4,,,7\n",  # a shifted row must not lose its last cell silently
+        "duplicate_column": "image,head_pitch,head_yaw,head_yaw\na.png,10,5,99\n",
     }.get(case)
     (d / "garbage.png").write_bytes(b"not an image")
     cv2.imwrite(str(d / "wide.png"), np.zeros((64, 32, 3), np.uint8))
@@ -251,3 +256,29 @@ def test_code_fitting_compares_the_face_not_the_eyes(tiny_trained_run, crops, tm
     assert mask.shape == eyes.shape == (1, 1, 64, 64)  # only row 1 has no code
     assert eyes.sum() > 0 and (mask[eyes] == 0).all()
     assert (mask <= head.float()).all() and mask.sum() > 0.5 * head.sum() - 4 * eyes.sum()
+
+
+def test_the_folder_and_its_csv_are_one_input_and_an_edited_input_is_not_resumed(tiny_trained_run, crops, tmp_path,
+                                                                                  monkeypatch, capsys):
+    """A run interrupted on the folder resumes when given its labels.csv (one input spelt two ways), but not
+    after the CSV was edited: the chunks would mix the old rows with the new."""
+    folder, _ = crops
+    d = tmp_path / "in"
+    shutil.copytree(folder, d)
+    out = tmp_path / "o.h5"
+    opts = [str(out), "--gazes", "grid:1x2:10", "--batch", "2", "--fit-steps", "1"]
+    interrupt_redirect_before_assembly([str(tiny_trained_run), str(d), *opts], monkeypatch)
+    capsys.readouterr()
+    parts = tmp_path / "o.h5.parts"
+    (parts / "part_00001.npz").unlink()
+    csv_path = d / "labels.csv"
+    text = csv_path.read_text()
+    lines = text.splitlines()
+    cells = lines[1].split(",")
+    cells[1] = f"{float(cells[1]) + 1:.6f}"  # row 0's head pitch, one degree up
+    csv_path.write_text("\n".join([lines[0], ",".join(cells), *lines[2:]]) + "\n")
+    assert run_cli(redirect.main, [str(tiny_trained_run), str(csv_path), *opts]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "other settings (input_stamp differ)" in err[0], err
+    csv_path.write_text(text)  # back as it was (a new modification time is no change: the CSV's text is hashed)
+    assert redirect.main([str(tiny_trained_run), str(csv_path), *opts]) == 0 and out.is_file()

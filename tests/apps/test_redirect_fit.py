@@ -252,6 +252,15 @@ def test_output_that_is_a_folder_fails_before_any_rendering(tiny_trained_run, tm
     (["--steps", "-5"], "--steps must be >= 0"),
     (["--steps", "5000"], "--steps must be 0 (the run's setting) or 1..1000 DDIM steps, got 5000"),
     (["--out-name", "x.png"], "x.png: expected an HDF5 file name ending in .h5 or .hdf5"),
+    (["--gazes", "random:5:nan"], "expected a range in [0, 90) degrees, got nan"),
+    (["--gazes", "grid:3x3:inf"], "expected a range in [0, 90) degrees, got inf"),
+    (["--gazes", "random:5:-10"], "expected a range in [0, 90) degrees, got -10"),
+    (["--gazes", "random:0:10"], "expected 1..100000 random gazes per input row, got 0"),
+    (["--gazes", "grid:1000x1000:10"], "1000000 gazes; at most 100000 per input row"),
+    (["--seed", "-1"], "--seed must be in [0, 2^32), got -1"),
+    (["--seed", "20000000000000"], "--seed must be in [0, 2^32), got 20000000000000"),
+    (["--fit-lr", "inf"], "--fit-lr must be in (0, 1], got inf"),
+    (["--fit-lr", "0"], "--fit-lr must be in (0, 1], got 0.0"),
 ])
 def test_bad_flags_fail_before_any_rendering(tiny_trained_run, tmp_path, capsys, extra, expect):
     src = _test_subject(tiny_trained_run)
@@ -264,10 +273,56 @@ def test_bad_flags_fail_before_any_rendering(tiny_trained_run, tmp_path, capsys,
     assert not out.exists() and not out.with_suffix(out.suffix + ".parts").exists()
 
 
+def test_output_that_is_the_input_dataset_is_refused(tiny_trained_run, tmp_path, capsys):
+    src = tmp_path / "in.h5"
+    src.write_bytes(_test_subject(tiny_trained_run).read_bytes())
+    before = src.read_bytes()
+    code = run_cli(redirect.main, [str(tiny_trained_run), str(src), str(tmp_path / "." / "in.h5")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "is the input dataset" in err[0], err
+    assert src.read_bytes() == before and not (tmp_path / "in.h5.parts").exists()
+
+
+def test_a_replaced_input_file_is_not_resumed(tiny_trained_run, tmp_path, capsys, monkeypatch):
+    """The chunks are tied to the input's contents, not only its path: a file replaced under the same name
+    between two runs would otherwise mix two subjects' rows in one output."""
+    subjects = sorted((tiny_trained_run / "data").glob("*.h5"))
+    src = tmp_path / "in.h5"
+    src.write_bytes(subjects[-1].read_bytes())
+    out = tmp_path / "o.h5"
+    args = [str(tiny_trained_run), str(src), str(out), "--gazes", "grid:1x1:0", "--rows", "2", "--batch", "1"]
+    interrupt_redirect_before_assembly(args, monkeypatch)
+    capsys.readouterr()
+    (tmp_path / "o.h5.parts" / "part_00001.npz").unlink()
+    src.write_bytes(subjects[0].read_bytes())
+    assert run_cli(redirect.main, args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "other settings (input_stamp differ)" in err[0], err
+    assert not out.exists()
+
+
+def test_a_long_gaze_list_renders_in_slices_with_the_images_of_one_pass(tiny_trained_run, monkeypatch):
+    """More gazes than RENDER_BATCH are rendered a slice at a time, each image as the whole list in one
+    forward pass renders it (a diffusion renderer's noise is drawn for all of them first)."""
+    model, renderer = run.load_trained(run.open_run(tiny_trained_run), torch.device("cpu"))
+    ds_item = __import__("train.data.dataset", fromlist=["GazeDataset"]).GazeDataset(
+        [_test_subject(tiny_trained_run)], res=run.open_run(tiny_trained_run).config.data.res, with_mesh=True)[0]
+    res = run.open_run(tiny_trained_run).config.data.res
+    gazes = redirect.parse_gazes("random:7:30", seed=3)
+    whole = redirect.render_chunk(model, renderer, [ds_item], [0], gazes, res, 2, torch.device("cpu"))
+    monkeypatch.setattr(redirect, "RENDER_BATCH", 3)
+    sliced = redirect.render_chunk(model, renderer, [ds_item], [0], gazes, res, 2, torch.device("cpu"))
+    assert whole["face_patch"].shape[0] == 7
+    assert np.abs(whole["face_patch"].astype(int) - sliced["face_patch"].astype(int)).max() <= 1
+
+
 def test_gazes_file_with_a_header_names_the_file(tmp_path):
     f = tmp_path / "g.csv"
     f.write_text("pitch,yaw\n10,20\n")
     with pytest.raises(ToolkitError, match=r"--gazes file .*g\.csv: expected lines of 'pitch,yaw' in degrees"):
+        redirect.parse_gazes(f"file:{f}")
+    f.write_text("# only a comment\n")
+    with pytest.raises(ToolkitError, match=r"--gazes file .*g\.csv: no gazes in the file"):
         redirect.parse_gazes(f"file:{f}")
     f.write_text("# pitch,yaw\n10,20\n-5,0\n")
     assert np.allclose(np.degrees(redirect.parse_gazes(f"file:{f}")), [[10, 20], [-5, 0]], atol=1e-4)
@@ -285,7 +340,7 @@ def test_chunks_without_their_settings_are_refused(tmp_path):
     # Settings an older version wrote lack a key no flag can now match: say so, not "rerun with the same".
     (parts / "settings.json").write_text('{"anything": 1}')
     with pytest.raises(ToolkitError, match=r"from another version of apps.redirect \(settings version 1, this one "
-                                           r"writes 2\); delete"):
+                                           rf"writes {redirect.SETTINGS_VERSION}\); delete"):
         redirect.check_parts_settings(parts, {"anything": 1, "version": redirect.SETTINGS_VERSION})
 
 
