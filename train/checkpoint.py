@@ -158,6 +158,8 @@ class CheckpointManager:
     def __init__(self, folder: str | Path, keep: int = 2):
         self.folder = Path(folder)
         self.keep = max(1, keep)
+        self.skipped: list[Path] = []
+        """the unreadable checkpoints the last :meth:`latest` passed over"""
 
     def path_for(self, step: int) -> Path:
         return self.folder / f"ckpt_{step:08d}.safetensors"
@@ -170,10 +172,12 @@ class CheckpointManager:
     def latest(self) -> Path | None:
         """The newest checkpoint whose header reads (writes are atomic, so an unreadable one was damaged
         afterwards: the one before it is the one to resume from)."""
+        self.skipped = []
         for p in reversed(self.all()):
             try:
                 load_metadata(p)
             except ToolkitError:
+                self.skipped.append(p)
                 continue
             return p
         return None

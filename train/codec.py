@@ -281,6 +281,10 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
             w = pixel_weights[idx].to(device)
             rec = ((recon - x).abs() * w).sum() / (3 * w.sum()).clamp_min(1e-8)
         loss = rec + model.config.kl_weight * kl_divergence(mean, logvar)
+        if not torch.isfinite(loss):  # never a silent NaN codec: the renderer would train on NaN latents
+            raise ToolkitError(f"train_autoencoder: non-finite loss at step {step} (reconstruction {rec.detach().item():.4g}, "
+                               f"total {loss.detach().item():.4g}); nothing was saved: check the images for NaN, or lower "
+                               "the learning rate")
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

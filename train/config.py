@@ -130,6 +130,18 @@ def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
     return cls(**kwargs)
 
 
+_YAML11_NUMBER = re.compile(r"[-+]?(0[0-7_]+|[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?)")
+"""Numbers YAML 1.1 (PyYAML) reads in base 8 (a leading 0) or base 60 (colons)."""
+
+
+def _merged(base: dict, new: dict) -> dict:
+    """``base`` with ``new``'s keys, nested mappings merged key by key."""
+    out = dict(base)
+    for k, v in new.items():
+        out[k] = _merged(out[k], v) if isinstance(out.get(k), dict) and isinstance(v, dict) else v
+    return out
+
+
 def apply_overrides(cfg: T, overrides: list[str]) -> T:
     """Apply ``["a.b=1", "c=[1, 2]"]`` (values parsed as YAML) to a config; returns a new config."""
     data = to_dict(cfg)
@@ -138,6 +150,11 @@ def apply_overrides(cfg: T, overrides: list[str]) -> T:
             raise ToolkitError(f"override {item!r}: expected KEY=VALUE (e.g. train.steps=100)")
         key, raw = item.split("=", 1)
         key = key.strip().removeprefix("--")
+        r = raw.strip()
+        if _YAML11_NUMBER.fullmatch(r) and (":" in r or int(r.replace("_", "")) != yaml.safe_load(r)):
+            # YAML 1.1 reads 010 as 8 and 1:30 as 90, silently
+            raise ToolkitError(f"override {item!r}: {r!r} would read as a base-8 or base-60 number "
+                               f"({yaml.safe_load(r)}); write the number without leading zeros or colons")
         try:
             value = yaml.safe_load(raw) if raw.strip() else ""
         except yaml.YAMLError:
@@ -149,7 +166,8 @@ def apply_overrides(cfg: T, overrides: list[str]) -> T:
             if p not in names:
                 raise _unknown(".".join(parts[: i + 1]), names)
             if i == len(parts) - 1:
-                node[p] = value
+                # A section given as a mapping changes the keys it names: the others keep the preset's values.
+                node[p] = _merged(node[p], value) if isinstance(node.get(p), dict) and isinstance(value, dict) else value
             else:
                 cls = typing.get_type_hints(cls)[p]
                 if not dataclasses.is_dataclass(cls):

@@ -626,6 +626,10 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
                 loss = loss + d_h.abs().mean()
         else:
             loss = ((pred - y).abs() * w).mean()
+        if not torch.isfinite(loss):  # never a silent NaN estimator: every later reading would be NaN
+            raise ToolkitError(f"train_gaze_estimator: non-finite loss at step {step} ({float(loss.detach())}); the estimator "
+                               "keeps no checkpoint, nothing was saved: check the training images and labels for "
+                               "NaN, or lower the learning rate")
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

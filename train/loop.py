@@ -1,4 +1,6 @@
-"""The one training loop every stage uses: resumable, NaN-guarded, interruptible, logged.
+"""The training loop of the Gaussian stage (the one long training): resumable, NaN-guarded, interruptible,
+logged. The codec and the gaze estimators train in minutes in loops of their own (``train.codec``,
+``train.gaze_estimator``), which stop on a non-finite loss too but keep no checkpoints: a crashed one reruns.
 
 A stage supplies ``step_fn(step, generator) -> {"total": loss, term: value, ...}``; the loop does the
 backward pass, gradient clipping, the optimizer steps, periodic atomic checkpoints, metrics (JSONL and
@@ -23,7 +25,7 @@ from typing import Any, Callable, Iterator
 import torch
 
 from toolkit.errors import ToolkitError
-from train.checkpoint import CheckpointManager, load_training_checkpoint
+from train.checkpoint import CheckpointManager, load_metadata, load_training_checkpoint
 from train.distributed import DistInfo, all_ranks, average_gradients
 
 StepFn = Callable[[int, torch.Generator], dict[str, torch.Tensor]]
@@ -148,6 +150,8 @@ def train_loop(
     after_step: Callable[[int], None] | None = None,
     is_main: bool = True,
     dist_info: DistInfo | None = None,
+    fingerprint: str | None = None,
+    log: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Run ``steps`` optimisation steps of ``step_fn``; returns {"step", "last": terms, "checkpoint"}.
 
@@ -159,6 +163,10 @@ def train_loop(
     function of the step alone, so a resumed run follows the uninterrupted one's rates exactly).
     ``after_step(done)``: called after each step's optimizer update with the number of steps done, before that
     step's checkpoint (a weight average's update goes here, so the checkpoint holds it).
+    ``fingerprint``: what the training depends on (its config but the step counts, its inputs), stored in every
+    checkpoint; ``resume`` refuses a checkpoint written under another one. A run that does not resume starts
+    from an empty checkpoint folder: another run's checkpoints would outnumber its own (the newest two are
+    kept) and a later ``resume`` would load them. ``log``: where a skipped damaged checkpoint is reported.
     """
     if ckpt_every < 1 or log_every < 1:
         raise ToolkitError(f"{stage}: ckpt_every and log_every must be step counts >= 1, got {ckpt_every}, {log_every}")
@@ -170,8 +178,19 @@ def train_loop(
     # The rates on entry, before a checkpoint's optimizer state (with the rates of its last step) replaces them.
     base_lrs = {name: [grp["lr"] for grp in opt.param_groups] for name, opt in optimizers.items()}
     last_ckpt = mgr.latest()  # reads checkpoint headers: once
+    if mgr.skipped and resume and log is not None and is_main:
+        log(f"[{stage}] skipped unreadable checkpoint(s) {[p.name for p in mgr.skipped]}; resuming from "
+            f"{last_ckpt.name if last_ckpt is not None else 'the start'}")
     if resume and last_ckpt is not None:
+        recorded = load_metadata(last_ckpt).get("extra", {}).get("fingerprint")
+        if fingerprint is not None and recorded != fingerprint:
+            raise ToolkitError(f"{last_ckpt}: written by a run under another config or from other inputs than "
+                               f"this one, so it cannot be resumed; rerun without --resume to train the stage afresh")
         start = load_training_checkpoint(last_ckpt, modules=modules, optimizers=optimizers)["step"]
+    elif is_main:
+        for old in mgr.all():
+            old.unlink(missing_ok=True)
+        last_ckpt = None
     if metrics is not None and is_main:
         metrics.start(stage, start)
     params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
@@ -180,7 +199,8 @@ def train_loop(
     def save(step: int) -> Path | None:
         if not is_main:
             return None
-        return mgr.save(step, modules=modules, optimizers=optimizers, extra={"stage": stage})
+        extra = {"stage": stage} if fingerprint is None else {"stage": stage, "fingerprint": fingerprint}
+        return mgr.save(step, modules=modules, optimizers=optimizers, extra=extra)
 
     bar = None
     if progress and is_main:
@@ -203,7 +223,13 @@ def train_loop(
                     m.train()
                 for opt in optimizers.values():
                     opt.zero_grad(set_to_none=True)
-                terms = step_fn(step, step_generator(seed, step))
+                try:
+                    terms = step_fn(step, step_generator(seed, step))
+                except ToolkitError as e:  # weights gone non-finite fail inside the forward pass, before any loss
+                    if all(bool(torch.isfinite(p).all()) for p in params):
+                        raise
+                    raise TrainingDiverged(f"{stage}: the weights are not finite at step {step} ({e}); last good "
+                                           f"checkpoint: {last_ckpt or 'none'}") from None
                 total = terms["total"]
                 values = {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in terms.items()}
                 finite = all(math.isfinite(v) for v in values.values())
@@ -247,6 +273,12 @@ def train_loop(
                 if done % ckpt_every == 0 or done == steps:
                     last_ckpt = save(done) or last_ckpt
             step = steps
+            stop = flag["stop"]  # a Ctrl-C during the last step: the run stops here, not in the next stage
+            if dist_info is not None:
+                stop = not all_ranks(not stop, dist_info)
+            if stop:
+                raise TrainingInterrupted(f"{stage}: interrupted at its last step ({steps}); checkpoint saved to "
+                                          f"{last_ckpt} (rerun with --resume to finish the stage)")
     finally:
         if bar is not None:
             bar.close()

@@ -43,9 +43,9 @@ import torch  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.host import keep_freed_memory  # noqa: E402
 from toolkit.io import atomic_write_json, atomic_write_text, load_metadata  # noqa: E402
-from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
+from train.config import apply_overrides, config_hash, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
-from train.stages import RunContext, Stage, check_dependencies, finished_stages, run_stages  # noqa: E402
+from train.stages import RunContext, Stage, check_run, finished_stages, run_stages  # noqa: E402
 
 STAGE_NAMES = ("data", "geometry", "codec", "estimator", "gaussian", "eval")
 
@@ -187,7 +187,7 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
                 f"{record.get('val_gaze_deg', float('nan')):.2f} deg")
         outs[name] = file
         err = record.get("val_gaze_deg", float("nan"))
-        if err > ESTIMATOR_SUSPECT_DEG:
+        if "val_gaze_deg" in record and not err <= ESTIMATOR_SUSPECT_DEG:  # NaN too
             # Not an error: tiny test runs train for a few steps. But a real run must not go on silently with it.
             ctx.log(f"[estimator] WARNING: the {name} estimator reads held-out gazes {err:.1f} deg off (trained "
                     f"estimators read 2-7 deg on synthetic subjects): its training failed or was too short, and "
@@ -397,7 +397,8 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
         train_loop("gaussian", trainer.step, modules=modules, optimizers={"adam": opt},
                    steps=g.steps, run_dir=stage_dir, seed=cfg.seed, ckpt_every=g.ckpt_every, log_every=g.log_every,
                    resume=ctx.resume, grad_clip=g.grad_clip, metrics=metrics, is_main=info.is_main,
-                   dist_info=info if info.enabled else None, lr_factor=lr_factor(g), after_step=after_step)
+                   dist_info=info if info.enabled else None, lr_factor=lr_factor(g), after_step=after_step,
+                   fingerprint=_gaussian_resume_key(ctx), log=ctx.log)
         if info.is_main:  # the ranks hold the same weights; the others wait for this file at cleanup's barrier
             save_training_checkpoint(stage_dir / "final.safetensors", step=g.steps, modules=final,
                                      extra={"renderer": g.renderer, "ema_decay": g.ema_decay})
@@ -405,6 +406,14 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
         metrics.close()
         cleanup(info)
     return {"checkpoint": "gaussian/final.safetensors"}
+
+
+def _gaussian_resume_key(ctx: RunContext) -> str:
+    """What the Gaussian stage's checkpoints must share with a run that resumes them: the seed, the stage's
+    config but its step counts (a resumed run may train longer, or checkpoint and log at other intervals)
+    and the fingerprints of the stages it reads (a retrained codec or estimator is another training)."""
+    g = dataclasses.replace(ctx.config.gaussian, steps=1, ckpt_every=1, log_every=1)
+    return config_hash((ctx.config.seed, g, [ctx.fingerprints.get(d) for d in ("geometry", "codec", "estimator")]))
 
 
 def open_run(run_dir: str | Path) -> RunContext:
@@ -460,10 +469,10 @@ def _check_values(cfg: RunConfig) -> None:
     lo, hi = RES_RANGE
     if not lo <= cfg.data.res <= hi:
         raise ToolkitError(f"config key 'data.res': expected an image size in [{lo}, {hi}] pixels, got {cfg.data.res}")
-    for name in ("lr", "renderer_lr", "means_lr"):
-        if not (rate := getattr(cfg.gaussian, name)) > 0:
-            raise ToolkitError(f"config key 'gaussian.{name}': expected a learning rate > 0, got {rate}")
     value = lambda key: functools.reduce(getattr, key.split("."), cfg)  # noqa: E731
+    for key in ("gaussian.lr", "gaussian.renderer_lr", "gaussian.means_lr", "eval.tta_renderer_lr"):
+        if not (math.isfinite(rate := value(key)) and 0 < rate <= 1):  # Adam's step is the rate: > 1 overflows
+            raise ToolkitError(f"config key '{key}': expected a learning rate in (0, 1], got {rate}")
     for key in COUNT_KEYS:
         if not (count := value(key)) >= 1:
             raise ToolkitError(f"config key '{key}': expected a count >= 1, got {count}")
@@ -549,6 +558,19 @@ def _check_values(cfg: RunConfig) -> None:
     if "eye_colours" in cfg.eval.tta_weights and not cfg.gaussian.eyeball_colours:
         raise ToolkitError("config key 'eval.tta_weights': 'eye_colours' needs gaussian.eyeball_colours=true (the "
                            "parametric eyeball whose colours it fits)")
+    # Last: what names something outside the config (a model, a file) once the values themselves are sound.
+    from train.dit import DIT_MODELS
+
+    if cfg.gaussian.renderer == "dit" and cfg.gaussian.dit_model not in DIT_MODELS:
+        raise ToolkitError(f"config key 'gaussian.dit_model': expected one of {sorted(DIT_MODELS)}, "
+                           f"got {cfg.gaussian.dit_model!r}")
+    for key in ("estimator.loss_path", "estimator.eval_path"):
+        if (path := value(key)) and not Path(path).is_file():
+            raise ToolkitError(f"config key '{key}': {path}: no such file (a trained gaze estimator, .safetensors; "
+                               f"empty: train one)")
+    if cfg.codec.kind == "sd-vae" and not (cfg.codec.sd_vae_path and Path(cfg.codec.sd_vae_path).is_dir()):
+        raise ToolkitError(f"config key 'codec.sd_vae_path': {cfg.codec.sd_vae_path!r}: no such directory (codec.kind="
+                           f"sd-vae reads a local diffusers AutoencoderKL folder)")
     if cfg.data.test_frames < 0 or cfg.data.test_frames % 2:
         raise ToolkitError(f"config key 'data.test_frames': expected 0 (as data.frames) or an even frame count, "
                            f"got {cfg.data.test_frames}")
@@ -872,7 +894,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     _device(cfg)  # fail early on an impossible device
     run_dir = Path(args.run_dir)
     ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True))
-    check_dependencies(STAGES, stages, ctx)  # a refused run leaves the run's config.yaml as it was
+    check_run(STAGES, stages, ctx, force)  # a refused run leaves the run's config.yaml as it was
     run_dir.mkdir(parents=True, exist_ok=True)
     save_yaml_config(cfg, run_dir / "config.yaml")
     t0 = time.perf_counter()

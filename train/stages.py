@@ -39,6 +39,7 @@ class RunContext:
     outputs: dict[str, dict[str, str]] = field(default_factory=dict)  # stage -> {name: relative path}
     resume: bool = False
     log: Callable[[str], None] = print
+    fingerprints: dict[str, str] = field(default_factory=dict)  # stage -> fingerprint, filled as the run goes
 
     def path(self, stage: str, name: str) -> Path:
         try:
@@ -58,8 +59,9 @@ def _finished_record(run_dir: Path, name: str) -> dict | None:
         record = json.loads(rec_path.read_text(encoding="utf-8")) if rec_path.exists() else None
     except (OSError, ValueError) as e:
         raise ToolkitError(f"{rec_path}: unreadable stage record ({e}); delete it to run stage '{name}' again") from None
-    if record is not None and not (isinstance(record, dict) and isinstance(record.get("outputs"), dict)):
-        raise ToolkitError(f"{rec_path}: expected a JSON object with an 'outputs' object; delete it to run "
+    if record is not None and not (isinstance(record, dict) and isinstance(record.get("outputs"), dict)
+                                   and all(isinstance(p, str) for p in record["outputs"].values())):
+        raise ToolkitError(f"{rec_path}: expected a JSON object with an 'outputs' object of paths; delete it to run "
                            f"stage '{name}' again")
     if record is None or not all((run_dir / p).exists() for p in record["outputs"].values()):
         return None
@@ -106,13 +108,12 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
     unknown = [s for s in selected if s not in by_name]
     if unknown:
         raise ToolkitError(f"unknown stage(s) {unknown}; stages are {list(by_name)} or 'all'")
-    check_dependencies(stages, selected, ctx)
-    _check_nothing_goes_stale_midway(stages, selected, ctx, force)
+    check_run(stages, selected, ctx, force)
     prints: dict[str, str] = {}
     status: dict[str, str] = {}
     for stage in stages:
         fp = fingerprint(stage, ctx.config, prints)
-        prints[stage.name] = fp
+        prints[stage.name] = ctx.fingerprints[stage.name] = fp
         record = _finished_record(ctx.run_dir, stage.name)
         up_to_date = record is not None and record.get("fingerprint") == fp
         if stage.name not in selected:
@@ -139,6 +140,14 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
         ctx.outputs[stage.name] = outputs
         status[stage.name] = "ran"
     return status
+
+
+def check_run(stages: list[Stage], selected: list[str], ctx: RunContext, force: list[str] = ()) -> None:
+    """Every check :func:`run_stages` makes before any stage runs (dependencies present and current, nothing
+    made stale half-way); ``train.run`` calls it before writing the run's ``config.yaml``, so a refused run
+    leaves the directory as it was."""
+    check_dependencies(stages, selected, ctx)
+    _check_nothing_goes_stale_midway(stages, selected, ctx, force)
 
 
 def _check_nothing_goes_stale_midway(stages: list[Stage], selected: list[str], ctx: RunContext,

@@ -250,3 +250,12 @@ def test_sd_vae_real_diffusers_folder_round_trip(tmp_path):
     (tmp_path / "vae" / "diffusion_pytorch_model.safetensors").write_bytes(b"truncated")
     with pytest.raises(ToolkitError, match="could not load"):
         SDVAECodec(tmp_path / "vae")
+
+
+def test_a_diverging_autoencoder_stops_naming_the_step():
+    """Never a silent NaN codec: a non-finite loss mid-training (here from weights already NaN) stops it."""
+    model = KLAutoencoder(TINY)
+    with torch.no_grad():
+        next(model.decoder.parameters()).fill_(float("nan"))
+    with pytest.raises(ToolkitError, match=r"train_autoencoder: non-finite loss at step 0 \(reconstruction nan"):
+        train_autoencoder(torch.rand(4, 3, 16, 16), TINY, steps=2, batch_size=2, model=model)

@@ -58,6 +58,9 @@ def test_exponent_without_a_dot_is_a_float(tmp_path):
         ("sizes=[1]", "'sizes': expected 2 values"),
         ("name.x=1", "'name' is not a section"),
         ("justakey", "expected KEY=VALUE"),
+        ("inner.steps=010", r"'010' would read as a base-8 or base-60 number \(8\)"),
+        ("inner.steps=1:30", r"'1:30' would read as a base-8 or base-60 number \(90\)"),
+        ("inner.lr=1:30.5", r"'1:30.5' would read as a base-8 or base-60 number"),
     ],
 )
 def test_bad_overrides_name_the_key(override, msg):
@@ -134,3 +137,12 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
     assert config_hash(GaussianStageConfig(dit_feature_hidden=16)) != config_hash(older)
     assert config_hash(GaussianStageConfig(eyeball_colours=True)) != config_hash(older)
     assert config_hash(GaussianStageConfig(ema_decay=0.5)) != config_hash(older)
+
+
+def test_a_section_given_as_a_mapping_keeps_its_other_values():
+    """``inner={steps: 5}`` changes steps alone: the section's other values stay those of the config it
+    overrides (a preset's, say), not the dataclass defaults. Leading zeros that YAML 1.1 reads as decimal pass."""
+    base = apply_overrides(Outer(), ["inner.lr=0.5", "inner.mode=unet"])
+    cfg = apply_overrides(base, ["inner={steps: 5}"])
+    assert (cfg.inner.lr, cfg.inner.steps, cfg.inner.mode) == (0.5, 5, "unet")
+    assert apply_overrides(Outer(), ["inner.steps=07"]).inner.steps == 7

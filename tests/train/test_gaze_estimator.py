@@ -540,3 +540,14 @@ def test_benchmark_fine_tunes_a_saved_estimator(tmp_path, monkeypatch, capsys):
     out = capsys.readouterr().out
     assert "eyes: starting from" in out and "face:" not in out
     assert GazeEstimator.load(tmp_path / "out" / "eyes.safetensors").config == cfg
+
+
+def test_a_diverging_estimator_stops_naming_the_step():
+    """Never a silent NaN estimator: a non-finite loss mid-training (here from weights already NaN) stops it."""
+    imgs, labels, _ = drawn_face_dataset(16, 32, n_subjects=2, seed=0)
+    bad = GazeEstimator(TINY)
+    with torch.no_grad():
+        next(bad.parameters()).fill_(float("nan"))
+    tc = GazeEstimatorTrainConfig(steps=3, batch_size=8, log_every=3, seed=3)
+    with pytest.raises(ToolkitError, match=r"train_gaze_estimator: non-finite loss at step 1 \(nan\).*nothing was saved"):
+        train_gaze_estimator(imgs, labels, TINY, tc, init=bad)

@@ -251,3 +251,83 @@ def test_a_stop_on_any_rank_stops_every_rank_at_the_same_step(tmp_path, monkeypa
                    ckpt_every=100, progress=False, dist_info=DistInfo(rank=0, world_size=2))
     assert votes[4] is True  # this rank voted to go on
     assert CheckpointManager(tmp_path / "checkpoints").latest().name[5:13] == "00000002"
+
+
+def test_a_checkpoint_of_another_training_is_refused_and_a_fresh_run_clears_the_folder(tmp_path):
+    """Checkpoints carry the training's fingerprint: --resume refuses one written under another, and a run that
+    does not resume starts from an empty folder, so another run's later checkpoints can neither outnumber its
+    own nor be resumed by mistake."""
+    m1, o1, f1 = _problem()
+    train_loop("t", f1, modules={"m": m1}, optimizers={"o": o1}, steps=30, run_dir=tmp_path, ckpt_every=10,
+               progress=False, fingerprint="A")
+    mgr = CheckpointManager(tmp_path / "checkpoints")
+    assert [p.name for p in mgr.all()] == ["ckpt_00000020.safetensors", "ckpt_00000030.safetensors"]
+    m2, o2, f2 = _problem()
+    with pytest.raises(ToolkitError, match=r"ckpt_00000030.safetensors: written by a run under another config.*"
+                                           r"rerun without --resume"):
+        train_loop("t", f2, modules={"m": m2}, optimizers={"o": o2}, steps=40, run_dir=tmp_path, ckpt_every=10,
+                   progress=False, fingerprint="B", resume=True)
+    out = train_loop("t", f2, modules={"m": m2}, optimizers={"o": o2}, steps=20, run_dir=tmp_path, ckpt_every=10,
+                     progress=False, fingerprint="B")
+    assert [p.name for p in mgr.all()] == ["ckpt_00000010.safetensors", "ckpt_00000020.safetensors"]
+    assert out["checkpoint"] == mgr.path_for(20)
+    m3, o3, f3 = _problem()  # the same fingerprint resumes (training longer is the same training)
+    assert train_loop("t", f3, modules={"m": m3}, optimizers={"o": o3}, steps=25, run_dir=tmp_path, ckpt_every=10,
+                      progress=False, fingerprint="B", resume=True)["step"] == 25
+
+
+def test_a_resume_past_a_damaged_checkpoint_says_so(tmp_path):
+    m1, o1, f1 = _problem()
+    train_loop("t", f1, modules={"m": m1}, optimizers={"o": o1}, steps=20, run_dir=tmp_path, ckpt_every=10,
+               progress=False)
+    newest = CheckpointManager(tmp_path / "checkpoints").path_for(20)
+    newest.write_bytes(newest.read_bytes()[:100])
+    lines = []
+    m2, o2, f2 = _problem()
+    train_loop("t", f2, modules={"m": m2}, optimizers={"o": o2}, steps=20, run_dir=tmp_path, ckpt_every=10,
+               progress=False, resume=True, log=lines.append)
+    assert lines == ["[t] skipped unreadable checkpoint(s) ['ckpt_00000020.safetensors']; resuming from "
+                     "ckpt_00000010.safetensors"]
+
+
+def test_a_stop_signal_during_the_last_step_stops_the_run(tmp_path):
+    """Ctrl-C in the last step: its checkpoint is saved and the run stops, not going on to the next stage."""
+    from train.loop import TrainingInterrupted
+
+    model, opt, f = _problem()
+
+    def step_fn(step, g):
+        if step == 4:
+            os.kill(os.getpid(), signal.SIGINT)  # the loop's handler sets its flag
+        return f(step, g)
+
+    with pytest.raises(TrainingInterrupted, match=r"interrupted at its last step \(5\); checkpoint saved to "
+                                                  r".*ckpt_00000005.safetensors"):
+        train_loop("t", step_fn, modules={"m": model}, optimizers={"o": opt}, steps=5, run_dir=tmp_path,
+                   ckpt_every=100, progress=False)
+
+
+def test_weights_gone_non_finite_inside_the_forward_pass_are_a_divergence(tmp_path):
+    """A step that fails on non-finite weights (a rasterizer refusing NaN means, say) is reported as the
+    training's divergence, with the step and the last good checkpoint, not as the forward pass's error."""
+    model, opt, f = _problem()
+
+    def step_fn(step, g):
+        if step == 7:
+            with torch.no_grad():
+                model[0].weight[0, 0] = float("inf")
+            raise ToolkitError("rasterize: means contains NaN or inf values")
+        return f(step, g)
+
+    with pytest.raises(TrainingDiverged, match=r"t: the weights are not finite at step 7 \(rasterize: .*\); last "
+                                               r"good checkpoint: .*ckpt_00000005"):
+        train_loop("t", step_fn, modules={"m": model}, optimizers={"o": opt}, steps=10, run_dir=tmp_path,
+                   ckpt_every=5, progress=False)
+    model2, opt2, f2 = _problem()
+
+    def failing(step, g):  # finite weights: the step's own error stands
+        raise ToolkitError("some input error")
+
+    with pytest.raises(ToolkitError, match="^some input error$"):
+        train_loop("t", failing, modules={"m": model2}, optimizers={"o": opt2}, steps=10, run_dir=tmp_path / "b",
+                   progress=False)

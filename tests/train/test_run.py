@@ -250,7 +250,7 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("gaussian.renderer=gan", "'gaussian.renderer': expected one of"),
         ("colour=red", "unknown config key 'colour'"),
         ("codec.eye_weight=-1", "'codec.eye_weight': expected a weight >= 0"),
-        ("eval.tta_renderer_lr=0", "'eval.tta_renderer_lr': expected a learning rate > 0"),
+        ("eval.tta_renderer_lr=0", "'eval.tta_renderer_lr': expected a learning rate in \\(0, 1\\]"),
         ("eval.tta_gaze_weight=-1", "'eval.tta_gaze_weight': expected a weight >= 0"),
         ("eval.tta_gaze_terms=[eyes]", "'eval.tta_gaze_terms"),
         ("eval.tta_gaze_every=0", "'eval.tta_gaze_every': expected a step count >= 1"),
@@ -270,9 +270,9 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("gaussian.dit_feature_hidden=0", "'gaussian.dit_feature_hidden': expected a channel count"),
         ("gaussian.lr_schedule=linear", "'gaussian.lr_schedule': expected one of"),
         ("eval.tta_weights=[features,eye_colours]", "'eval.tta_weights': 'eye_colours' needs gaussian.eyeball_colours"),
-        ("gaussian.lr=-1", "'gaussian.lr': expected a learning rate > 0"),
-        ("gaussian.renderer_lr=0", "'gaussian.renderer_lr': expected a learning rate > 0"),
-        ("gaussian.means_lr=-1e-4", "'gaussian.means_lr': expected a learning rate > 0"),
+        ("gaussian.lr=-1", "'gaussian.lr': expected a learning rate in \\(0, 1\\]"),
+        ("gaussian.renderer_lr=0", "'gaussian.renderer_lr': expected a learning rate in \\(0, 1\\]"),
+        ("gaussian.means_lr=-1e-4", "'gaussian.means_lr': expected a learning rate in \\(0, 1\\]"),
         ("gaussian.lr=.nan", "'gaussian.lr': expected a finite number"),
         ("gaussian.weak_weight=.inf", "'gaussian.weak_weight': expected a finite number"),
         ("gaussian.steps=0", "'gaussian.steps': expected a count >= 1"),
@@ -312,6 +312,14 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("geometry.pool=2", "'geometry.pool': expected >= 1000"),
         ("estimator.cameras_per_frame=40", "'estimator.cameras_per_frame': expected at most the rig's"),
         ("gaussian.sampling_steps=2000", "'gaussian.sampling_steps': expected at most the diffusion's 1000"),
+        ("gaussian.lr=1e39", r"'gaussian.lr': expected a learning rate in \(0, 1\], got 1e\+39"),
+        ("eval.tta_renderer_lr=2", r"'eval.tta_renderer_lr': expected a learning rate in \(0, 1\]"),
+        ("gaussian.dit_model=foo", "'gaussian.dit_model': expected one of .*got 'foo'"),
+        ("estimator.loss_path=/nonexistent/loss.safetensors", "'estimator.loss_path': /nonexistent/loss.safetensors: "
+                                                              "no such file"),
+        ("estimator.eval_path=nope.safetensors", "'estimator.eval_path': nope.safetensors: no such file"),
+        ("codec.kind=sd-vae", "'codec.sd_vae_path': '': no such directory"),
+        ("gaussian.steps=010", "override 'gaussian.steps=010': '010' would read as a base-8"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
@@ -390,6 +398,19 @@ def test_unknown_stage_and_missing_dataset(tmp_path):
     assert not (tmp_path / "never").exists()
     with pytest.raises(ToolkitError, match="data.root"):
         run.main([*TINY, "--run-dir", str(tmp_path), "--stages", "data", f"data.root={tmp_path / 'nope'}"])
+
+
+def test_a_resume_under_another_config_is_refused(tiny_run, tmp_path):
+    """The Gaussian stage's checkpoints carry the training's fingerprint (the seed, the stage's config but its
+    step counts, the upstream stages'): --resume under another one is refused instead of loading another
+    training's weights; more steps resume."""
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d)
+    args = [*TINY, "--run-dir", str(d), "--stages", "gaussian"]
+    assert run.main([*args, "--force", "gaussian", "gaussian.steps=2"]) == 0
+    with pytest.raises(ToolkitError, match=r"ckpt_00000002.safetensors: written by a run under another config"):
+        run.main([*args, "--resume", "gaussian.steps=4", "gaussian.lr=0.01"])
+    assert run.main([*args, "--resume", "gaussian.steps=4", "gaussian.ckpt_every=1"]) == 0
 
 
 @pytest.mark.parametrize("average", [[], ["gaussian.ema_decay=0.75"]], ids=["last", "ema"])
@@ -668,6 +689,10 @@ def test_a_stage_rerun_continues_the_runs_config_and_a_refused_run_leaves_it_alo
     # Another preset's config: its gaussian fingerprint differs, so eval is refused, naming why, before any write.
     with pytest.raises(ToolkitError, match="made under another config"):
         run.main(["--preset", "demo", "--run-dir", str(d), "--stages", "eval"])
+    assert (d / "config.yaml").read_bytes() == before
+    # A selection refused because a stage it re-runs would leave another one it reads stale: also before the write.
+    with pytest.raises(ToolkitError, match="select 'geometry' too"):
+        run.main(["--run-dir", str(d), "--stages", "data,gaussian", "--force", "data", "gaussian.steps=8"])
     assert (d / "config.yaml").read_bytes() == before
     # Never run at all: the other message.
     with pytest.raises(ToolkitError, match="which has not run"):

@@ -80,9 +80,10 @@ def test_a_corrupt_stage_record_is_one_clear_error(tmp_path):
     (tmp_path / "stages" / "first.json").write_text("{trunc")
     with pytest.raises(ToolkitError, match=r"first\.json: unreadable stage record .*delete it"):
         run_stages(_stages([]), ["first"], RunContext(tmp_path, Cfg(), log=lambda m: None))
-    (tmp_path / "stages" / "first.json").write_text('{"fingerprint": "x"}')
-    with pytest.raises(ToolkitError, match=r"first\.json: expected a JSON object with an 'outputs' object"):
-        run_stages(_stages([]), ["first"], RunContext(tmp_path, Cfg(), log=lambda m: None))
+    for bad in ('{"fingerprint": "x"}', '{"outputs": {"checkpoint": 5}}'):
+        (tmp_path / "stages" / "first.json").write_text(bad)
+        with pytest.raises(ToolkitError, match=r"first\.json: expected a JSON object with an 'outputs' object"):
+            run_stages(_stages([]), ["first"], RunContext(tmp_path, Cfg(), log=lambda m: None))
 
 
 def test_missing_dependency_and_unknown_stage(tmp_path):
