@@ -90,6 +90,7 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     from train import run
     from train.data.dataset import GazeDataset
     from train.evaluate import model_gaze_sweep, restored_weights
+    from train.run_config import eval_sampling_steps
 
     run_dir = out / "run"
     print(f"== DiT-Gaze pipeline ({preset} preset) -> {run_dir} ==", flush=True)
@@ -112,7 +113,7 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
         if fit_steps > 0:
             fit = redirect.row_fitter(ctx, model, renderer, torch.device("cpu"), fit_steps)
             item = {**item, "latent_code": fit(item, gazes)[0]}
-        frames = model_gaze_sweep(model, renderer, item, gazes, cfg.data.res, cfg.gaussian.sampling_steps)
+        frames = model_gaze_sweep(model, renderer, item, gazes, cfg.data.res, eval_sampling_steps(cfg))
     rgb = (frames.clamp(0, 1).permute(0, 2, 3, 1).numpy() * 255).round().astype("uint8")
     write_video(out / "heldout_gaze_sweep.mp4", rgb, fps=6)
     cols = min(n, 8)

@@ -44,7 +44,7 @@ from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.host import keep_freed_memory  # noqa: E402
 from toolkit.io import atomic_write_json, atomic_write_text, load_metadata  # noqa: E402
 from train.config import apply_overrides, config_hash, load_yaml_config, save_yaml_config  # noqa: E402
-from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
+from train.run_config import PRESETS, RunConfig, eval_sampling_steps, preset  # noqa: E402
 from train.stages import RunContext, Stage, check_run, finished_stages, run_stages  # noqa: E402
 
 STAGE_NAMES = ("data", "geometry", "codec", "estimator", "gaussian", "eval")
@@ -503,9 +503,9 @@ def _check_values(cfg: RunConfig) -> None:
     if cfg.gaussian.renderer == "dit":
         from train.diffusion import DiffusionConfig
 
-        if cfg.gaussian.sampling_steps > (T := DiffusionConfig().num_timesteps):
-            raise ToolkitError(f"config key 'gaussian.sampling_steps': expected at most the diffusion's {T} "
-                               f"timesteps, got {cfg.gaussian.sampling_steps}")
+        for key in ("gaussian.sampling_steps", "eval.sampling_steps"):
+            if value(key) > (T := DiffusionConfig().num_timesteps):
+                raise ToolkitError(f"config key '{key}': expected at most the diffusion's {T} timesteps, got {value(key)}")
     if cfg.codec.kind == "sd-vae" and cfg.data.res % 8:
         raise ToolkitError(f"config key 'data.res': the SD-VAE codec downsamples 8x, so the image size must be a "
                            f"multiple of 8, got {cfg.data.res}")
@@ -530,6 +530,9 @@ def _check_values(cfg: RunConfig) -> None:
     if not (math.isfinite(cfg.gaussian.grad_clip) and cfg.gaussian.grad_clip >= 0):
         raise ToolkitError(f"config key 'gaussian.grad_clip': expected a gradient-norm bound >= 0 (0 = no clipping), "
                            f"got {cfg.gaussian.grad_clip}")
+    if cfg.eval.sampling_steps < 0:
+        raise ToolkitError(f"config key 'eval.sampling_steps': expected 0 (gaussian.sampling_steps) or a DDIM step "
+                           f"count >= 1, got {cfg.eval.sampling_steps}")
     if cfg.eval.tta_steps < 0:
         raise ToolkitError(f"config key 'eval.tta_steps': expected a step count >= 0, got {cfg.eval.tta_steps}")
     if cfg.geometry.lid_gaussians < 0 or (cfg.geometry.lid_gaussians > 0 and cfg.geometry.eye_gaussians == 0):
@@ -725,7 +728,7 @@ def _eval_subjects(*, config: RunConfig, run_dir: Path, outputs: dict, files: li
     est = _estimator(ctx, "eval", device)
     fit_gaze = fit_gaze_term(ctx, device) if cfg.eval.tta_steps > 0 else None
     raw = evaluate_raw(model, renderer, est, files, res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
-                       sampling_steps=cfg.gaussian.sampling_steps, tta_steps=cfg.eval.tta_steps,
+                       sampling_steps=eval_sampling_steps(cfg), tta_steps=cfg.eval.tta_steps,
                        tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,
                        device=device, log=ctx.log, references=reference_transforms(renderer), own_gaze_row=True,
                        tta_region=cfg.eval.tta_region, tta_gaze=fit_gaze)
@@ -816,7 +819,7 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
                         "gaze and head-pose errors below that level are not resolved by it.\n\n")
     report = (f"# DiT-Gaze evaluation ({cfg.preset} preset)\n\n"
               f"Held-out subjects: {len(res['per_subject'])}, pairs: {res['metrics']['pairs']}, "
-              f"resolution {cfg.data.res}², DDIM steps {cfg.gaussian.sampling_steps}, test-time fitting: "
+              f"resolution {cfg.data.res}², DDIM steps {eval_sampling_steps(cfg)}, test-time fitting: "
               f"{_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{table}\n\n"
               f"{_spread_note(res['metrics'])}\n\n{REFERENCES_NOTE}{_labels_note(labels, cfg)}{est_note}"
               "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "

@@ -144,7 +144,8 @@ class GaussianStageConfig:
     """DiT only: predict the clean latent as the encoded, upsampled splat RGB plus a learned residual (the
     untrained renderer outputs the splat's own image); false: the plain latent DiT. See train/renderer.py."""
     sampling_steps: int = 1
-    """DDIM steps at evaluation (1 = the deterministic one-step path)."""
+    """DDIM steps at evaluation (1 = the deterministic one-step path). Part of this stage's fingerprint, so
+    changing it retrains; ``eval.sampling_steps`` evaluates with other steps without retraining."""
     onestep_fraction: float = 0.5
     """DiT only: share of each training batch rendered at t = T - 1, the one-step path evaluation uses; the
     rest at uniformly drawn diffusion times."""
@@ -268,6 +269,15 @@ class EvalConfig:
     """GazeNeRF pairing file for real data: reserved, not read yet (a non-empty value is refused); synthetic
     data pairs deterministically."""
     sweep_frames: int = 9
+    sampling_steps: int = field(default=0, metadata=NEUTRAL)
+    """DDIM steps of the evaluation's renders; 0: ``gaussian.sampling_steps``. Here, an evaluation with other
+    steps re-runs the eval stage alone; the gaussian section's value is part of the trained stage's
+    fingerprint, so changing that one retrains."""
+
+
+def eval_sampling_steps(cfg: "RunConfig") -> int:
+    """The DDIM steps the evaluation (and the demo's sweep) renders with."""
+    return cfg.eval.sampling_steps or cfg.gaussian.sampling_steps
 
 
 NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weight": 0.002,
@@ -390,4 +400,4 @@ def preset(name: str) -> RunConfig:
     return PRESETS[name]()
 
 
-__all__ = ["RunConfig", "PRESETS", "NATURAL_EYES_FIT", "natural_eyes_eval", "preset", "replace"]
+__all__ = ["RunConfig", "PRESETS", "NATURAL_EYES_FIT", "eval_sampling_steps", "natural_eyes_eval", "preset", "replace"]

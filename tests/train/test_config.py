@@ -139,6 +139,14 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
     assert config_hash(GaussianStageConfig(ema_decay=0.5)) != config_hash(older)
 
 
+def test_the_options_added_to_the_eval_stage_are_neutral_at_their_defaults():
+    from train.run_config import EvalConfig
+
+    older = {k: v for k, v in to_dict(EvalConfig()).items() if k != "sampling_steps"}
+    assert config_hash(EvalConfig()) == config_hash(older)
+    assert config_hash(EvalConfig(sampling_steps=4)) != config_hash(older)
+
+
 def test_a_section_given_as_a_mapping_keeps_its_other_values():
     """``inner={steps: 5}`` changes steps alone: the section's other values stay those of the config it
     overrides (a preset's, say), not the dataclass defaults. Leading zeros that YAML 1.1 reads as decimal pass."""

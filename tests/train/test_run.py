@@ -320,6 +320,8 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("estimator.eval_path=nope.safetensors", "'estimator.eval_path': nope.safetensors: no such file"),
         ("codec.kind=sd-vae", "'codec.sd_vae_path': '': no such directory"),
         ("gaussian.steps=010", "override 'gaussian.steps=010': '010' would read as a base-8"),
+        ("eval.sampling_steps=-1", r"'eval.sampling_steps': expected 0 \(gaussian.sampling_steps\) or a DDIM step"),
+        ("eval.sampling_steps=1001", "'eval.sampling_steps': expected at most the diffusion's 1000 timesteps"),
     ],
 )
 def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
@@ -706,6 +708,13 @@ def test_a_stage_rerun_continues_the_runs_config_and_a_refused_run_leaves_it_alo
     finally:
         torch.set_num_threads(old)
     assert "tta_steps: 1" in (d / "config.yaml").read_text()
+    # The evaluation's DDIM steps are the eval stage's own: other steps re-run the eval alone, no retraining.
+    torch.set_num_threads(1)
+    try:
+        out = run.main(["--run-dir", str(d), "--stages", "eval", "eval.sampling_steps=2"])
+    finally:
+        torch.set_num_threads(old)
+    assert out == 0 and "DDIM steps 2," in (d / "report.md").read_text()
 
 
 def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
