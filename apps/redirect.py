@@ -239,7 +239,9 @@ def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.
 
 
 def sampling_steps(args, cfg) -> int:
-    return args.steps or cfg.gaussian.sampling_steps
+    from train.run_config import eval_sampling_steps
+
+    return args.steps or eval_sampling_steps(cfg)  # the run's evaluation renders with these
 
 
 SETTINGS_VERSION = 3
@@ -392,7 +394,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--gazes", default="grid:3x3:25", help=f"target gazes: {GRID_EXAMPLE}")
     ap.add_argument("--rows", type=int, default=0, help="use only the first N input rows (0 = all)")
     ap.add_argument("--batch", type=int, default=4, help="input rows per chunk")
-    ap.add_argument("--steps", type=int, default=0, help="DDIM steps (0 = the run's setting)")
+    ap.add_argument("--steps", type=int, default=0, help="DDIM steps (0 = the run's evaluation setting: eval.sampling_steps, else gaussian.sampling_steps)")
     ap.add_argument("--seed", type=int, default=0,
                     help="seed of random: gazes and of the fitting's diffusion noise (drawn per chunk, so a "
                          "resumed or sharded run writes what an uninterrupted one does)")
