@@ -17,6 +17,7 @@ loss estimator; the demo preset's own fit since session 22, so both are fitted a
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -81,6 +82,17 @@ def most_frontal(head_poses) -> int:
     return int(np.abs(poses).sum(-1).argmin())
 
 
+def publish_report(run_dir: Path, dest: Path) -> None:
+    """The run's ``report.md`` at ``dest`` (beside the run directory), its figure links pointing into the run."""
+    import re
+
+    from toolkit.io import atomic_write_text
+
+    rel = Path(os.path.relpath(run_dir, dest.parent)).as_posix()
+    text = (run_dir / "report.md").read_text(encoding="utf-8")
+    atomic_write_text(dest, re.sub(r"\]\(([\w.-]+\.png)\)", lambda m: f"]({rel}/{m.group(1)})", text))
+
+
 def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     """Train and evaluate on synthetic data, then sweep and redirect a held-out subject."""
     import h5py
@@ -89,7 +101,7 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     from apps.preview import write_contact_sheet, write_video
     from train import run
     from train.data.dataset import GazeDataset
-    from train.evaluate import model_gaze_sweep, restored_weights
+    from train.evaluate import model_gaze_sweep, restored_weights, sweep_gazes
     from train.run_config import eval_sampling_steps
 
     run_dir = out / "run"
@@ -105,8 +117,7 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
         row = most_frontal(f["face_head_pose"][:])
     item = GazeDataset([test_file], res=cfg.data.res)[row]
     n = cfg.eval.sweep_frames
-    t = torch.linspace(0, 2 * torch.pi, n + 1)[:-1]
-    gazes = torch.stack([0.35 * torch.sin(t), 0.45 * torch.cos(t)], -1)  # a circle of ±20° pitch, ±26° yaw
+    gazes = sweep_gazes(n)  # a circle of ±20° pitch, ±26° yaw
     # A held-out face: fitted first, as the evaluation fits one (at the sweep's gazes), then swept.
     fit_steps = cfg.eval.tta_steps
     with restored_weights(model, renderer):
@@ -122,8 +133,10 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     # Eyes turned, not repainted for the loss estimator (docs/redirect.md, "Natural eyes").
     redirect.main([str(run_dir), str(test_file), str(redirected), "--gazes", "grid:3x3:25", "--rows", "4"]
                   + (["--fit-weights", "--natural-eyes"] if fit_steps > 0 else []))
+    report = out / "report.md"
+    publish_report(run_dir, report)
     print("== outputs ==")
-    for name, path in (("evaluation report", run_dir / "report.md"), ("metrics", run_dir / "metrics.json"),
+    for name, path in (("evaluation report", report), ("metrics", run_dir / "metrics.json"),
                        ("qualitative grid", run_dir / "qualitative.png"),
                        ("worst pairs' eyes", run_dir / "eyes.png"),
                        ("held-out gaze sweep (video)", out / "heldout_gaze_sweep.mp4"),

@@ -122,36 +122,11 @@ def _chunk_path(parts: Path, k: int) -> Path:
 
 def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = True, natural_eyes: bool = False
                ) -> Callable[[dict, torch.Tensor], torch.Tensor]:
-    """The evaluation's test-time fitting for one input row, as a function (item, gazes [G, 2]) -> fitted code
-    [1, C]: ``steps`` Adam steps of the code and the run's ``eval.tta_weights`` (by default the face Gaussians'
-    features and the renderer) on the input image, compared on ``eval.tta_region``, with the loss estimator's
-    gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn (``train.evaluate.term_gaze_order``:
-    spread over them when they outnumber the term's entries). The weights are tuned in place:
-    the caller restores them (``train.evaluate.restored_weights``) after rendering the row. ``gaze_term=False``
-    leaves the gaze term out whatever the run's weight (``benchmarks/redirect.py`` measures what it adds).
-    ``natural_eyes`` fits ``train.evaluate.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the
-    term may turn the eyes but not repaint them, so the redirected eyes carry no coloured specks."""
-    from train.evaluate import NATURAL_EYES_FIT, face_only_mask, test_time_fit
-    from train.run import fit_gaze_term
+    """The evaluation's test-time fitting of one input row (``train.run.row_fitter``, which the eval stage's
+    gaze-sweep figure uses too)."""
+    from train.run import row_fitter as fitter
 
-    e = ctx.config.eval
-    weights = NATURAL_EYES_FIT["weights"] if natural_eyes else tuple(e.tta_weights)
-    natural = {k: v for k, v in NATURAL_EYES_FIT.items() if k != "weights"} if natural_eyes else {}
-    gaze = fit_gaze_term(ctx, device, **natural) if gaze_term else None
-    res = ctx.config.data.res
-
-    def fit(it: dict, gazes: torch.Tensor) -> torch.Tensor:
-        t = lambda k: torch.as_tensor(it[k]).float()[None].to(device)  # noqa: E731
-        head = t("head_mask")
-        mask = head if e.tta_region == "head" else face_only_mask(head, (t("left_eye_mask") + t("right_eye_mask")).clamp(0, 1))
-        batch = {"code": t("latent_code"), "in_pose": t("pose"), "in_gaze_head": t("pitchyaw_head"),
-                 "in_viewmat": t("viewmat"), "K": t("K"), "landmarks": t("landmarks"), "in_head_mask": head,
-                 "gaze_head": gazes[:1], "target_gazes": gazes[None]}
-        with torch.enable_grad():
-            return test_time_fit(model, renderer, batch, t("image"), mask, res, steps, weights=weights,
-                                 renderer_lr=e.tta_renderer_lr, gaze=gaze)
-
-    return fit
+    return fitter(ctx, model, renderer, device, steps, gaze_term=gaze_term, natural_eyes=natural_eyes)
 
 
 RENDER_BATCH = 32

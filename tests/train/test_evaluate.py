@@ -775,3 +775,74 @@ def test_a_diverged_fit_stops_the_evaluation_naming_the_pair(subject_file, monke
     model, renderer, est = untrained_eval_parts()
     with pytest.raises(ToolkitError, match=rf"{subject_file.name} pair\(s\) \[\d+\]: the render is not finite"):
         ev.evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None)
+
+
+def test_groups_of_interleaved_subjects_summarize_as_one_process_in_turn():
+    """Four subjects evaluated in two groups (s0, s2 | s1, s3) summarize exactly as one process evaluating
+    s0..s3 in turn: the means and the bootstrap intervals draw from lists in the subjects' order."""
+    from train.evaluate import in_subject_order, merge_raw_evaluations, summarize_evaluation
+
+    rng = np.random.default_rng(0)
+    empty = {"reals": [], "fakes": [], "ref_scores": {}, "own_scores": {}, "label_scores": {}, "examples": None,
+             "n_images": 0, "render_seconds": 0.0, "worst_eyes": []}
+
+    def subject(name, n):
+        pairs = [{"subject": name, "pair": i, "gaze_error_deg": float(rng.gamma(2, 3)),
+                  "head_pose_error_deg": float(rng.random()), "psnr": float(30 + rng.random()),
+                  "ssim": float(0.9 + 0.1 * rng.random())} for i in range(n)]
+        lists = {k: [p[f] for p in pairs] for k, f in (("gaze_err", "gaze_error_deg"), ("head_err",
+                 "head_pose_error_deg"), ("psnrs", "psnr"), ("ssims", "ssim"))}
+        return dict(empty, **lists, per_pair=pairs, per_subject=[{"subject": name, "pairs": n}])
+
+    s = [subject(f"s{i}.h5", n) for i, n in enumerate((5, 3, 4, 6))]
+    one = merge_raw_evaluations(s)
+    groups = [merge_raw_evaluations([s[0], s[2]]), merge_raw_evaluations([s[1], s[3]])]
+    split = in_subject_order(merge_raw_evaluations(groups), [f"s{i}.h5" for i in range(4)])
+    a, b = (summarize_evaluation(r, log=lambda m: None)["metrics"] for r in (one, split))
+    assert a == b
+    unsorted = summarize_evaluation(merge_raw_evaluations(groups), log=lambda m: None)["metrics"]
+    assert unsorted["gaze_error_ci95_deg"] != a["gaze_error_ci95_deg"]  # what the re-ordering is for
+
+
+def test_each_pairs_fit_draws_its_own_random_stream(subject_file, monkeypatch):
+    """A pair's fit (and so its score) does not depend on which other pairs of its subject are evaluated: the
+    random state each per-pair fit starts from is the same with 2 pairs a subject (the first and the last) as
+    with 3 (the first, a middle one, the last)."""
+    import train.evaluate as ev
+    from tests.train.helpers import untrained_eval_parts
+
+    real_fit = ev.test_time_fit
+    draws: list[float] = []
+
+    def spy(model, renderer, batch, *a, **kw):
+        draws.append(torch.rand(1).item())
+        return real_fit(model, renderer, batch, *a, **kw)
+
+    monkeypatch.setattr(ev, "test_time_fit", spy)
+    model, renderer, est = untrained_eval_parts()
+    runs = []
+    for n in (2, 3):
+        draws.clear()
+        ev.evaluate_raw(model, renderer, est, [subject_file], res=64, pairs_per_subject=n, tta_steps=1,
+                        tta_weights=("features",), log=lambda s: None)
+        runs.append(list(draws))
+    two, three = runs
+    assert len(two) == 2 and len(three) == 3
+    assert three[0] == two[0] and three[2] == two[1] and len(set(three)) == 3
+
+
+def test_lpips_is_scored_per_pair_when_its_weights_are_given(subject_file):
+    """With an LPIPS module (the user's weights; here the untrained default) every pair gets an LPIPS against
+    its target, both on white outside the target's mask, and the table's column is their mean; without, n/a."""
+    from tests.train.helpers import untrained_eval_parts
+    from train.evaluate import evaluate
+    from train.lpips import LPIPS
+
+    model, renderer, est = untrained_eval_parts()
+    lp = LPIPS()
+    out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3, log=lambda s: None, lpips=lp)
+    per = [r["lpips"] for r in out["per_pair"]]
+    assert len(per) == 3 and all(math.isfinite(v) and v >= 0 for v in per)
+    assert out["metrics"]["lpips"] == pytest.approx(sum(per) / 3)
+    assert evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3,
+                    log=lambda s: None)["metrics"]["lpips"] is None

@@ -97,6 +97,11 @@ def test_checkpoint_errors_are_clear(tmp_path):
     save_checkpoint(tmp_path / "bogus.safetensors", state, info)
     with pytest.raises(ToolkitError, match="bogus"):
         GazeEstimator.load(tmp_path / "bogus.safetensors")
+    with torch.no_grad():
+        next(model.parameters()).fill_(float("nan"))
+    model.save(tmp_path / "nan.safetensors")
+    with pytest.raises(ToolkitError, match=r"nan\.safetensors: tensor '.*' holds NaN or inf"):
+        GazeEstimator.load(tmp_path / "nan.safetensors")
 
 
 def test_drawn_faces_follow_the_gaze_label():

@@ -49,6 +49,24 @@ def test_all_stages_write_their_outputs(tiny_run):
     labels = json.loads((tiny_run / "metrics.json").read_text())["labels"]
     assert set(labels) == {"target", "render"} and all(0 <= v <= 180 for d in labels.values() for v in d.values())
     assert "*reference: the target read against its labels*" in report and "![eyes](eyes.png)" in report
+    # Every training stage logs to metrics.jsonl: the codec as it trains, the estimators' final records.
+    stages = {json.loads(line)["stage"] for line in (tiny_run / "metrics.jsonl").read_text().splitlines()}
+    assert {"codec", "estimator_loss", "estimator_eval", "gaussian"} <= stages, stages
+    # The qualitative figure: input, target, render rows, then the first pair's input swept over the gazes.
+    import cv2
+
+    fig = cv2.imread(str(tiny_run / "qualitative.png"))
+    cfg = run.open_run(tiny_run).config
+    assert fig.shape[0] == 4 * cfg.data.res and fig.shape[1] >= cfg.eval.sweep_frames * cfg.data.res
+    # Ablation-ready: the resolved config, and a command per Table 3 switch flipped on a copy of the run.
+    from train.config import load_yaml_config
+    from train.run_config import RunConfig
+
+    block = report.split("```yaml\n", 1)[1].split("```", 1)[0]
+    (tiny_run.parent / "from_report.yaml").write_text(block)
+    assert load_yaml_config(RunConfig, tiny_run.parent / "from_report.yaml") == run.open_run(tiny_run).config
+    for switch in ("gaussian.renderer=unet", "gaussian.orthogonality=false", "gaussian.weak_supervision=false"):
+        assert f"--stages gaussian,eval {switch}`" in report, switch
     pair = json.loads((tiny_run / "metrics.json").read_text())["per_pair"][0]
     assert 0 <= pair["target_vs_label_gaze_deg"] <= 180 and 0 <= pair["render_vs_label_gaze_deg"] <= 180
     refs = json.loads((tiny_run / "metrics.json").read_text())["references"]
@@ -263,6 +281,8 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("estimator.blur_sigma=-1", "'estimator.blur_sigma': expected a width >= 0"),
         ("data.test_frames=-1", "'data.test_frames': expected 0"),
         ("data.test_frames=3", "'data.test_frames': expected 0"),
+        ("data.test_frames=0", "'data.frames': with data.test_frames=0 the held-out subjects get data.frames frames, "
+                               "which must be even"),
         ("data.test_fraction=1.5", "'data.test_fraction': expected a share"),
         ("gaussian.onestep_fraction=1.5", "'gaussian.onestep_fraction': expected a share in"),
         ("gaussian.lr_final=-0.1", "'gaussian.lr_final': expected a factor in"),
@@ -342,6 +362,10 @@ def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
         (["codec.kind=sd-vae", "codec.sd_vae_path=x", "data.res=36"], "'data.res': the SD-VAE codec downsamples 8x"),
         (["estimator.crop=face", "estimator.input_size=8"], "'estimator.input_size': GazeEstimatorConfig: input"),
         (["estimator.crop=eye_band", "estimator.input_size=20"], "'estimator.input_size': GazeEstimatorConfig: input"),
+        (["eval.lpips_vgg_path=/nonexistent/vgg16.pth"], r"LPIPS needs both files"),
+        (["eval.lpips_lin_path=/nonexistent/vgg.pth"], r"LPIPS needs both files"),
+        (["eval.lpips_vgg_path=/nonexistent/a.pth", "eval.lpips_lin_path=/nonexistent/b.pth"],
+         "'eval.lpips_vgg_path': /nonexistent/a.pth: no such file"),
     ],
 )
 def test_settings_that_fail_together_fail_before_any_work(tmp_path, overrides, msg):
@@ -609,7 +633,7 @@ def test_open_run_uses_a_run_finished_under_an_older_config(tiny_run, tmp_path, 
 
 def test_data_stage_gives_the_held_out_subjects_their_frames(tmp_path):
     d = tmp_path / "run"
-    assert run.main([*TINY, "--run-dir", str(d), "--stages", "data", "data.test_frames=2"]) == 0
+    assert run.main([*TINY, "--run-dir", str(d), "--stages", "data", "data.test_frames=4"]) == 0
     from train.data.dataset import find_subject_files, split_files
 
     rows = {}
@@ -617,7 +641,7 @@ def test_data_stage_gives_the_held_out_subjects_their_frames(tmp_path):
         for p in split_files(find_subject_files([d / "data"]), split):
             with h5py.File(p) as f:
                 rows[split] = len(f["pitchyaw_head"])
-    assert rows == {"train": 18, "test": 36}  # tiny preset: 1 frame per training subject, 18 cameras
+    assert rows == {"train": 18, "test": 72}  # 1 frame per training subject (tiny), 4 held out, 18 cameras
 
 
 def test_config_and_report_know_every_fitting_group():
