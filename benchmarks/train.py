@@ -20,8 +20,9 @@ stage's own ``train_loop`` + ``GaussianTrainer`` train from the same initializat
 budget of training time (``--budget-s`` each; evaluation time is not counted; ``--clock cpu``, the default on
 CPU, counts this process's CPU seconds, which with one thread equal wall-clock on an idle core and do not
 depend on other jobs sharing the machine; ``--clock wall`` counts wall-clock), and every
-``--eval-every-s`` the held-out PSNR/SSIM/gaze error of ``train.evaluate.evaluate`` (the eval stage's protocol,
-``--pairs`` pairs per held-out subject) is recorded. Prints both tables and writes
+``--eval-every-s`` the held-out PSNR/SSIM/gaze error of ``train.evaluate.evaluate`` (the eval stage's pairs and
+metrics, ``--pairs`` pairs per held-out subject, but no test-time fit: the renders take the held-out subjects'
+generator codes, so the curve follows the training alone and its PSNR is not the report's) is recorded. Prints both tables and writes
 ``out/benchmarks/train.png`` (PSNR against training seconds).
 
     .venv/bin/python benchmarks/train.py --run-dir out/demo/run [--budget-s 180] [--threads 1]
@@ -228,6 +229,7 @@ def breakdown(ctx, device, args) -> list[dict]:
     rows = []
     configs = [("demo", lambda: demo_trainer(ctx, device), ctx.config.gaussian.batch, ctx.config.data.res,
                 ctx.config.gaussian.dit_model)]
+    run_preset = ctx.config.preset  # the row is the run's configuration, whichever preset made it
     if not args.skip_paper:
         configs.append(("paper", lambda: paper_trainer(ctx, device, args.paper_gaussians, args.paper_batch),
                         args.paper_batch, 512, "DiT-Gaze-paper"))
@@ -241,7 +243,8 @@ def breakdown(ctx, device, args) -> list[dict]:
             params = [p for m in (trainer.model, trainer.renderer) for p in m.parameters() if p.requires_grad]
             clock = time.process_time if args.clock == "cpu" else time.perf_counter  # as the curves below
             t = time_steps(trainer, params, device, warmup=args.warmup, repeats=args.repeats, clock=clock)
-            label = f"{name} ({res}², batch {batch}, {n_g} Gaussians, {dit if kind == 'dit' else 'U-Net'})"
+            shown = run_preset if name == "demo" else name
+            label = f"{shown} ({res}², batch {batch}, {n_g} Gaussians, {dit if kind == 'dit' else 'U-Net'})"
             if name == "paper":
                 label += f" [paper: 100000 Gaussians, batch 4{'; reduced for CPU' if device.type == 'cpu' else ''}]"
             row = {"config": label, **{k: 1000 * v for k, v in t.items()}}
@@ -260,6 +263,7 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
     from train.evaluate import evaluate
     from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
     from train.loop import train_loop
+    from train.run_config import eval_sampling_steps
 
     sub = with_overrides(ctx, overrides)
     cfg = sub.config
@@ -279,7 +283,7 @@ def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list
 
     def measure(step: int) -> None:
         m = evaluate(model, renderer, est, test_files, res=cfg.data.res, pairs_per_subject=args.pairs,
-                     sampling_steps=g.sampling_steps, seed=cfg.seed, device=device, log=lambda s: None)["metrics"]
+                     sampling_steps=eval_sampling_steps(cfg), seed=cfg.seed, device=device, log=lambda s: None)["metrics"]
         points.append({"train_s": clock["train"], "step": step, "psnr": m["psnr"], "ssim": m["ssim"],
                        "gaze_deg": m["gaze_error_deg"]})
         print(f"[bench]   {clock['train']:6.1f} s, step {step:4d}: PSNR {points[-1]['psnr']:.2f} dB, "
