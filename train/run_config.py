@@ -280,6 +280,13 @@ class EvalConfig:
     with ``lpips_lin_path`` the eval stage scores LPIPS, else reports it as n/a (``train.lpips``)."""
     lpips_lin_path: str = field(default="", metadata=NEUTRAL)
     """LPIPS (VGG): the ``lpips`` package's linear-layer weights (``weights/v0.1/vgg.pth``)."""
+    identity_model_path: str = field(default="", metadata=NEUTRAL)
+    """identity similarity: a local insightface ArcFace backbone (``backbone.pth``, read with weights_only, or
+    .safetensors); the eval stage then scores the cosine similarity of render and target embeddings, else n/a
+    (``train.identity``)."""
+    identity_arch: Literal["iresnet18", "iresnet34", "iresnet50", "iresnet100"] = field(default="iresnet50",
+                                                                                        metadata=NEUTRAL)
+    """the ArcFace backbone's architecture (its file's block counts must match)."""
 
 
 def eval_sampling_steps(cfg: "RunConfig") -> int:

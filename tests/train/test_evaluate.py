@@ -846,3 +846,22 @@ def test_lpips_is_scored_per_pair_when_its_weights_are_given(subject_file):
     assert out["metrics"]["lpips"] == pytest.approx(sum(per) / 3)
     assert evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=3,
                     log=lambda s: None)["metrics"]["lpips"] is None
+
+
+def test_identity_similarity_is_scored_per_pair_when_a_face_model_is_given(subject_file):
+    """With an ArcFace model (the user's weights; here an untrained iresnet18) every pair gets the cosine
+    similarity of its render's and target's embeddings, both aligned with the pair's landmarks; without, n/a."""
+    from tests.train.helpers import untrained_eval_parts
+    from train.evaluate import evaluate
+    from train.identity import IdentitySimilarity
+
+    model, renderer, est = untrained_eval_parts()
+    torch.manual_seed(0)
+    ident = IdentitySimilarity(arch="iresnet18")
+    out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=2, log=lambda s: None,
+                   identity=ident)
+    per = [r["identity_similarity"] for r in out["per_pair"]]
+    assert len(per) == 2 and all(-1 <= v <= 1 for v in per)
+    assert out["metrics"]["identity_similarity"] == pytest.approx(sum(per) / 2)
+    assert evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=2,
+                    log=lambda s: None)["metrics"]["identity_similarity"] is None

@@ -366,6 +366,8 @@ def test_bad_config_fails_before_any_work(tmp_path, capsys, override, msg):
         (["eval.lpips_lin_path=/nonexistent/vgg.pth"], r"LPIPS needs both files"),
         (["eval.lpips_vgg_path=/nonexistent/a.pth", "eval.lpips_lin_path=/nonexistent/b.pth"],
          "'eval.lpips_vgg_path': /nonexistent/a.pth: no such file"),
+        (["eval.identity_model_path=/nonexistent/backbone.pth"], "'eval.identity_model_path': /nonexistent/backbone"),
+        (["eval.identity_arch=iresnet7"], "'eval.identity_arch': expected one of"),
     ],
 )
 def test_settings_that_fail_together_fail_before_any_work(tmp_path, overrides, msg):
