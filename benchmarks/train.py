@@ -225,6 +225,13 @@ def paper_trainer(ctx, device, n_gaussians: int, batch: int):
     return GaussianTrainer(g, model, renderer, est, data, device, g.steps), n_gaussians
 
 
+def unet_label(ctx) -> str:
+    """The baseline renderer as configured: GazeGaussian's renderer upsamples log2(feature_upscale) times, so at
+    ``feature_upscale=1`` (the demo's) it is one 1x1 convolution of the splatted features, and says so."""
+    up = ctx.config.gaussian.feature_upscale
+    return f"U-Net, upscale {up}" + (": a 1x1 conv, no upsampling blocks" if up == 1 else "")
+
+
 def breakdown(ctx, device, args) -> list[dict]:
     rows = []
     configs = [("demo", lambda: demo_trainer(ctx, device), ctx.config.gaussian.batch, ctx.config.data.res,
@@ -244,7 +251,7 @@ def breakdown(ctx, device, args) -> list[dict]:
             clock = time.process_time if args.clock == "cpu" else time.perf_counter  # as the curves below
             t = time_steps(trainer, params, device, warmup=args.warmup, repeats=args.repeats, clock=clock)
             shown = run_preset if name == "demo" else name
-            label = f"{shown} ({res}², batch {batch}, {n_g} Gaussians, {dit if kind == 'dit' else 'U-Net'})"
+            label = f"{shown} ({res}², batch {batch}, {n_g} Gaussians, {dit if kind == 'dit' else unet_label(sub)})"
             if name == "paper":
                 label += f" [paper: 100000 Gaussians, batch 4{'; reduced for CPU' if device.type == 'cpu' else ''}]"
             row = {"config": label, **{k: 1000 * v for k, v in t.items()}}

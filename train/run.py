@@ -865,7 +865,9 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     else:
         raw = _eval_subjects(**job, files=groups[0], threads=threads, log=ctx.log)
     res = summarize_evaluation(raw, own_gaze_row=True, log=ctx.log)
-    name = f"DiT-Gaze ({cfg.gaussian.renderer})" if cfg.gaussian.renderer == "dit" else "GazeGaussian renderer (unet)"
+    up = cfg.gaussian.feature_upscale
+    name = (f"DiT-Gaze ({cfg.gaussian.renderer})" if cfg.gaussian.renderer == "dit" else
+            f"GazeGaussian renderer (unet, upscale {up}{': a 1x1 conv' if up == 1 else ''})")
     labels = res["labels"]
     table = table1_markdown({name: res["metrics"], OWN_GAZE_ROW: res["own_gaze"],
                              **{f"*reference: {k}*": v for k, v in res["references"].items()},
