@@ -67,6 +67,32 @@ def test_all_stages_write_their_outputs(tiny_run):
     assert load_yaml_config(RunConfig, tiny_run.parent / "from_report.yaml") == run.open_run(tiny_run).config
     for switch in ("gaussian.renderer=unet", "gaussian.orthogonality=false", "gaussian.weak_supervision=false"):
         assert f"--stages gaussian,eval {switch}`" in report, switch
+
+
+def test_the_reports_ablation_command_runs(tiny_run, tmp_path):
+    """The report's command for a Table 3 switch works as printed: on a copy of the run, only the Gaussian and
+    eval stages run again, and the new report names the flipped switch."""
+    import re
+    import shlex
+
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d)
+    line = next(m for m in re.findall(r"`(cp -r [^`]+)`", (d / "report.md").read_text()) if "orthogonality" in m)
+    line = line.replace(str(tiny_run), str(d))  # the report names the run it was written in
+    copy_cmd, train_cmd = (shlex.split(part) for part in line.split(" && "))
+    assert copy_cmd[:2] == ["cp", "-r"] and train_cmd[:3] == ["python", "-m", "train.run"]
+    shutil.copytree(copy_cmd[2], copy_cmd[3])
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        assert run.main(train_cmd[3:]) == 0
+    finally:
+        torch.set_num_threads(old)
+    out = Path(copy_cmd[3])
+    ran = json.loads((out / "stages" / "gaussian.json").read_text())["fingerprint"]
+    assert ran != json.loads((d / "stages" / "gaussian.json").read_text())["fingerprint"]
+    assert "orthogonality=False" in (out / "report.md").read_text()
+    assert (out / "stages" / "data.json").read_text() == (d / "stages" / "data.json").read_text()
     pair = json.loads((tiny_run / "metrics.json").read_text())["per_pair"][0]
     assert 0 <= pair["target_vs_label_gaze_deg"] <= 180 and 0 <= pair["render_vs_label_gaze_deg"] <= 180
     refs = json.loads((tiny_run / "metrics.json").read_text())["references"]
