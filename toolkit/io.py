@@ -155,6 +155,16 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
     return load_tensors(path, device)
 
 
+def load_state_dict_file(path: str | os.PathLike) -> dict:
+    """A third-party weight file as a dict: ``.safetensors`` (:func:`load_tensors`), else a ``.pt``/``.pth``
+    read weights-only (:func:`load_foreign_torch_checkpoint`); anything but a dict is a ToolkitError."""
+    path = Path(path)
+    state = load_tensors(path)[0] if path.suffix.lower() == ".safetensors" else load_foreign_torch_checkpoint(path)
+    if not isinstance(state, dict):
+        raise ToolkitError(f"{path}: expected a state dict (name -> tensor), got {type(state).__name__}")
+    return state
+
+
 def load_foreign_torch_checkpoint(path: str | os.PathLike) -> Any:
     """Read a third-party ``.pt``/``.pth`` file safely (``weights_only=True``: no arbitrary pickles)."""
     path = check_readable_file(path, "torch checkpoint")

@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import os
 import re
-from pathlib import Path
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
-from toolkit.io import check_readable_file, load_foreign_torch_checkpoint, load_tensors
+from toolkit.io import check_readable_file, load_state_dict_file
 
 # Blocks per stage of insightface's ``recognition/arcface_torch/backbones/iresnet.py`` architectures.
 IRESNET_LAYERS = {
@@ -271,7 +270,7 @@ class IdentitySimilarity(nn.Module):
         """The metric with insightface's ``backbone.pth`` (or a ``.safetensors`` copy) for ``arch``."""
         backbone = IResNet(arch)
         path = check_readable_file(path, "ArcFace backbone weights file")
-        backbone.load_insightface_state_dict(_read_state_dict(path), source=str(path))
+        backbone.load_insightface_state_dict(load_state_dict_file(path), source=str(path))
         return cls(backbone)
 
     def embed(self, aligned: torch.Tensor) -> torch.Tensor:
@@ -295,16 +294,6 @@ class IdentitySimilarity(nn.Module):
 def load_identity_model(path: str | os.PathLike, arch: str = "iresnet50") -> IdentitySimilarity:
     """:meth:`IdentitySimilarity.from_file`: the frozen metric from a local insightface ``backbone.pth``."""
     return IdentitySimilarity.from_file(path, arch)
-
-
-def _read_state_dict(path: Path) -> dict:
-    if path.suffix.lower() == ".safetensors":
-        state, _ = load_tensors(path)
-    else:
-        state = load_foreign_torch_checkpoint(path)
-    if not isinstance(state, dict):
-        raise ToolkitError(f"{path}: expected a state dict (name -> tensor), got {type(state).__name__}")
-    return state
 
 
 # ----------------------------------------------------------------------------- input checks

@@ -28,7 +28,7 @@ import torch
 import torch.nn as nn
 
 from toolkit.errors import ToolkitError
-from toolkit.io import check_readable_file, load_foreign_torch_checkpoint, load_tensors
+from toolkit.io import check_readable_file, load_state_dict_file
 from train.vgg import VGG16Features
 
 # torchvision ``features`` indices of relu1_2, relu2_2, relu3_3, relu4_3, relu5_3 and their channel counts.
@@ -67,9 +67,9 @@ class LPIPS(nn.Module):
         ``lin0.weight`` ...; shapes [1, C, 1, 1], non-negative)."""
         model = cls()
         vgg_path = check_readable_file(vgg_path, "VGG16 weights file")
-        model.vgg.load_torchvision_state_dict(_read_state_dict(vgg_path), source=str(vgg_path))
+        model.vgg.load_torchvision_state_dict(load_state_dict_file(vgg_path), source=str(vgg_path))
         lin_path = check_readable_file(lin_path, "LPIPS linear-layer weights file")
-        lin_state = _read_state_dict(lin_path)
+        lin_state = load_state_dict_file(lin_path)
         with torch.no_grad():
             for k, param in enumerate(model.lin):
                 param.copy_(_lin_weight(lin_state, k, lin_path))
@@ -99,16 +99,6 @@ class LPIPS(nn.Module):
 def load_lpips(vgg_path: str | os.PathLike, lin_path: str | os.PathLike) -> LPIPS:
     """:meth:`LPIPS.from_files`: a frozen LPIPS-VGG from a local VGG16 file and the LPIPS lin file."""
     return LPIPS.from_files(vgg_path, lin_path)
-
-
-def _read_state_dict(path: Path) -> dict:
-    if path.suffix.lower() == ".safetensors":
-        state, _ = load_tensors(path)
-    else:
-        state = load_foreign_torch_checkpoint(path)
-    if not isinstance(state, dict):
-        raise ToolkitError(f"{path}: expected a state dict (name -> tensor), got {type(state).__name__}")
-    return state
 
 
 def _lin_weight(state: dict, k: int, path: Path) -> torch.Tensor:

@@ -68,3 +68,14 @@ def untrained_eval_parts():
     torch.manual_seed(0)
     model = GaussianModel.from_scene(demo_head_scene(300), GaussianModelConfig(hidden=16)).eval()
     return model, make_renderer("baseline").eval(), GazeEstimator(GazeEstimatorConfig(input_size=32)).eval()
+
+
+def save_state_file(path, state: dict):
+    """Write a state dict as a user's weight file: ``.safetensors``, else a torch ``.pth`` (returns the path)."""
+    from toolkit.io import save_tensors
+
+    if path.suffix == ".safetensors":
+        save_tensors(path, state)
+    else:
+        torch.save(state, path)
+    return path

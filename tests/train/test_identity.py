@@ -10,8 +10,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from tests.train.helpers import save_state_file
 from toolkit.errors import ToolkitError
-from toolkit.io import save_tensors
 from train.identity import (
     ARCFACE_TEMPLATE,
     IdentitySimilarity,
@@ -74,14 +74,6 @@ def _random_state(seed=0):
         else:  # BN bias, running_mean, fc.bias
             state[name] = 0.1 * torch.randn(shape, generator=g)
     return state
-
-
-def _save(path, state):
-    if path.suffix == ".safetensors":
-        save_tensors(path, state)
-    else:
-        torch.save(state, path)
-    return path
 
 
 def _reference_embedding(state, x):
@@ -147,11 +139,11 @@ def files(tmp_path_factory):
     nested = {"state_dict": {f"module.{k}": v for k, v in state.items()}, "epoch": 3}
     return {
         "state": state,
-        "pth": _save(d / "backbone.pth", state),
-        "nested": _save(d / "nested.pt", nested),
-        "model": _save(d / "model.pth", {"model": state}),
-        "safetensors": _save(d / "backbone.safetensors", state),
-        "no_counters": _save(d / "no_counters.pth",
+        "pth": save_state_file(d / "backbone.pth", state),
+        "nested": save_state_file(d / "nested.pt", nested),
+        "model": save_state_file(d / "model.pth", {"model": state}),
+        "safetensors": save_state_file(d / "backbone.safetensors", state),
+        "no_counters": save_state_file(d / "no_counters.pth",
                              {k: v for k, v in state.items() if not k.endswith("num_batches_tracked")}),
     }
 
@@ -335,15 +327,15 @@ def _bad_file(path, case, state):
     elif case == "not a dict":
         torch.save(torch.zeros(3), path)
     elif case == "missing key":
-        _save(path, {k: v for k, v in state.items() if k != "layer3.1.bn2.running_var"})
+        save_state_file(path, {k: v for k, v in state.items() if k != "layer3.1.bn2.running_var"})
     elif case == "wrong shape":
-        _save(path, {**state, "layer2.0.conv1.weight": torch.zeros(128, 32, 3, 3)})
+        save_state_file(path, {**state, "layer2.0.conv1.weight": torch.zeros(128, 32, 3, 3)})
     elif case == "nan":
-        _save(path, {**state, "fc.bias": torch.full((512,), float("nan"))})
+        save_state_file(path, {**state, "fc.bias": torch.full((512,), float("nan"))})
     elif case == "deeper file":
-        _save(path, {**state, "layer1.2.bn1.weight": torch.ones(64), "layer1.2.bn1.bias": torch.zeros(64)})
+        save_state_file(path, {**state, "layer1.2.bn1.weight": torch.ones(64), "layer1.2.bn1.bias": torch.zeros(64)})
     elif case == "other arch":
-        _save(path, state)
+        save_state_file(path, state)
     return path
 
 

@@ -6,8 +6,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from tests.train.helpers import save_state_file
 from toolkit.errors import ToolkitError
-from toolkit.io import save_tensors
 from train.lpips import LPIPS, load_lpips
 
 # torchvision VGG16 "D": the index in ``features`` of each conv (its ReLU is the next index), its channels,
@@ -36,14 +36,6 @@ def _lin_state(seed=1, official=True):
     g = torch.Generator().manual_seed(seed)
     infix = ".model.1" if official else ""
     return {f"lin{k}{infix}.weight": torch.rand(1, c, 1, 1, generator=g) for k, c in enumerate(LIN_CHANNELS)}
-
-
-def _save(path, state):
-    if path.suffix == ".safetensors":
-        save_tensors(path, state)
-    else:
-        torch.save(state, path)
-    return path
 
 
 def _reference_lpips(vgg, lin, a, b):
@@ -84,12 +76,12 @@ def files(tmp_path_factory):
     return {
         "vgg_state": vgg,
         "lin_state": lin,
-        "vgg.pth": _save(d / "vgg16.pth", vgg),
-        "vgg.safetensors": _save(d / "vgg16.safetensors", vgg),
-        "lin.pth": _save(d / "lin.pth", lin),
-        "lin.safetensors": _save(d / "lin.safetensors", lin),
-        "flat.pth": _save(d / "lin_flat.pth", flat),
-        "flat.safetensors": _save(d / "lin_flat.safetensors", flat),
+        "vgg.pth": save_state_file(d / "vgg16.pth", vgg),
+        "vgg.safetensors": save_state_file(d / "vgg16.safetensors", vgg),
+        "lin.pth": save_state_file(d / "lin.pth", lin),
+        "lin.safetensors": save_state_file(d / "lin.safetensors", lin),
+        "flat.pth": save_state_file(d / "lin_flat.pth", flat),
+        "flat.safetensors": save_state_file(d / "lin_flat.safetensors", flat),
     }
 
 
@@ -201,13 +193,13 @@ def test_bad_files_give_one_line_errors_naming_the_file(files, tmp_path, case, w
     elif case == "not a state dict":
         torch.save(torch.zeros(3), bad)
     elif case != "missing file" and which == "lin":
-        _save(bad, _bad_lin(case))
+        save_state_file(bad, _bad_lin(case))
     elif case == "missing key":
         state = dict(files["vgg_state"])
         del state["features.10.weight"]
-        _save(bad, state)
+        save_state_file(bad, state)
     elif case == "wrong shape":
-        _save(bad, {**files["vgg_state"], "features.0.weight": torch.zeros(64, 1, 3, 3)})
+        save_state_file(bad, {**files["vgg_state"], "features.0.weight": torch.zeros(64, 1, 3, 3)})
     vgg_path, lin_path = (bad, files["lin.pth"]) if which == "vgg" else (files["vgg.pth"], bad)
     with pytest.raises(ToolkitError, match=match) as info:
         load_lpips(vgg_path, lin_path)
