@@ -392,7 +392,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
              tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
              references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
              own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None,
-             lpips: torch.nn.Module | None = None, identity: torch.nn.Module | None = None) -> dict[str, Any]:
+             lpips: torch.nn.Module | None = None, identity: torch.nn.Module | None = None,
+             pairing: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "per_pair": [...] (each pair's subject,
     index in the subject's pairing, and scores), "examples": tensors for the figure, "references": {name: metrics}}
     and, with ``own_gaze_row``, "own_gaze": metrics.
@@ -427,12 +428,15 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     (:class:`train.lpips.LPIPS` with the user's weights) scores each render against its target, both on white
     outside the target's mask; without it LPIPS is None (n/a). ``identity`` (:class:`train.identity.IdentitySimilarity`
     with the user's ArcFace weights) scores the cosine similarity of the render's and the target's face
-    embeddings, both aligned with the pair's landmarks; without it identity similarity is None (n/a)."""
+    embeddings, both aligned with the pair's landmarks; without it identity similarity is None (n/a).
+    ``pairing`` ({subject file stem: [P, 2] (input row, target row)}, ``train.data.pairing.load_pairing``) gives
+    each subject's pairs (every test subject must have some); else they are generated
+    (``train.data.pairing.synthetic_pairs``). ``pairs_per_subject`` of them are taken, spread over the list."""
     return summarize_evaluation(evaluate_raw(
         model, renderer, estimator, test_files, res=res, pairs_per_subject=pairs_per_subject,
         sampling_steps=sampling_steps, tta_steps=tta_steps, tta_weights=tta_weights, tta_renderer_lr=tta_renderer_lr,
         seed=seed, device=device, log=log, references=references, own_gaze_row=own_gaze_row, tta_region=tta_region,
-        tta_gaze=tta_gaze, lpips=lpips, identity=identity), own_gaze_row=own_gaze_row, log=log)
+        tta_gaze=tta_gaze, lpips=lpips, identity=identity, pairing=pairing), own_gaze_row=own_gaze_row, log=log)
 
 
 def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
@@ -440,7 +444,8 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                  tta_renderer_lr: float = 1e-3, seed: int = 0, device="cpu", log=print,
                  references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
                  own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None,
-                 lpips: torch.nn.Module | None = None, identity: torch.nn.Module | None = None) -> dict[str, Any]:
+                 lpips: torch.nn.Module | None = None, identity: torch.nn.Module | None = None,
+                 pairing: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """:func:`evaluate`'s protocol on ``test_files``, unsummarized: every pair's scores and images, in subject
     order. The raw results of disjoint groups of subjects (evaluated in separate processes, say) join with
     :func:`merge_raw_evaluations` into what one call on all of them gives; :func:`summarize_evaluation` then
@@ -449,6 +454,11 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
 
     if tta_region not in TTA_REGIONS:
         raise ToolkitError(f"evaluate: tta_region must be one of {list(TTA_REGIONS)}, got {tta_region!r}")
+    if pairing is not None:
+        missing = [Path(f).stem for f in test_files if len(pairing.get(Path(f).stem, ())) == 0]
+        if missing:
+            raise ToolkitError(f"evaluate: the pairing file has no pairs for test subject(s) {missing} "
+                               f"(it names {sorted(pairing)[:5]}...)")
 
     model.eval()
     renderer.eval()
@@ -467,7 +477,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             # Each subject's own random stream (a diffusion renderer's noise while fitting): its scores then do
             # not depend on what ran before it, in this process or another (the eval stage splits subjects).
             torch.manual_seed(seed * 1_000_003 + zlib.crc32(Path(f).name.encode()))
-            pairs = SyntheticRedirectionPairs(f, res=res, seed=seed)
+            pairs = SyntheticRedirectionPairs(f, None if pairing is None else pairing[Path(f).stem], res=res, seed=seed)
             n = min(pairs_per_subject, len(pairs))
             indices = spread_indices(len(pairs), n)
             items = [pairs[i] for i in indices]

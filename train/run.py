@@ -549,8 +549,12 @@ def _check_values(cfg: RunConfig) -> None:
     if cfg.geometry.subject < 0:
         raise ToolkitError(f"config key 'geometry.subject': expected a training-subject index >= 0, got {cfg.geometry.subject}")
     if cfg.eval.pairing_file:
-        raise ToolkitError(f"config key 'eval.pairing_file': pairing files are not read by the eval stage yet (it pairs "
-                           f"synthetic subjects itself); leave it empty, got {cfg.eval.pairing_file!r}")
+        from train.data.pairing import load_pairing
+
+        try:  # read whole before any work: a bad file fails here, not after training
+            load_pairing(cfg.eval.pairing_file)
+        except ToolkitError as err:
+            raise ToolkitError(f"config key 'eval.pairing_file': {err}") from None
     if not (math.isfinite(cfg.gaussian.grad_clip) and cfg.gaussian.grad_clip >= 0):
         raise ToolkitError(f"config key 'gaussian.grad_clip': expected a gradient-norm bound >= 0 (0 = no clipping), "
                            f"got {cfg.gaussian.grad_clip}")
@@ -806,11 +810,17 @@ def _eval_subjects(*, config: RunConfig, run_dir: Path, outputs: dict, files: li
         from train.identity import load_identity_model
 
         identity = load_identity_model(cfg.eval.identity_model_path, cfg.eval.identity_arch).to(device)
+    pairing = None
+    if cfg.eval.pairing_file:
+        from train.data.pairing import load_pairing
+
+        pairing = load_pairing(cfg.eval.pairing_file)
     raw = evaluate_raw(model, renderer, est, files, res=cfg.data.res, pairs_per_subject=cfg.eval.pairs_per_subject,
                        sampling_steps=eval_sampling_steps(cfg), tta_steps=cfg.eval.tta_steps,
                        tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,
                        device=device, log=ctx.log, references=reference_transforms(renderer), own_gaze_row=True,
-                       tta_region=cfg.eval.tta_region, tta_gaze=fit_gaze, lpips=lpips, identity=identity)
+                       tta_region=cfg.eval.tta_region, tta_gaze=fit_gaze, lpips=lpips, identity=identity,
+                       pairing=pairing)
     return _tensors_to_numpy(raw) if portable else raw
 
 

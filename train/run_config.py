@@ -266,8 +266,12 @@ class EvalConfig:
     5.77° (docs/evaluation.md).
     The natural fit's images show eyes; a small augmentation test found no measured gain either way."""
     pairing_file: str = ""
-    """GazeNeRF pairing file for real data: reserved, not read yet (a non-empty value is refused); synthetic
-    data pairs deterministically."""
+    """a pairing file (``train.data.pairing.load_pairing``: JSON ``{"subject0008": [[input_row, target_row], ...]}``
+    or text lines ``subject0008 input_row target_row``) giving each test subject's pairs, GazeNeRF's way; empty:
+    the pairs are generated (the first half of a subject's rows with a fixed permutation of the second half).
+    The synthetic targets are re-rendered from the generator at the input's view with the target row's gaze
+    either way. GazeNeRF's own two lists (``evaluation_input_single_subject.txt``: ``subject row``, and
+    ``..._target_single_subject.txt``: one row a line) convert line by line to ``SUBJECT input_row target_row``."""
     sweep_frames: int = 9
     sampling_steps: int = field(default=0, metadata=NEUTRAL)
     """DDIM steps of the evaluation's renders; 0: ``gaussian.sampling_steps``. Here, an evaluation with other

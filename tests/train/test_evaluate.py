@@ -865,3 +865,29 @@ def test_identity_similarity_is_scored_per_pair_when_a_face_model_is_given(subje
     assert out["metrics"]["identity_similarity"] == pytest.approx(sum(per) / 2)
     assert evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=2,
                     log=lambda s: None)["metrics"]["identity_similarity"] is None
+
+
+def test_a_pairing_gives_each_subject_its_pairs(subject_file, monkeypatch):
+    """GazeNeRF's protocol: pairs from a pairing file ({subject stem: [[input_row, target_row], ...]}) instead of
+    the generated ones; a test subject the file does not pair is an error naming it."""
+    import train.data.pairing as pairing_mod
+    from tests.train.helpers import untrained_eval_parts
+    from train.evaluate import evaluate
+
+    seen = []
+    real = pairing_mod.SyntheticRedirectionPairs
+
+    class Spy(real):
+        def __init__(self, path, pairs=None, **kw):
+            super().__init__(path, pairs, **kw)
+            seen.append(self.pairs.tolist())
+
+    monkeypatch.setattr(pairing_mod, "SyntheticRedirectionPairs", Spy)
+    model, renderer, est = untrained_eval_parts()
+    given = {subject_file.stem: np.array([[0, 3], [2, 1], [1, 2]])}
+    out = evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=2, log=lambda s: None,
+                   pairing=given)
+    assert seen == [[[0, 3], [2, 1], [1, 2]]] and [r["pair"] for r in out["per_pair"]] == [0, 2]
+    with pytest.raises(ToolkitError, match=r"no pairs for test subject\(s\) \['" + subject_file.stem):
+        evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=2, log=lambda s: None,
+                 pairing={"someone_else": np.array([[0, 1]])})

@@ -69,6 +69,28 @@ def test_all_stages_write_their_outputs(tiny_run):
         assert f"--stages gaussian,eval {switch}`" in report, switch
 
 
+def test_the_eval_stage_reads_a_pairing_file(tiny_run, tmp_path):
+    """eval.pairing_file (text lines 'subject input_row target_row') gives each test subject its pairs; a file
+    that does not read is refused before any work."""
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d)
+    test = json.loads((d / "data" / "split.json").read_text())["test"]
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("# GazeNeRF-style\n" + "".join(f"{Path(t).stem} 0 {r}\n" for t in test for r in (20, 30, 35)))
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        assert run.main(["--run-dir", str(d), "--stages", "eval", f"eval.pairing_file={pairs}",
+                         "eval.pairs_per_subject=3"]) == 0
+    finally:
+        torch.set_num_threads(old)
+    per_pair = json.loads((d / "metrics.json").read_text())["per_pair"]
+    assert len(per_pair) == 3 * len(test) and sorted({r["pair"] for r in per_pair}) == [0, 1, 2]
+    pairs.write_text("subject 0\n")
+    with pytest.raises(ToolkitError, match=r"'eval.pairing_file': .*pairs.txt: not a pairing file"):
+        run.main(["--run-dir", str(d), "--stages", "eval", f"eval.pairing_file={pairs}"])
+
+
 def test_the_reports_ablation_command_runs(tiny_run, tmp_path):
     """The report's command for a Table 3 switch works as printed: on a copy of the run, only the Gaussian and
     eval stages run again, and the new report names the flipped switch."""
@@ -330,7 +352,7 @@ def test_eval_gaze_term_refuses_the_evaluation_estimator(tiny_run, tmp_path):
         ("gaussian.grad_clip=-1", "'gaussian.grad_clip': expected a gradient-norm bound >= 0"),
         ("eval.sweep_frames=0", "'eval.sweep_frames': expected a count >= 1"),
         ("geometry.subject=-1", "'geometry.subject': expected a training-subject index >= 0"),
-        ("eval.pairing_file=pairs.json", "'eval.pairing_file': pairing files are not read by the eval stage yet"),
+        ("eval.pairing_file=/nonexistent/pairs.json", "'eval.pairing_file': "),
         ("eval.tta_steps=-1", "'eval.tta_steps': expected a step count >= 0"),
         ("device=tpu", "'device': expected auto, cpu, cuda or cuda:N"),
         ("data.subjects=1", "'data.subjects': expected >= 2 synthetic subjects"),
