@@ -251,12 +251,11 @@ class LabelsCsvSource:
         modification time, and the codes (a resumed redirect compares it, ``apps.redirect.input_stamp``)."""
         import hashlib
 
+        from toolkit.io import file_stamp
+
         h = hashlib.sha1(self.path.read_bytes())
         for r in self.rows:
-            for q in (r.image, r.mask):
-                if q is not None:
-                    st = q.stat()
-                    h.update(f"{q.resolve()}:{st.st_size}:{st.st_mtime_ns};".encode())
+            h.update(";".join(file_stamp(q) for q in (r.image, r.mask) if q is not None).encode())
             if r.code is not None:
                 h.update(r.code.tobytes())
         return h.hexdigest()

@@ -234,11 +234,9 @@ def input_stamp(src, dataset: str | Path) -> str:
         return src.stamp()
     p = Path(dataset)
     files = sorted(p.glob("*.h5")) if p.is_dir() else [p]  # a folder: the files GazeDataset reads
-    h = hashlib.sha1()
-    for f in files:
-        st = f.stat()
-        h.update(f"{f.resolve()}:{st.st_size}:{st.st_mtime_ns};".encode())
-    return h.hexdigest()
+    from toolkit.io import file_stamp
+
+    return hashlib.sha1(";".join(map(file_stamp, files)).encode()).hexdigest()
 
 
 def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps: int) -> dict:

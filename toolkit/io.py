@@ -155,6 +155,13 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
     return load_tensors(path, device)
 
 
+def file_stamp(path: str | os.PathLike) -> str:
+    """``path resolved:size:mtime_ns`` -- what tells a file replaced or edited under the same name, cheaply."""
+    path = Path(path)
+    st = path.stat()
+    return f"{path.resolve()}:{st.st_size}:{st.st_mtime_ns}"
+
+
 def load_state_dict_file(path: str | os.PathLike) -> dict:
     """A third-party weight file as a dict: ``.safetensors`` (:func:`load_tensors`), else a ``.pt``/``.pth``
     read weights-only (:func:`load_foreign_torch_checkpoint`); anything but a dict is a ToolkitError."""

@@ -464,8 +464,6 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
     renderer.eval()
     estimator.eval()
     gaze_err, head_err, psnrs, ssims, reals, fakes, worst_eyes = [], [], [], [], [], [], []
-    lpipss: list[float] = []
-    identities: list[float] = []
     label_scores: dict[str, dict[str, list[float]]] = {"target": {}, "render": {}}
     ref_scores: dict[str, dict[str, list[float]]] = {name: {} for name in references or {}}
     own_scores: dict[str, list[float]] = {}
@@ -534,18 +532,13 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             for who, errs in against_labels.items():
                 for r, v in zip(records, errs["gaze_error_deg"].tolist()):
                     r[f"{who}_vs_label_gaze_deg"] = v
-            if lpips is not None:
-                with torch.no_grad():
-                    lp = lpips(out_w, tgt_w).tolist()
-                lpipss += lp
-                for r, v in zip(records, lp):
-                    r["lpips"] = v
-            if identity is not None:
-                with torch.no_grad():
-                    sim = identity(out_w, tgt_w, lm).tolist()
-                identities += sim
-                for r, v in zip(records, sim):
-                    r["identity_similarity"] = v
+            with torch.no_grad():  # the optional metrics live in the records alone (the summary reads them there)
+                optional = {"lpips": lpips(out_w, tgt_w) if lpips is not None else None,
+                            "identity_similarity": identity(out_w, tgt_w, lm) if identity is not None else None}
+            for key, scores in optional.items():
+                if scores is not None:
+                    for r, v in zip(records, scores.tolist()):
+                        r[key] = v
             per_pair += records
             gaze_err += ge.tolist()
             head_err += he.tolist()
@@ -562,8 +555,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                 examples = {"input": inp_w.cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
     finally:
         torch.set_rng_state(rng_state)
-    return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "lpips": lpipss,
-            "identity": identities, "reals": reals,
+    return {"gaze_err": gaze_err, "head_err": head_err, "psnrs": psnrs, "ssims": ssims, "reals": reals,
             "fakes": fakes, "ref_scores": ref_scores, "own_scores": own_scores, "per_subject": per_subject,
             "per_pair": per_pair, "examples": examples, "n_images": n_images, "render_seconds": total_render_time,
             "label_scores": label_scores, "worst_eyes": worst_eyes}
@@ -574,12 +566,12 @@ def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
     counts and times summed, the first group's examples)."""
     if not parts:
         raise ToolkitError("merge_raw_evaluations: expected at least one evaluation")
-    lists = ("gaze_err", "head_err", "psnrs", "ssims", "lpips", "identity", "reals", "fakes", "per_subject", "per_pair", "worst_eyes")
+    lists = ("gaze_err", "head_err", "psnrs", "ssims", "reals", "fakes", "per_subject", "per_pair", "worst_eyes")
     out: dict[str, Any] = {k: [] for k in lists}
     out.update(ref_scores={}, own_scores={}, label_scores={}, examples=None, n_images=0, render_seconds=0.0)
     for part in parts:
         for k in lists:
-            out[k] += part.get(k, [])
+            out[k] += part[k]
         for field in ("ref_scores", "label_scores"):
             for name, scores in part[field].items():
                 for key, vals in scores.items():
@@ -593,8 +585,7 @@ def merge_raw_evaluations(parts: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-PAIR_LISTS = {"gaze_err": "gaze_error_deg", "head_err": "head_pose_error_deg", "psnrs": "psnr", "ssims": "ssim",
-              "lpips": "lpips", "identity": "identity_similarity"}
+PAIR_LISTS = {"gaze_err": "gaze_error_deg", "head_err": "head_pose_error_deg", "psnrs": "psnr", "ssims": "ssim"}
 """The flat per-pair lists of an :func:`evaluate_raw` result and the ``per_pair`` record key each copies."""
 
 
@@ -607,7 +598,7 @@ def in_subject_order(raw: dict[str, Any], subjects: list[str]) -> dict[str, Any]
     out["per_subject"] = sorted(raw["per_subject"], key=lambda r: order[r["subject"]])
     out["per_pair"] = sorted(raw["per_pair"], key=lambda r: order[r["subject"]])  # stable: pairs keep their order
     for key, field in PAIR_LISTS.items():
-        out[key] = [r[field] for r in out["per_pair"] if field in r]
+        out[key] = [r[field] for r in out["per_pair"]]
     return out
 
 
@@ -622,8 +613,9 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
         "gaze_error_median_deg": float(np.median(gaze_err)) if gaze_err else None,
         # How far the mean could move with other pairs of the same subjects: a few pairs make much of it.
         "gaze_error_ci95_deg": bootstrap_mean_interval(gaze_err), "psnr_ci95": bootstrap_mean_interval(psnrs),
-        "psnr": summarize(psnrs), "ssim": summarize(ssims), "lpips": summarize(raw["lpips"]) if raw.get("lpips") else None,
-        "fid": _fid(torch.cat(reals), torch.cat(fakes), log) if reals else None, "identity_similarity": summarize(raw["identity"]) if raw.get("identity") else None,
+        "psnr": summarize(psnrs), "ssim": summarize(ssims),
+        **{k: summarize([r[k] for r in raw["per_pair"] if k in r]) for k in ("lpips", "identity_similarity")},
+        "fid": _fid(torch.cat(reals), torch.cat(fakes), log) if reals else None,
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
     references_out = {name: {k: summarize(v) for k, v in sc.items()} for name, sc in raw["ref_scores"].items()}

@@ -43,9 +43,9 @@ import torch  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.host import keep_freed_memory  # noqa: E402
 from toolkit.io import atomic_write_json, atomic_write_text, load_metadata  # noqa: E402
-from train.config import apply_overrides, config_hash, load_yaml_config, save_yaml_config  # noqa: E402
+from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, eval_sampling_steps, preset  # noqa: E402
-from train.stages import RunContext, Stage, check_run, finished_stages, run_stages  # noqa: E402
+from train.stages import RunContext, Stage, check_run, fingerprint, finished_stages, run_stages  # noqa: E402
 
 STAGE_NAMES = ("data", "geometry", "codec", "estimator", "gaussian", "eval")
 
@@ -433,11 +433,12 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
 
 
 def _gaussian_resume_key(ctx: RunContext) -> str:
-    """What the Gaussian stage's checkpoints must share with a run that resumes them: the seed, the stage's
-    config but its step counts (a resumed run may train longer, or checkpoint and log at other intervals)
-    and the fingerprints of the stages it reads (a retrained codec or estimator is another training)."""
-    g = dataclasses.replace(ctx.config.gaussian, steps=1, ckpt_every=1, log_every=1)
-    return config_hash((ctx.config.seed, g, [ctx.fingerprints.get(d) for d in ("geometry", "codec", "estimator")]))
+    """What the Gaussian stage's checkpoints must share with a run that resumes them: the stage's own fingerprint
+    (its seed and config, the fingerprints of the stages it reads) with the step counts left out, since a
+    resumed run may train longer, or checkpoint and log at other intervals."""
+    counts = dataclasses.replace(ctx.config.gaussian, steps=1, ckpt_every=1, log_every=1)
+    stage = next(s for s in STAGES if s.name == "gaussian")
+    return fingerprint(stage, dataclasses.replace(ctx.config, gaussian=counts), ctx.fingerprints)
 
 
 def open_run(run_dir: str | Path) -> RunContext:
@@ -595,17 +596,16 @@ def _check_values(cfg: RunConfig) -> None:
     if cfg.gaussian.renderer == "dit" and cfg.gaussian.dit_model not in DIT_MODELS:
         raise ToolkitError(f"config key 'gaussian.dit_model': expected one of {sorted(DIT_MODELS)}, "
                            f"got {cfg.gaussian.dit_model!r}")
-    for key in ("estimator.loss_path", "estimator.eval_path"):
-        if (path := value(key)) and not Path(path).is_file():
-            raise ToolkitError(f"config key '{key}': {path}: no such file (a trained gaze estimator, .safetensors; "
-                               f"empty: train one)")
     lp = {key: value(key) for key in ("eval.lpips_vgg_path", "eval.lpips_lin_path")}
     if any(lp.values()) and not all(lp.values()):
         raise ToolkitError(f"config keys {list(lp)}: LPIPS needs both files (the VGG16 weights and the linear "
                            f"layers), got {lp}")
-    for key, path in {**lp, "eval.identity_model_path": cfg.eval.identity_model_path}.items():
-        if path and not Path(path).is_file():
-            raise ToolkitError(f"config key '{key}': {path}: no such file")
+    estimator_hint = " (a trained gaze estimator, .safetensors; empty: train one)"
+    files = {"estimator.loss_path": estimator_hint, "estimator.eval_path": estimator_hint,
+             **dict.fromkeys([*lp, "eval.identity_model_path"], "")}
+    for key, hint in files.items():
+        if (path := value(key)) and not Path(path).is_file():
+            raise ToolkitError(f"config key '{key}': {path}: no such file{hint}")
     if cfg.codec.kind == "sd-vae" and not (cfg.codec.sd_vae_path and Path(cfg.codec.sd_vae_path).is_dir()):
         raise ToolkitError(f"config key 'codec.sd_vae_path': {cfg.codec.sd_vae_path!r}: no such directory (codec.kind="
                            f"sd-vae reads a local diffusers AutoencoderKL folder)")
@@ -761,6 +761,7 @@ def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = Tr
                                  renderer_lr=e.tta_renderer_lr, gaze=gaze)
 
     return fit
+
 
 def _tensors_to_numpy(obj):
     """``obj`` with every tensor (in dicts and lists) as a numpy array: a spawned process's result must not hold
