@@ -551,7 +551,8 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
                          train_config: GazeEstimatorTrainConfig | None = None, *,
                          landmarks: torch.Tensor | None = None, val: tuple | None = None,
                          device: str | torch.device = "cpu", init: GazeEstimator | None = None,
-                         callback: Callable[[int, dict], None] | None = None) -> tuple[GazeEstimator, list[dict]]:
+                         callback: Callable[[int, dict], None] | None = None,
+                         on_step: Callable[[int, float], None] | None = None) -> tuple[GazeEstimator, list[dict]]:
     """Train a :class:`GazeEstimator` on in-memory data.
 
     Args:
@@ -564,6 +565,7 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         callback: called as ``callback(step, record)`` after each history record, the record with one more key,
             ``val_s``: the wall seconds its held-out evaluation took (0 without ``val``), so a caller can time
             training alone. Timings stay out of the history, which is deterministic for a seed.
+        on_step: called as ``on_step(step, loss)`` after every step (a progress bar's hook).
     Returns:
         (model in eval mode, history: list of {"step", "loss", ["val_gaze_deg", "val_head_deg"]}).
     """
@@ -637,6 +639,8 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
         loss.backward()
         opt.step()
         sched.step()
+        if on_step is not None:
+            on_step(step, float(loss.detach()))
         if step % tc.log_every == 0 or step == tc.steps:
             rec, val_s = {"step": step, "loss": float(loss.detach())}, 0.0
             if val is not None:

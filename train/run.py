@@ -177,8 +177,8 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
     they train at once, in two processes that split the threads: this small CNN uses a second thread poorly
     (the demo's stage on 2 cores, one hour: 349 s in turn on 2 threads, 242 s at once on 1 thread each).
     Each estimator's numbers depend only on the threads it trains with: the two processes with 1 thread each
-    give exactly what one process with 1 thread gives in turn. The children print nothing; the stage logs both
-    results when they are done."""
+    give exactly what one process with 1 thread gives in turn. Each shows a progress bar of its own (with its
+    loss); the stage logs both results when they are done, and their final records go to ``metrics.jsonl``."""
     e = ctx.config.estimator
     todo = [(k, name, seed) for k, (name, seed) in enumerate(ESTIMATOR_ROLES) if not _given_estimator(ctx, name)]
     if e.synthetic_subjects > 0 and ctx.config.data.root:
@@ -321,11 +321,20 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
             cameras_per_frame=e.cameras_per_frame, res=res, seed=seed, log=log, workers=threads)
         images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
         lms = torch.cat([lms, extra_lms])
-    model, hist = train_gaze_estimator(
-        images, targets, dataclasses.replace(_estimator_design(config), mirror_average=e.mirror_average),
-        GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=config.seed * 10 + seed,
-                                 log_every=max(1, e.steps), blur_prob=e.blur_prob, blur_sigma=e.blur_sigma),
-        landmarks=lms, val=val, device=device)
+    from tqdm import tqdm
+
+    # One bar a role, each on its own line: the two estimators may train at once, in two processes.
+    with tqdm(total=e.steps, desc=f"estimator {role}", position=index, dynamic_ncols=True) as bar:
+        def on_step(step: int, loss: float) -> None:
+            bar.update(1)
+            if step % 20 == 0 or step == e.steps:
+                bar.set_postfix(loss=f"{loss:.4g}")
+
+        model, hist = train_gaze_estimator(
+            images, targets, dataclasses.replace(_estimator_design(config), mirror_average=e.mirror_average),
+            GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=config.seed * 10 + seed,
+                                     log_every=max(1, e.steps), blur_prob=e.blur_prob, blur_sigma=e.blur_sigma),
+            landmarks=lms, val=val, device=device, on_step=on_step)
     file = f"estimator_{role}.safetensors"
     model.save(Path(run_dir) / file, {"role": role, "train_images": len(images)})
     return file, dict(hist[-1] if hist else {}, train_images=len(images))

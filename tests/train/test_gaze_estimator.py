@@ -556,3 +556,15 @@ def test_a_diverging_estimator_stops_naming_the_step():
     tc = GazeEstimatorTrainConfig(steps=3, batch_size=8, log_every=3, seed=3)
     with pytest.raises(ToolkitError, match=r"train_gaze_estimator: non-finite loss at step 1 \(nan\).*nothing was saved"):
         train_gaze_estimator(imgs, labels, TINY, tc, init=bad)
+
+
+def test_on_step_sees_every_step_and_leaves_the_training_unchanged():
+    """The progress hook gets each step's loss; the weights are those of a run without it."""
+    imgs, labels, _ = drawn_face_dataset(16, 32, n_subjects=2, seed=0)
+    tc = GazeEstimatorTrainConfig(steps=4, batch_size=8, log_every=4, seed=3)
+    seen = []
+    m1, hist = train_gaze_estimator(imgs, labels, TINY, tc, on_step=lambda s, loss: seen.append((s, loss)))
+    m2, _ = train_gaze_estimator(imgs, labels, TINY, tc)
+    assert [s for s, _ in seen] == [1, 2, 3, 4] and all(math.isfinite(v) for _, v in seen)
+    assert seen[-1][1] == pytest.approx(hist[-1]["loss"])
+    assert all(torch.equal(a, b) for a, b in zip(m1.parameters(), m2.parameters()))
