@@ -43,7 +43,7 @@ from benchmarks.common import (  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.io import load_tensors, save_tensors  # noqa: E402
 from toolkit.rotations import angular_error_deg  # noqa: E402
-from train.gaze_estimator import (  # noqa: E402
+from train.estimator.network import (  # noqa: E402
     GazeEstimatorConfig,
     GazeEstimatorTrainConfig,
     evaluate_gaze_estimator,
@@ -167,7 +167,7 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=positive("--lr"), default=2e-3)
     ap.add_argument("--input-size", type=count("--input-size", 1), default=64, help="face mode: input width")
     ap.add_argument("--res", type=count("--res", 1), default=128, help="face-crop size of the rendered images (eyes mode: "
-                    "train.gaze_estimator.eye_config(res), the estimator stage's design at that size)")
+                    "train.estimator.network.eye_config(res), the estimator stage's design at that size)")
     ap.add_argument("--landmark-noise", type=float, default=GazeEstimatorTrainConfig.landmark_noise,
                     help="training jitter of the landmarks, pixels")
     ap.add_argument("--mirror", type=float, default=GazeEstimatorTrainConfig.mirror,
@@ -193,7 +193,7 @@ def main(argv=None) -> int:
     torch.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest convolutions once
     init = None
     if a.init:
-        from train.gaze_estimator import GazeEstimator
+        from train.estimator.network import GazeEstimator
 
         init = GazeEstimator.load(a.init, frozen=False)
         a.modes = "eyes" if init.config.eyes else "face"

@@ -73,7 +73,7 @@ def ground_truth(files, rows: dict, gazes: np.ndarray, res: int) -> dict[str, to
 
 def score(images: torch.Tensor, landmarks: torch.Tensor, labels: torch.Tensor, truth: dict, estimator) -> dict:
     from toolkit.rotations import angular_error_deg
-    from train.metrics import composite_on_white, psnr, ssim
+    from train.losses.metrics import composite_on_white, psnr, ssim
 
     mask = truth["head_mask"]
     img_w, tgt_w = composite_on_white(images, mask), composite_on_white(truth["image"], mask)
@@ -107,7 +107,7 @@ def main(argv=None) -> int:
     from apps.redirect import parse_gazes, render_chunk, row_fitter
     from train import run
     from train.data.dataset import GazeDataset
-    from train.evaluate import spread_indices
+    from train.evaluation.protocol import spread_indices
 
     run_dir = args.run_dir or default_run_dir()
     ctx = run.open_run(run_dir)

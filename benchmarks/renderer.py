@@ -42,11 +42,11 @@ from benchmarks.common import (  # noqa: E402
 )
 from toolkit.errors import run_cli  # noqa: E402
 from toolkit.io import atomic_write_json  # noqa: E402
-from train.baseline_renderer import BaselineConfig, BaselineRenderer  # noqa: E402
-from train.codec import AutoencoderConfig, KLAutoencoder, train_autoencoder  # noqa: E402
-from train.diffusion import GaussianDiffusion  # noqa: E402
-from train.dit import make_dit  # noqa: E402
-from train.renderer import DiTRenderer  # noqa: E402
+from train.model.baseline_renderer import BaselineConfig, BaselineRenderer  # noqa: E402
+from train.model.codec import AutoencoderConfig, KLAutoencoder, train_autoencoder  # noqa: E402
+from train.model.diffusion import GaussianDiffusion  # noqa: E402
+from train.model.dit import make_dit  # noqa: E402
+from train.model.renderer import DiTRenderer  # noqa: E402
 
 STEPS = (1, 2, 4, 8, 25, 50)
 

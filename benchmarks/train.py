@@ -20,7 +20,7 @@ stage's own ``train_loop`` + ``GaussianTrainer`` train from the same initializat
 budget of training time (``--budget-s`` each; evaluation time is not counted; ``--clock cpu``, the default on
 CPU, counts this process's CPU seconds, which with one thread equal wall-clock on an idle core and do not
 depend on other jobs sharing the machine; ``--clock wall`` counts wall-clock), and every
-``--eval-every-s`` the held-out PSNR/SSIM/gaze error of ``train.evaluate.evaluate`` (the eval stage's pairs and
+``--eval-every-s`` the held-out PSNR/SSIM/gaze error of ``train.evaluation.protocol.evaluate`` (the eval stage's pairs and
 metrics, ``--pairs`` pairs per held-out subject, but no test-time fit: the renders take the held-out subjects'
 generator codes, so the curve follows the training alone and its PSNR is not the report's) is recorded. Prints both tables and writes
 ``out/benchmarks/train.png`` (PSNR against training seconds).
@@ -59,7 +59,7 @@ def open_prereqs(run_dir: Path, overrides: list[str]):
     from train import run
     from train.config import apply_overrides, load_yaml_config
     from train.run_config import RunConfig
-    from train.stages import RunContext, run_stages
+    from train.stages.pipeline import RunContext, run_stages
 
     need = ("data", "geometry", "codec", "estimator")
     if not (run_dir / "config.yaml").is_file():
@@ -79,7 +79,7 @@ def open_prereqs(run_dir: Path, overrides: list[str]):
 
 def with_overrides(ctx, overrides: list[str]):
     from train.config import apply_overrides
-    from train.stages import RunContext
+    from train.stages.pipeline import RunContext
 
     return RunContext(ctx.run_dir, apply_overrides(ctx.config, overrides), outputs=dict(ctx.outputs), log=ctx.log)
 
@@ -145,7 +145,7 @@ def time_steps(trainer, params, device, *, warmup: int, repeats: int, seed: int 
 
     ``clock``: ``time.perf_counter`` (wall) or ``time.process_time`` (the process's CPU time, all its threads:
     with one torch thread on CPU it measures the work itself and not the other jobs on a shared machine)."""
-    from train.loop import step_generator
+    from train.training.loop import step_generator
 
     timer = PartTimer(device, clock)
     instrument(trainer, timer)
@@ -179,7 +179,7 @@ def time_steps(trainer, params, device, *, warmup: int, repeats: int, seed: int 
 
 def demo_trainer(ctx, device):
     from train import run
-    from train.gaussian_stage import GaussianTrainer, load_split
+    from train.training.trainer import GaussianTrainer, load_split
 
     cfg = ctx.config
     torch.manual_seed(cfg.seed)
@@ -198,12 +198,12 @@ def paper_trainer(ctx, device, n_gaussians: int, batch: int):
     from toolkit.cameras import resize_intrinsics
     from toolkit.procedural import demo_head_scene
     from train import run
-    from train.codec import AutoencoderConfig, KLAutoencoder
-    from train.gaussian_model import GaussianModel
-    from train.gaussian_stage import GaussianTrainer, TrainBatchData, load_split, model_config
-    from train.gaze_estimator import GazeEstimator, GazeEstimatorConfig
-    from train.renderer import make_renderer
+    from train.estimator.network import GazeEstimator, GazeEstimatorConfig
+    from train.model.codec import AutoencoderConfig, KLAutoencoder
+    from train.model.gaussian_model import GaussianModel
+    from train.model.renderer import make_renderer
     from train.run_config import paper_preset
+    from train.training.trainer import GaussianTrainer, TrainBatchData, load_split, model_config
 
     p = paper_preset()
     g = replace(p.gaussian, batch=batch)
@@ -267,10 +267,10 @@ class _BudgetReached(Exception):
 def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list[dict]:
     """Train the stage for ``budget_s`` seconds of training time; evaluate every ``eval_every_s``."""
     from train import run
-    from train.evaluate import evaluate
-    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
-    from train.loop import train_loop
+    from train.evaluation.protocol import evaluate
     from train.run_config import eval_sampling_steps
+    from train.training.loop import train_loop
+    from train.training.trainer import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
 
     sub = with_overrides(ctx, overrides)
     cfg = sub.config

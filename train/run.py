@@ -45,7 +45,7 @@ from toolkit.host import keep_freed_memory  # noqa: E402
 from toolkit.io import atomic_write_json, atomic_write_text, load_metadata  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, eval_sampling_steps, preset  # noqa: E402
-from train.stages import RunContext, Stage, check_run, fingerprint, finished_stages, run_stages  # noqa: E402
+from train.stages.pipeline import RunContext, Stage, check_run, fingerprint, finished_stages, run_stages  # noqa: E402
 
 STAGE_NAMES = ("data", "geometry", "codec", "estimator", "gaussian", "eval")
 
@@ -123,9 +123,9 @@ def stage_codec(ctx: RunContext) -> dict[str, str]:
         return {}
     from tqdm import tqdm
 
-    from train.codec import AutoencoderConfig, eye_weights, save_autoencoder, train_autoencoder
-    from train.gaussian_stage import load_split
-    from train.loop import MetricsLogger
+    from train.model.codec import AutoencoderConfig, eye_weights, save_autoencoder, train_autoencoder
+    from train.training.loop import MetricsLogger
+    from train.training.trainer import load_split
 
     data = load_split(_split(ctx, "train"), "all", ctx.config.data.res)
     weights = eye_weights(data.eyes * data.head, c.eye_weight) if c.eye_weight > 0 else None
@@ -152,7 +152,7 @@ def stage_codec(ctx: RunContext) -> dict[str, str]:
 
 
 def _load_codec(ctx: RunContext, device):
-    from train.codec import PixelCodec, SDVAECodec, load_autoencoder
+    from train.model.codec import PixelCodec, SDVAECodec, load_autoencoder
 
     c = ctx.config.codec
     if c.kind == "pixel":
@@ -198,7 +198,7 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
         results = [_train_estimator(**job, index=k, role=name, seed=seed, threads=threads, log=ctx.log, data=data)
                    for k, name, seed in todo]
     outs, summary = {}, {}
-    from train.loop import MetricsLogger
+    from train.training.loop import MetricsLogger
 
     metrics = MetricsLogger(ctx.run_dir, tensorboard=True)
     for (_, name, _), (file, record) in zip(todo, results):
@@ -289,7 +289,7 @@ def _job_entry(results_q, i: int, fn, kw: dict) -> None:
 
 def _estimator_data(config: RunConfig, train_files: list[Path], test_files: list[Path]) -> tuple:
     """The estimator stage's images of the run's splits: (train images u8, labels [N, 4], landmarks, val)."""
-    from train.gaussian_stage import load_split
+    from train.training.trainer import load_split
 
     res = config.data.res
     to_u8 = lambda x: (x * 255).round().clamp(0, 255).to(torch.uint8)  # noqa: E731
@@ -305,7 +305,7 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
     ``threads`` torch threads): its training split plus its own extra procedural subjects, validated on the
     held-out split (``data``: :func:`_estimator_data`, loaded here when None). Returns (file name in
     ``run_dir``, its last history record with ``train_images``)."""
-    from train.gaze_estimator import GazeEstimatorTrainConfig, train_gaze_estimator
+    from train.estimator.network import GazeEstimatorTrainConfig, train_gaze_estimator
 
     torch.set_num_threads(threads)
     e, res = config.estimator, config.data.res
@@ -343,7 +343,7 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
 def _estimator_design(config: RunConfig):
     """The estimator stage's network design for ``config.estimator.crop``: eye patches sized for the image, or a
     face / eye-band crop resized to ``estimator.input_size``."""
-    from train.gaze_estimator import EYE_BAND, GazeEstimatorConfig, eye_config
+    from train.estimator.network import EYE_BAND, GazeEstimatorConfig, eye_config
 
     e = config.estimator
     if e.crop == "eyes":
@@ -363,13 +363,13 @@ def _estimator_file(ctx: RunContext, role: str) -> Path:
 
 
 def _estimator(ctx: RunContext, role: str, device):
-    from train.gaze_estimator import GazeEstimator
+    from train.estimator.network import GazeEstimator
 
     return GazeEstimator.load(_estimator_file(ctx, role), device)
 
 
 def _renderer(ctx: RunContext, device):
-    from train.renderer import make_renderer
+    from train.model.renderer import make_renderer
 
     g = ctx.config.gaussian
     codec = _load_codec(ctx, device) if g.renderer == "dit" else None
@@ -380,16 +380,16 @@ def _renderer(ctx: RunContext, device):
 
 
 def _gaussian_modules(ctx: RunContext, device):
-    from train.gaussian_stage import build_model
+    from train.training.trainer import build_model
 
     return build_model(ctx.path("geometry", "scene"), ctx.config.gaussian, device), _renderer(ctx, device)
 
 
 def stage_gaussian(ctx: RunContext) -> dict[str, str]:
-    from train.checkpoint import CheckpointManager, save_training_checkpoint
-    from train.distributed import cleanup, init_distributed, shard
-    from train.gaussian_stage import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
-    from train.loop import MetricsLogger, train_loop
+    from train.training.checkpoint import CheckpointManager, save_training_checkpoint
+    from train.training.distributed import cleanup, init_distributed, shard
+    from train.training.loop import MetricsLogger, train_loop
+    from train.training.trainer import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
 
     cfg = ctx.config
     g = cfg.gaussian
@@ -416,7 +416,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     final = modules
     after_step = None
     if g.ema_decay > 0:
-        from train.ema import averaged_copy, update_average
+        from train.training.ema import averaged_copy, update_average
 
         final = {"model": averaged_copy(model), "renderer": averaged_copy(renderer)}
         modules = {**modules, "ema_model": final["model"], "ema_renderer": final["renderer"]}
@@ -470,7 +470,7 @@ def open_run(run_dir: str | Path) -> RunContext:
 
 def load_trained(ctx: RunContext, device):
     """(model, renderer) restored from the gaussian stage's final checkpoint (a clear error when incompatible)."""
-    from train.checkpoint import load_training_checkpoint
+    from train.training.checkpoint import load_training_checkpoint
 
     model, renderer = _gaussian_modules(ctx, device)
     load_training_checkpoint(ctx.path("gaussian", "checkpoint"), modules={"model": model, "renderer": renderer},
@@ -528,14 +528,14 @@ def _check_values(cfg: RunConfig) -> None:
         raise ToolkitError(f"config key 'estimator.cameras_per_frame': expected at most the rig's {n_cams} cameras, "
                            f"got {cfg.estimator.cameras_per_frame}")
     if cfg.estimator.crop != "eyes":
-        from train.gaze_estimator import GazeEstimator
+        from train.estimator.network import GazeEstimator
 
         try:  # the network's constructor holds the size rule; building it costs milliseconds
             GazeEstimator(_estimator_design(cfg))
         except ToolkitError as err:
             raise ToolkitError(f"config key 'estimator.input_size': {err}") from None
     if cfg.gaussian.renderer == "dit":
-        from train.diffusion import DiffusionConfig
+        from train.model.diffusion import DiffusionConfig
 
         for key in ("gaussian.sampling_steps", "eval.sampling_steps"):
             if value(key) > (T := DiffusionConfig().num_timesteps):
@@ -600,7 +600,7 @@ def _check_values(cfg: RunConfig) -> None:
         raise ToolkitError("config key 'eval.tta_weights': 'eye_colours' needs gaussian.eyeball_colours=true (the "
                            "parametric eyeball whose colours it fits)")
     # Last: what names something outside the config (a model, a file) once the values themselves are sound.
-    from train.dit import DIT_MODELS
+    from train.model.dit import DIT_MODELS
 
     if cfg.gaussian.renderer == "dit" and cfg.gaussian.dit_model not in DIT_MODELS:
         raise ToolkitError(f"config key 'gaussian.dit_model': expected one of {sorted(DIT_MODELS)}, "
@@ -681,7 +681,7 @@ def _labels_note(labels: dict, cfg: RunConfig) -> str:
     reach = set(ev.tta_gaze_reach or ("code", *ev.tta_weights))
     colours = {"features", "eye_features", "eye_colours", "renderer", "decoder"}
     if cfg.gaussian.eye_appearance:
-        colours.add("code")  # the code sets the eye colours too (train.fields.EyeAppearanceField)
+        colours.add("code")  # the code sets the eye colours too (train.model.fields.EyeAppearanceField)
     may_paint = bool(reach & colours)
     return (f"The *labels* row scores the evaluation estimator's reading of each target against the target's own "
             f"gaze and head-pose labels: the ruler's error on these very pairs. The gaze metric compares two "
@@ -724,10 +724,10 @@ REFERENCES_NOTE = (
 
 
 def fit_gaze_term(ctx: RunContext, device, **given):
-    """The test-time fitting's gaze term as the run's eval section sets it (``train.evaluate.FitGaze`` around the
+    """The test-time fitting's gaze term as the run's eval section sets it (``train.evaluation.protocol.FitGaze`` around the
     frozen loss estimator), or None when its weight is 0. ``given`` (``gaze_weight``, ``terms``, ``every``,
-    ``reach``) replace the section's settings (``train.evaluate.NATURAL_EYES_FIT``'s, say)."""
-    from train.evaluate import FitGaze
+    ``reach``) replace the section's settings (``train.evaluation.protocol.NATURAL_EYES_FIT``'s, say)."""
+    from train.evaluation.protocol import FitGaze
     from train.losses import GazeLoss
 
     e = ctx.config.eval
@@ -744,13 +744,13 @@ def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = Tr
     """The evaluation's test-time fitting for one input row, as a function (item, gazes [G, 2]) -> fitted code
     [1, C]: ``steps`` Adam steps of the code and the run's ``eval.tta_weights`` (by default the face Gaussians'
     features and the renderer) on the input image, compared on ``eval.tta_region``, with the loss estimator's
-    gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn (``train.evaluate.term_gaze_order``:
+    gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn (``train.evaluation.protocol.term_gaze_order``:
     spread over them when they outnumber the term's entries). The weights are tuned in place:
-    the caller restores them (``train.evaluate.restored_weights``) after rendering the row. ``gaze_term=False``
+    the caller restores them (``train.evaluation.protocol.restored_weights``) after rendering the row. ``gaze_term=False``
     leaves the gaze term out whatever the run's weight (``benchmarks/redirect.py`` measures what it adds).
-    ``natural_eyes`` fits ``train.evaluate.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the
+    ``natural_eyes`` fits ``train.evaluation.protocol.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the
     term may turn the eyes but not repaint them, so the redirected eyes carry no coloured specks."""
-    from train.evaluate import NATURAL_EYES_FIT, face_only_mask, test_time_fit
+    from train.evaluation.protocol import NATURAL_EYES_FIT, face_only_mask, test_time_fit
 
     e = ctx.config.eval
     weights = NATURAL_EYES_FIT["weights"] if natural_eyes else tuple(e.tta_weights)
@@ -800,9 +800,9 @@ def _tensors_from_numpy(obj):
 def _eval_subjects(*, config: RunConfig, run_dir: Path, outputs: dict, files: list[Path], threads: int, log=None,
                    portable: bool = False) -> dict:
     """The eval stage's protocol on ``files`` (test subjects) with ``threads`` torch threads, in this process or a
-    spawned one: ``train.evaluate.evaluate_raw``'s unsummarized result (``portable``: its tensors as numpy
+    spawned one: ``train.evaluation.protocol.evaluate_raw``'s unsummarized result (``portable``: its tensors as numpy
     arrays, :func:`_tensors_to_numpy`)."""
-    from train.evaluate import evaluate_raw, reference_transforms
+    from train.evaluation.protocol import evaluate_raw, reference_transforms
 
     torch.set_num_threads(threads)
     ctx = RunContext(run_dir, config, outputs=outputs, log=log or (lambda m: None))
@@ -812,12 +812,12 @@ def _eval_subjects(*, config: RunConfig, run_dir: Path, outputs: dict, files: li
     fit_gaze = fit_gaze_term(ctx, device) if cfg.eval.tta_steps > 0 else None
     lpips = None
     if cfg.eval.lpips_vgg_path:
-        from train.lpips import load_lpips
+        from train.losses.lpips import load_lpips
 
         lpips = load_lpips(cfg.eval.lpips_vgg_path, cfg.eval.lpips_lin_path).to(device)
     identity = None
     if cfg.eval.identity_model_path:
-        from train.identity import load_identity_model
+        from train.losses.identity import load_identity_model
 
         identity = load_identity_model(cfg.eval.identity_model_path, cfg.eval.identity_arch).to(device)
     pairing = None
@@ -848,14 +848,14 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     """The evaluation protocol on the test split, the report and the figure. Test subjects may be evaluated in
     two processes at once (:func:`eval_groups`); each subject's scores depend only on the threads its process
     has, and the merged result is what one process with that many threads gives (tested)."""
-    from train.evaluate import (
+    from train.evaluation.protocol import (
         eye_views_grid,
         image_grid,
         in_subject_order,
         merge_raw_evaluations,
         summarize_evaluation,
     )
-    from train.metrics import table1_markdown
+    from train.losses.metrics import table1_markdown
 
     cfg = ctx.config
     device = _device(cfg)
@@ -941,9 +941,9 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
 
 def _eval_sweep(ctx: RunContext, device) -> torch.Tensor:
     """The qualitative figure's last row [G, 3, H, W]: the first held-out pair's input, fitted as the evaluation
-    fits it, rendered at ``eval.sweep_frames`` gazes (``train.evaluate.sweep_gazes``)."""
+    fits it, rendered at ``eval.sweep_frames`` gazes (``train.evaluation.protocol.sweep_gazes``)."""
     from train.data.pairing import SyntheticRedirectionPairs
-    from train.evaluate import model_gaze_sweep, restored_weights, sweep_gazes
+    from train.evaluation.protocol import model_gaze_sweep, restored_weights, sweep_gazes
 
     cfg = ctx.config
     item = SyntheticRedirectionPairs(_split(ctx, "test")[0], res=cfg.data.res, seed=cfg.seed)[0]["input"]
@@ -1054,7 +1054,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     run_dir.mkdir(parents=True, exist_ok=True)
     save_yaml_config(cfg, run_dir / "config.yaml")
     t0 = time.perf_counter()
-    from train.loop import TrainingInterrupted
+    from train.training.loop import TrainingInterrupted
 
     try:
         status = run_stages(STAGES, stages, ctx, force=force)

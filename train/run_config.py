@@ -109,7 +109,7 @@ class EstimatorStageConfig:
     crop: Literal["eyes", "face", "eye_band"] = "eyes"
     """what the estimators read: two eye patches cut at the eye landmarks plus the landmark layout
     (``GazeEstimatorConfig.eyes``), the whole normalized face crop, or the fixed band holding both eyes
-    (``train.gaze_estimator.EYE_BAND``)."""
+    (``train.estimator.network.EYE_BAND``)."""
     synthetic_subjects: int = 20
     """extra procedural subjects rendered for each estimator's training only (synthetic runs; ignored with
     data.root): many gazes, few cameras each. Seeds are disjoint from the data stage's subjects and
@@ -142,7 +142,7 @@ class GaussianStageConfig:
     """DiT only: hidden channels of the renderer's feature encoder (``DiTConfig.feature_hidden``)."""
     residual: bool = True
     """DiT only: predict the clean latent as the encoded, upsampled splat RGB plus a learned residual (the
-    untrained renderer outputs the splat's own image); false: the plain latent DiT. See train/renderer.py."""
+    untrained renderer outputs the splat's own image); false: the plain latent DiT. See train/model/renderer.py."""
     sampling_steps: int = 1
     """DDIM steps at evaluation (1 = the deterministic one-step path). Part of this stage's fingerprint, so
     changing it retrains; ``eval.sampling_steps`` evaluates with other steps without retraining."""
@@ -150,7 +150,7 @@ class GaussianStageConfig:
     """DiT only: share of each training batch rendered at t = T - 1, the one-step path evaluation uses; the
     rest at uniformly drawn diffusion times."""
     rgb_init: bool = True
-    """start the Gaussians' RGB channels from the training images (train/rgb_init.py) instead of the geometry
+    """start the Gaussians' RGB channels from the training images (train/model/rgb_init.py) instead of the geometry
     stage's SDF features (on the demo run: held-out splat PSNR 22.7 dB before any step, against 16.7 dB after
     320 steps without it)."""
     orthogonality: bool = True
@@ -167,7 +167,7 @@ class GaussianStageConfig:
     """Adam learning rate of the Gaussian model's weights (fields, features, scales, opacities, rotations)."""
     means_lr: float = 1.6e-4
     """learning rate of the canonical Gaussian centres, as a fraction of the head's radius per step (3DGS's
-    position rate relative to the scene extent; see ``train.gaussian_stage.optimizer_groups``)."""
+    position rate relative to the scene extent; see ``train.training.trainer.optimizer_groups``)."""
     renderer_lr: float = 5e-4
     lr_schedule: Literal["constant", "cosine"] = field(default="constant", metadata=NEUTRAL)
     """the rates over the stage: constant, or a half cosine from the configured rates down to ``lr_final`` times
@@ -178,7 +178,7 @@ class GaussianStageConfig:
     ema_decay: float = field(default=0.0, metadata=NEUTRAL)
     """decay of an exponential moving average of the model's and renderer's weights (DiT's EMA), updated after
     every step from the initial weights; the stage's final checkpoint then holds the average instead of the last
-    step's weights. 0 keeps no average. A horizon of about 1 / (1 - decay) steps (``train.ema``). Off in the
+    step's weights. 0 keeps no average. A horizon of about 1 / (1 - decay) steps (``train.training.ema``). Off in the
     demo: at 240 steps the average lags a model still improving, and 0.97 read +0.58 ± 0.28° worse over three
     seeds (docs/evaluation.md, session 28)."""
     lambda_rgb: float = 1.0
@@ -209,7 +209,7 @@ class GaussianStageConfig:
     identities it gave no gain in gaze, with or without test-time fitting (docs/model.md, session 22)."""
     eyeball_colours: bool = field(default=False, metadata=NEUTRAL)
     """the eye Gaussians' RGB from a parametric pupil / iris / sclera (``GaussianModelConfig.eyeball_colours``,
-    :class:`train.fields.EyeballColours`) instead of a free colour each. With free colours the demo's eyes
+    :class:`train.model.fields.EyeballColours`) instead of a free colour each. With free colours the demo's eyes
     train into a grey-to-skin smear (docs/model.md, session 24)."""
     ckpt_every: int = 100
     log_every: int = 10
@@ -241,7 +241,7 @@ class EvalConfig:
     """Adam learning rate of the renderer's weights in test-time fitting (code and features: 1e-2)."""
     tta_gaze_weight: float = 0.0002
     """weight of a gaze term in test-time fitting (0 disables): the frozen *loss* estimator, never the evaluation
-    one, reads renders of the fitted input (``train.evaluate.FitGaze``), in degrees, like ``gaussian.lambda_gaze``.
+    one, reads renders of the fitted input (``train.evaluation.protocol.FitGaze``), in degrees, like ``gaussian.lambda_gaze``.
     Session 15, demo model, 40 steps, the term at every step, weight 0 / 0.00003 / 0.0001 / 0.0005 / 0.002: gaze
     9.48° / 6.01° / 5.38° / 5.51° / 5.64° (an independent judge estimator: 9.29° / 6.26° / 5.24° / 5.48° / 5.55°),
     PSNR 33.12 / 33.12 / 33.07 / 32.74 / 32.16 dB; at every 2nd step (the default) weight 0.0002: 5.40° (judge
@@ -281,13 +281,13 @@ class EvalConfig:
 
     lpips_vgg_path: str = field(default="", metadata=NEUTRAL)
     """LPIPS (VGG): a local torchvision-layout VGG16 state dict (.pth read with weights_only, or .safetensors);
-    with ``lpips_lin_path`` the eval stage scores LPIPS, else reports it as n/a (``train.lpips``)."""
+    with ``lpips_lin_path`` the eval stage scores LPIPS, else reports it as n/a (``train.losses.lpips``)."""
     lpips_lin_path: str = field(default="", metadata=NEUTRAL)
     """LPIPS (VGG): the ``lpips`` package's linear-layer weights (``weights/v0.1/vgg.pth``)."""
     identity_model_path: str = field(default="", metadata=NEUTRAL)
     """identity similarity: a local insightface ArcFace backbone (``backbone.pth``, read with weights_only, or
     .safetensors); the eval stage then scores the cosine similarity of render and target embeddings, else n/a
-    (``train.identity``)."""
+    (``train.losses.identity``)."""
     identity_arch: Literal["iresnet18", "iresnet34", "iresnet50", "iresnet100"] = field(default="iresnet50",
                                                                                         metadata=NEUTRAL)
     """the ArcFace backbone's architecture (its file's block counts must match)."""
@@ -301,10 +301,10 @@ def eval_sampling_steps(cfg: "RunConfig") -> int:
 NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weight": 0.002,
                     "reach": ("code", "eye_field"), "terms": ("target", "own"), "every": 2}
 """A test-time fit whose gaze term turns a new face's eyes but cannot repaint them
-(``train.evaluate.FitGaze.reach``): no coloured specks, and the iris keeps the trained model's colour rather
+(``train.evaluation.protocol.FitGaze.reach``): no coloured specks, and the iris keeps the trained model's colour rather
 than the new face's. Session 21, demo run (the term then read ``target`` alone): gaze 6.95°, PSNR 33.28 dB,
 against 5.81°, 33.55 dB for the demo preset's fit of then, whose side views show specks (docs/evaluation.md).
-``apps.redirect --natural-eyes`` fits this way (``train.evaluate`` re-exports it), and so does the demo preset
+``apps.redirect --natural-eyes`` fits this way (``train.evaluation.protocol`` re-exports it), and so does the demo preset
 since session 22 (:func:`natural_eyes_eval`). With a model trained with ``gaussian.eye_appearance`` the code also sets the eye
 colours, so a term reaching the code can recolour them, within that field's bound: the guarantee then no
 longer holds.

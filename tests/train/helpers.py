@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from toolkit.procedural import demo_camera
-from train.gaussian_model import GaussianModel, GaussianModelConfig
+from train.model.gaussian_model import GaussianModel, GaussianModelConfig
 
 
 def rasterizer_for_tests():
@@ -60,10 +60,10 @@ def one_frame_subject_file(directory, subject_seed: int, frame_seed: int, res: i
 
 def untrained_eval_parts():
     """(model on the procedural head, U-Net baseline renderer, whole-face gaze estimator), untrained, seeded:
-    what ``train.evaluate`` needs, in eval mode."""
+    what ``train.evaluation.protocol`` needs, in eval mode."""
     from toolkit.procedural import demo_head_scene
-    from train.gaze_estimator import GazeEstimator, GazeEstimatorConfig
-    from train.renderer import make_renderer
+    from train.estimator.network import GazeEstimator, GazeEstimatorConfig
+    from train.model.renderer import make_renderer
 
     torch.manual_seed(0)
     model = GaussianModel.from_scene(demo_head_scene(300), GaussianModelConfig(hidden=16)).eval()

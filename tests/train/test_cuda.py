@@ -43,8 +43,8 @@ def test_gaussian_model_renders_the_same_on_cuda():
 
 @pytest.mark.parametrize("kind", ["dit", "baseline"])
 def test_renderers_match_cpu(kind):
-    from train.codec import AutoencoderConfig, KLAutoencoder
-    from train.renderer import make_renderer
+    from train.model.codec import AutoencoderConfig, KLAutoencoder
+    from train.model.renderer import make_renderer
 
     torch.manual_seed(0)
     codec = KLAutoencoder(AutoencoderConfig(downsample=8, base_channels=8)).freeze() if kind == "dit" else None
@@ -63,8 +63,8 @@ def test_renderers_match_cpu(kind):
 
 
 def test_estimator_and_codec_training_take_the_same_first_steps_on_cuda():
-    from train.codec import AutoencoderConfig, train_autoencoder
-    from train.gaze_estimator import GazeEstimatorConfig, GazeEstimatorTrainConfig, train_gaze_estimator
+    from train.estimator.network import GazeEstimatorConfig, GazeEstimatorTrainConfig, train_gaze_estimator
+    from train.model.codec import AutoencoderConfig, train_autoencoder
 
     g = torch.Generator().manual_seed(0)
     images = (torch.rand(16, 3, 32, 32, generator=g) * 255).to(torch.uint8)
@@ -97,7 +97,7 @@ def test_tiny_pipeline_runs_on_cuda(tmp_path):
     pytest.importorskip("open3d")  # the geometry stage's mesh distances
     from train import run
     from train.data.dataset import GazeDataset
-    from train.evaluate import model_gaze_sweep
+    from train.evaluation.protocol import model_gaze_sweep
 
     assert run.main(["--preset", "tiny", "--run-dir", str(tmp_path), "device=cuda"]) == 0
     m = json.loads((tmp_path / "metrics.json").read_text())["metrics"]

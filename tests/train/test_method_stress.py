@@ -9,12 +9,12 @@ import pytest
 import torch
 
 from tests.train.threads import single_thread  # noqa: F401  (autouse)
-from train.baseline_renderer import BaselineConfig, BaselineRenderer
-from train.codec import AutoencoderConfig, KLAutoencoder, PixelCodec, train_autoencoder
-from train.diffusion import DiffusionConfig, GaussianDiffusion
-from train.dit import make_dit
-from train.gaze_sampler import GazeSampler, GazeSamplerConfig
-from train.renderer import DiTRenderer
+from train.model.baseline_renderer import BaselineConfig, BaselineRenderer
+from train.model.codec import AutoencoderConfig, KLAutoencoder, PixelCodec, train_autoencoder
+from train.model.diffusion import DiffusionConfig, GaussianDiffusion
+from train.model.dit import make_dit
+from train.model.renderer import DiTRenderer
+from train.training.gaze_sampler import GazeSampler, GazeSamplerConfig
 
 AE = AutoencoderConfig(downsample=4, base_channels=8, max_channels=16)
 

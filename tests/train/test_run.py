@@ -124,7 +124,7 @@ def test_the_reports_ablation_command_runs(tiny_run, tmp_path):
     n_split = 18  # tiny preset: one training subject x one frame x 18 rig cameras
     extra = 1 * 2 * 2  # synthetic_subjects x synthetic_frames x cameras_per_frame
     assert est["loss"]["train_images"] == est["eval"]["train_images"] == n_split + extra
-    from train.gaze_estimator import GazeEstimator
+    from train.estimator.network import GazeEstimator
 
     assert GazeEstimator.load(tiny_run / "estimator_eval.safetensors").config.eyes
 
@@ -193,7 +193,7 @@ def test_eval_in_two_processes_equals_one_process(tiny_run, tmp_path, monkeypatc
         torch.set_num_threads(1)
     assert any("2 test subjects in 2 processes at once, 1 thread(s) each" in s for s in lines)
     got = json.loads((d / "metrics.json").read_text())
-    from train.evaluate import summarize_evaluation
+    from train.evaluation.protocol import summarize_evaluation
 
     raw = run._eval_subjects(config=ctx.config, run_dir=d, outputs=dict(ctx.outputs), files=[src, twin], threads=1)
     want = summarize_evaluation(raw, own_gaze_row=True, log=lambda m: None)
@@ -266,7 +266,7 @@ def test_eval_gaze_term_fits_with_the_loss_estimator(tiny_run, tmp_path, capsys,
     one's), the metric still reads the evaluation estimator, and the report names the term."""
     from safetensors.torch import load_file
 
-    import train.evaluate as ev
+    import train.evaluation.protocol as ev
 
     d = tmp_path / "run"
     shutil.copytree(tiny_run, d)
@@ -491,7 +491,7 @@ def test_a_resume_under_another_config_is_refused(tiny_run, tmp_path):
 
 @pytest.mark.parametrize("average", [[], ["gaussian.ema_decay=0.75"]], ids=["last", "ema"])
 def test_resumed_gaussian_stage_reproduces_uninterrupted(tiny_run, tmp_path, average):
-    from train.checkpoint import CheckpointManager
+    from train.training.checkpoint import CheckpointManager
 
     full = tmp_path / "full"
     shutil.copytree(tiny_run, full)
@@ -575,7 +575,7 @@ def test_feature_upscale_sets_the_splat_size(tiny_run, tmp_path, renderer, upsca
 
 
 def test_pixel_space_dit_runs_without_a_codec(tiny_run, tmp_path):
-    from train.codec import PixelCodec
+    from train.model.codec import PixelCodec
 
     d = tmp_path / "pixel"
     shutil.copytree(tiny_run, d)
@@ -592,8 +592,8 @@ def test_pixel_space_dit_runs_without_a_codec(tiny_run, tmp_path):
 
 
 def test_demo_preset_renders_in_pixel_space_at_its_resolution():
-    from train.codec import PixelCodec
-    from train.renderer import make_renderer
+    from train.model.codec import PixelCodec
+    from train.model.renderer import make_renderer
     from train.run_config import RunConfig, preset
 
     cfg = preset("demo")
@@ -601,7 +601,7 @@ def test_demo_preset_renders_in_pixel_space_at_its_resolution():
     assert (cfg.codec.kind, g.dit_model, cfg.estimator.steps) == ("pixel", "DiT-Gaze-pixel", 1200)
     assert (g.steps, cfg.eval.tta_steps) == (240, 30)  # session 19: sized for the slowest 2-core machine seen
     # Session 22: the natural fit (the gaze term only turns the eyes), and the Gaussian stage at twice the rates.
-    from train.evaluate import NATURAL_EYES_FIT
+    from train.evaluation.protocol import NATURAL_EYES_FIT
 
     assert (cfg.eval.tta_weights, cfg.eval.tta_gaze_weight, cfg.eval.tta_gaze_reach, cfg.eval.tta_gaze_terms,
             cfg.eval.tta_gaze_every) == tuple(NATURAL_EYES_FIT[k] for k in ("weights", "gaze_weight", "reach",
@@ -695,11 +695,11 @@ def test_data_stage_gives_the_held_out_subjects_their_frames(tmp_path):
 
 
 def test_config_and_report_know_every_fitting_group():
-    """The config's allowed ``eval.tta_weights``, the report's wording and ``train.evaluate``'s groups are three
+    """The config's allowed ``eval.tta_weights``, the report's wording and ``train.evaluation.protocol``'s groups are three
     listings of one set: a group added to one must be added to all."""
     import typing
 
-    from train.evaluate import TTA_WEIGHT_GROUPS
+    from train.evaluation.protocol import TTA_WEIGHT_GROUPS
     from train.run_config import EvalConfig
 
     (allowed, _) = typing.get_args(typing.get_type_hints(EvalConfig)["tta_weights"])
@@ -794,7 +794,7 @@ def test_a_stage_rerun_continues_the_runs_config_and_a_refused_run_leaves_it_alo
 def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
     from dataclasses import replace
 
-    from train.evaluate import NATURAL_EYES_FIT
+    from train.evaluation.protocol import NATURAL_EYES_FIT
     from train.run import _labels_note
     from train.run_config import EvalConfig, RunConfig
 

@@ -1,0 +1,2 @@
+"""train.estimator: the gaze estimator — a compact CNN (no torchvision), its crops, augmentation and training,
+and drawn 2D faces for cheap labelled images."""

@@ -1,0 +1,514 @@
+"""The two-stream Gaussian model of DiT-Gaze (GazeGaussian's, with its eye-rotation bugs fixed).
+
+Face stream: canonical face Gaussians (part 0) deformed by :class:`train.model.fields.FaceDeformationField`
+(expression code τ [B, 144] and head pose γ [B, 6]), blended per Gaussian by
+``λτ = clamp((far − d) / (far − near), 0, 1)``, ``λγ = 1 − λτ`` where d is the distance from the canonical
+Gaussian to the nearest 3D landmark; ``near`` / ``far`` are given in **metres** and converted with the scene's
+``metadata["units"]`` (m, cm or mm).
+
+Eye stream: canonical eye Gaussians (parts 1 and 2, isotropic: one log-scale each) rotated rigidly per eye
+by :class:`train.model.fields.EyeRotationField` about **that eye's own eyeball centre** from
+``scene.metadata["eyes"]`` (``toolkit.eyes.eyeball_info``); left and right eyes use their own Gaussians and
+centres. Gaze φ [B, 2] is (pitch, yaw) in the head frame. Their features are shared by every identity, or,
+with ``eye_appearance``, shifted per code by :class:`train.model.fields.EyeAppearanceField`; with ``eyeball_colours``
+their RGB channels come from a parametric pupil / iris / sclera (:class:`train.model.fields.EyeballColours`).
+
+Then the rigid head transform ``x_world = R(γ[:3]) x + γ[3:]`` (γ[:3] axis-angle radians, γ[3:] translation in
+scene units), optional per-image camera offsets, and splatting with ``render.splat.rasterize`` into
+``feature_dim``-channel maps (default 32) at ``render_scale`` (default 1/4) of the output size, for the whole
+head, the face only and the eyes only. Channels 0..2 are also an RGB image (white background; the other
+channels have background 0).
+
+Skipping work: the face stream's output is cached on its inputs (effective code, pose, parameter versions,
+grad/autocast mode), so changing only the gaze reuses it; renders not listed in ``renders`` are not made.
+Under grad mode a cache hit shares the autograd graph of the first call: sum the losses and call backward
+once per step (the cache is invalidated automatically when the optimizer updates the parameters).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Callable, Sequence
+
+import torch
+import torch.nn as nn
+
+from toolkit.cameras import resize_intrinsics
+from toolkit.errors import ToolkitError
+from toolkit.eyes import EYE_PARTS, eyeball_info
+from toolkit.rotations import matrix_to_quat, normalize_quat, quat_multiply, so3_exp
+from toolkit.scene import PART_FACE, GaussianScene
+from train.model.fields import EyeAppearanceField, EyeballColours, EyeRotationField, FaceDeformationField
+
+UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
+RENDERS = ("head", "face", "eyes")
+CHECKPOINT_KIND = "ditgaze.gaussian_model"
+
+
+@dataclass
+class GaussianModelConfig:
+    """Two-stream Gaussian model configuration (all MLP first layers share ``hidden`` for the orthogonality loss)."""
+
+    feature_dim: int = 32
+    """channels of the splatted feature maps; the first three are RGB."""
+    code_dim: int = 144
+    """expression + identity code τ."""
+    pose_dim: int = 6
+    """head pose γ: axis-angle (3, radians) + translation (3, scene units)."""
+    hidden: int = 128
+    depth: int = 3
+    pos_freqs: int = 4
+    pose_freqs: int = 4
+    gaze_freqs: int = 4
+    near_m: float = 0.02
+    """distance to the nearest landmark (metres) below which λτ = 1."""
+    far_m: float = 0.05
+    """distance (metres) above which λτ = 0 (the pose MLP alone deforms)."""
+    max_offset: float = 0.1
+    """largest Δposition per axis, as a fraction of the head radius."""
+    max_log_scale_delta: float = 1.0
+    max_opacity_delta: float = 4.0
+    max_feature_delta: float = 1.0
+    max_eye_residual: float = 0.35
+    """bound (radians per axis-angle component) of the learned residual eye rotation."""
+    eyes_follow_face: bool = False
+    """translate each eyeball (its Gaussians and its rotation centre) by the face field's displacement of its
+    socket: the softmax(-d² / 2σ²)-weighted mean Δposition of the face Gaussians at canonical distance d from
+    the eye centre (σ = ``socket_sigma_m``). The canonical eyes sit where the geometry subject's eyes were;
+    with this the eyes of another identity move with the lids and sockets the code puts on its face, and a
+    fit of the face region alone (eyes masked out) still places them."""
+    socket_sigma_m: float = 0.01
+    eye_appearance: bool = False
+    """give the eye Gaussians per-identity features: :class:`train.model.fields.EyeAppearanceField` adds a bounded
+    (``max_feature_delta``) code-conditioned delta to their shared features, so a new face's code can carry its
+    iris colour; off, every identity gets the same eyes."""
+    eyeball_colours: bool = False
+    """the eye Gaussians' RGB channels (0..2) from :class:`train.model.fields.EyeballColours`, a pupil, an iris and a
+    sclera by each Gaussian's polar angle from its eye's canonical optical axis (-z), instead of a free colour
+    per Gaussian; their other channels stay free. Excludes ``eye_appearance`` (both would set the eye colours)."""
+    render_scale: float = 0.25
+    num_images: int = 0
+    """> 0 adds per-training-image learnable codes and camera offsets (auto-decoder)."""
+    cache_face: bool = True
+
+
+class GaussianModel(nn.Module):
+    """Two-stream Gaussian head. Build with :meth:`from_scene`; call :meth:`forward` to render feature maps."""
+
+    def __init__(self, config: GaussianModelConfig, face: dict[str, torch.Tensor], eyes: dict[str, torch.Tensor],
+                 eye_centers: torch.Tensor, landmarks: torch.Tensor, units_per_metre: float = 1.0,
+                 rasterizer: Callable | None = None):
+        super().__init__()
+        cfg = self.config = config
+        if cfg.near_m < 0 or cfg.far_m <= cfg.near_m:
+            raise ToolkitError(f"GaussianModelConfig: need 0 <= near_m < far_m, got near_m={cfg.near_m}, far_m={cfg.far_m}")
+        if not 0 < cfg.render_scale <= 1:
+            raise ToolkitError(f"GaussianModelConfig.render_scale: expected (0, 1], got {cfg.render_scale}")
+        self.face_means = nn.Parameter(face["means"].float().clone())
+        self.face_quats = nn.Parameter(face["quats"].float().clone())
+        self.face_log_scales = nn.Parameter(face["log_scales"].float().clone())
+        self.face_opacity_logits = nn.Parameter(face["opacity_logits"].float().clone())
+        self.face_features = nn.Parameter(face["features"].float().clone())
+        self.eye_means = nn.Parameter(eyes["means"].float().clone())
+        self.eye_log_scales = nn.Parameter(eyes["log_scales"].float().clone())  # [Ne] isotropic
+        self.eye_opacity_logits = nn.Parameter(eyes["opacity_logits"].float().clone())
+        self.eye_features = nn.Parameter(eyes["features"].float().clone())
+        self.register_buffer("eye_side", eyes["side"].long().clone())  # [Ne] 0 = left eye, 1 = right eye
+        self.register_buffer("eye_centers", eye_centers.float().clone())  # [2, 3]
+        self.register_buffer("landmarks", landmarks.float().clone())  # [L, 3]
+        all_means = torch.cat([face["means"], eyes["means"]]).float()
+        center = all_means.mean(0)
+        self.register_buffer("norm_center", center)
+        self.register_buffer("norm_scale", (all_means - center).norm(dim=-1).max().clamp_min(1e-6))
+        self.units_per_metre = float(units_per_metre)
+        if cfg.socket_sigma_m <= 0:
+            raise ToolkitError(f"GaussianModelConfig.socket_sigma_m: expected > 0 metres, got {cfg.socket_sigma_m}")
+        d2 = torch.cdist(eye_centers.float(), face["means"].float()).square()  # [2, Nf]
+        sigma = cfg.socket_sigma_m * self.units_per_metre
+        # softmax: well defined however far the nearest face Gaussian is (no empty neighbourhood).
+        self.register_buffer("socket_weights", torch.softmax(-d2 / (2 * sigma ** 2), dim=-1))
+        self.face_field = FaceDeformationField(cfg.feature_dim, cfg.code_dim, cfg.pose_dim, cfg.hidden, cfg.depth,
+                                               cfg.pos_freqs, cfg.pose_freqs)
+        self.eye_field = EyeRotationField(cfg.code_dim, cfg.hidden, cfg.depth, cfg.gaze_freqs, cfg.max_eye_residual)
+        if cfg.eye_appearance:
+            self.eye_appearance = EyeAppearanceField(cfg.feature_dim, cfg.code_dim, cfg.hidden, cfg.depth,
+                                                     cfg.pos_freqs)
+            # Each eye's largest Gaussian distance from its centre at construction (the front cap reaches the
+            # eyeball's radius): the field's positions are in these units.
+            r = (eyes["means"].float() - eye_centers.float()[eyes["side"].long()]).norm(dim=-1)
+            radius = torch.stack([r[eyes["side"] == k].max() if bool((eyes["side"] == k).any()) else r.new_tensor(1.0)
+                                  for k in (0, 1)])
+            self.register_buffer("eye_radius", radius.clamp_min(1e-6))
+        else:
+            self.eye_appearance = None
+        if cfg.eyeball_colours and cfg.eye_appearance:
+            raise ToolkitError("GaussianModelConfig: eyeball_colours and eye_appearance both set the eye Gaussians' "
+                               "colours; enable one of them")
+        self.eyeball_colours = EyeballColours() if cfg.eyeball_colours else None
+        if cfg.num_images > 0:
+            self.image_codes = nn.Embedding(cfg.num_images, cfg.code_dim)
+            self.camera_offsets = nn.Embedding(cfg.num_images, 6)
+            nn.init.zeros_(self.image_codes.weight)
+            nn.init.zeros_(self.camera_offsets.weight)
+        else:
+            self.image_codes = self.camera_offsets = None
+        self._rasterizer = rasterizer
+        self._face_cache: tuple | None = None
+        self.cache_hits = 0
+        self.cache_misses = 0
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_scene(cls, scene: GaussianScene, config: GaussianModelConfig | None = None,
+                   landmarks: torch.Tensor | None = None, rasterizer: Callable | None = None) -> "GaussianModel":
+        """Initialize from a GaussianScene with part labels and eyeball centres (``metadata["eyes"]``).
+
+        Features are lifted to ``config.feature_dim``: the scene's first min(D, feature_dim) channels are
+        copied (RGB scenes fill channels 0..2), the rest start at 0. Landmarks [L, 3] come from the argument,
+        else ``scene.metadata["landmarks"]``, else the two eyeball centres (then only the eye region is
+        expression-driven; pass landmarks for brows/mouth).
+        """
+        cfg = config or GaussianModelConfig()
+        scene = scene.detach().to("cpu")
+        scene.validate()
+        units = scene.metadata.get("units", "m")
+        if units not in UNITS_PER_METRE:
+            raise ToolkitError(f"scene.metadata['units']: expected one of {sorted(UNITS_PER_METRE)}, got {units!r}")
+        face_mask = scene.part == PART_FACE
+        if not bool(face_mask.any()):
+            raise ToolkitError("scene: has no face Gaussians (part 0); the face stream needs some")
+        info = eyeball_info(scene)
+        missing = [n for n in EYE_PARTS if n not in info]
+        if missing:
+            raise ToolkitError(f"scene: has no Gaussians for eye(s) {missing} (parts 1 = left, 2 = right)")
+
+        def lift(f: torch.Tensor) -> torch.Tensor:
+            out = torch.zeros(f.shape[0], cfg.feature_dim, dtype=torch.float32)
+            k = min(f.shape[1], cfg.feature_dim)
+            out[:, :k] = f[:, :k]
+            return out
+
+        face = {"means": scene.means[face_mask], "quats": normalize_quat(scene.quats[face_mask]),
+                "log_scales": scene.log_scales[face_mask], "opacity_logits": scene.opacity_logits[face_mask],
+                "features": lift(scene.features[face_mask])}
+        eye_mask = ~face_mask
+        eye_part = scene.part[eye_mask].long()
+        eyes = {"means": scene.means[eye_mask], "log_scales": scene.log_scales[eye_mask].mean(-1),
+                "opacity_logits": scene.opacity_logits[eye_mask], "features": lift(scene.features[eye_mask]),
+                "side": (eye_part == EYE_PARTS["right"]).long()}
+        centers = torch.stack([info["left"]["center"], info["right"]["center"]]).float()
+        if landmarks is None and "landmarks" in scene.metadata:
+            landmarks = torch.tensor(scene.metadata["landmarks"], dtype=torch.float32)
+        if landmarks is None:
+            landmarks = centers
+        landmarks = torch.as_tensor(landmarks, dtype=torch.float32)
+        if landmarks.dim() != 2 or landmarks.shape[1] != 3 or landmarks.shape[0] < 1:
+            raise ToolkitError(f"landmarks: expected shape [L, 3], got {list(landmarks.shape)}")
+        return cls(cfg, face, eyes, centers, landmarks, UNITS_PER_METRE[units], rasterizer)
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def num_face(self) -> int:
+        return int(self.face_means.shape[0])
+
+    @property
+    def num_eye(self) -> int:
+        return int(self.eye_means.shape[0])
+
+    def orthogonality_layers(self) -> tuple[nn.Linear, nn.Linear, nn.Linear]:
+        """(gaze MLP first layer, pose MLP first layer, expression MLP first layer) for ``OrthogonalityLoss``."""
+        return self.eye_field.mlp.first, self.face_field.pose_mlp.first, self.face_field.expr_mlp.first
+
+    def expression_weights(self) -> torch.Tensor:
+        """[Nf] λτ of each face Gaussian from its canonical distance to the nearest landmark."""
+        with torch.no_grad():
+            d = torch.cdist(self.face_means.detach().float(), self.landmarks).min(1).values / self.units_per_metre
+            return ((self.config.far_m - d) / (self.config.far_m - self.config.near_m)).clamp(0, 1)
+
+    def effective_code(self, code: torch.Tensor, image_index: torch.Tensor | None) -> torch.Tensor:
+        if image_index is None:
+            return code
+        if self.image_codes is None:
+            raise ToolkitError("image_index given but the model has no per-image codes (config.num_images = 0)")
+        return code + self.image_codes(image_index.long())
+
+    def clear_cache(self) -> None:
+        self._face_cache = None
+
+    def _check_inputs(self, code, pose, gaze=None) -> None:
+        cfg = self.config
+        if code.dim() != 2 or code.shape[1] != cfg.code_dim:
+            raise ToolkitError(f"code: expected [B, {cfg.code_dim}], got {list(code.shape)}")
+        B = code.shape[0]
+        if pose.shape != (B, cfg.pose_dim):
+            raise ToolkitError(f"pose: expected [B={B}, {cfg.pose_dim}], got {list(pose.shape)}")
+        if gaze is not None and gaze.shape != (B, 2):
+            raise ToolkitError(f"gaze: expected [B={B}, 2] (pitch, yaw), got {list(gaze.shape)}")
+
+    # ------------------------------------------------------------------ streams
+    def _face_params(self) -> list[torch.Tensor]:
+        ps = [self.face_means, self.face_quats, self.face_log_scales, self.face_opacity_logits, self.face_features]
+        ps += list(self.face_field.parameters())
+        if self.image_codes is not None:
+            ps.append(self.image_codes.weight)
+        return ps
+
+    def face_stream(self, code: torch.Tensor, pose: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Deformed face Gaussians in the head frame (before the rigid head transform), cached on the inputs.
+
+        code [B, C] (effective), pose [B, 6] -> {"means" [B, Nf, 3], "quats" [B, Nf, 4], "scales" [B, Nf, 3],
+        "opacities" [B, Nf], "features" [B, Nf, D]}.
+        """
+        cfg = self.config
+        key = (tuple(p._version for p in self._face_params()), torch.is_grad_enabled(),
+               torch.is_autocast_enabled("cpu"), torch.get_autocast_dtype("cpu"),
+               torch.is_autocast_enabled("cuda") if code.is_cuda else False)
+        if cfg.cache_face and self._face_cache is not None:
+            k, c, p, out = self._face_cache
+            if k == key and c.shape == code.shape and p.shape == pose.shape and c.device == code.device \
+                    and torch.equal(c, code.detach()) and torch.equal(p, pose.detach()):
+                self.cache_hits += 1
+                return out
+        self.cache_misses += 1
+        x_norm = (self.face_means - self.norm_center) / self.norm_scale
+        pose_norm = torch.cat([pose[:, :3] / math.pi, pose[:, 3:] / self.norm_scale], -1)
+        d = self.face_field(x_norm, code, pose_norm, self.expression_weights())
+        d = {k: v.float() for k, v in d.items()}
+        means = self.face_means + cfg.max_offset * self.norm_scale * torch.tanh(d["pos"])
+        dq = torch.cat([torch.ones_like(d["rot"][..., :1]), 0.5 * d["rot"]], -1)
+        quats = quat_multiply(normalize_quat(dq), normalize_quat(self.face_quats).expand_as(dq))
+        scales = torch.exp(self.face_log_scales + cfg.max_log_scale_delta * torch.tanh(d["log_scale"]))
+        opacities = torch.sigmoid(self.face_opacity_logits + cfg.max_opacity_delta * torch.tanh(d["opacity"][..., 0]))
+        features = self.face_features + cfg.max_feature_delta * torch.tanh(d["feature"])
+        out = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features}
+        if cfg.cache_face:
+            self._face_cache = (key, code.detach().clone(), pose.detach().clone(), out)
+        return out
+
+    def socket_shift(self, face: dict[str, torch.Tensor]) -> torch.Tensor:
+        """[B, 2, 3] head-frame displacement of each eye socket (left, right) by the deformed face stream
+        ``face`` (:meth:`face_stream` output): the ``socket_weights``-weighted mean Δposition."""
+        return torch.einsum("en,bnc->bec", self.socket_weights, face["means"] - self.face_means)
+
+    def eye_polar_angles(self) -> torch.Tensor:
+        """[Ne] angle (radians) of each canonical eye Gaussian from its eye's optical axis (-z, the canonical
+        gaze) about that eye's centre; atan2 rather than acos, exact near the axis. Detached: the colours it
+        selects never pull the Gaussians along the eyeball."""
+        d = (self.eye_means.detach() - self.eye_centers[self.eye_side]).float()
+        return torch.atan2(d[:, :2].norm(dim=-1), -d[:, 2])
+
+    def eye_stream(self, code: torch.Tensor, gaze: torch.Tensor, shift: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Eye Gaussians rotated per eye about their own centres, head frame.
+
+        code [B, C], gaze [B, 2], shift [B, 2, 3] or None (a translation per eye, applied after the rotation
+        with the centre: :meth:`socket_shift`) -> {"means" [B, Ne, 3], "quats" [B, Ne, 4], "scales" [B, Ne, 3],
+        "opacities" [B, Ne], "features" [B, Ne, D], "rotations" [B, 2, 3, 3] (left, right)}.
+        """
+        B = code.shape[0]
+        R = self.eye_field(gaze.float(), code)  # [B, 2, 3, 3]
+        Rg = R[:, self.eye_side]  # [B, Ne, 3, 3]: each Gaussian takes its own eye's rotation
+        c = self.eye_centers[self.eye_side]  # [Ne, 3]: ... and its own eye's centre
+        means = torch.einsum("bnij,bnj->bni", Rg, (self.eye_means - c).expand(B, -1, -1)) + c
+        if shift is not None:
+            means = means + shift.to(means.dtype)[:, self.eye_side]
+        quats = matrix_to_quat(R)[:, self.eye_side]  # eye Gaussians are isotropic: canonical rotation = identity
+        ne = self.num_eye
+        scales = torch.exp(self.eye_log_scales)[None, :, None].expand(B, ne, 3)
+        opacities = torch.sigmoid(self.eye_opacity_logits)[None].expand(B, ne)
+        features = self.eye_features[None].expand(B, ne, -1)
+        if self.eye_appearance is not None:
+            # Detached: a colour loss recolours the eyes through the field but never moves their Gaussians.
+            x_eye = (self.eye_means.detach() - c) / self.eye_radius[self.eye_side, None]
+            d = self.eye_appearance(x_eye, self.eye_side, code).float()
+            features = features + self.config.max_feature_delta * torch.tanh(d)
+        if self.eyeball_colours is not None:
+            rgb = self.eyeball_colours(self.eye_polar_angles()).to(features.dtype)
+            features = torch.cat([rgb[None].expand(B, -1, -1), features[..., 3:]], -1)
+        return {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
+                "rotations": R}
+
+    def gaussians(self, code: torch.Tensor, pose: torch.Tensor, gaze: torch.Tensor,
+                  image_index: torch.Tensor | None = None) -> dict[str, dict[str, torch.Tensor]]:
+        """Both streams after the rigid head transform (world frame): {"face": {...}, "eyes": {...}}."""
+        self._check_inputs(code, pose, gaze)
+        code = self.effective_code(code, image_index)
+        face = self.face_stream(code, pose)
+        return {"face": self._posed(face, pose), "eyes": self._posed(self._eyes(code, gaze, face), pose)}
+
+    def _eyes(self, code: torch.Tensor, gaze: torch.Tensor, face: dict[str, torch.Tensor] | None) -> dict[str, torch.Tensor]:
+        """The eye stream, moved with the sockets of ``face`` when ``config.eyes_follow_face``."""
+        if not self.config.eyes_follow_face:
+            return self.eye_stream(code, gaze)
+        return self.eye_stream(code, gaze, self.socket_shift(face))
+
+    # ------------------------------------------------------------------ rendering
+    def _rasterize(self):
+        if self._rasterizer is None:
+            from render.splat import rasterize
+
+            self._rasterizer = rasterize
+        return self._rasterizer
+
+    def camera_viewmats(self, viewmats: torch.Tensor, image_index: torch.Tensor | None) -> torch.Tensor:
+        """[B, 4, 4] world-to-camera with the per-image learnable offsets applied (viewmat · T(offset))."""
+        if image_index is None or self.camera_offsets is None:
+            return viewmats
+        off = self.camera_offsets(image_index.long())  # [B, 6] axis-angle + translation
+        T = torch.eye(4, dtype=viewmats.dtype, device=viewmats.device).repeat(off.shape[0], 1, 1)
+        T[:, :3, :3] = so3_exp(off[:, :3])
+        T[:, :3, 3] = off[:, 3:]
+        return viewmats @ T
+
+    def forward(self, code: torch.Tensor, pose: torch.Tensor, gaze: torch.Tensor, viewmats: torch.Tensor,
+                Ks: torch.Tensor, width: int, height: int, *, image_index: torch.Tensor | None = None,
+                renders: Sequence[str] = RENDERS) -> dict[str, torch.Tensor]:
+        """Render feature maps.
+
+        Args:
+            code [B, 144] τ; pose [B, 6] γ; gaze [B, 2] head-frame (pitch, yaw) radians;
+            viewmats [B, 4, 4] world-to-camera; Ks [B, 3, 3] for the **output** size ``width`` × ``height``;
+            image_index [B] long (auto-decoder codes/offsets) or None; renders: subset of ("head", "face", "eyes").
+        Returns:
+            for each requested name r: ``r`` [B, D, h, w] feature map and ``r + "_alpha"`` [B, 1, h, w], where
+            h, w = round(render_scale · height), round(render_scale · width); plus "rgb" [B, 3, h, w] =
+            head[:, :3] when "head" is rendered.
+        """
+        bad = [r for r in renders if r not in RENDERS]
+        if bad:
+            raise ToolkitError(f"renders: unknown name(s) {bad}; expected a subset of {list(RENDERS)}")
+        B = code.shape[0]
+        if viewmats.shape != (B, 4, 4) or Ks.shape != (B, 3, 3):
+            raise ToolkitError(f"viewmats/Ks: expected [B={B}, 4, 4] and [B, 3, 3], got {list(viewmats.shape)} and {list(Ks.shape)}")
+        w = max(1, round(width * self.config.render_scale))
+        h = max(1, round(height * self.config.render_scale))
+        Ks_r = resize_intrinsics(Ks.float(), width, height, w, h)
+        vm = self.camera_viewmats(viewmats.float(), image_index)
+        need_face = any(r in renders for r in ("head", "face"))
+        need_eyes = any(r in renders for r in ("head", "eyes"))
+        if not (need_face or need_eyes):
+            return {}
+        self._check_inputs(code, pose, gaze)
+        ce = self.effective_code(code, image_index)
+        # Evaluate only the streams some requested render needs.
+        g = {}
+        # Eyes that follow the face need the face stream (cached) even for an eyes-only render.
+        face = self.face_stream(ce, pose) if need_face or self.config.eyes_follow_face else None
+        if need_face:
+            g["face"] = self._posed(face, pose)
+        if need_eyes:
+            g["eyes"] = self._posed(self._eyes(ce, gaze, face), pose)
+        bg = torch.zeros(self.config.feature_dim, device=vm.device)
+        bg[:3] = 1.0
+        out: dict[str, torch.Tensor] = {}
+        for r in renders:
+            parts = [g["face"], g["eyes"]] if r == "head" else [g[r]]
+            # Sample b's posed Gaussians go to camera b: the whole batch is one rasterize call (one tile sweep).
+            cat = {k: torch.cat([p[k].float() for p in parts], 1) for k in ("means", "quats", "scales", "opacities",
+                                                                             "features")}
+            # Splatting runs in float32 even under autocast: depth sorting, conics and transmittance
+            # products lose too much in bf16, and the splatter's kernels expect one dtype.
+            with torch.autocast(device_type=vm.device.type, enabled=False):
+                img, alpha, _ = self._rasterize()(cat["means"], cat["quats"], cat["scales"], cat["opacities"],
+                                                  cat["features"], vm, Ks_r, w, h, backgrounds=bg)
+            out[r] = img.permute(0, 3, 1, 2)
+            out[r + "_alpha"] = alpha.permute(0, 3, 1, 2)
+        if "head" in out:
+            out["rgb"] = out["head"][:, :3]
+        return out
+
+    def _posed(self, s: dict[str, torch.Tensor], pose: torch.Tensor) -> dict[str, torch.Tensor]:
+        Rh = so3_exp(pose[:, :3].float())
+        out = dict(s)
+        out["means"] = torch.einsum("bij,bnj->bni", Rh, s["means"]) + pose[:, None, 3:].float()
+        out["quats"] = quat_multiply(matrix_to_quat(Rh)[:, None].expand_as(s["quats"]), s["quats"])
+        return out
+
+    # ------------------------------------------------------------------ storage
+    def save(self, path, info: dict | None = None) -> None:
+        """Write all parameters and buffers (safetensors) with the config as JSON metadata (atomic)."""
+        from toolkit.io import save_checkpoint
+
+        meta = {"kind": CHECKPOINT_KIND, "version": 1, "config": asdict(self.config),
+                "units_per_metre": self.units_per_metre}
+        meta.update(info or {})
+        save_checkpoint(path, self.state_dict(), meta)
+
+    @classmethod
+    def load(cls, path, device: str | torch.device = "cpu", rasterizer: Callable | None = None) -> "GaussianModel":
+        """Rebuild a model written by :meth:`save`; foreign or incompatible files raise ``ToolkitError``."""
+        from toolkit.io import load_checkpoint
+
+        state, info = load_checkpoint(path)
+        if info.get("kind") != CHECKPOINT_KIND:
+            raise ToolkitError(f"{path}: not a Gaussian model checkpoint (kind={info.get('kind')!r})")
+        raw = info.get("config")
+        if not isinstance(raw, dict) or set(raw) - set(GaussianModelConfig.__dataclass_fields__):
+            raise ToolkitError(f"{path}: missing or unknown Gaussian model config fields")
+        need = ["face_means", "face_quats", "face_log_scales", "face_opacity_logits", "face_features", "eye_means",
+                "eye_log_scales", "eye_opacity_logits", "eye_features", "eye_side", "eye_centers", "landmarks"]
+        missing = [k for k in need if k not in state]
+        if missing:
+            raise ToolkitError(f"{path}: missing tensor(s) {missing}")
+        _check_stored_shapes(path, state)
+        face = {k[5:]: state[k] for k in need[:5]}
+        eyes = {k[4:]: state[k] for k in need[5:9]}
+        eyes["side"] = state["eye_side"]
+        try:
+            model = cls(GaussianModelConfig(**raw), face, eyes, state["eye_centers"], state["landmarks"],
+                        float(info.get("units_per_metre", 1.0)), rasterizer)
+        except (TypeError, ValueError, RuntimeError) as e:  # a config value of the wrong type, say
+            raise ToolkitError(f"{path}: cannot build the model from its config and tensors "
+                               f"({str(e).splitlines()[0][:160]})") from None
+        # Checkpoints written before socket_weights existed: the buffer recomputed from their means.
+        state.setdefault("socket_weights", model.socket_weights)
+        try:
+            model.load_state_dict(state)
+        except RuntimeError as e:
+            raise ToolkitError(f"{path}: tensors do not match the stored config ({str(e).splitlines()[0][:160]})") from None
+        return model.to(device)
+
+    # ------------------------------------------------------------------ export
+    def export_scene(self, code: torch.Tensor, pose: torch.Tensor, gaze: torch.Tensor, index: int = 0) -> GaussianScene:
+        """Sample ``index`` of a batch as a world-frame GaussianScene (neural features, part labels), for previews."""
+        with torch.no_grad():
+            g = self.gaussians(code, pose, gaze)
+        f, e = g["face"], g["eyes"]
+        part = torch.cat([torch.zeros(self.num_face, dtype=torch.int8),
+                          (self.eye_side + 1).to(torch.int8).cpu()])
+        return GaussianScene.from_activated(
+            means=torch.cat([f["means"][index], e["means"][index]]).cpu(),
+            scales=torch.cat([f["scales"][index], e["scales"][index]]).cpu(),
+            opacities=torch.cat([f["opacities"][index], e["opacities"][index]]).cpu(),
+            features=torch.cat([f["features"][index], e["features"][index]]).cpu(),
+            quats=torch.cat([f["quats"][index], e["quats"][index]]).cpu(),
+            part=part,
+            metadata={"units": {v: k for k, v in UNITS_PER_METRE.items()}[self.units_per_metre],
+                      "feature_kind": "neural", "source": "train.model.gaussian_model.GaussianModel.export_scene",
+                      "config": asdict(self.config)},
+        )
+
+
+def _check_stored_shapes(path, state: dict[str, torch.Tensor]) -> None:
+    """The stored Gaussians agree with each other: the face tensors share one count Nf, the eye tensors and
+    ``eye_side`` one count Ne, ``eye_centers`` is [2, 3] and ``landmarks`` [L, 3]."""
+    def rows(keys, trailing):
+        n = None
+        for k, tail in zip(keys, trailing, strict=True):
+            t = state[k]
+            ok = t.dim() == 1 + len(tail) and all(a is None or a == b for a, b in zip(tail, t.shape[1:]))
+            if not ok or (n is not None and t.shape[0] != n):
+                want = "[" + ", ".join(["N"] + ["*" if a is None else str(a) for a in tail]) + "]"
+                raise ToolkitError(f"{path}: tensor '{k}' has shape {list(t.shape)}, expected {want}"
+                                   + (f" with N = {n}" if n is not None else ""))
+            n = t.shape[0]
+
+    rows(["face_means", "face_quats", "face_log_scales", "face_opacity_logits", "face_features"],
+         [(3,), (4,), (3,), (), (None,)])
+    rows(["eye_means", "eye_log_scales", "eye_opacity_logits", "eye_features", "eye_side"],
+         [(3,), (), (), (None,), ()])  # eye Gaussians are isotropic: one log-scale each
+    for k, shape in (("eye_centers", (2, 3)), ("landmarks", (None, 3))):
+        t = state[k]
+        if t.dim() != 2 or any(a is not None and a != b for a, b in zip(shape, t.shape)):
+            raise ToolkitError(f"{path}: tensor '{k}' has shape {list(t.shape)}, expected "
+                               f"[{', '.join('*' if a is None else str(a) for a in shape)}]")

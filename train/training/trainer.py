@@ -1,0 +1,230 @@
+"""Stage ``gaussian``: end-to-end training of the two-stream Gaussian model with the neural renderer.
+
+One step on a batch of training images (all in the input's camera, head pose and codes):
+
+1. splat the head feature map at 1/4 resolution (:class:`train.model.gaussian_model.GaussianModel`);
+2. render it with the DiT (``training_forward``: the decoded x0 estimate at a sampled diffusion time; a
+   share ``onestep_fraction`` of the batch uses t = T−1, the deterministic one-step path used at inference)
+   or with the U-Net baseline;
+3. losses: per-region image loss (L1 + SSIM, white background) on the decoded image, L1 of the splatted
+   RGB channels against the downsampled target, the diffusion loss, the gaze loss (frozen estimator on
+   render vs target), the orthogonality loss on the first layers of the gaze / pose / expression MLPs;
+4. weak supervision: the same inputs with an intermediate gaze φ from the gaze sampler (progressive range),
+   rendered on the one-step path; supervised by the gaze loss against φ (converted to the camera frame of
+   the estimator's labels) and by the image loss on the **face region only** — the eyes are not compared
+   with the source image, which would penalize the redirection itself.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from train.losses import (
+    GazeLoss,
+    ImageLoss,
+    ImageLossConfig,
+    OrthogonalityLoss,
+    gaze_to_camera,
+    head_to_camera_rotation,
+)
+from train.model.gaussian_model import GaussianModel, GaussianModelConfig
+from train.run_config import GaussianStageConfig
+from train.training.gaze_sampler import GazeSampler, GazeSamplerConfig
+
+
+@dataclass
+class TrainBatchData:
+    """The training split held in memory (small enough at demo scale); images in [0, 1], white background."""
+
+    image: torch.Tensor  # [N, 3, R, R]
+    head: torch.Tensor  # [N, 1, R, R] masks in {0, 1}
+    eyes: torch.Tensor
+    code: torch.Tensor  # [N, 144]
+    pose: torch.Tensor  # [N, 6]
+    gaze_head: torch.Tensor  # [N, 2]
+    gaze_cam: torch.Tensor  # [N, 2]
+    head_pose_cam: torch.Tensor  # [N, 2]
+    viewmat: torch.Tensor  # [N, 4, 4]
+    K: torch.Tensor  # [N, 3, 3]
+    landmarks: torch.Tensor  # [N, 68, 2] pixels (eye-patch gaze estimators read them)
+
+    @property
+    def res(self) -> int:
+        return int(self.image.shape[-1])
+
+    def __len__(self) -> int:
+        return int(self.image.shape[0])
+
+    def take(self, idx: torch.Tensor, device: torch.device | str) -> dict[str, torch.Tensor]:
+        return {k: getattr(self, k)[idx].to(device) for k in self.__dataclass_fields__}
+
+    def head_to_camera(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
+        """[B, 3, 3] rotation from the head frame to the camera frame (w2c ∘ pose)."""
+        return head_to_camera_rotation(b["viewmat"], b["pose"])
+
+
+def load_split(files: list[Path], split: str, res: int) -> TrainBatchData:
+    from train.data.dataset import GazeDataset
+
+    ds = GazeDataset(files, split=split, res=res)
+    ds.check_unit_scale("the Gaussian model (its head is posed rigidly)")
+    items = [ds[i] for i in range(len(ds))]
+    st = lambda k: torch.stack([torch.as_tensor(it[k]) for it in items]).float()  # noqa: E731
+    eyes = (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)
+    return TrainBatchData(image=st("image"), head=st("head_mask"), eyes=eyes, code=st("latent_code"),
+                          pose=st("pose"), gaze_head=st("pitchyaw_head"), gaze_cam=st("pitchyaw_cam"),
+                          head_pose_cam=st("face_head_pose"), viewmat=st("viewmat"), K=st("K"),
+                          landmarks=st("landmarks"))
+
+
+def init_rgb(model: GaussianModel, data: TrainBatchData) -> float:
+    """Start the model's RGB channels from the training images (:mod:`train.model.rgb_init`; the images used move
+    to the model's device); returns the fraction of Gaussians some image saw."""
+    from train.model.rgb_init import init_rgb_from_images
+
+    return init_rgb_from_images(model, data.image, data.head, data.code, data.pose, data.gaze_head, data.viewmat,
+                                data.K)
+
+
+def region_masks(b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    eyes = b["eyes"] * b["head"]
+    return {"head": b["head"], "eyes": eyes, "face": (b["head"] - eyes).clamp(0, 1)}
+
+
+class GaussianTrainer:
+    """Holds the model, renderer and losses of the stage; ``step(step, generator)`` is the loop's step_fn."""
+
+    def __init__(self, cfg: GaussianStageConfig, model: GaussianModel, renderer: torch.nn.Module,
+                 estimator: torch.nn.Module, data: TrainBatchData, device: torch.device, total_steps: int,
+                 shard: slice | None = None, seed: int = 0):
+        """``seed`` seeds the intermediate-gaze sampler (the run's seed: each seed draws its own gazes).
+        ``shard`` (torchrun, :func:`train.training.distributed.shard`): this rank's slice of the global batch of
+        ``cfg.batch``. Every random draw is made for the whole global batch and sliced (the samples, the
+        timesteps, the diffusion noise, the sampled gazes), so with the gradients averaged over the ranks a
+        step equals one process's step on the global batch up to float sums (tested)."""
+        self.cfg, self.model, self.renderer, self.data, self.device = cfg, model, renderer, data, device
+        self.total_steps = total_steps
+        self.shard = shard
+        self.image_loss = ImageLoss(ImageLossConfig(lambda_ssim=cfg.lambda_ssim, lambda_perceptual=0.0))
+        self.gaze_loss = GazeLoss(estimator).to(device)
+        self.ortho = OrthogonalityLoss(*model.orthogonality_layers()) if cfg.orthogonality else None
+        self.sampler = GazeSampler(GazeSamplerConfig(mode=cfg.sampler_mode, range_deg=cfg.sampler_range_deg,
+                                                     progressive=True, seed=seed))
+
+    def fast_forward(self, steps: int) -> None:
+        """Replay the sampler's draws of ``steps`` earlier steps so a resumed run sees the same gazes."""
+        for s in range(steps):
+            self.sampler.sample(self.cfg.batch, progress=s / max(1, self.total_steps))
+
+    def _timesteps(self, B: int, g: torch.Generator) -> torch.Tensor | None:
+        diff = getattr(self.renderer, "diffusion", None)
+        if diff is None:
+            return None
+        T = diff.num_timesteps
+        t = torch.randint(0, T, (B,), generator=g)
+        onestep = torch.rand(B, generator=g) < self.cfg.onestep_fraction
+        return torch.where(onestep, torch.full_like(t, T - 1), t).to(self.device)
+
+    def _render(self, b, gaze, target, g, t=None):
+        R = self.data.res
+        maps = self.model(b["code"], b["pose"], gaze, b["viewmat"], b["K"], R, R, renders=("head",))
+        extra = {}
+        if self.shard is not None and getattr(self.renderer, "diffusion", None) is not None:
+            # The global batch's noise, drawn where the renderer would draw it, then this rank's rows.
+            shape = self.renderer.latent_shape(maps["head"])
+            extra["noise"] = torch.randn((self.cfg.batch, *shape[1:]), generator=g)[self.shard].to(self.device)
+        out = self.renderer.training_forward(maps["head"], b["code"], target, gaze=gaze, pose=b["pose"], generator=g,
+                                             t=t, **extra)
+        return maps, out
+
+    def _rows(self, x):
+        """This rank's rows of a global-batch tensor (all of them in one process)."""
+        return x if self.shard is None or x is None else x[self.shard]
+
+    def step(self, step: int, g: torch.Generator) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        idx = torch.randint(0, len(self.data), (cfg.batch,), generator=g)
+        b = self.data.take(self._rows(idx), self.device)
+        B = b["image"].shape[0]
+        masks = region_masks(b)
+        target = b["image"]
+        maps, out = self._render(b, b["gaze_head"], target, g, self._rows(self._timesteps(cfg.batch, g)))
+        img = out.image
+        l_img, _ = self.image_loss(img, target, masks)
+        small = F.interpolate(target, size=maps["rgb"].shape[-2:], mode="area")
+        l_rgb = (maps["rgb"] - small).abs().mean()
+        l_gaze = self.gaze_loss(img, target_image=target, landmarks=b["landmarks"])
+        terms = {"image": l_img, "rgb": l_rgb, "diffusion": out.aux_loss, "gaze": l_gaze}
+        total = l_img + cfg.lambda_rgb * l_rgb + cfg.diffusion_weight * out.aux_loss + cfg.lambda_gaze * l_gaze
+        if self.ortho is not None:
+            l_ortho = self.ortho()
+            terms["ortho"] = l_ortho
+            total = total + cfg.ortho_weight * l_ortho
+        if cfg.weak_supervision:
+            phi = self._rows(self.sampler.sample(cfg.batch, progress=step / max(1, self.total_steps))).to(self.device)
+            t_last = None
+            if getattr(self.renderer, "diffusion", None) is not None:
+                t_last = torch.full((B,), self.renderer.diffusion.num_timesteps - 1, device=self.device)
+            _, out_w = self._render(b, phi, target, g, t_last)
+            l_face, _ = self.image_loss(out_w.image, target, {"face": masks["face"]},
+                                        weights={"head": 0.0, "eyes": 0.0, "face": 1.0})
+            phi_cam = gaze_to_camera(phi, self.data.head_to_camera(b))
+            l_weak_gaze = self.gaze_loss(out_w.image, target_gaze=phi_cam, landmarks=b["landmarks"])
+            terms.update(weak_face=l_face, weak_gaze=l_weak_gaze)
+            total = total + cfg.weak_weight * (l_face + cfg.lambda_gaze * l_weak_gaze)
+        terms["total"] = total
+        return terms
+
+
+def build_model(scene_path: Path, cfg: GaussianStageConfig, device) -> GaussianModel:
+    """The two-stream model from the geometry stage's scene; its ``metadata["landmarks"]`` drive λτ."""
+    from toolkit.scene import GaussianScene
+
+    scene = GaussianScene.load(scene_path)
+    landmarks = scene.metadata.get("landmarks")
+    landmarks = None if landmarks is None else torch.tensor(landmarks, dtype=torch.float32)
+    return GaussianModel.from_scene(scene, model_config(cfg), landmarks=landmarks).to(device)
+
+
+def model_config(cfg: GaussianStageConfig) -> GaussianModelConfig:
+    """The two-stream model's configuration that the stage's options set."""
+    return GaussianModelConfig(hidden=cfg.gaussians_hidden, eyes_follow_face=cfg.eyes_follow_face,
+                               eye_appearance=cfg.eye_appearance, eyeball_colours=cfg.eyeball_colours,
+                               render_scale=1.0 / cfg.feature_upscale)
+
+
+CANONICAL_MEANS = ("face_means", "eye_means")
+
+
+def optimizer_groups(model: GaussianModel, renderer: torch.nn.Module, cfg: GaussianStageConfig) -> list[dict]:
+    """Adam parameter groups: the canonical Gaussian centres at ``cfg.means_lr`` × the head radius
+    (``model.norm_scale``), every other model weight at ``cfg.lr``, the renderer at ``cfg.renderer_lr``.
+
+    Why the centres get their own rate: Adam moves every weight by about its learning rate per step whatever
+    the gradient's size, and the centres are in scene units (metres). At ``cfg.lr`` = 2e-3 a centre can walk
+    2 mm per step -- 64 cm over the demo's 320 steps -- and noisy gradients through the renderer scatter the
+    head into floaters. 3D Gaussian Splatting likewise trains positions at 1.6e-4 × the scene extent."""
+    centres = [p for n, p in model.named_parameters() if n in CANONICAL_MEANS and p.requires_grad]
+    others = [p for n, p in model.named_parameters() if n not in CANONICAL_MEANS and p.requires_grad]
+    groups = [{"params": others, "lr": cfg.lr},
+              {"params": [p for p in renderer.parameters() if p.requires_grad], "lr": cfg.renderer_lr},
+              {"params": centres, "lr": cfg.means_lr * float(model.norm_scale)}]
+    return [g for g in groups if g["params"]]
+
+
+def lr_factor(cfg: GaussianStageConfig):
+    """``step -> factor`` of the configured rates (``cfg.lr_schedule``), for :func:`train.training.loop.train_loop`."""
+    if cfg.lr_schedule == "constant":
+        return lambda step: 1.0
+    total = max(1, cfg.steps - 1)
+    return lambda step: cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * min(step, total) / total))
+
+
+def describe(terms: dict[str, Any]) -> str:
+    return ", ".join(f"{k}={float(v):.4g}" for k, v in terms.items())
