@@ -10,6 +10,7 @@ import torch
 
 from toolkit import ToolkitError
 from train import run
+from train.stages.checks import check_config
 
 TINY = ["--preset", "tiny"]
 ROOT = Path(__file__).resolve().parents[2]
@@ -428,12 +429,12 @@ def test_settings_that_fail_together_fail_before_any_work(tmp_path, overrides, m
 def test_an_eye_patch_estimator_ignores_input_size():
     cfg = run.preset("tiny")
     cfg.estimator.crop, cfg.estimator.input_size = "eyes", 8
-    run._check_values(cfg)
+    check_config(cfg)
 
 
 @pytest.mark.parametrize("name", sorted(run.PRESETS))
 def test_every_preset_passes_the_value_checks(name):
-    run._check_values(run.preset(name))
+    check_config(run.preset(name))
 
 
 def test_lids_without_dense_eyes_fail_before_any_work(tmp_path):
