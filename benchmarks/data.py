@@ -30,7 +30,8 @@ from toolkit.cameras import eth_xgaze_rig  # noqa: E402
 from toolkit.errors import run_cli  # noqa: E402
 from train.data.format import write_subject_h5  # noqa: E402
 from train.data.generate import RIG_RADIUS, generate_subject  # noqa: E402
-from train.data.synthetic import SubjectParams, build_subject  # noqa: E402
+from train.data.subject_params import SubjectParams  # noqa: E402
+from train.data.synthetic import build_subject  # noqa: E402
 
 
 def reprojection_error(path: Path) -> float:
