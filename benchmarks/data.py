@@ -1,6 +1,6 @@
 """Synthetic data generation throughput (images/s) at 128² and 512², with the labels' consistency error.
 
-Target (issue 5): 8 subjects × 10 frames × 18 cameras at 128² in under 60 s on a 2-core CPU.
+Target: 8 subjects × 10 frames × 18 cameras at 128² in under 60 s on a 2-core CPU.
 
     .venv/bin/python benchmarks/data.py                  # 8×10 at 128², 2×10 at 512²
     .venv/bin/python benchmarks/data.py --subjects 2     # quicker
