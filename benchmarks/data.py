@@ -1,6 +1,6 @@
 """Synthetic data generation throughput (images/s) at 128² and 512², with the labels' consistency error.
 
-Target (issue 5): 8 subjects × 10 frames × 18 cameras at 128² in under 60 s on a 2-core CPU.
+Target: 8 subjects × 10 frames × 18 cameras at 128² in under 60 s on a 2-core CPU.
 
     .venv/bin/python benchmarks/data.py                  # 8×10 at 128², 2×10 at 512²
     .venv/bin/python benchmarks/data.py --subjects 2     # quicker
@@ -30,7 +30,8 @@ from toolkit.cameras import eth_xgaze_rig  # noqa: E402
 from toolkit.errors import run_cli  # noqa: E402
 from train.data.format import write_subject_h5  # noqa: E402
 from train.data.generate import RIG_RADIUS, generate_subject  # noqa: E402
-from train.data.synthetic import SubjectParams, build_subject  # noqa: E402
+from train.data.subject_params import SubjectParams  # noqa: E402
+from train.data.synthetic import build_subject  # noqa: E402
 
 
 def reprojection_error(path: Path) -> float:

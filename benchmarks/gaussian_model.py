@@ -24,7 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot, timeit  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.procedural import demo_camera, demo_head_scene  # noqa: E402
-from train.model.gaussian_model import GaussianModel, GaussianModelConfig  # noqa: E402
+from train.model.gaussian_config import GaussianModelConfig  # noqa: E402
+from train.model.gaussian_model import GaussianModel  # noqa: E402
 
 
 def _counts(flag: str, text: str, least: int) -> list[int]:

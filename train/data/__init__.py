@@ -1,6 +1,9 @@
 """train.data: the procedural multi-view gaze dataset and the ETH-XGaze-format HDF5 loader.
 
-- ``train.data.synthetic``: procedural subjects (identity + expression -> meshes) rendered with exact labels.
+- ``train.data.synthetic``: procedural subjects (identity + expression -> meshes) rendered with exact labels;
+  their parameters and codes in ``train.data.subject_params``, poses and cameras in ``train.data.poses``, mesh
+  pieces in ``train.data.head_mesh``.
+- ``train.data.generate``: the synthetic dataset (subjects, frames, cameras) written as HDF5 files.
 - ``train.data.format``: the HDF5 schema (GazeGaussian-preprocessed ETH-XGaze keys), writing and validation.
 - ``train.data.dataset``: ``GazeDataset`` (lazy per-sample reads, resize, white compositing, splits).
 - ``train.data.pairing``: evaluation pairs (GazeNeRF protocol; generated targets for synthetic data).

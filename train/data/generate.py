@@ -19,19 +19,15 @@ from toolkit.cameras import Camera, eth_xgaze_rig
 from toolkit.errors import ToolkitError
 from train.data.dataset import held_out_count
 from train.data.format import write_subject_h5
-from train.data.synthetic import (
+from train.data.poses import normalized_camera, pose_matrix, sample_head_pose
+from train.data.subject_params import (
     EXPRESSION_NAMES,
     IDENTITY_NAMES,
-    Subject,
     SubjectParams,
-    build_subject,
     latent_code,
-    normalized_camera,
-    pose_matrix,
-    render_views,
     sample_expression,
-    sample_head_pose,
 )
+from train.data.synthetic import Subject, build_subject, render_views
 
 GAZE_RANGE_DEG = 40.0
 NORM_DISTANCE, NORM_CROP = 0.6, 0.26  # metres: normalized camera distance and face-crop width

@@ -98,7 +98,7 @@ class SyntheticRedirectionPairs(torch.utils.data.Dataset):
     def __init__(self, path: str | os.PathLike, pairs: np.ndarray | None = None, *, res: int | None = None,
                  seed: int = 0):
         from train.data.dataset import GazeDataset
-        from train.data.synthetic import SubjectParams
+        from train.data.subject_params import SubjectParams
 
         self.data = GazeDataset([path], res=res)
         info = self.data.info[0]
@@ -142,7 +142,7 @@ class SyntheticRedirectionPairs(torch.utils.data.Dataset):
         cam = Camera(torch.from_numpy(raw["inmat"].astype(np.float32)), torch.from_numpy(V), W, H)
         expr = raw.get("expression_params")
         if expr is None:
-            from train.data.synthetic import params_from_code
+            from train.data.subject_params import params_from_code
 
             expr = params_from_code(raw["latent_codes"])[1]
         out = render_views(self.subject, target_gaze, raw["pose"], np.clip(expr, [0, -1, -1, 0], [1, 1, 1, 1]), [cam],

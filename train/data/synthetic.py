@@ -11,13 +11,16 @@ Frames (see docs/data.md): the head frame is the toolkit's (metres, x image-righ
 y down, the face looks towards -z, canonical gaze (0, 0, -1)); ``pose`` = axis-angle (3) + translation
 (3) maps head to world: x_world = scale · R(pose[:3]) · x_head + pose[3:]; cameras are world-to-camera
 OpenCV. "Left eye" is the image-left eye (x < 0, iBUG 36-41).
+
+The parameters (identity, expression, latent code) are :mod:`train.data.subject_params`; poses and the
+normalized camera :mod:`train.data.poses`; the mesh pieces (lens warp, eyeball, landmarks)
+:mod:`train.data.head_mesh`.
 """
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -26,8 +29,8 @@ from toolkit.cameras import Camera
 from toolkit.errors import ToolkitError
 from toolkit.eyes import gaze_rotation
 from toolkit.procedural import DemoHeadShape
-from toolkit.rotations import so3_exp, so3_log, vector_to_pitchyaw
-from train.data.head_mesh import (  # noqa: F401  (EYE_* re-exported: the eye_region codes)
+from toolkit.rotations import vector_to_pitchyaw
+from train.data.head_mesh import (
     EYE_IRIS,
     EYE_PUPIL,
     EYE_SCLERA,
@@ -36,151 +39,11 @@ from train.data.head_mesh import (  # noqa: F401  (EYE_* re-exported: the eye_re
     lens_warp,
     smoothstep,
 )
-
-IDENTITY_NAMES = (
-    "head_width", "head_height", "head_depth", "nose_height", "nose_width", "brow_height", "chin_height",
-    "eye_spacing", "eye_size", "eye_height", "iris_size", "lid_height", "skin_lightness", "skin_redness",
-    "iris_blueness", "iris_lightness", "hair_lightness", "hair_redness", "mouth_width", "mouth_height",
-    "lip_redness", "pupil_size",
-)
-"""Identity parameters, each normalized to [-1, 1] (0 = the average subject, close to the demo head)."""
-
-EXPRESSION_NAMES = ("mouth_open", "smile", "brow_raise", "eyelid")
-"""Expression parameters: mouth_open, eyelid in [0, 1]; smile, brow_raise in [-1, 1]; 0 = neutral."""
-
-EXPRESSION_RANGES = ((0.0, 1.0), (-1.0, 1.0), (-1.0, 1.0), (0.0, 1.0))
-ID_CODE_DIM, EXPR_CODE_DIM = 80, 64
-_EMBED_SEED = 20240605  # fixes the latent-code embedding forever: changing it changes every file's codes
+from train.data.poses import pose_matrix
+from train.data.subject_params import EXPRESSION_NAMES, SubjectParams, check_expression
 
 # Parts of the rendered scene (as in toolkit.scene): face 0, left eye 1, right eye 2.
 PART_HEAD, PART_LEFT_EYE, PART_RIGHT_EYE = 0, 1, 2
-
-
-def _orthonormal_embedding(rows: int, cols: int, seed: int) -> np.ndarray:
-    q, _ = np.linalg.qr(np.random.default_rng(seed).standard_normal((rows, cols)))
-    return q.astype(np.float32)  # [rows, cols] with orthonormal columns: code = W p, p = W^T code
-
-
-_W_ID = _orthonormal_embedding(ID_CODE_DIM, len(IDENTITY_NAMES), _EMBED_SEED)
-_W_EXPR = _orthonormal_embedding(EXPR_CODE_DIM, len(EXPRESSION_NAMES), _EMBED_SEED + 1)
-
-
-def latent_code(identity: np.ndarray, expression: np.ndarray) -> np.ndarray:
-    """[..., 22] identity + [..., 4] expression -> [..., 144] code (80 identity dims, then 64 expression).
-
-    A fixed linear map with orthonormal columns, so the parameters are recovered exactly by
-    :func:`params_from_code`.
-    """
-    identity = np.asarray(identity, np.float32)
-    expression = np.asarray(expression, np.float32)
-    return np.concatenate([identity @ _W_ID.T, expression @ _W_EXPR.T], -1)
-
-
-def params_from_code(code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of :func:`latent_code`: [..., 144] -> ([..., 22] identity, [..., 4] expression)."""
-    code = np.asarray(code, np.float32)
-    return code[..., :ID_CODE_DIM] @ _W_ID, code[..., ID_CODE_DIM:] @ _W_EXPR
-
-
-def check_expression(expression, name: str = "expression") -> np.ndarray:
-    e = np.asarray(expression, np.float32)
-    if e.shape[-1:] != (len(EXPRESSION_NAMES),) or not np.isfinite(e).all():
-        raise ToolkitError(f"{name}: expected finite [..., {len(EXPRESSION_NAMES)}] {EXPRESSION_NAMES}, "
-                           f"got shape {list(e.shape)}")
-    for k, (lo, hi) in enumerate(EXPRESSION_RANGES):
-        if (e[..., k] < lo - 1e-6).any() or (e[..., k] > hi + 1e-6).any():
-            raise ToolkitError(f"{name}: {EXPRESSION_NAMES[k]} must lie in [{lo}, {hi}]")
-    return e
-
-
-def sample_expression(rng: np.random.Generator, n: int) -> np.ndarray:
-    """[n, 4] random expressions: half with an open mouth, mostly open eyes."""
-    mouth = rng.uniform(0, 1, n) ** 1.5 * (rng.uniform(0, 1, n) < 0.5)
-    smile = rng.uniform(-0.6, 1.0, n)
-    brow = rng.uniform(-0.8, 0.8, n)
-    lid = rng.uniform(0, 0.5, n)
-    return np.stack([mouth, smile, brow, lid], -1).astype(np.float32)
-
-
-@dataclass(frozen=True)
-class SubjectParams:
-    """A subject's identity: ``identity`` [22] in [-1, 1] (names in IDENTITY_NAMES), and its seed."""
-
-    identity: tuple[float, ...] = tuple(0.0 for _ in IDENTITY_NAMES)
-    seed: int = 0
-
-    def __post_init__(self):
-        u = np.asarray(self.identity, np.float64)
-        if u.shape != (len(IDENTITY_NAMES),) or not np.isfinite(u).all() or np.abs(u).max() > 1 + 1e-6:
-            raise ToolkitError(f"SubjectParams.identity: expected {len(IDENTITY_NAMES)} finite values in [-1, 1]")
-
-    @classmethod
-    def sample(cls, seed: int) -> "SubjectParams":
-        """A random identity, deterministic in ``seed``."""
-        rng = np.random.default_rng([seed, 7])
-        return cls(tuple(float(x) for x in rng.uniform(-1, 1, len(IDENTITY_NAMES))), int(seed))
-
-    def vector(self) -> np.ndarray:
-        return np.asarray(self.identity, np.float32)
-
-    def to_json(self) -> str:
-        return json.dumps({"identity": list(self.identity), "seed": self.seed, "names": list(IDENTITY_NAMES)})
-
-    @classmethod
-    def from_json(cls, text: str) -> "SubjectParams":
-        try:
-            d = json.loads(text)
-            return cls(tuple(float(x) for x in d["identity"]), int(d.get("seed", 0)))
-        except (ValueError, KeyError, TypeError) as e:
-            raise ToolkitError(f"subject params: not a SubjectParams JSON ({e})") from e
-
-    def _u(self, name: str) -> float:
-        return float(self.identity[IDENTITY_NAMES.index(name)])
-
-    def colors(self) -> dict[str, np.ndarray]:
-        """Albedos of skin, hair, lips, iris from the identity."""
-        u = self._u
-        skin = np.array([0.86, 0.66, 0.55]) * (1 + 0.18 * u("skin_lightness")) + np.array([0.04, -0.02, -0.03]) * u(
-            "skin_redness")
-        hair = np.array([0.20, 0.13, 0.08]) * (1 + 0.8 * max(u("hair_lightness"), -0.6)) + np.array(
-            [0.08, 0.02, -0.02]) * u("hair_redness")
-        lips = skin * np.array([0.85, 0.52, 0.52]) * (1 + 0.1 * u("lip_redness"))
-        blue = 0.5 * (u("iris_blueness") + 1)
-        iris = ((1 - blue) * np.array([0.34, 0.21, 0.10]) + blue * np.array([0.25, 0.42, 0.58])) * (
-            1 + 0.35 * u("iris_lightness"))
-        clip = lambda c: np.clip(c, 0.02, 0.98).astype(np.float32)  # noqa: E731
-        return {"skin": clip(skin), "hair": clip(hair), "lips": clip(lips), "iris": clip(iris)}
-
-    def shape(self, expression=None) -> DemoHeadShape:
-        """The analytic head of this identity with ``expression`` [4] (default neutral)."""
-        u = self._u
-        e = np.zeros(len(EXPRESSION_NAMES)) if expression is None else check_expression(expression)
-        base = DemoHeadShape(
-            semi_axes=(0.075 + 0.006 * u("head_width"), 0.10 + 0.008 * u("head_height"),
-                       0.09 + 0.006 * u("head_depth")),
-            eye_offset_x=0.031 + 0.003 * u("eye_spacing"),
-            eye_y=-0.005 + 0.003 * u("eye_height"),
-            eye_radius=0.012 + 0.0007 * u("eye_size"),
-            nose_height=0.024 + 0.007 * u("nose_height"),
-            nose_width=0.09 + 0.02 * u("nose_width"),
-            brow_height=0.006 + 0.003 * u("brow_height"),
-            brow_y=-0.30,
-            chin_height=0.008 + 0.005 * u("chin_height"),
-            skin=tuple(float(x) for x in self.colors()["skin"]),
-            iris=tuple(float(x) for x in self.colors()["iris"]),
-            mouth_width=0.024 + 0.003 * u("mouth_width"),
-            mouth_y=0.062 + 0.004 * u("mouth_height"),
-        )
-        # Seat the eyeballs so their fronts lie 1.5 mm behind the closed skin: hidden unless the lids open.
-        ex, ey = base.eye_offset_x, base.eye_y
-        d = base.dirs_from_base_xy(torch.tensor([[ex, ey]], dtype=torch.float64))
-        z_skin = float(base.surface_points(d)[0, 2])
-        return replace(
-            base,
-            eye_z=z_skin + base.eye_radius + 0.0015,
-            eye_opening=(0.0135 + 0.0012 * u("eye_size"), 0.0052 + 0.0009 * u("lid_height")),
-            mouth_open=float(e[0]), smile=float(e[1]), brow_raise=float(e[2]), eyelid=float(e[3]),
-        )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -348,52 +211,8 @@ def build_subject(params: SubjectParams, *, subdivisions: int = 5) -> Subject:
 
 
 # ----------------------------------------------------------------------------------------------
-# Poses, cameras, rendering
+# Rendering
 # ----------------------------------------------------------------------------------------------
-
-
-def pose_matrix(pose) -> tuple[np.ndarray, np.ndarray]:
-    """[6] axis-angle + translation -> (R [3, 3], t [3]) with x_world = scale · R x_head + t."""
-    pose = np.array(pose, np.float64)  # a writable copy (torch.from_numpy rejects read-only views)
-    R = so3_exp(torch.from_numpy(pose[:3].copy())).numpy()
-    return R, pose[3:6]
-
-
-def sample_head_pose(rng: np.random.Generator, n: int) -> np.ndarray:
-    """[n, 6] random head poses: yaw ±25°, pitch ±15°, roll ±8°, translation ±15 mm."""
-    pyr = rng.uniform(-1, 1, (n, 3)) * np.radians([15.0, 25.0, 8.0])
-    out = np.zeros((n, 6), np.float32)
-    for i, (p, y, r) in enumerate(pyr):
-        R = (so3_exp(torch.tensor([0.0, y, 0.0])) @ so3_exp(torch.tensor([p, 0.0, 0.0]))
-             @ so3_exp(torch.tensor([0.0, 0.0, r])))
-        out[i, :3] = so3_log(R).numpy()
-    out[:, 3:] = rng.uniform(-0.015, 0.015, (n, 3))
-    return out
-
-
-def normalized_camera(rig_camera: Camera, face_center_world: np.ndarray, head_R_world: np.ndarray, res: int,
-                      *, distance: float = 0.6, crop: float = 0.26) -> Camera:
-    """ETH-XGaze-style normalized camera: from the rig camera's centre, aimed at the face centre.
-
-    The camera looks at ``face_center_world`` from ``distance`` metres along the rig camera's ray,
-    with no roll relative to the head (its x axis is perpendicular to the head's x axis' complement,
-    as in the ETH-XGaze normalization: down = forward × head_x), and a focal length such that a
-    ``crop`` metres wide square at the face centre fills the ``res`` × ``res`` image.
-    """
-    C = rig_camera.center.numpy().astype(np.float64)
-    fwd = face_center_world - C
-    fwd /= max(np.linalg.norm(fwd), 1e-12)
-    down = np.cross(fwd, head_R_world[:, 0])
-    down /= max(np.linalg.norm(down), 1e-12)
-    right = np.cross(down, fwd)
-    R = np.stack([right, down, fwd])
-    center = face_center_world - distance * fwd
-    V = np.eye(4)
-    V[:3, :3] = R
-    V[:3, 3] = -R @ center
-    f = res * distance / crop
-    K = np.array([[f, 0, res / 2], [0, f, res / 2], [0, 0, 1]])
-    return Camera(torch.from_numpy(K).float(), torch.from_numpy(V).float(), res, res)
 
 
 _RASTERIZERS: dict = {}
@@ -404,6 +223,15 @@ SUPERSAMPLE = 3
 wide and the iris moves ~0.1 px per degree of gaze, which an aliased render turns into pixel steps (the eye
 estimator's held-out error drops from 6.2° to 4.9° with 3 x 3 samples, same data otherwise), and a splatter's
 smooth edges are compared with smooth targets."""
+
+VIEW_KEYS = ("rgb", "head_mask", "left_eye_mask", "right_eye_mask", "eye_region", "depth", "landmarks_2d",
+             "landmarks_3d", "vertice", "K", "w2c_R", "w2c_T", "pitchyaw_cam", "face_head_pose")
+"""The per-view outputs of :func:`render_views` (it adds the per-row inputs ``pitchyaw_head``, ``pose``,
+``scale`` and ``expression``)."""
+
+_VIEW_DTYPES = {"rgb": np.float32, "depth": np.float32, "landmarks_2d": np.float32, "landmarks_3d": np.float32,
+                "vertice": np.float32, "K": np.float32, "w2c_R": np.float32, "w2c_T": np.float32,
+                "pitchyaw_cam": np.float32, "face_head_pose": np.float32, "eye_region": np.int8}
 
 
 def _rasterizer(width: int, height: int):
@@ -442,7 +270,36 @@ def render_views(subject: Subject, gaze, pose, expression, cameras: list[Camera]
     head vertices; ``K`` [N, 3, 3]; ``w2c_R`` [N, 3, 3]; ``w2c_T`` [N, 3]; ``pitchyaw_head``,
     ``pitchyaw_cam``, ``face_head_pose`` [N, 2]; ``pose`` [N, 6]; ``scale`` [N, 1]; ``expression`` [N, 4].
     """
-    n = len(cameras)
+    gaze, pose, expression, scale, lights = _checked_rows(len(cameras), gaze, pose, expression, scale, light_dirs)
+    W, H = cameras[0].width, cameras[0].height
+    if any((c.width, c.height) != (W, H) for c in cameras):
+        raise ToolkitError("render_views: all cameras must have the same image size")
+    rast = rasterizer or _rasterizer(W, H)
+    rast.resize(W, H)
+    out = {k: [] for k in VIEW_KEYS}
+    key = np.concatenate([gaze, pose, expression, scale] + ([lights] if lights is not None else []), 1)
+    for start, stop in _runs_of_equal_rows(key):
+        posed = _posed_scene(subject, gaze[start], pose[start], expression[start], float(scale[start, 0]))
+        views = np.stack([c.viewmat.numpy() for c in cameras[start:stop]])
+        Ks = np.stack([c.K.numpy() for c in cameras[start:stop]])
+        cam_lights = None if lights is None else np.einsum("cij,j->ci", views[:, :3, :3], lights[start])
+        res = rast.render_views(posed["world"], posed["mesh"]["faces"], views, Ks, colors=posed["mesh"]["colors"],
+                                light_dir=cam_lights, ambient=ambient, smooth=True,
+                                supersample=SUPERSAMPLE if supersample is None else supersample)
+        g_head = _pitchyaw_vec(gaze[start])
+        for c, r in enumerate(res):
+            _append_view(out, r, posed, views[c], Ks[c], g_head, len(subject.head_dirs))
+    result = {k: np.stack(v) for k, v in out.items()}
+    for k, d in _VIEW_DTYPES.items():
+        result[k] = result[k].astype(d)
+    result.update(pitchyaw_head=gaze.astype(np.float32), pose=pose.astype(np.float32),
+                  scale=scale.astype(np.float32), expression=expression.astype(np.float32))
+    return result
+
+
+def _checked_rows(n: int, gaze, pose, expression, scale, light_dirs) -> tuple[np.ndarray, ...]:
+    """The per-row inputs of :func:`render_views` for ``n`` cameras as float64 ``[n, k]`` arrays (one row
+    broadcast to all): gaze [n, 2], pose [n, 6], expression [n, 4], scale [n, 1], lights [n, 3] or None."""
     if n == 0:
         raise ToolkitError("render_views: no cameras given")
 
@@ -463,66 +320,57 @@ def render_views(subject: Subject, gaze, pose, expression, cameras: list[Camera]
     if (scale <= 0).any():
         raise ToolkitError("render_views: scale must be > 0")
     lights = None if light_dirs is None else rows(light_dirs, 3, "light_dirs")
-    W, H = cameras[0].width, cameras[0].height
-    if any((c.width, c.height) != (W, H) for c in cameras):
-        raise ToolkitError("render_views: all cameras must have the same image size")
-    rast = rasterizer or _rasterizer(W, H)
-    rast.resize(W, H)
+    return gaze, pose, expression, scale, lights
 
-    out = {k: [] for k in ("rgb", "head_mask", "left_eye_mask", "right_eye_mask", "eye_region", "depth",
-                           "landmarks_2d", "landmarks_3d", "vertice", "K", "w2c_R", "w2c_T", "pitchyaw_cam",
-                           "face_head_pose")}
-    key = np.concatenate([gaze, pose, expression, scale] + ([lights] if lights is not None else []), 1)
-    start = 0
+
+def _runs_of_equal_rows(key: np.ndarray) -> list[tuple[int, int]]:
+    """``[start, stop)`` of each run of consecutive identical rows of ``key`` [n, k] (one mesh upload each)."""
+    runs, start, n = [], 0, len(key)
     while start < n:
         stop = start + 1
         while stop < n and np.array_equal(key[stop], key[start]):
             stop += 1
-        R, t = pose_matrix(pose[start])
-        s = float(scale[start, 0])
-        mesh = subject.scene_mesh(expression[start], gaze[start])
-        world = (s * mesh["verts"].astype(np.float64) @ R.T + t).astype(np.float32)
-        lm = subject.landmarks(expression[start]).astype(np.float64)
-        lm_w = s * lm @ R.T + t
-        views = np.stack([c.viewmat.numpy() for c in cameras[start:stop]])
-        Ks = np.stack([c.K.numpy() for c in cameras[start:stop]])
-        cam_lights = None if lights is None else np.einsum("cij,j->ci", views[:, :3, :3], lights[start])
-        res = rast.render_views(world, mesh["faces"], views, Ks, colors=mesh["colors"], light_dir=cam_lights,
-                                ambient=ambient, smooth=True,
-                                supersample=SUPERSAMPLE if supersample is None else supersample)
-        g_head = _pitchyaw_vec(gaze[start])
-        for c, r in enumerate(res):
-            Rc, tc = views[c, :3, :3].astype(np.float64), views[c, :3, 3].astype(np.float64)
-            tri = r["tri_id"]
-            part = np.where(tri >= 0, mesh["face_part"][np.clip(tri, 0, None)], -1)
-            out["rgb"].append(r["rgb"])
-            out["head_mask"].append(r["mask"])
-            out["left_eye_mask"].append(part == PART_LEFT_EYE)
-            out["right_eye_mask"].append(part == PART_RIGHT_EYE)
-            out["eye_region"].append(np.where(tri >= 0, mesh["face_eye_region"][np.clip(tri, 0, None)], -1))
-            out["depth"].append(r["depth"])
-            pc = lm_w @ Rc.T + tc
-            K = Ks[c].astype(np.float64)
-            out["landmarks_2d"].append(np.stack([K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 1] * pc[:, 1] / pc[:, 2] + K[0, 2],
-                                                 K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], -1))
-            out["landmarks_3d"].append(lm_w)
-            out["vertice"].append(world[: len(subject.head_dirs)])
-            out["K"].append(K)
-            out["w2c_R"].append(Rc)
-            out["w2c_T"].append(tc)
-            RcR = Rc @ R
-            out["pitchyaw_cam"].append(vector_to_pitchyaw(torch.from_numpy(RcR @ g_head)).numpy())
-            out["face_head_pose"].append(vector_to_pitchyaw(torch.from_numpy(RcR @ np.array([0.0, 0, -1]))).numpy())
+        runs.append((start, stop))
         start = stop
-    result = {k: np.stack(v) for k, v in out.items()}
-    dt = {"rgb": np.float32, "depth": np.float32, "landmarks_2d": np.float32, "landmarks_3d": np.float32,
-          "vertice": np.float32, "K": np.float32, "w2c_R": np.float32, "w2c_T": np.float32,
-          "pitchyaw_cam": np.float32, "face_head_pose": np.float32, "eye_region": np.int8}
-    for k, d in dt.items():
-        result[k] = result[k].astype(d)
-    result.update(pitchyaw_head=gaze.astype(np.float32), pose=pose.astype(np.float32),
-                  scale=scale.astype(np.float32), expression=expression.astype(np.float32))
-    return result
+    return runs
+
+
+def _posed_scene(subject: Subject, gaze: np.ndarray, pose: np.ndarray, expression: np.ndarray, s: float) -> dict:
+    """One row's scene in the world: {"R" [3, 3], "t" [3] (the head pose), "mesh" (:meth:`Subject.scene_mesh`),
+    "world" [V', 3] float32 mesh vertices, "landmarks" [68, 3] float64}."""
+    R, t = pose_matrix(pose)
+    mesh = subject.scene_mesh(expression, gaze)
+    world = (s * mesh["verts"].astype(np.float64) @ R.T + t).astype(np.float32)
+    lm = subject.landmarks(expression).astype(np.float64)
+    return {"R": R, "t": t, "mesh": mesh, "world": world, "landmarks": s * lm @ R.T + t}
+
+
+def _append_view(out: dict[str, list], r: dict, posed: dict, view: np.ndarray, K: np.ndarray, g_head: np.ndarray,
+                 num_head_vertices: int) -> None:
+    """Append one rendered view's images and labels to ``out``: ``r`` is the rasterizer's result, ``view``
+    [4, 4] and ``K`` [3, 3] its camera, ``g_head`` [3] the head-frame gaze vector."""
+    mesh, lm_w, R = posed["mesh"], posed["landmarks"], posed["R"]
+    Rc, tc = view[:3, :3].astype(np.float64), view[:3, 3].astype(np.float64)
+    tri = r["tri_id"]
+    part = np.where(tri >= 0, mesh["face_part"][np.clip(tri, 0, None)], -1)
+    out["rgb"].append(r["rgb"])
+    out["head_mask"].append(r["mask"])
+    out["left_eye_mask"].append(part == PART_LEFT_EYE)
+    out["right_eye_mask"].append(part == PART_RIGHT_EYE)
+    out["eye_region"].append(np.where(tri >= 0, mesh["face_eye_region"][np.clip(tri, 0, None)], -1))
+    out["depth"].append(r["depth"])
+    pc = lm_w @ Rc.T + tc
+    K = K.astype(np.float64)
+    out["landmarks_2d"].append(np.stack([K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 1] * pc[:, 1] / pc[:, 2] + K[0, 2],
+                                         K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], -1))
+    out["landmarks_3d"].append(lm_w)
+    out["vertice"].append(posed["world"][:num_head_vertices])
+    out["K"].append(K)
+    out["w2c_R"].append(Rc)
+    out["w2c_T"].append(tc)
+    RcR = Rc @ R
+    out["pitchyaw_cam"].append(vector_to_pitchyaw(torch.from_numpy(RcR @ g_head)).numpy())
+    out["face_head_pose"].append(vector_to_pitchyaw(torch.from_numpy(RcR @ np.array([0.0, 0, -1]))).numpy())
 
 
 def _pitchyaw_vec(py: np.ndarray) -> np.ndarray:

@@ -25,8 +25,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
-from train.model.dit import saturate_codes
-from train.model.renderer import RenderOutput, check_render_inputs
+from train.model.dit_conditioning import saturate_codes
+from train.model.renderer_interface import RenderOutput, check_render_inputs
 
 
 @dataclass

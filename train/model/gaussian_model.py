@@ -23,12 +23,14 @@ Skipping work: the face stream's output is cached on its inputs (effective code,
 grad/autocast mode), so changing only the gaze reuses it; renders not listed in ``renders`` are not made.
 Under grad mode a cache hit shares the autograd graph of the first call: sum the losses and call backward
 once per step (the cache is invalidated automatically when the optimizer updates the parameters).
+
+The configuration is :class:`train.model.gaussian_config.GaussianModelConfig`; scenes and checkpoint files in
+and out go through :mod:`train.model.gaussian_io`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
 from typing import Callable, Sequence
 
 import torch
@@ -36,61 +38,13 @@ import torch.nn as nn
 
 from toolkit.cameras import resize_intrinsics
 from toolkit.errors import ToolkitError
-from toolkit.eyes import EYE_PARTS, eyeball_info
 from toolkit.rotations import matrix_to_quat, normalize_quat, quat_multiply, so3_exp
-from toolkit.scene import PART_FACE, GaussianScene
+from toolkit.scene import GaussianScene
 from train.model.fields import EyeAppearanceField, EyeballColours, EyeRotationField, FaceDeformationField
+from train.model.gaussian_config import GaussianModelConfig
+from train.model.gaussian_io import checkpoint_metadata, posed_scene, read_checkpoint, streams_from_scene
 
-UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
 RENDERS = ("head", "face", "eyes")
-CHECKPOINT_KIND = "ditgaze.gaussian_model"
-
-
-@dataclass
-class GaussianModelConfig:
-    """Two-stream Gaussian model configuration (all MLP first layers share ``hidden`` for the orthogonality loss)."""
-
-    feature_dim: int = 32
-    """channels of the splatted feature maps; the first three are RGB."""
-    code_dim: int = 144
-    """expression + identity code τ."""
-    pose_dim: int = 6
-    """head pose γ: axis-angle (3, radians) + translation (3, scene units)."""
-    hidden: int = 128
-    depth: int = 3
-    pos_freqs: int = 4
-    pose_freqs: int = 4
-    gaze_freqs: int = 4
-    near_m: float = 0.02
-    """distance to the nearest landmark (metres) below which λτ = 1."""
-    far_m: float = 0.05
-    """distance (metres) above which λτ = 0 (the pose MLP alone deforms)."""
-    max_offset: float = 0.1
-    """largest Δposition per axis, as a fraction of the head radius."""
-    max_log_scale_delta: float = 1.0
-    max_opacity_delta: float = 4.0
-    max_feature_delta: float = 1.0
-    max_eye_residual: float = 0.35
-    """bound (radians per axis-angle component) of the learned residual eye rotation."""
-    eyes_follow_face: bool = False
-    """translate each eyeball (its Gaussians and its rotation centre) by the face field's displacement of its
-    socket: the softmax(-d² / 2σ²)-weighted mean Δposition of the face Gaussians at canonical distance d from
-    the eye centre (σ = ``socket_sigma_m``). The canonical eyes sit where the geometry subject's eyes were;
-    with this the eyes of another identity move with the lids and sockets the code puts on its face, and a
-    fit of the face region alone (eyes masked out) still places them."""
-    socket_sigma_m: float = 0.01
-    eye_appearance: bool = False
-    """give the eye Gaussians per-identity features: :class:`train.model.fields.EyeAppearanceField` adds a bounded
-    (``max_feature_delta``) code-conditioned delta to their shared features, so a new face's code can carry its
-    iris colour; off, every identity gets the same eyes."""
-    eyeball_colours: bool = False
-    """the eye Gaussians' RGB channels (0..2) from :class:`train.model.fields.EyeballColours`, a pupil, an iris and a
-    sclera by each Gaussian's polar angle from its eye's canonical optical axis (-z), instead of a free colour
-    per Gaussian; their other channels stay free. Excludes ``eye_appearance`` (both would set the eye colours)."""
-    render_scale: float = 0.25
-    num_images: int = 0
-    """> 0 adds per-training-image learnable codes and camera offsets (auto-decoder)."""
-    cache_face: bool = True
 
 
 class GaussianModel(nn.Module):
@@ -101,10 +55,7 @@ class GaussianModel(nn.Module):
                  rasterizer: Callable | None = None):
         super().__init__()
         cfg = self.config = config
-        if cfg.near_m < 0 or cfg.far_m <= cfg.near_m:
-            raise ToolkitError(f"GaussianModelConfig: need 0 <= near_m < far_m, got near_m={cfg.near_m}, far_m={cfg.far_m}")
-        if not 0 < cfg.render_scale <= 1:
-            raise ToolkitError(f"GaussianModelConfig.render_scale: expected (0, 1], got {cfg.render_scale}")
+        cfg.validate()
         self.face_means = nn.Parameter(face["means"].float().clone())
         self.face_quats = nn.Parameter(face["quats"].float().clone())
         self.face_log_scales = nn.Parameter(face["log_scales"].float().clone())
@@ -122,8 +73,6 @@ class GaussianModel(nn.Module):
         self.register_buffer("norm_center", center)
         self.register_buffer("norm_scale", (all_means - center).norm(dim=-1).max().clamp_min(1e-6))
         self.units_per_metre = float(units_per_metre)
-        if cfg.socket_sigma_m <= 0:
-            raise ToolkitError(f"GaussianModelConfig.socket_sigma_m: expected > 0 metres, got {cfg.socket_sigma_m}")
         d2 = torch.cdist(eye_centers.float(), face["means"].float()).square()  # [2, Nf]
         sigma = cfg.socket_sigma_m * self.units_per_metre
         # softmax: well defined however far the nearest face Gaussian is (no empty neighbourhood).
@@ -142,9 +91,6 @@ class GaussianModel(nn.Module):
             self.register_buffer("eye_radius", radius.clamp_min(1e-6))
         else:
             self.eye_appearance = None
-        if cfg.eyeball_colours and cfg.eye_appearance:
-            raise ToolkitError("GaussianModelConfig: eyeball_colours and eye_appearance both set the eye Gaussians' "
-                               "colours; enable one of them")
         self.eyeball_colours = EyeballColours() if cfg.eyeball_colours else None
         if cfg.num_images > 0:
             self.image_codes = nn.Embedding(cfg.num_images, cfg.code_dim)
@@ -170,42 +116,7 @@ class GaussianModel(nn.Module):
         expression-driven; pass landmarks for brows/mouth).
         """
         cfg = config or GaussianModelConfig()
-        scene = scene.detach().to("cpu")
-        scene.validate()
-        units = scene.metadata.get("units", "m")
-        if units not in UNITS_PER_METRE:
-            raise ToolkitError(f"scene.metadata['units']: expected one of {sorted(UNITS_PER_METRE)}, got {units!r}")
-        face_mask = scene.part == PART_FACE
-        if not bool(face_mask.any()):
-            raise ToolkitError("scene: has no face Gaussians (part 0); the face stream needs some")
-        info = eyeball_info(scene)
-        missing = [n for n in EYE_PARTS if n not in info]
-        if missing:
-            raise ToolkitError(f"scene: has no Gaussians for eye(s) {missing} (parts 1 = left, 2 = right)")
-
-        def lift(f: torch.Tensor) -> torch.Tensor:
-            out = torch.zeros(f.shape[0], cfg.feature_dim, dtype=torch.float32)
-            k = min(f.shape[1], cfg.feature_dim)
-            out[:, :k] = f[:, :k]
-            return out
-
-        face = {"means": scene.means[face_mask], "quats": normalize_quat(scene.quats[face_mask]),
-                "log_scales": scene.log_scales[face_mask], "opacity_logits": scene.opacity_logits[face_mask],
-                "features": lift(scene.features[face_mask])}
-        eye_mask = ~face_mask
-        eye_part = scene.part[eye_mask].long()
-        eyes = {"means": scene.means[eye_mask], "log_scales": scene.log_scales[eye_mask].mean(-1),
-                "opacity_logits": scene.opacity_logits[eye_mask], "features": lift(scene.features[eye_mask]),
-                "side": (eye_part == EYE_PARTS["right"]).long()}
-        centers = torch.stack([info["left"]["center"], info["right"]["center"]]).float()
-        if landmarks is None and "landmarks" in scene.metadata:
-            landmarks = torch.tensor(scene.metadata["landmarks"], dtype=torch.float32)
-        if landmarks is None:
-            landmarks = centers
-        landmarks = torch.as_tensor(landmarks, dtype=torch.float32)
-        if landmarks.dim() != 2 or landmarks.shape[1] != 3 or landmarks.shape[0] < 1:
-            raise ToolkitError(f"landmarks: expected shape [L, 3], got {list(landmarks.shape)}")
-        return cls(cfg, face, eyes, centers, landmarks, UNITS_PER_METRE[units], rasterizer)
+        return cls(cfg, *streams_from_scene(scene, cfg, landmarks), rasterizer)
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -429,34 +340,15 @@ class GaussianModel(nn.Module):
         """Write all parameters and buffers (safetensors) with the config as JSON metadata (atomic)."""
         from toolkit.io import save_checkpoint
 
-        meta = {"kind": CHECKPOINT_KIND, "version": 1, "config": asdict(self.config),
-                "units_per_metre": self.units_per_metre}
-        meta.update(info or {})
-        save_checkpoint(path, self.state_dict(), meta)
+        save_checkpoint(path, self.state_dict(), checkpoint_metadata(self.config, self.units_per_metre, info))
 
     @classmethod
     def load(cls, path, device: str | torch.device = "cpu", rasterizer: Callable | None = None) -> "GaussianModel":
         """Rebuild a model written by :meth:`save`; foreign or incompatible files raise ``ToolkitError``."""
-        from toolkit.io import load_checkpoint
-
-        state, info = load_checkpoint(path)
-        if info.get("kind") != CHECKPOINT_KIND:
-            raise ToolkitError(f"{path}: not a Gaussian model checkpoint (kind={info.get('kind')!r})")
-        raw = info.get("config")
-        if not isinstance(raw, dict) or set(raw) - set(GaussianModelConfig.__dataclass_fields__):
-            raise ToolkitError(f"{path}: missing or unknown Gaussian model config fields")
-        need = ["face_means", "face_quats", "face_log_scales", "face_opacity_logits", "face_features", "eye_means",
-                "eye_log_scales", "eye_opacity_logits", "eye_features", "eye_side", "eye_centers", "landmarks"]
-        missing = [k for k in need if k not in state]
-        if missing:
-            raise ToolkitError(f"{path}: missing tensor(s) {missing}")
-        _check_stored_shapes(path, state)
-        face = {k[5:]: state[k] for k in need[:5]}
-        eyes = {k[4:]: state[k] for k in need[5:9]}
-        eyes["side"] = state["eye_side"]
+        raw, face, eyes, state, units_per_metre = read_checkpoint(path)
         try:
             model = cls(GaussianModelConfig(**raw), face, eyes, state["eye_centers"], state["landmarks"],
-                        float(info.get("units_per_metre", 1.0)), rasterizer)
+                        units_per_metre, rasterizer)
         except (TypeError, ValueError, RuntimeError) as e:  # a config value of the wrong type, say
             raise ToolkitError(f"{path}: cannot build the model from its config and tensors "
                                f"({str(e).splitlines()[0][:160]})") from None
@@ -473,42 +365,4 @@ class GaussianModel(nn.Module):
         """Sample ``index`` of a batch as a world-frame GaussianScene (neural features, part labels), for previews."""
         with torch.no_grad():
             g = self.gaussians(code, pose, gaze)
-        f, e = g["face"], g["eyes"]
-        part = torch.cat([torch.zeros(self.num_face, dtype=torch.int8),
-                          (self.eye_side + 1).to(torch.int8).cpu()])
-        return GaussianScene.from_activated(
-            means=torch.cat([f["means"][index], e["means"][index]]).cpu(),
-            scales=torch.cat([f["scales"][index], e["scales"][index]]).cpu(),
-            opacities=torch.cat([f["opacities"][index], e["opacities"][index]]).cpu(),
-            features=torch.cat([f["features"][index], e["features"][index]]).cpu(),
-            quats=torch.cat([f["quats"][index], e["quats"][index]]).cpu(),
-            part=part,
-            metadata={"units": {v: k for k, v in UNITS_PER_METRE.items()}[self.units_per_metre],
-                      "feature_kind": "neural", "source": "train.model.gaussian_model.GaussianModel.export_scene",
-                      "config": asdict(self.config)},
-        )
-
-
-def _check_stored_shapes(path, state: dict[str, torch.Tensor]) -> None:
-    """The stored Gaussians agree with each other: the face tensors share one count Nf, the eye tensors and
-    ``eye_side`` one count Ne, ``eye_centers`` is [2, 3] and ``landmarks`` [L, 3]."""
-    def rows(keys, trailing):
-        n = None
-        for k, tail in zip(keys, trailing, strict=True):
-            t = state[k]
-            ok = t.dim() == 1 + len(tail) and all(a is None or a == b for a, b in zip(tail, t.shape[1:]))
-            if not ok or (n is not None and t.shape[0] != n):
-                want = "[" + ", ".join(["N"] + ["*" if a is None else str(a) for a in tail]) + "]"
-                raise ToolkitError(f"{path}: tensor '{k}' has shape {list(t.shape)}, expected {want}"
-                                   + (f" with N = {n}" if n is not None else ""))
-            n = t.shape[0]
-
-    rows(["face_means", "face_quats", "face_log_scales", "face_opacity_logits", "face_features"],
-         [(3,), (4,), (3,), (), (None,)])
-    rows(["eye_means", "eye_log_scales", "eye_opacity_logits", "eye_features", "eye_side"],
-         [(3,), (), (), (None,), ()])  # eye Gaussians are isotropic: one log-scale each
-    for k, shape in (("eye_centers", (2, 3)), ("landmarks", (None, 3))):
-        t = state[k]
-        if t.dim() != 2 or any(a is not None and a != b for a, b in zip(shape, t.shape)):
-            raise ToolkitError(f"{path}: tensor '{k}' has shape {list(t.shape)}, expected "
-                               f"[{', '.join('*' if a is None else str(a) for a in shape)}]")
+        return posed_scene(g["face"], g["eyes"], self.eye_side, index, self.units_per_metre, self.config)

@@ -1,13 +1,5 @@
-"""The neural renderer interface and the latent DiT renderer behind it.
-
-A renderer turns the splatted feature map of the two-stream Gaussian model into the output image:
-
-* ``render(feats [B, F, h, w], shape_code [B, 144], *, gaze=None, pose=None, steps=None, seed=0)``
-  -> image ``[B, 3, h * upscale, w * upscale]`` in [0, 1] (clamped) -- inference;
-* ``training_forward(feats, shape_code, target [B, 3, H, W], *, gaze=None, pose=None, generator=None, t=None)``
-  -> :class:`RenderOutput` with the differentiable image the image/gaze losses compare (unclamped, [0, 1]
-  scale) and the renderer's own auxiliary loss (the diffusion loss for the DiT, 0 for the baseline).
-  ``t`` [B] fixes the diffusion timesteps (None: sampled); renderers without diffusion ignore it.
+"""The DiT-Gaze renderer (behind the interface of :mod:`train.model.renderer_interface`) and
+:func:`make_renderer`, which builds it or the baseline by name.
 
 :class:`DiTRenderer`: encode the target with the frozen codec, noise it at a random timestep, run the DiT
 with the features and codes, take the x0 estimate, decode it (training); at inference run DDIM from seeded
@@ -32,51 +24,16 @@ learns the correction. The DiT also sees ``z_base`` as extra input channels when
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
-
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
+from train.model.baseline_renderer import BaselineConfig, BaselineRenderer
 from train.model.codec import LatentCodec
 from train.model.diffusion import DiffusionConfig, GaussianDiffusion
-from train.model.dit import DiT
-
-
-@dataclass
-class RenderOutput:
-    """What a renderer's training pass gives the losses."""
-
-    image: torch.Tensor
-    """``[B, 3, H, W]`` on the [0, 1] scale, unclamped, differentiable."""
-    aux_loss: torch.Tensor
-    """Scalar loss the renderer adds by itself (DiT: diffusion MSE; baseline: 0)."""
-    extras: dict[str, torch.Tensor] = field(default_factory=dict)
-    """Inspection values (DiT: ``t``, ``latent_pred``, ``latent_target``)."""
-
-
-@runtime_checkable
-class Renderer(Protocol):
-    """Splatted features + codes -> image. ``upscale`` = output size / feature-map size."""
-
-    upscale: int
-
-    def render(self, feats: torch.Tensor, shape_code: torch.Tensor, *, gaze: torch.Tensor | None = None,
-               pose: torch.Tensor | None = None, steps: int | None = None, seed: int = 0) -> torch.Tensor: ...
-
-    def training_forward(self, feats: torch.Tensor, shape_code: torch.Tensor, target: torch.Tensor, *,
-                         gaze: torch.Tensor | None = None, pose: torch.Tensor | None = None,
-                         generator: torch.Generator | None = None, t: torch.Tensor | None = None) -> RenderOutput: ...
-
-
-def check_render_inputs(feats: torch.Tensor, shape_code: torch.Tensor, feature_channels: int, shape_dim: int) -> None:
-    """ToolkitError unless ``feats [B, F, h, w]`` and ``shape_code [B, S]`` have the expected sizes."""
-    if feats.dim() != 4 or feats.shape[1] != feature_channels:
-        raise ToolkitError(f"renderer feats: expected [B, {feature_channels}, h, w], got {list(feats.shape)}")
-    if shape_code.dim() != 2 or shape_code.shape != (feats.shape[0], shape_dim):
-        raise ToolkitError(f"renderer shape_code: expected [{feats.shape[0]}, {shape_dim}], got {list(shape_code.shape)}")
+from train.model.dit import DiT, make_dit
+from train.model.renderer_interface import RenderOutput, check_render_inputs
 
 
 class DiTRenderer(nn.Module):
@@ -182,8 +139,6 @@ def make_renderer(kind: str, codec: LatentCodec | None = None, *, model: str = "
     ``residual`` (DiT only): the residual parametrization around the encoded splat RGB, with the base latent
     also fed to the DiT as input channels (``base_channels``)."""
     if kind == "dit":
-        from train.model.dit import make_dit
-
         if codec is None:
             raise ToolkitError("make_renderer('dit'): a latent codec is required (see train.model.codec.load_codec)")
         grid = output_size // codec.downsample
@@ -192,7 +147,5 @@ def make_renderer(kind: str, codec: LatentCodec | None = None, *, model: str = "
         dit = make_dit(model, input_size=grid, latent_channels=codec.latent_channels, **model_kw)
         return DiTRenderer(dit, codec, GaussianDiffusion(diffusion), upscale=upscale, residual=residual)
     if kind == "baseline":
-        from train.model.baseline_renderer import BaselineConfig, BaselineRenderer
-
         return BaselineRenderer(BaselineConfig(upscale=upscale, **model_kw))
     raise ToolkitError(f"renderer kind: expected 'dit' or 'baseline', got {kind!r}")

@@ -130,29 +130,15 @@ def _stop_signals() -> Iterator[dict[str, bool]]:
             signal.signal(sig, h)
 
 
-def train_loop(
-    stage: str,
-    step_fn: StepFn,
-    *,
-    modules: dict[str, torch.nn.Module],
-    optimizers: dict[str, torch.optim.Optimizer],
-    steps: int,
-    run_dir: str | Path,
-    seed: int = 0,
-    ckpt_every: int = 100,
-    log_every: int = 10,
-    resume: bool = False,
-    grad_clip: float | None = 1.0,
-    metrics: MetricsLogger | None = None,
-    progress: bool = True,
-    lr_factor: Callable[[int], float] | None = None,
-    on_log: Callable[[int, dict[str, float]], None] | None = None,
-    after_step: Callable[[int], None] | None = None,
-    is_main: bool = True,
-    dist_info: DistInfo | None = None,
-    fingerprint: str | None = None,
-    log: Callable[[str], None] | None = None,
-) -> dict[str, Any]:
+def train_loop(stage: str, step_fn: StepFn, *, modules: dict[str, torch.nn.Module],
+               optimizers: dict[str, torch.optim.Optimizer], steps: int, run_dir: str | Path, seed: int = 0,
+               ckpt_every: int = 100, log_every: int = 10, resume: bool = False, grad_clip: float | None = 1.0,
+               metrics: MetricsLogger | None = None, progress: bool = True,
+               lr_factor: Callable[[int], float] | None = None,
+               on_log: Callable[[int, dict[str, float]], None] | None = None,
+               after_step: Callable[[int], None] | None = None, is_main: bool = True,
+               dist_info: DistInfo | None = None, fingerprint: str | None = None,
+               log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run ``steps`` optimisation steps of ``step_fn``; returns {"step", "last": terms, "checkpoint"}.
 
     Checkpoints go to ``run_dir/checkpoints``. With ``resume``, training continues from the newest one.
@@ -168,29 +154,12 @@ def train_loop(
     from an empty checkpoint folder: another run's checkpoints would outnumber its own (the newest two are
     kept) and a later ``resume`` would load them. ``log``: where a skipped damaged checkpoint is reported.
     """
-    if ckpt_every < 1 or log_every < 1:
-        raise ToolkitError(f"{stage}: ckpt_every and log_every must be step counts >= 1, got {ckpt_every}, {log_every}")
-    if grad_clip is not None and not (math.isfinite(grad_clip) and grad_clip >= 0):
-        raise ToolkitError(f"{stage}: grad_clip must be a gradient-norm bound >= 0 (0 or None: no clipping), got {grad_clip}")
-    run_dir = Path(run_dir)
-    mgr = CheckpointManager(run_dir / "checkpoints")
-    start = 0
+    _check_loop_settings(stage, ckpt_every, log_every, grad_clip)
+    mgr = CheckpointManager(Path(run_dir) / "checkpoints")
     # The rates on entry, before a checkpoint's optimizer state (with the rates of its last step) replaces them.
     base_lrs = {name: [grp["lr"] for grp in opt.param_groups] for name, opt in optimizers.items()}
-    last_ckpt = mgr.latest()  # reads checkpoint headers: once
-    if mgr.skipped and resume and log is not None and is_main:
-        log(f"[{stage}] skipped unreadable checkpoint(s) {[p.name for p in mgr.skipped]}; resuming from "
-            f"{last_ckpt.name if last_ckpt is not None else 'the start'}")
-    if resume and last_ckpt is not None:
-        recorded = load_metadata(last_ckpt).get("extra", {}).get("fingerprint")
-        if fingerprint is not None and recorded != fingerprint:
-            raise ToolkitError(f"{last_ckpt}: written by a run under another config or from other inputs than "
-                               f"this one, so it cannot be resumed; rerun without --resume to train the stage afresh")
-        start = load_training_checkpoint(last_ckpt, modules=modules, optimizers=optimizers)["step"]
-    elif is_main:
-        for old in mgr.all():
-            old.unlink(missing_ok=True)
-        last_ckpt = None
+    start, last_ckpt = _starting_point(stage, mgr, modules, optimizers, resume=resume, fingerprint=fingerprint,
+                                       is_main=is_main, log=log)
     if metrics is not None and is_main:
         metrics.start(stage, start)
     params = [p for m in modules.values() for p in m.parameters() if p.requires_grad]
@@ -202,61 +171,20 @@ def train_loop(
         extra = {"stage": stage} if fingerprint is None else {"stage": stage, "fingerprint": fingerprint}
         return mgr.save(step, modules=modules, optimizers=optimizers, extra=extra)
 
-    bar = None
-    if progress and is_main:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, initial=start, desc=stage, dynamic_ncols=True, leave=True)
+    bar = _progress_bar(stage, steps, start) if progress and is_main else None
     step = start
     try:
         with _stop_signals() as flag:
             for step in range(start, steps):
-                stop = flag["stop"]
-                if dist_info is not None:  # one rank's Ctrl-C stops all at the same step, before any collective
-                    stop = not all_ranks(not stop, dist_info)
-                if stop:
+                if _stop_requested(flag, dist_info):
                     last_ckpt = save(step)
                     raise TrainingInterrupted(
                         f"{stage}: interrupted at step {step}; checkpoint saved to {last_ckpt} (rerun with --resume)"
                     )
-                for m in modules.values():
-                    m.train()
-                for opt in optimizers.values():
-                    opt.zero_grad(set_to_none=True)
-                try:
-                    terms = step_fn(step, step_generator(seed, step))
-                except ToolkitError as e:  # weights gone non-finite fail inside the forward pass, before any loss
-                    if all(bool(torch.isfinite(p).all()) for p in params):
-                        raise
-                    raise TrainingDiverged(f"{stage}: the weights are not finite at step {step} ({e}); last good "
-                                           f"checkpoint: {last_ckpt or 'none'}") from None
-                total = terms["total"]
-                values = {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in terms.items()}
-                finite = all(math.isfinite(v) for v in values.values())
-                if dist_info is not None:
-                    finite = all_ranks(finite, dist_info)
-                if not finite:
-                    raise TrainingDiverged(
-                        f"{stage}: non-finite loss at step {step}: "
-                        + ", ".join(f"{k}={v:.4g}" for k, v in values.items())
-                        + f"; last good checkpoint: {last_ckpt or 'none'}"
-                    )
-                total.backward()
-                if dist_info is not None:
-                    average_gradients(params, dist_info)
-                gnorm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf"))
-                if not torch.isfinite(gnorm):
-                    raise TrainingDiverged(
-                        f"{stage}: non-finite gradient norm at step {step} (loss terms "
-                        + ", ".join(f"{k}={v:.4g}" for k, v in values.items())
-                        + f"); last good checkpoint: {last_ckpt or 'none'}"
-                    )
-                factor = lr_factor(step) if lr_factor is not None else None
-                for name, opt in optimizers.items():
-                    if factor is not None:
-                        for grp, base in zip(opt.param_groups, base_lrs[name]):
-                            grp["lr"] = base * factor
-                    opt.step()
+                total, values = _loss_terms(stage, step, step_fn, seed, modules, optimizers, params, dist_info,
+                                            last_ckpt)
+                gnorm = _optimizer_step(stage, step, total, values, params, optimizers, base_lrs, grad_clip,
+                                        lr_factor, dist_info, last_ckpt)
                 last = values
                 done = step + 1
                 if after_step is not None:
@@ -265,21 +193,121 @@ def train_loop(
                     bar.update(1)
                     bar.set_postfix({k: f"{v:.4g}" for k, v in list(values.items())[:4]})
                 if done % log_every == 0 or done == steps:
-                    values = {**values, "grad_norm": float(gnorm)}
-                    if metrics is not None and is_main:
-                        metrics.log(stage, done, values)
-                    if on_log is not None:
-                        on_log(done, values)
+                    _log_step(stage, done, {**values, "grad_norm": float(gnorm)}, metrics if is_main else None, on_log)
                 if done % ckpt_every == 0 or done == steps:
                     last_ckpt = save(done) or last_ckpt
             step = steps
-            stop = flag["stop"]  # a Ctrl-C during the last step: the run stops here, not in the next stage
-            if dist_info is not None:
-                stop = not all_ranks(not stop, dist_info)
-            if stop:
+            # A Ctrl-C during the last step: the run stops here, not in the next stage.
+            if _stop_requested(flag, dist_info):
                 raise TrainingInterrupted(f"{stage}: interrupted at its last step ({steps}); checkpoint saved to "
                                           f"{last_ckpt} (rerun with --resume to finish the stage)")
     finally:
         if bar is not None:
             bar.close()
     return {"step": step, "last": last, "checkpoint": last_ckpt}
+
+
+def _check_loop_settings(stage: str, ckpt_every: int, log_every: int, grad_clip: float | None) -> None:
+    if ckpt_every < 1 or log_every < 1:
+        raise ToolkitError(f"{stage}: ckpt_every and log_every must be step counts >= 1, got {ckpt_every}, {log_every}")
+    if grad_clip is not None and not (math.isfinite(grad_clip) and grad_clip >= 0):
+        raise ToolkitError(f"{stage}: grad_clip must be a gradient-norm bound >= 0 (0 or None: no clipping), got {grad_clip}")
+
+
+def _starting_point(stage: str, mgr: CheckpointManager, modules: dict[str, torch.nn.Module],
+                    optimizers: dict[str, torch.optim.Optimizer], *, resume: bool, fingerprint: str | None,
+                    is_main: bool, log: Callable[[str], None] | None) -> tuple[int, Path | None]:
+    """``(first step, newest checkpoint)``: with ``resume`` the newest readable checkpoint is loaded into
+    ``modules`` and ``optimizers`` (its fingerprint must match); without, the main rank deletes the old ones."""
+    last_ckpt = mgr.latest()  # reads checkpoint headers: once
+    if mgr.skipped and resume and log is not None and is_main:
+        log(f"[{stage}] skipped unreadable checkpoint(s) {[p.name for p in mgr.skipped]}; resuming from "
+            f"{last_ckpt.name if last_ckpt is not None else 'the start'}")
+    if resume and last_ckpt is not None:
+        recorded = load_metadata(last_ckpt).get("extra", {}).get("fingerprint")
+        if fingerprint is not None and recorded != fingerprint:
+            raise ToolkitError(f"{last_ckpt}: written by a run under another config or from other inputs than "
+                               f"this one, so it cannot be resumed; rerun without --resume to train the stage afresh")
+        return load_training_checkpoint(last_ckpt, modules=modules, optimizers=optimizers)["step"], last_ckpt
+    if is_main:
+        for old in mgr.all():
+            old.unlink(missing_ok=True)
+        last_ckpt = None
+    return 0, last_ckpt
+
+
+def _progress_bar(stage: str, steps: int, start: int):
+    from tqdm import tqdm
+
+    return tqdm(total=steps, initial=start, desc=stage, dynamic_ncols=True, leave=True)
+
+
+def _stop_requested(flag: dict[str, bool], dist_info: DistInfo | None) -> bool:
+    """Whether a signal asked to stop; under torchrun one rank's Ctrl-C stops all at the same step, before any
+    collective."""
+    stop = flag["stop"]
+    if dist_info is not None:
+        stop = not all_ranks(not stop, dist_info)
+    return stop
+
+
+def _loss_terms(stage: str, step: int, step_fn: StepFn, seed: int, modules: dict[str, torch.nn.Module],
+                optimizers: dict[str, torch.optim.Optimizer], params: list[torch.Tensor],
+                dist_info: DistInfo | None, last_ckpt: Path | None) -> tuple[torch.Tensor, dict[str, float]]:
+    """``(total loss with its graph, every term as a float)`` of ``step_fn`` at ``step``, run in train mode
+    with the gradients cleared; TrainingDiverged on non-finite weights or terms (on any rank)."""
+    for m in modules.values():
+        m.train()
+    for opt in optimizers.values():
+        opt.zero_grad(set_to_none=True)
+    try:
+        terms = step_fn(step, step_generator(seed, step))
+    except ToolkitError as e:  # weights gone non-finite fail inside the forward pass, before any loss
+        if all(bool(torch.isfinite(p).all()) for p in params):
+            raise
+        raise TrainingDiverged(f"{stage}: the weights are not finite at step {step} ({e}); last good "
+                               f"checkpoint: {last_ckpt or 'none'}") from None
+    values = {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in terms.items()}
+    finite = all(math.isfinite(v) for v in values.values())
+    if dist_info is not None:
+        finite = all_ranks(finite, dist_info)
+    if not finite:
+        raise TrainingDiverged(f"{stage}: non-finite loss at step {step}: {_terms_text(values)}; last good "
+                               f"checkpoint: {last_ckpt or 'none'}")
+    return terms["total"], values
+
+
+def _optimizer_step(stage: str, step: int, total: torch.Tensor, values: dict[str, float], params: list[torch.Tensor],
+                    optimizers: dict[str, torch.optim.Optimizer], base_lrs: dict[str, list[float]],
+                    grad_clip: float | None, lr_factor: Callable[[int], float] | None, dist_info: DistInfo | None,
+                    last_ckpt: Path | None) -> torch.Tensor:
+    """Backward pass of ``total``, gradients averaged over the ranks and clipped, every optimizer stepped at
+    its base rates times ``lr_factor(step)``; returns the gradient norm before clipping (TrainingDiverged if
+    it is not finite)."""
+    total.backward()
+    if dist_info is not None:
+        average_gradients(params, dist_info)
+    gnorm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf"))
+    if not torch.isfinite(gnorm):
+        raise TrainingDiverged(f"{stage}: non-finite gradient norm at step {step} (loss terms "
+                               f"{_terms_text(values)}); last good checkpoint: {last_ckpt or 'none'}")
+    factor = lr_factor(step) if lr_factor is not None else None
+    for name, opt in optimizers.items():
+        if factor is not None:
+            for grp, base in zip(opt.param_groups, base_lrs[name]):
+                grp["lr"] = base * factor
+        opt.step()
+    return gnorm
+
+
+def _log_step(stage: str, done: int, values: dict[str, float], metrics: MetricsLogger | None,
+              on_log: Callable[[int, dict[str, float]], None] | None) -> None:
+    """Hand a logged step's terms (with ``grad_norm``) to the metrics log and the ``on_log`` hook."""
+    if metrics is not None:
+        metrics.log(stage, done, values)
+    if on_log is not None:
+        on_log(done, values)
+
+
+def _terms_text(values: dict[str, float]) -> str:
+    return ", ".join(f"{k}={v:.4g}" for k, v in values.items())

@@ -12,7 +12,7 @@ needs_gl = pytest.mark.skipif(not EGL, reason="no headless EGL OpenGL 3.3 contex
 
 @pytest.fixture(scope="session")
 def subject_params():
-    from train.data.synthetic import SubjectParams
+    from train.data.subject_params import SubjectParams
 
     return SubjectParams.sample(11)
 

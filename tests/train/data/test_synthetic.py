@@ -14,6 +14,7 @@ from scipy import ndimage
 from tests.train.data.conftest import needs_gl
 from toolkit.errors import ToolkitError
 from toolkit.rotations import angular_error_deg, so3_exp, vector_to_pitchyaw
+from train.data import subject_params as sp
 from train.data import synthetic as syn
 
 
@@ -30,7 +31,7 @@ def test_head_mesh_is_watertight_and_outward(subject):
     assert m.volume > 0  # outward winding
     # Extreme identities and expressions keep a valid closed surface.
     for sign in (-1.0, 1.0):
-        params = syn.SubjectParams(tuple(sign for _ in syn.IDENTITY_NAMES))
+        params = sp.SubjectParams(tuple(sign for _ in sp.IDENTITY_NAMES))
         s = syn.build_subject(params, subdivisions=3)
         for e in ([0, 0, 0, 0], [1, 1, 1, 1], [1, -1, -1, 0]):
             v = s.head_vertices(e)
@@ -69,12 +70,12 @@ def test_landmark_layout_matches_ibug(subject):
 
 def test_latent_code_is_a_fixed_invertible_embedding(subject_params):
     e = np.array([0.3, -0.5, 0.2, 0.1], np.float32)
-    code = syn.latent_code(subject_params.vector(), e)
+    code = sp.latent_code(subject_params.vector(), e)
     assert code.shape == (144,)
-    ident, expr = syn.params_from_code(code)
+    ident, expr = sp.params_from_code(code)
     np.testing.assert_allclose(ident, subject_params.vector(), atol=1e-5)
     np.testing.assert_allclose(expr, e, atol=1e-6)
-    np.testing.assert_array_equal(code, syn.latent_code(subject_params.vector(), e))
+    np.testing.assert_array_equal(code, sp.latent_code(subject_params.vector(), e))
 
 
 @needs_gl
@@ -105,7 +106,7 @@ def test_file_labels_are_consistent(subject_file, subject):
                                    torch.from_numpy(r["face_head_pose"]).double())
     assert float(angular_error_deg(composed, torch.from_numpy(r["pitchyaw_cam"]).double()).max()) < 1e-3
     assert (np.abs(np.degrees(r["pitchyaw_head"])) <= 40 + 1e-4).all()
-    ident, expr = syn.params_from_code(r["latent_codes"])
+    ident, expr = sp.params_from_code(r["latent_codes"])
     np.testing.assert_allclose(expr, r["expression_params"], atol=1e-5)
     np.testing.assert_allclose(r["neutral_vertice"], subject.neutral_vertices(), atol=1e-6)
     np.testing.assert_allclose(r["eyeball_centers"], subject.eye_centers, atol=1e-6)
@@ -245,15 +246,15 @@ def test_generation_is_deterministic(subject_params, subject):
 
 def test_bad_parameters_are_rejected(subject):
     with pytest.raises(ToolkitError, match="identity"):
-        syn.SubjectParams((0.0,) * 3)
+        sp.SubjectParams((0.0,) * 3)
     with pytest.raises(ToolkitError, match="identity"):
-        syn.SubjectParams((2.0,) * len(syn.IDENTITY_NAMES))
+        sp.SubjectParams((2.0,) * len(sp.IDENTITY_NAMES))
     with pytest.raises(ToolkitError, match="mouth_open must lie in"):
         subject.head_vertices([1.5, 0, 0, 0])
     with pytest.raises(ToolkitError, match="expression"):
         subject.head_vertices([float("nan"), 0, 0, 0])
     with pytest.raises(ToolkitError, match="SubjectParams JSON"):
-        syn.SubjectParams.from_json("{}")
+        sp.SubjectParams.from_json("{}")
     from toolkit.cameras import Camera, intrinsics
 
     cam = Camera(intrinsics(100, 100, 16, 16), torch.eye(4), 32, 32)

@@ -8,7 +8,8 @@ import torch
 from tests.train.threads import single_thread  # noqa: F401  (autouse)
 from toolkit import ToolkitError
 from train.model.baseline_renderer import AttentionPool, BaselineConfig, BaselineRenderer, blur
-from train.model.renderer import Renderer, make_renderer
+from train.model.renderer import make_renderer
+from train.model.renderer_interface import Renderer
 
 
 @pytest.mark.parametrize("upscale", [1, 2, 4, 8])

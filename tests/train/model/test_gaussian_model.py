@@ -13,7 +13,8 @@ from toolkit.errors import ToolkitError
 from toolkit.eyes import gaze_rotation, rotate_about
 from toolkit.procedural import demo_head_scene
 from train.losses import OrthogonalityLoss
-from train.model.gaussian_model import GaussianModel, GaussianModelConfig
+from train.model.gaussian_config import GaussianModelConfig
+from train.model.gaussian_model import GaussianModel
 
 
 def test_from_scene_splits_streams_and_lifts_features():

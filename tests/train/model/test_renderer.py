@@ -11,7 +11,8 @@ from toolkit import ToolkitError
 from train.model.codec import AutoencoderConfig, KLAutoencoder, PixelCodec
 from train.model.diffusion import DiffusionConfig, GaussianDiffusion
 from train.model.dit import make_dit
-from train.model.renderer import DiTRenderer, Renderer, RenderOutput, make_renderer
+from train.model.renderer import DiTRenderer, make_renderer
+from train.model.renderer_interface import Renderer, RenderOutput
 
 
 def latent_renderer(**kw) -> DiTRenderer:

@@ -69,7 +69,7 @@ def test_lr_factor_constant_and_cosine():
 
 
 def test_the_intermediate_gaze_sampler_follows_the_trainer_seed():
-    """Each run seed draws its own intermediate gazes (until session 30 every seed drew seed 0's)."""
+    """Each run seed draws its own intermediate gazes (not seed 0's for every seed)."""
     from train.training.trainer import GaussianTrainer
 
     model, renderer = small_model(demo_head_scene(300)), BaselineRenderer()

@@ -1,0 +1,70 @@
+"""The configuration of the two-stream Gaussian model (:class:`train.model.gaussian_model.GaussianModel`):
+sizes of its fields, bounds of their outputs, the optional eye features, and the checks a config must pass."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from toolkit.errors import ToolkitError
+
+UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
+"""Scene units (``scene.metadata["units"]``) per metre: the config's distances are in metres."""
+
+
+@dataclass
+class GaussianModelConfig:
+    """Two-stream Gaussian model configuration (all MLP first layers share ``hidden`` for the orthogonality loss)."""
+
+    feature_dim: int = 32
+    """channels of the splatted feature maps; the first three are RGB."""
+    code_dim: int = 144
+    """expression + identity code τ."""
+    pose_dim: int = 6
+    """head pose γ: axis-angle (3, radians) + translation (3, scene units)."""
+    hidden: int = 128
+    depth: int = 3
+    pos_freqs: int = 4
+    pose_freqs: int = 4
+    gaze_freqs: int = 4
+    near_m: float = 0.02
+    """distance to the nearest landmark (metres) below which λτ = 1."""
+    far_m: float = 0.05
+    """distance (metres) above which λτ = 0 (the pose MLP alone deforms)."""
+    max_offset: float = 0.1
+    """largest Δposition per axis, as a fraction of the head radius."""
+    max_log_scale_delta: float = 1.0
+    max_opacity_delta: float = 4.0
+    max_feature_delta: float = 1.0
+    max_eye_residual: float = 0.35
+    """bound (radians per axis-angle component) of the learned residual eye rotation."""
+    eyes_follow_face: bool = False
+    """translate each eyeball (its Gaussians and its rotation centre) by the face field's displacement of its
+    socket: the softmax(-d² / 2σ²)-weighted mean Δposition of the face Gaussians at canonical distance d from
+    the eye centre (σ = ``socket_sigma_m``). The canonical eyes sit where the geometry subject's eyes were;
+    with this the eyes of another identity move with the lids and sockets the code puts on its face, and a
+    fit of the face region alone (eyes masked out) still places them."""
+    socket_sigma_m: float = 0.01
+    eye_appearance: bool = False
+    """give the eye Gaussians per-identity features: :class:`train.model.fields.EyeAppearanceField` adds a bounded
+    (``max_feature_delta``) code-conditioned delta to their shared features, so a new face's code can carry its
+    iris colour; off, every identity gets the same eyes."""
+    eyeball_colours: bool = False
+    """the eye Gaussians' RGB channels (0..2) from :class:`train.model.fields.EyeballColours`, a pupil, an iris and a
+    sclera by each Gaussian's polar angle from its eye's canonical optical axis (-z), instead of a free colour
+    per Gaussian; their other channels stay free. Excludes ``eye_appearance`` (both would set the eye colours)."""
+    render_scale: float = 0.25
+    num_images: int = 0
+    """> 0 adds per-training-image learnable codes and camera offsets (auto-decoder)."""
+    cache_face: bool = True
+
+    def validate(self) -> None:
+        """ToolkitError on values no model can be built with (the cross-field rules included)."""
+        if self.near_m < 0 or self.far_m <= self.near_m:
+            raise ToolkitError(f"GaussianModelConfig: need 0 <= near_m < far_m, got near_m={self.near_m}, far_m={self.far_m}")
+        if not 0 < self.render_scale <= 1:
+            raise ToolkitError(f"GaussianModelConfig.render_scale: expected (0, 1], got {self.render_scale}")
+        if self.socket_sigma_m <= 0:
+            raise ToolkitError(f"GaussianModelConfig.socket_sigma_m: expected > 0 metres, got {self.socket_sigma_m}")
+        if self.eyeball_colours and self.eye_appearance:
+            raise ToolkitError("GaussianModelConfig: eyeball_colours and eye_appearance both set the eye Gaussians' "
+                               "colours; enable one of them")
