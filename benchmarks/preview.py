@@ -133,9 +133,9 @@ def main(argv=None) -> None:
     ap.add_argument("--res", type=count("--res", 1), default=512)
     ap.add_argument("--frames", type=count("--frames", 1), default=8)
     args = ap.parse_args(argv)
-    from render.preview import _shared_context
+    from render.gl_context import shared_context
 
-    ctx = _shared_context()
+    ctx = shared_context()
     print(machine_info())
     print(f"GL: {ctx.info['GL_RENDERER']} / {ctx.info['GL_VERSION']}; load: {os.getloadavg()}")
     rows = []

@@ -15,12 +15,10 @@ Vertices are de-indexed (three corners per face) so face normals stay exact for 
 
 from __future__ import annotations
 
-import os
-from typing import Any
-
 import numpy as np
 import torch
 
+from render.gl_context import make_current, shared_context
 from toolkit.cameras import opengl_projection
 from toolkit.errors import ToolkitError
 
@@ -73,52 +71,6 @@ void main() {
 }
 """
 
-_SHARED_CONTEXT: Any = None
-
-
-def make_current(ctx) -> None:
-    """Make a standalone moderngl context current on this thread.
-
-    A process can hold several GL contexts (the mesh rasterizer's shared one, the preview's, a glfw
-    window's) and every GL call goes to whichever is current, so each entry point that touches GL claims
-    its own standalone context first.
-    """
-    ctx.__enter__()  # glcontext: make current (remembering the previous one for a matching __exit__)
-
-
-def create_context():
-    """A new headless moderngl context (EGL, GL >= 3.3 core); ToolkitError naming what is missing."""
-    try:
-        import moderngl
-    except ImportError as e:  # pragma: no cover - moderngl is a hard dependency
-        raise ToolkitError(f"render.mesh_gl needs the Python package 'moderngl' ({e})") from e
-    try:
-        return moderngl.create_context(standalone=True, backend="egl", require=330)
-    except Exception as e:
-        raise ToolkitError(
-            "render.mesh_gl: cannot create a headless OpenGL 3.3 context through EGL "
-            f"({type(e).__name__}: {e}); install libEGL / Mesa (Debian: libegl1 libgl1-mesa-dri)"
-        ) from e
-
-
-def shared_context():
-    """One headless context per process, created on first use (what ``render_mesh`` uses).
-
-    EGL does not survive ``fork``: a child forked after the parent initialised GL can neither use the
-    parent's context nor reliably create its own (Mesa hangs), so it gets a ToolkitError instead.
-    """
-    global _SHARED_CONTEXT
-    if _SHARED_CONTEXT is not None and _SHARED_CONTEXT[0] != os.getpid():
-        raise ToolkitError(
-            "render.mesh_gl: this process was forked after OpenGL was initialised in its parent; EGL cannot "
-            "be used here. Start workers with the 'spawn' method (e.g. DataLoader(multiprocessing_context="
-            "'spawn')) or render before/without forking"
-        )
-    if _SHARED_CONTEXT is None:
-        _SHARED_CONTEXT = (os.getpid(), create_context())
-    return _SHARED_CONTEXT[1]
-
-
 def _as_array(x, name: str, dtype) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
@@ -158,7 +110,7 @@ class MeshRasterizer:
     """Rasterize triangle meshes headlessly into a ``width`` × ``height`` float framebuffer.
 
     ``ctx`` shares an existing moderngl context (e.g. a window's, or one context for many sizes);
-    by default the process-wide EGL context of :func:`shared_context` is used. The framebuffer is
+    by default the process-wide EGL context of :func:`render.gl_context.shared_context` is used. The framebuffer is
     recreated by :meth:`resize`; programs and the context are reused.
     """
 

@@ -28,7 +28,6 @@ What a frame skips (``PreviewSplatter.stats`` records what happened):
 
 from __future__ import annotations
 
-import ctypes.util
 import math
 import time
 from typing import Any
@@ -36,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from render import preview_shaders as sh
+from render.gl_context import shared_context
 from render.preview_footprints import (  # noqa: F401 (re-exported: part of the preview API)
     as_float32,
     back_to_front,
@@ -53,25 +53,6 @@ from toolkit.errors import ToolkitError
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 MAX_ALPHA = 0.99
-
-
-# ---------------------------------------------------------------------------------------------- context
-def create_headless_context():
-    """A standalone OpenGL 3.3 core context through EGL; a clear ToolkitError when none can be made."""
-    try:
-        import moderngl
-    except ImportError as e:
-        raise ToolkitError(f"the preview needs the Python package 'moderngl' ({e}); pip install moderngl") from None
-    try:
-        return moderngl.create_context(standalone=True, backend="egl", require=330)
-    except Exception as e:  # moderngl/glcontext raise plain Exceptions for missing libraries or drivers
-        missing = [lib for lib in ("EGL", "GL") if ctypes.util.find_library(lib) is None]
-        hint = (f"missing system librar{'y' if len(missing) == 1 else 'ies'} "
-                + ", ".join(f"lib{m}.so" for m in missing)
-                + " (Debian: apt-get install libegl1 libgl1 libgl1-mesa-dri)") if missing else \
-            "EGL is present but gave no OpenGL 3.3 core context (Debian: apt-get install libgl1-mesa-dri)"
-        raise ToolkitError(f"could not create a headless OpenGL context through EGL: {hint}; "
-                           f"moderngl said: {str(e).strip()[:160]}") from None
 
 
 # ---------------------------------------------------------------------------------------------- GL side
@@ -127,7 +108,7 @@ class PreviewSplatter:
         self.resort_tolerance = float(resort_tolerance)
         # Headless splatters share the process's one standalone context with render.mesh_gl: with two
         # standalone EGL contexts in a process, one's GL calls could land in the other's objects.
-        self.ctx = ctx if ctx is not None else _shared_context()
+        self.ctx = ctx if ctx is not None else shared_context()
         c = self.ctx
         self._splat = c.program(vertex_shader=sh.SPLAT_VERTEX, fragment_shader=sh.SPLAT_FRAGMENT)
         self._layer = c.program(vertex_shader=sh.FULLSCREEN_VERTEX, fragment_shader=sh.LAYER_FRAGMENT)
@@ -570,21 +551,10 @@ class PreviewSplatter:
 # ---------------------------------------------------------------------------------------------- scenes
 
 
-def _shared_context():
-    """The process's one headless context (``render.mesh_gl.shared_context``: EGL contexts are slow to make,
-    and a second standalone context in the same process is how GL calls end up in the wrong one)."""
-    from render.mesh_gl import shared_context
-
-    try:
-        return shared_context()
-    except ToolkitError:
-        return create_headless_context()  # the same EGL attempt again, for its library-naming message
-
-
 def render_preview(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
                    background=None) -> np.ndarray:
     """One-shot headless preview render -> [H, W, 3] float32 (shapes as :meth:`PreviewSplatter.render`)."""
-    s = PreviewSplatter(width, height, ctx=_shared_context())
+    s = PreviewSplatter(width, height, ctx=shared_context())
     try:
         return s.render(means, quats, scales, opacities, colors, viewmat, K, background).copy()
     finally:
@@ -593,7 +563,7 @@ def render_preview(means, quats, scales, opacities, colors, viewmat, K, width: i
 
 def render_scene(scene, camera, background=None, *, feature_map=None) -> np.ndarray:
     """One-shot headless render of a ``GaussianScene`` through a ``Camera`` -> [H, W, 3] float32."""
-    s = PreviewSplatter(camera.width, camera.height, ctx=_shared_context())
+    s = PreviewSplatter(camera.width, camera.height, ctx=shared_context())
     try:
         return s.render_scene(scene, camera, background, feature_map=feature_map).copy()
     finally:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+import render.gl_context as gl_context
 import render.mesh_gl as mesh_gl
 from tests.gl import gl_available
 from toolkit.cameras import intrinsics, look_at, project_points
@@ -157,7 +158,7 @@ def test_texture_with_uvs():
 
 
 def test_one_context_many_sizes_and_torch_inputs():
-    ctx = mesh_gl.create_context()
+    ctx = gl_context.create_context()
     v, f = cube()
     view, K = frontal_camera()
     small = mesh_gl.MeshRasterizer(64, 48, ctx=ctx)
@@ -260,7 +261,7 @@ def test_missing_egl_names_the_library(monkeypatch):
 
     monkeypatch.setattr(moderngl, "create_context", fail)
     with pytest.raises(ToolkitError, match="EGL.*libEGL"):
-        mesh_gl.create_context()
+        gl_context.create_context()
 
 
 def test_render_views_equals_single_renders():
@@ -297,7 +298,7 @@ def _render_in_child() -> str:
 def test_forked_child_gets_a_clear_error_not_a_hang():
     import multiprocessing as mp
 
-    mesh_gl.shared_context()  # the parent holds a context before forking, as a DataLoader parent would
+    gl_context.shared_context()  # the parent holds a context before forking, as a DataLoader parent would
     with mp.get_context("fork").Pool(1) as pool:
         msg = pool.apply_async(_render_in_child).get(timeout=60)
     assert "forked after OpenGL was initialised" in msg and "spawn" in msg
@@ -311,7 +312,7 @@ def test_renders_survive_another_current_context():
     view, K = frontal_camera()
     ras = mesh_gl.MeshRasterizer(64, 48)
     before = ras.render(v, f, view, K)
-    other = mesh_gl.create_context()  # made current on creation
+    other = gl_context.create_context()  # made current on creation
     tex = other.texture((16, 16), 4)  # objects in the other context must not clash with ours
     late = mesh_gl.MeshRasterizer(80, 60)  # created while the other context is current
     again = ras.render(v, f, view, K)

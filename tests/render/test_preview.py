@@ -16,10 +16,10 @@ from toolkit.errors import ToolkitError
 
 @pytest.fixture(scope="module")
 def ctx():
-    from render import preview
+    from render.gl_context import shared_context
 
     try:
-        return preview._shared_context()
+        return shared_context()
     except ToolkitError as e:  # no EGL on this machine: the message itself is tested below
         skip_without_gl(f"no headless OpenGL: {e}")
 
@@ -359,7 +359,7 @@ def test_bad_input_is_a_clear_error(ctx):
 def test_missing_egl_names_the_library(monkeypatch):
     import ctypes.util
 
-    from render import preview
+    from render import gl_context
 
     def no_egl(*a, **k):
         raise Exception("libEGL.so.1: cannot open shared object file")
@@ -367,7 +367,7 @@ def test_missing_egl_names_the_library(monkeypatch):
     monkeypatch.setattr(moderngl, "create_context", no_egl)
     monkeypatch.setattr(ctypes.util, "find_library", lambda name: None if name == "EGL" else f"lib{name}.so")
     with pytest.raises(ToolkitError, match=r"EGL.*libEGL\.so.*apt-get install libegl1"):
-        preview.create_headless_context()
+        gl_context.create_context()
 
 
 def test_may_change_hint_limits_the_comparison(ctx):
