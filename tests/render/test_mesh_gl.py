@@ -10,6 +10,7 @@ import torch
 
 import render.gl_context as gl_context
 import render.mesh_gl as mesh_gl
+from render.mesh_inputs import face_normals
 from tests.gl import gl_available
 from toolkit.cameras import intrinsics, look_at, project_points
 from toolkit.errors import ToolkitError
@@ -43,7 +44,7 @@ def frontal_camera():
 
 def test_cube_outward_normals_in_fixture():
     v, f = cube()
-    n = mesh_gl.face_normals(v, f)
+    n = face_normals(v, f)
     centres = v[f].mean(1)
     assert (np.einsum("ij,ij->i", n, centres) > 0).all()
 
@@ -117,7 +118,7 @@ def test_oblique_cube_matches_ray_cast():
     np.testing.assert_allclose(out["depth"][both], z_ref[both], rtol=1e-4)
     np.testing.assert_array_equal(out["tri_id"][both], id_ref[both])
     # Normals: the camera-space normal of each hit face; three faces are visible, all facing the camera.
-    n_cam = mesh_gl.face_normals(v, f) @ view[:3, :3].T
+    n_cam = face_normals(v, f) @ view[:3, :3].T
     np.testing.assert_allclose(out["normals"][both], n_cam[id_ref[both]], atol=1e-5)
     assert len(np.unique(id_ref[both] // 2)) == 3
     jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
