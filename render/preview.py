@@ -23,7 +23,7 @@ What a frame skips (``PreviewSplatter.stats`` records what happened):
   screen rectangle covering their footprints before and after the change. Inside it, a per-camera
   depth-layer cache is composited: the Gaussians behind the dynamic depth range (back layer), the
   Gaussians in that range (sorted each frame), and those in front (front layer). "Over" is associative,
-  so this equals a full redraw to float rounding (tests/render/test_preview.py checks it).
+  so this equals a full redraw to float rounding (tests/render/test_preview_frames.py checks it).
 
 This module decides what a frame draws; ``render.preview_gl`` holds the GPU buffers and draw calls,
 ``render.preview_layers`` plans the depth layers, ``render.preview_footprints`` checks inputs and mirrors the
