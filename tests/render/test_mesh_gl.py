@@ -307,8 +307,8 @@ def test_forked_child_gets_a_clear_error_not_a_hang():
 
 def test_renders_survive_another_current_context():
     """Two standalone contexts in one process (the mesh rasterizer's and, e.g., the preview's): whichever
-    was made current last must not receive the rasterizer's GL calls (it did: the data CLI's contact sheet
-    came out blank after the preview tests had run)."""
+    was made current last must not receive the rasterizer's GL calls (when it does, the data CLI's contact
+    sheet comes out blank after the preview tests have run)."""
     v, f = cube()
     view, K = frontal_camera()
     ras = mesh_gl.MeshRasterizer(64, 48)
