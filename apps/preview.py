@@ -225,7 +225,8 @@ def render_gaze_sweep(scene, out_path, pitches: Sequence[float], yaws: Sequence[
     differ by one step. Returns {"path", "frames" [F, H, W, 3] uint8, "gazes" [F, 2] radians, "rects",
     "scrubbing"}; frames are in grid order (rows of the contact sheet).
     """
-    from render.preview import PreviewSplatter, _shared_context
+    from render.gl_context import shared_context as _shared_context
+    from render.preview import PreviewSplatter
 
     out_path = Path(out_path)
     ext = out_path.suffix.lower()

@@ -15,7 +15,7 @@ cache, plus subdivision; the lattice for MC) and ``sdf_s`` (evaluating the analy
 separately so nothing is hidden. Marching cubes rows (scikit-image, optional extra ``bench``) use the
 Kuhn grid's samples: the (res+1)^3 lattice. ``mc-trimesh`` is trimesh's ``matrix_to_marching_cubes``,
 which meshes the binary occupancy (sdf < 0), so its vertices sit at edge midpoints (first order).
-The closing breakdown times the issue's target: extraction on a Kuhn 128 grid <= 0.3 s.
+The closing breakdown times extraction on a Kuhn 128 grid, stage by stage, against its target of <= 0.3 s.
 """
 
 from __future__ import annotations
@@ -162,7 +162,7 @@ def _median_min(fn, repeats: int) -> dict:
 
 
 def breakdown(res: int, repeats: int) -> list[dict]:
-    """The issue's target measured stage by stage: Kuhn grid at ``res``, off-centre sphere SDF."""
+    """The extraction target (<= 0.3 s) timed stage by stage: Kuhn grid at ``res``, off-centre sphere SDF."""
     from geometry.tets import grid_topology
 
     rows = []

@@ -133,9 +133,9 @@ def main(argv=None) -> None:
     ap.add_argument("--res", type=count("--res", 1), default=512)
     ap.add_argument("--frames", type=count("--frames", 1), default=8)
     args = ap.parse_args(argv)
-    from render.preview import _shared_context
+    from render.gl_context import shared_context
 
-    ctx = _shared_context()
+    ctx = shared_context()
     print(machine_info())
     print(f"GL: {ctx.info['GL_RENDERER']} / {ctx.info['GL_VERSION']}; load: {os.getloadavg()}")
     rows = []
@@ -152,7 +152,7 @@ def main(argv=None) -> None:
                               "gaze FPS", "gaze CPU ms", "gaze 1-core FPS", "quad Mpx gaze", "mid N", "rect",
                               "gaze-frame PSNR dB"]))
     print("gaze-frame PSNR: the last incremental gaze frame against the torch splatter at that gaze (tests/render/"
-          "test_preview.py checks incremental frames equal full redraws)")
+          "test_preview_frames.py checks incremental frames equal full redraws)")
     print("CPU ms = process CPU time per frame, summed over its threads (llvmpipe's included): the frame's work, "
           "which other processes on a shared machine\ninflate less than the wall times above. '1-core FPS' = "
           "1000 / CPU ms is the rate if that work ran on one free core without waiting. It is a\nmeasure of "

@@ -213,6 +213,17 @@ def main(argv=None) -> int:
                 for r in (128, 256, 512) for d in (3, 32)]
         grid.insert(0, ("head", 20_000, 256, 32))
     devices = ["cpu"] + (["cuda"] if a.cuda and torch.cuda.is_available() else [])
+    grid_section(a, grid, devices)
+    if not a.no_knobs:
+        knob_sections(a)
+    torch.set_num_threads(a.threads)
+    camera_batch_section(a, devices)
+    print(f"load average after: {os.getloadavg()}")
+    return 0
+
+
+def grid_section(a: argparse.Namespace, grid: list[tuple], devices: list[str]) -> None:
+    """The (scene, N, res, D) grid on each device: table and splat_grid.png."""
     cfgs = [dict(kind=k, n=n, res=r, d=d, threads=a.threads, ref_budget=a.ref_budget, device=dev)
             for dev in devices for (k, n, r, d) in grid]
     print(f"\n## grid ({len(cfgs)} configurations; error vs dense reference where N x pixels <= {a.ref_budget:g})")
@@ -234,42 +245,46 @@ def main(argv=None) -> int:
                     logy=True)
     print(f"wrote {png}")
 
-    if not a.no_knobs:
-        base = dict(kind="head", n=20_000, res=256, d=32, threads=a.threads, ref_budget=0, device="cpu")
-        knobs = [dict(tile_size=t) for t in (4, 8, 16)] + [dict(chunk=c) for c in (8, 16, 64)]
-        knobs += [dict(max_elements=1 << m) for m in (16, 19)]
-        knobs += [dict(alpha_min=x) for x in (2 / 255, 8 / 255)] + [dict(t_min=x) for x in (1e-3, 1e-2)]
-        if a.quick:
-            knobs = [dict(tile_size=16), dict(chunk=16), dict(t_min=1e-2)]
-        kcfgs = [dict(base, kw=k, ref_default=True) for k in knobs]
-        print("\n## knobs (head 20k, 256^2, D=32; error vs the default settings)")
-        krows = run_all(kcfgs)
-        for r, k in zip(krows, knobs):
-            r["knob"] = ", ".join(f"{kk}={v:.4g}" if isinstance(v, float) else f"{kk}={v}" for kk, v in k.items())
-        print(format_table(krows, ["knob", "fwd_s", "fwd_bwd_s", "fwd_cpu_s", "fwd_bwd_cpu_s", "peak_rss_gb", "pairs", "rounds", "max_err",
-                                   "frac_gt_1e5"]))
-        ks: dict = {}
-        for r, k in zip(krows, knobs):
-            name = next(iter(k))
-            xs, ys = ks.setdefault(name, ([], []))
-            xs.append(max(r.get("max_err", 0.0), 1e-9))
-            ys.append(r["fwd_bwd_s"])
-        png = save_plot(OUT_DIR / "splat_knobs.png", ks, xlabel="max |error| vs default (1e-9 = exact)",
-                        ylabel="fwd+bwd seconds", title="render.splat knob trade-offs (labels in the table)",
-                        logx=True)
-        print(f"wrote {png}")
 
-        # The training splat is small (the demo's 128^2 output splats at 32^2): there the chunk sets the
-        # number of rounds, and the default (auto) chunk grows to keep rounds large.
-        small = dict(base, n=6000, res=32)
-        chunks = [dict(chunk=c) for c in ((32, 256) if a.quick else (16, 32, 64, 128, 256, 512))]
-        print("\n## chunk on a small image (head 6k, 32^2, D=32; error vs the default, auto chunk)")
-        crows = run_all([dict(small, kw=k, ref_default=True) for k in [{}] + chunks])
-        for r, k in zip(crows, [dict(chunk="auto")] + chunks):
-            r["knob"] = f"chunk={k['chunk']}"
-        print(format_table(crows, ["knob", "fwd_s", "fwd_bwd_s", "rounds", "max_err"]))
+def knob_sections(a: argparse.Namespace) -> None:
+    """The knobs against the default settings on one scene (splat_knobs.png), then the chunk on a small image."""
+    base = dict(kind="head", n=20_000, res=256, d=32, threads=a.threads, ref_budget=0, device="cpu")
+    knobs = [dict(tile_size=t) for t in (4, 8, 16)] + [dict(chunk=c) for c in (8, 16, 64)]
+    knobs += [dict(max_elements=1 << m) for m in (16, 19)]
+    knobs += [dict(alpha_min=x) for x in (2 / 255, 8 / 255)] + [dict(t_min=x) for x in (1e-3, 1e-2)]
+    if a.quick:
+        knobs = [dict(tile_size=16), dict(chunk=16), dict(t_min=1e-2)]
+    kcfgs = [dict(base, kw=k, ref_default=True) for k in knobs]
+    print("\n## knobs (head 20k, 256^2, D=32; error vs the default settings)")
+    krows = run_all(kcfgs)
+    for r, k in zip(krows, knobs):
+        r["knob"] = ", ".join(f"{kk}={v:.4g}" if isinstance(v, float) else f"{kk}={v}" for kk, v in k.items())
+    print(format_table(krows, ["knob", "fwd_s", "fwd_bwd_s", "fwd_cpu_s", "fwd_bwd_cpu_s", "peak_rss_gb", "pairs",
+                               "rounds", "max_err", "frac_gt_1e5"]))
+    ks: dict = {}
+    for r, k in zip(krows, knobs):
+        name = next(iter(k))
+        xs, ys = ks.setdefault(name, ([], []))
+        xs.append(max(r.get("max_err", 0.0), 1e-9))
+        ys.append(r["fwd_bwd_s"])
+    png = save_plot(OUT_DIR / "splat_knobs.png", ks, xlabel="max |error| vs default (1e-9 = exact)",
+                    ylabel="fwd+bwd seconds", title="render.splat knob trade-offs (labels in the table)",
+                    logx=True)
+    print(f"wrote {png}")
 
-    torch.set_num_threads(a.threads)
+    # The training splat is small (the demo's 128^2 output splats at 32^2): there the chunk sets the
+    # number of rounds, and the default (auto) chunk grows to keep rounds large.
+    small = dict(base, n=6000, res=32)
+    chunks = [dict(chunk=c) for c in ((32, 256) if a.quick else (16, 32, 64, 128, 256, 512))]
+    print("\n## chunk on a small image (head 6k, 32^2, D=32; error vs the default, auto chunk)")
+    crows = run_all([dict(small, kw=k, ref_default=True) for k in [{}] + chunks])
+    for r, k in zip(crows, [dict(chunk="auto")] + chunks):
+        r["knob"] = f"chunk={k['chunk']}"
+    print(format_table(crows, ["knob", "fwd_s", "fwd_bwd_s", "rounds", "max_err"]))
+
+
+def camera_batch_section(a: argparse.Namespace, devices: list[str]) -> None:
+    """One call over C cameras against C calls, per device and resolution: table and splat_batch.png."""
     print("\n## camera batch (head 6k, D=32, fwd+bwd: one call with per-camera Gaussians vs one call per camera)")
     brows = [camera_batch_row(c, r, 6000, dev) for dev in devices for r in ((32,) if a.quick else (32, 128))
              for c in (1, 4, 8)]
@@ -286,8 +301,6 @@ def main(argv=None) -> int:
     png = save_plot(OUT_DIR / "splat_batch.png", series, xlabel="cameras", ylabel="fwd+bwd seconds",
                     title="render.splat: a batch of cameras in one call", logy=True)
     print(f"wrote {png}")
-    print(f"load average after: {os.getloadavg()}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geometry.fit import FitConfig, Views, fit_silhouettes, silhouette_iou
+from geometry.fit import FitConfig, fit_silhouettes
+from geometry.silhouettes import Views, silhouette_iou
 from toolkit.errors import ToolkitError
 from toolkit.io import atomic_write_json, check_readable_file
 from toolkit.rotations import so3_exp

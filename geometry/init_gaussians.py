@@ -158,9 +158,36 @@ def _anisotropic_scales(p: torch.Tensor, k: int = 3) -> torch.Tensor:
 def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Tensor, net=None,
                    config: InitConfig | None = None) -> GaussianScene:
     """Mesh verts [V, 3] / faces [F, 3] (head frame) + landmarks [68, 3] (+ SDFNet) -> GaussianScene."""
-    from geometry.mesh_stats import check_mesh, sample_surface
-
     cfg = config or InitConfig()
+    landmarks = _check_inputs(verts, faces, landmarks, cfg)
+    g = torch.Generator().manual_seed(cfg.seed)
+    pts = _mesh_points(verts, faces, cfg)
+    part, drop, extra, eyes_meta = _place_eyes(pts, landmarks, cfg, g)
+    pts, part, lid = _with_extra_points(pts[~drop], part[~drop], extra)
+    scales = _initial_scales(pts, part, lid, eyes_meta, cfg)
+    if net is not None:
+        with torch.no_grad():
+            feats = net.evaluate(pts.to(net.center.device))[2].float().cpu()
+        kind = "neural"
+    else:
+        feats = torch.full((pts.shape[0], 3), 0.5)
+        kind = "rgb"
+    face = part == PART_FACE
+    opac = torch.where(face, torch.tensor(cfg.opacity_face), torch.tensor(cfg.opacity_eye))
+    opac[lid] = cfg.opacity_lid
+    scene = GaussianScene.from_activated(
+        means=pts, scales=scales, opacities=opac, features=feats, part=part,
+        metadata={"units": "m", "feature_kind": kind, "source": "geometry.init_gaussians",
+                  "frame": "head: x image-right, y down, face towards -z; canonical gaze (0, 0, -1)",
+                  "eyes": eyes_meta},
+    )
+    return scene.validate()
+
+
+def _check_inputs(verts: torch.Tensor, faces: torch.Tensor, landmarks, cfg: InitConfig) -> torch.Tensor:
+    """The mesh, the landmarks and the eye / lid settings of :func:`init_gaussians` -> landmarks [68, 3] float."""
+    from geometry.mesh_stats import check_mesh
+
     check_mesh(verts, faces, "init_gaussians mesh")
     landmarks = torch.as_tensor(landmarks, dtype=torch.float32)
     if landmarks.shape != (68, 3) or not bool(torch.isfinite(landmarks).all()):
@@ -176,7 +203,13 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
         raise ToolkitError(f"init_gaussians: expected lid_offset > 0, lid_cap_deg in (0, 90], lid_opening > 0, "
                            f"lid_scale > 0 and opacity_lid in (0, 1), got {cfg.lid_offset}, {cfg.lid_cap_deg}, "
                            f"{cfg.lid_opening}, {cfg.lid_scale}, {cfg.opacity_lid}")
-    g = torch.Generator().manual_seed(cfg.seed)
+    return landmarks
+
+
+def _mesh_points(verts: torch.Tensor, faces: torch.Tensor, cfg: InitConfig) -> torch.Tensor:
+    """[P, 3] the used mesh vertices, or ``cfg.n_points`` area-uniform surface samples; at least 16."""
+    from geometry.mesh_stats import sample_surface
+
     verts = verts.detach().float()
     if cfg.n_points is None:
         pts = verts[torch.unique(faces)]
@@ -184,7 +217,12 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
         pts = sample_surface(verts, faces, int(cfg.n_points), cfg.seed)[0].float()
     if pts.shape[0] < 16:
         raise ToolkitError(f"init_gaussians: the mesh gives only {pts.shape[0]} points; need at least 16")
+    return pts
 
+
+def _place_eyes(pts: torch.Tensor, landmarks: torch.Tensor, cfg: InitConfig, g: torch.Generator):
+    """Fit both eyeballs and decide which mesh points are eye -> (part [P] int8, drop [P] bool: mesh points
+    the eye caps replace, extra [(points [M, 3], part id or PART_LID)], the eyes' metadata by name)."""
     part = torch.full((pts.shape[0],), PART_FACE, dtype=torch.int8)
     eyes_meta, extra = {}, []
     drop = torch.zeros(pts.shape[0], dtype=torch.bool)  # mesh points replaced by the eye_points caps
@@ -211,17 +249,25 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
             if n_have < cfg.min_eye_points:
                 extra.append((_front_cap(c, r, cfg.min_eye_points - n_have, g), pid))
         eyes_meta[name] = {"center": [float(x) for x in c], "radius": r, "part": pid, "fit": eye["fit"]}
-    pts, part = pts[~drop], part[~drop]
+    return part, drop, extra, eyes_meta
+
+
+def _with_extra_points(pts: torch.Tensor, part: torch.Tensor, extra) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Append the eye caps and lids -> (points [P', 3], part [P'] int8, lid [P'] bool); lids are face points."""
     lid = torch.zeros(pts.shape[0], dtype=torch.bool)
     for p, pid in extra:
         pts = torch.cat([pts, p])
         lid = torch.cat([lid, torch.full((p.shape[0],), pid == PART_LID)])
         pid = PART_FACE if pid == PART_LID else pid  # lids are face Gaussians: the face field deforms them
         part = torch.cat([part, torch.full((p.shape[0],), pid, dtype=torch.int8)])
+    return pts, part, lid
 
+
+def _initial_scales(pts: torch.Tensor, part: torch.Tensor, lid: torch.Tensor, eyes_meta: dict,
+                    cfg: InitConfig) -> torch.Tensor:
+    """[P, 3] activated scales from each point's neighbours of its own kind (module docstring)."""
     scales = torch.zeros(pts.shape[0], 3)
-    face = part == PART_FACE
-    mesh_face = face & ~lid
+    mesh_face = (part == PART_FACE) & ~lid
     # Lids and the mesh's face points take their neighbours among their own kind, so adding lids leaves every
     # mesh point's scale as it was.
     if int(mesh_face.sum()) > 3:
@@ -242,19 +288,4 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
     if int(lid.sum()):  # floored as the mesh's face (few lids: the floor alone), then made smaller
         floor = 0.2 * float(scales[mesh_face].median()) if int(mesh_face.sum()) else 1e-4
         scales[lid] = scales[lid].clamp_min(floor) * cfg.lid_scale
-    if net is not None:
-        with torch.no_grad():
-            feats = net.evaluate(pts.to(net.center.device))[2].float().cpu()
-        kind = "neural"
-    else:
-        feats = torch.full((pts.shape[0], 3), 0.5)
-        kind = "rgb"
-    opac = torch.where(face, torch.tensor(cfg.opacity_face), torch.tensor(cfg.opacity_eye))
-    opac[lid] = cfg.opacity_lid
-    scene = GaussianScene.from_activated(
-        means=pts, scales=scales, opacities=opac, features=feats, part=part,
-        metadata={"units": "m", "feature_kind": kind, "source": "geometry.init_gaussians",
-                  "frame": "head: x image-right, y down, face towards -z; canonical gaze (0, 0, -1)",
-                  "eyes": eyes_meta},
-    )
-    return scene.validate()
+    return scales

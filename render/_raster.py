@@ -6,7 +6,7 @@ large batched tensor ops over [tiles, chunk, pixels-per-tile]. A tile leaves the
 exhausted or when every one of its pixels has terminated (T (1 - alpha) <= T_MIN), so empty tiles and
 finished pixels cost nothing more. The tiles of all cameras of a call are swept together (``TileBins`` numbers
 them image after image), so a batch of C images takes the rounds of its longest tile list, not C times as
-many: on a GPU the cost is the number of kernel launches, which no longer grows with C.
+many: on a GPU the cost is the number of kernel launches, which does not grow with C.
 
 Memory-lean backward: nothing of size [pixels x Gaussians] is saved (only the final colour and T per pixel).
 The backward re-runs the same rounds (bit-identical alphas and transmittances, hence the same stops) and

@@ -15,157 +15,38 @@ Vertices are de-indexed (three corners per face) so face normals stay exact for 
 
 from __future__ import annotations
 
-import os
-from typing import Any
-
 import numpy as np
 import torch
 
+from render.gl_context import make_current, shared_context
+from render.mesh_inputs import (
+    as_array,
+    camera_arrays,
+    check_render_options,
+    check_shape,
+    face_normals,
+    light_directions,
+    mesh_arrays,
+    surface_arrays,
+    vertex_normals,
+)
+from render.mesh_shaders import MESH_FRAGMENT, MESH_VERTEX
 from toolkit.cameras import opengl_projection
 from toolkit.errors import ToolkitError
-
-DEFAULT_COLOR = (0.8, 0.8, 0.8)
-MAX_FACES = 1 << 24  # triangle ids travel through a float32 channel: exact below 2^24
-
-_VERTEX_SHADER = """
-#version 330 core
-uniform mat4 u_view;   // OpenCV world-to-camera
-uniform mat4 u_proj;   // OpenGL clip-from-eye (toolkit.cameras.opengl_projection)
-in vec3 in_pos;
-in vec3 in_nrm;
-in vec3 in_col;
-in vec2 in_uv;
-out vec3 v_cam;
-out vec3 v_nrm;
-out vec3 v_col;
-out vec2 v_uv;
-void main() {
-    vec4 cam = u_view * vec4(in_pos, 1.0);
-    v_cam = cam.xyz;
-    v_nrm = mat3(u_view) * in_nrm;
-    v_col = in_col;
-    v_uv = in_uv;
-    // OpenGL eye space is the OpenCV camera with y and z negated.
-    gl_Position = u_proj * vec4(cam.x, -cam.y, -cam.z, 1.0);
-}
-"""
-
-_FRAGMENT_SHADER = """
-#version 330 core
-uniform vec3 u_light;      // camera-space unit direction from the surface towards the light
-uniform float u_ambient;
-uniform bool u_use_tex;
-uniform sampler2D u_tex;
-in vec3 v_cam;
-in vec3 v_nrm;
-in vec3 v_col;
-in vec2 v_uv;
-layout(location = 0) out vec4 f_rgb;
-layout(location = 1) out vec4 f_nrm_depth;
-layout(location = 2) out vec4 f_id;
-void main() {
-    vec3 n = v_nrm / max(length(v_nrm), 1e-20);
-    vec3 albedo = u_use_tex ? texture(u_tex, v_uv).rgb : v_col;
-    float lambert = max(dot(n, u_light), 0.0);
-    f_rgb = vec4(albedo * (u_ambient + (1.0 - u_ambient) * lambert), 1.0);
-    f_nrm_depth = vec4(n, v_cam.z);
-    f_id = vec4(float(gl_PrimitiveID + 1), 0.0, 0.0, 1.0);
-}
-"""
-
-_SHARED_CONTEXT: Any = None
-
-
-def make_current(ctx) -> None:
-    """Make a standalone moderngl context current on this thread.
-
-    A process can hold several GL contexts (the mesh rasterizer's shared one, the preview's, a glfw
-    window's) and every GL call goes to whichever is current, so each entry point that touches GL claims
-    its own standalone context first.
-    """
-    ctx.__enter__()  # glcontext: make current (remembering the previous one for a matching __exit__)
-
-
-def create_context():
-    """A new headless moderngl context (EGL, GL >= 3.3 core); ToolkitError naming what is missing."""
-    try:
-        import moderngl
-    except ImportError as e:  # pragma: no cover - moderngl is a hard dependency
-        raise ToolkitError(f"render.mesh_gl needs the Python package 'moderngl' ({e})") from e
-    try:
-        return moderngl.create_context(standalone=True, backend="egl", require=330)
-    except Exception as e:
-        raise ToolkitError(
-            "render.mesh_gl: cannot create a headless OpenGL 3.3 context through EGL "
-            f"({type(e).__name__}: {e}); install libEGL / Mesa (Debian: libegl1 libgl1-mesa-dri)"
-        ) from e
-
-
-def shared_context():
-    """One headless context per process, created on first use (what ``render_mesh`` uses).
-
-    EGL does not survive ``fork``: a child forked after the parent initialised GL can neither use the
-    parent's context nor reliably create its own (Mesa hangs), so it gets a ToolkitError instead.
-    """
-    global _SHARED_CONTEXT
-    if _SHARED_CONTEXT is not None and _SHARED_CONTEXT[0] != os.getpid():
-        raise ToolkitError(
-            "render.mesh_gl: this process was forked after OpenGL was initialised in its parent; EGL cannot "
-            "be used here. Start workers with the 'spawn' method (e.g. DataLoader(multiprocessing_context="
-            "'spawn')) or render before/without forking"
-        )
-    if _SHARED_CONTEXT is None:
-        _SHARED_CONTEXT = (os.getpid(), create_context())
-    return _SHARED_CONTEXT[1]
-
-
-def _as_array(x, name: str, dtype) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    try:
-        return np.ascontiguousarray(np.asarray(x), dtype=dtype)
-    except (TypeError, ValueError) as e:
-        raise ToolkitError(f"{name}: expected a numeric array, got {type(x).__name__} ({e})") from e
-
-
-def _check_shape(a: np.ndarray, name: str, shape: tuple) -> None:
-    ok = a.ndim == len(shape) and all(s is None or s == d for s, d in zip(shape, a.shape, strict=False))
-    if not ok:
-        want = "[" + ", ".join("N" if s is None else str(s) for s in shape) + "]"
-        raise ToolkitError(f"{name}: expected shape {want}, got {list(a.shape)}")
-    if a.dtype.kind == "f" and not np.isfinite(a).all():
-        raise ToolkitError(f"{name}: contains NaN or inf")
-
-
-def face_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """[V, 3], [F, 3] -> [F, 3] unit normals (right-hand rule over the face's vertex order)."""
-    v = verts.astype(np.float64)
-    n = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-
-
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """[V, 3], [F, 3] -> [V, 3] area-weighted unit vertex normals (zero for unused vertices)."""
-    v = verts.astype(np.float64)
-    n = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])  # length = 2 * area
-    out = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(out, faces[:, k], n)
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-30)
 
 
 class MeshRasterizer:
     """Rasterize triangle meshes headlessly into a ``width`` × ``height`` float framebuffer.
 
     ``ctx`` shares an existing moderngl context (e.g. a window's, or one context for many sizes);
-    by default the process-wide EGL context of :func:`shared_context` is used. The framebuffer is
-    recreated by :meth:`resize`; programs and the context are reused.
+    by default the process-wide EGL context of :func:`render.gl_context.shared_context` is used. The
+    framebuffer is recreated by :meth:`resize`; programs and the context are reused.
     """
 
     def __init__(self, width: int, height: int, *, ctx=None):
         self.ctx = ctx if ctx is not None else shared_context()
         make_current(self.ctx)
-        self.prog = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+        self.prog = self.ctx.program(vertex_shader=MESH_VERTEX, fragment_shader=MESH_FRAGMENT)
         self._fbo, self._fbo_objects = None, []
         self._ss_fbo, self._ss_objects = None, []  # framebuffer (and its GL objects) of the last supersampled size
         self.width = self.height = 0
@@ -229,13 +110,13 @@ class MeshRasterizer:
             camera z (0 where empty), ``normals`` [H, W, 3] float32 camera-space unit normals (0 where
             empty), ``tri_id`` [H, W] int32 face index (-1 where empty).
         """
-        view = _as_array(viewmat, "viewmat", np.float32)
-        _check_shape(view, "viewmat", (4, 4))
-        Kn = _as_array(K, "K", np.float32)
-        _check_shape(Kn, "K", (3, 3))
+        view = as_array(viewmat, "viewmat", np.float32)
+        check_shape(view, "viewmat", (4, 4))
+        Kn = as_array(K, "K", np.float32)
+        check_shape(Kn, "K", (3, 3))
         light = kw.pop("light_dir", None)
         if light is not None:
-            light = _as_array(light, "light_dir", np.float32).reshape(1, -1)
+            light = as_array(light, "light_dir", np.float32).reshape(1, -1)
         return self.render_views(verts, faces, view[None], Kn[None], light_dir=light, **kw)[0]
 
     def render_views(
@@ -262,69 +143,25 @@ class MeshRasterizer:
         [C, 3] (one per view, e.g. a world-fixed light turned into each camera). Other arguments and the
         per-view result dicts as in :meth:`render`.
         """
-        v = _as_array(verts, "verts", np.float32)
-        f_raw = faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
-        if f_raw.size and f_raw.dtype.kind not in "iu":
-            raise ToolkitError(f"faces: expected integer vertex indices, got dtype {f_raw.dtype}")
-        f = np.ascontiguousarray(f_raw, dtype=np.int64)
-        _check_shape(v, "verts", (None, 3))
-        _check_shape(f, "faces", (None, 3))
-        if v.shape[0] == 0 or f.shape[0] == 0:
-            raise ToolkitError(f"mesh is empty ({v.shape[0]} vertices, {f.shape[0]} faces); nothing to render")
-        if f.shape[0] >= MAX_FACES:
-            raise ToolkitError(f"faces: at most {MAX_FACES - 1} faces supported, got {f.shape[0]}")
-        if f.min() < 0 or f.max() >= v.shape[0]:
-            raise ToolkitError(f"faces: indices must be in [0, {v.shape[0] - 1}], got [{f.min()}, {f.max()}]")
-        views = _as_array(viewmats, "viewmats", np.float32)
-        _check_shape(views, "viewmats", (None, 4, 4))
-        C = views.shape[0]
-        Kn = _as_array(Ks, "Ks", np.float32)
-        _check_shape(Kn, "Ks", (C, 3, 3))
-        if not (0 < near < far) or not np.isfinite(far):
-            raise ToolkitError(f"near/far: expected 0 < near < far < inf, got near={near}, far={far}")
-        if not 0.0 <= float(ambient) <= 1.0:
-            raise ToolkitError(f"ambient: expected a value in [0, 1], got {ambient}")
-        bg = _as_array(background, "background", np.float32).reshape(-1)
-        if bg.shape != (3,) or not np.isfinite(bg).all():
-            raise ToolkitError(f"background: expected 3 finite RGB values, got {list(bg.shape)}")
-        if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) \
-                or supersample < 1 or supersample % 2 == 0:
-            raise ToolkitError(f"supersample: expected an odd integer >= 1 (samples per pixel side), got {supersample!r}")
-        ss = int(supersample)
+        v, f = mesh_arrays(verts, faces)
+        views, Kn = camera_arrays(viewmats, Ks)
+        bg, ss = check_render_options(near, far, ambient, background, supersample)
+        col, uv, tex = surface_arrays(v.shape[0], colors, uvs, texture)
+        lights = light_directions(light_dir, views.shape[0])
+        make_current(self.ctx)
+        vao, owned = self._upload_mesh(v, f, col, uv, smooth)
+        try:
+            self._set_shading(float(ambient), tex, owned)
+            return [self._render_view(vao, views[c], Kn[c], lights[c], bg, ss, near, far)
+                    for c in range(views.shape[0])]
+        finally:
+            vao.release()
+            for obj in owned:
+                obj.release()
 
-        V = v.shape[0]
-        if colors is not None:
-            col = _as_array(colors, "colors", np.float32)
-            _check_shape(col, "colors", (V, 3))
-        else:
-            col = np.broadcast_to(np.asarray(DEFAULT_COLOR, np.float32), (V, 3))
-        use_tex = texture is not None
-        if use_tex:
-            if uvs is None:
-                raise ToolkitError("texture given without uvs: pass uvs [V, 2]")
-            uv = _as_array(uvs, "uvs", np.float32)
-            _check_shape(uv, "uvs", (V, 2))
-            tex = texture.detach().cpu().numpy() if isinstance(texture, torch.Tensor) else np.asarray(texture)
-            if tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] < 1 or tex.shape[1] < 1:
-                raise ToolkitError(f"texture: expected shape [h, w, 3], got {list(tex.shape)}")
-            tex = tex.astype(np.float32) / 255.0 if tex.dtype == np.uint8 else tex.astype(np.float32)
-            if not np.isfinite(tex).all():
-                raise ToolkitError("texture: contains NaN or inf")
-        else:
-            uv = np.zeros((V, 2), np.float32)
-
-        if light_dir is None:
-            lights = np.tile(np.array([[0.0, 0.0, -1.0]], np.float32), (C, 1))
-        else:
-            lights = _as_array(light_dir, "light_dir", np.float32)
-            lights = np.tile(lights.reshape(1, -1), (C, 1)) if lights.size == 3 else lights
-            norms = np.linalg.norm(lights, axis=-1) if lights.ndim == 2 and lights.shape[-1] == 3 else None
-            if lights.shape != (C, 3) or not np.isfinite(lights).all() or (norms < 1e-12).any():
-                raise ToolkitError(f"light_dir: expected finite non-zero 3-vectors, [3] or [{C}, 3]")
-            lights = lights / norms[:, None]
-
+    def _upload_mesh(self, v: np.ndarray, f: np.ndarray, col: np.ndarray, uv: np.ndarray, smooth: bool):
+        """The mesh as vertex (and index) buffers -> (vertex array, [the buffers, to release with it])."""
         ctx = self.ctx
-        make_current(ctx)
         ibo = None
         if smooth:
             # Shared vertices + an index buffer: the vertex shader runs once per vertex, not per corner.
@@ -338,54 +175,53 @@ class MeshRasterizer:
             vbo = ctx.buffer(corners.tobytes())
         vao = ctx.vertex_array(self.prog, [(vbo, "3f 3f 3f 2f", "in_pos", "in_nrm", "in_col", "in_uv")],
                                index_buffer=ibo, index_element_size=4)
-        gl_tex = None
-        results = []
-        try:
-            self.prog["u_ambient"].value = float(ambient)
-            self.prog["u_use_tex"].value = use_tex
-            if use_tex:
-                gl_tex = ctx.texture((tex.shape[1], tex.shape[0]), 3, np.ascontiguousarray(tex).tobytes(), dtype="f4")
-                gl_tex.filter = (ctx.LINEAR, ctx.LINEAR)
-                gl_tex.repeat_x = gl_tex.repeat_y = False
-                gl_tex.use(location=0)
-                self.prog["u_tex"].value = 0
-            ctx.scissor = None  # the shared context may hold a preview pass's scissor box
-            ctx.disable(ctx.CULL_FACE | ctx.BLEND)
-            ctx.enable(ctx.DEPTH_TEST)
+        return vao, [vbo] + ([ibo] if ibo is not None else [])
 
-            def draw(fbo, K: np.ndarray, w: int, h: int, clear=(0.0, 0.0, 0.0, 0.0)) -> None:
-                fbo.use()
-                ctx.viewport = (0, 0, w, h)
-                P = opengl_projection(torch.from_numpy(K), w, h, near, far).numpy()
-                self.prog["u_proj"].write(np.ascontiguousarray(P.T, dtype=np.float32).tobytes())
-                fbo.clear(*clear, depth=1.0)
-                vao.render(ctx.TRIANGLES)
+    def _set_shading(self, ambient: float, tex: np.ndarray | None, owned: list) -> None:
+        """Set the shading uniforms and the GL state of a mesh pass; a texture made is appended to ``owned``."""
+        ctx = self.ctx
+        self.prog["u_ambient"].value = ambient
+        self.prog["u_use_tex"].value = tex is not None
+        if tex is not None:
+            gl_tex = ctx.texture((tex.shape[1], tex.shape[0]), 3, np.ascontiguousarray(tex).tobytes(), dtype="f4")
+            owned.append(gl_tex)
+            gl_tex.filter = (ctx.LINEAR, ctx.LINEAR)
+            gl_tex.repeat_x = gl_tex.repeat_y = False
+            gl_tex.use(location=0)
+            self.prog["u_tex"].value = 0
+        ctx.scissor = None  # the shared context may hold a preview pass's scissor box
+        ctx.disable(ctx.CULL_FACE | ctx.BLEND)
+        ctx.enable(ctx.DEPTH_TEST)
 
-            for c in range(C):
-                self.prog["u_view"].write(np.ascontiguousarray(views[c].T).tobytes())  # GL is column-major
-                self.prog["u_light"].value = tuple(float(x) for x in lights[c])
-                rgb_aa = None
-                if ss > 1:
-                    # Pixel-edge convention (x = 0 is the left edge): s x s samples per pixel is K scaled by s.
-                    fbo = self._supersample_fbo(ss)
-                    # Cleared to the background, so every sample is already composited on it.
-                    draw(fbo, Kn[c] * np.array([[ss], [ss], [1]], np.float32), self.width * ss, self.height * ss,
-                         clear=(*(float(x) for x in bg), 0.0))
-                    rgb_aa = self._read_supersampled(fbo, ss)
-                # The discrete buffers come from a plain pass: the exact samples of an s = 1 render.
-                draw(self._fbo, Kn[c], self.width, self.height)
-                out = self._read_back(bg)
-                if rgb_aa is not None:
-                    out["rgb"] = rgb_aa
-                results.append(out)
-        finally:
-            vao.release()
-            vbo.release()
-            if ibo is not None:
-                ibo.release()
-            if gl_tex is not None:
-                gl_tex.release()
-        return results
+    def _draw(self, vao, fbo, K: np.ndarray, w: int, h: int, near: float, far: float,
+              clear=(0.0, 0.0, 0.0, 0.0)) -> None:
+        """Draw the uploaded mesh into ``fbo`` ([w, h]) through intrinsics K [3, 3], cleared to ``clear`` first."""
+        fbo.use()
+        self.ctx.viewport = (0, 0, w, h)
+        P = opengl_projection(torch.from_numpy(K), w, h, near, far).numpy()
+        self.prog["u_proj"].write(np.ascontiguousarray(P.T, dtype=np.float32).tobytes())
+        fbo.clear(*clear, depth=1.0)
+        vao.render(self.ctx.TRIANGLES)
+
+    def _render_view(self, vao, view: np.ndarray, K: np.ndarray, light: np.ndarray, bg: np.ndarray, ss: int,
+                     near: float, far: float) -> dict[str, np.ndarray]:
+        """One camera (view [4, 4], K [3, 3], light [3]) -> the result dict of :meth:`render`."""
+        self.prog["u_view"].write(np.ascontiguousarray(view.T).tobytes())  # GL is column-major
+        self.prog["u_light"].value = tuple(float(x) for x in light)
+        rgb_aa = None
+        if ss > 1:
+            # Pixel-edge convention (x = 0 is the left edge): s x s samples per pixel is K scaled by s.
+            fbo = self._supersample_fbo(ss)
+            # Cleared to the background, so every sample is already composited on it.
+            self._draw(vao, fbo, K * np.array([[ss], [ss], [1]], np.float32), self.width * ss, self.height * ss,
+                       near, far, clear=(*(float(x) for x in bg), 0.0))
+            rgb_aa = self._read_supersampled(fbo, ss)
+        # The discrete buffers come from a plain pass: the exact samples of an s = 1 render.
+        self._draw(vao, self._fbo, K, self.width, self.height, near, far)
+        out = self._read_back(bg)
+        if rgb_aa is not None:
+            out["rgb"] = rgb_aa
+        return out
 
     def _supersample_fbo(self, ss: int):
         """An RGBA + depth framebuffer ``ss`` times this rasterizer's size, kept until the size changes."""

@@ -1,6 +1,7 @@
-"""CPU side of the preview splatter: packing Gaussians into the data-texture layout and a numpy mirror of
-the vertex shader's projection (footprint boxes, depths, quad areas), used to find the screen rectangle a
-gaze change touches, to build the depth layers and to count fragment work. Conventions as ``render.preview``."""
+"""CPU side of the preview splatter: checking a frame's inputs, packing Gaussians into the data-texture layout
+and a numpy mirror of the vertex shader's projection (footprint boxes, depths, quad areas), used to find the
+screen rectangle a gaze change touches, to build the depth layers and to count fragment work. Conventions as
+``render.preview``."""
 
 from __future__ import annotations
 
@@ -19,6 +20,43 @@ def as_float32(x: Any, name: str, shape: tuple) -> np.ndarray:
     if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=False)):
         raise ToolkitError(f"render_preview: {name} must have shape {list(shape)}, got {list(a.shape)}".replace("None", "N"))
     return a
+
+
+def check_frame_inputs(means, quats, scales, opacities, colors, viewmat, K, may_change=None, *,
+                       held: int | None = None) -> tuple[np.ndarray, ...]:
+    """One frame's Gaussians and camera -> float32 (means [N, 3], quats [N, 4], scales [N, 3], opacities [N],
+    colors [N, 3], viewmat [4, 4], K [3, 3]), finite.
+
+    ``may_change`` (ids) with ``held`` == N (the splatter holds N Gaussians, checked when they came in): only
+    those rows are checked for NaN/inf, and each id must lie in [0, N).
+    """
+    means = as_float32(means, "means", (None, 3))
+    n = means.shape[0]
+    quats = as_float32(quats, "quats", (n, 4))
+    scales = as_float32(scales, "scales", (n, 3))
+    opacities = as_float32(opacities, "opacities", (n,))
+    colors = as_float32(colors, "colors", (n, 3))
+    viewmat = as_float32(viewmat, "viewmat", (4, 4))
+    K = as_float32(K, "K", (3, 3))
+    rows = None if may_change is None or held != n else np.asarray(may_change, np.int64).reshape(-1)
+    if rows is not None and rows.size and (rows.min() < 0 or rows.max() >= n):
+        raise ToolkitError(f"render_preview: may_change holds ids outside [0, {n})")
+    for name, a in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                    ("colors", colors), ("viewmat", viewmat), ("K", K)):
+        part = a if rows is None or a.shape[0] != n or name in ("viewmat", "K") else a[rows]
+        if not np.isfinite(part).all():
+            raise ToolkitError(f"render_preview: {name} contains NaN or inf")
+    return means, quats, scales, opacities, colors, viewmat, K
+
+
+def dynamic_mask(dynamic, n: int) -> np.ndarray | None:
+    """The ``dynamic`` [N] mask (array or tensor) as numpy bool; None when absent or all False."""
+    if dynamic is None:
+        return None
+    dyn = np.asarray(dynamic.detach().cpu() if hasattr(dynamic, "detach") else dynamic).astype(bool)
+    if dyn.shape != (n,):
+        raise ToolkitError(f"render_preview: dynamic must be a bool mask of shape [{n}], got {list(dyn.shape)}")
+    return dyn if dyn.any() else None
 
 
 def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:

@@ -105,6 +105,45 @@ def rasterize(
         candidate_intersections, tiles_skipped, tiles_terminated, pixels_terminated, and rounds of the one
         sweep that renders every camera's tiles together).
     """
+    per_camera, backgrounds = _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width, height,
+                                            backgrounds, sh_degree, tile_size, chunk, alpha_min, t_min)
+    width, height = int(width), int(height)
+    C, D = viewmats.shape[0], features.shape[-1]
+    dtype = means.dtype
+    if check_finite:
+        named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
+                 "viewmats": viewmats, "Ks": Ks}
+        if backgrounds is not None:
+            named["backgrounds"] = backgrounds
+        _check_finite(named)
+
+    viewmats, Ks = viewmats.to(means.device, dtype), Ks.to(means.device, dtype)
+    proj = project_gaussians(means, quats.to(dtype), scales.to(dtype), viewmats, Ks, width, height, eps2d=eps2d,
+                             near_plane=near_plane, far_plane=far_plane)
+    colors = _colors(features, sh_degree, means, viewmats)
+    opac = opacities.to(dtype)
+    cfg = RasterConfig(chunk=None if chunk is None else int(chunk), max_elements=int(max_elements), alpha_min=float(alpha_min),
+                       t_min=float(t_min))
+    cam, ids = _visible_by_depth(proj, opac, per_camera, cfg.alpha_min)
+    m2d, con, op, col = _gather_visible(proj, opac, colors, cam, ids, per_camera, return_depth)
+    bg = backgrounds.to(means.device, dtype) if backgrounds is not None else colors.new_zeros(C, D)
+    if return_depth:
+        bg = torch.cat([bg, bg.new_zeros(C, 1)], -1)
+    bins, thin = _tile_bins(proj, cam, ids, m2d, con, op, width, height, tile_size, cfg.alpha_min)
+    stats: dict[str, int] = {}
+    img, alpha = RasterizeTiles.apply(m2d, con, op, col, bg, bins, width, height, cfg, thin, stats)
+    counters = dict(visible=int(ids.numel()), intersections=bins.n_pairs, candidate_intersections=bins.n_candidates,
+                    tiles_skipped=int((bins.counts == 0).sum()), **stats)
+    meta: dict[str, Any] = dict(radii=proj.radii, means2d=proj.means2d, depths=proj.depths, conics=proj.conics,
+                                counters=counters, tile_size=int(tile_size))
+    if return_depth:
+        meta["depth"] = img[..., D:]
+    return img[..., :D], alpha, meta
+
+
+def _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width, height, backgrounds, sh_degree,
+                  tile_size, chunk, alpha_min, t_min) -> tuple[bool, torch.Tensor | None]:
+    """Shapes, dtypes and settings of a :func:`rasterize` call -> (per-camera Gaussians?, backgrounds [C, D])."""
     _check_shape("viewmats", viewmats, (None, 4, 4))
     C = viewmats.shape[0]
     _check_shape("Ks", Ks, (C, 3, 3))
@@ -138,60 +177,59 @@ def rasterize(
         raise ToolkitError(f"rasterize: tile_size and chunk must be >= 1, got {tile_size}, {chunk}")
     if not 0 < alpha_min < ALPHA_MAX or not 0 <= t_min < 1:
         raise ToolkitError(f"rasterize: need 0 < alpha_min < {ALPHA_MAX} and 0 <= t_min < 1")
-    width, height = int(width), int(height)
-    dtype = means.dtype
-    if check_finite:
-        named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
-                 "viewmats": viewmats, "Ks": Ks}
-        if backgrounds is not None:
-            named["backgrounds"] = backgrounds
-        _check_finite(named)
+    return per_camera, backgrounds
 
-    viewmats, Ks = viewmats.to(means.device, dtype), Ks.to(means.device, dtype)
-    proj = project_gaussians(means, quats.to(dtype), scales.to(dtype), viewmats, Ks, width, height, eps2d=eps2d,
-                             near_plane=near_plane, far_plane=far_plane)
-    if sh_degree is not None:
-        centers = -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
-        colors = sh_to_color(int(sh_degree), features.to(dtype), means, centers)  # [C, N, D]
-    else:
-        colors = features.to(means.device, dtype)
-    opac = opacities.to(dtype)
-    cfg = RasterConfig(chunk=None if chunk is None else int(chunk), max_elements=int(max_elements), alpha_min=float(alpha_min),
-                       t_min=float(t_min))
-    # Every camera's visible Gaussians, depth-sorted per camera, in one list (camera after camera): one tile
-    # sweep then renders the whole batch, and no step below loops over cameras.
-    with torch.no_grad():
-        opac_c = opac if per_camera else opac[None].expand(C, n)  # [C, N]
-        vis = (proj.radii > 0).all(-1) & (opac_c > cfg.alpha_min)
-        order = torch.argsort(torch.where(vis, proj.depths, torch.full_like(proj.depths, float("inf"))), dim=1,
-                              stable=True)  # visible first, by depth, ties in index order
-        n_vis = vis.sum(1)
-        keep = torch.arange(n, device=means.device)[None, :] < n_vis[:, None]
-        cam = torch.arange(C, device=means.device)[:, None].expand(C, n)[keep]
-        ids = order[keep]
+
+def _colors(features: torch.Tensor, sh_degree: int | None, means: torch.Tensor, viewmats: torch.Tensor
+            ) -> torch.Tensor:
+    """Per-Gaussian colours in the means' dtype: the features [N, D] / [C, N, D], or with ``sh_degree`` the
+    SH coefficients [N, K, D] evaluated toward each camera centre -> [C, N, D]."""
+    dtype = means.dtype
+    if sh_degree is None:
+        return features.to(means.device, dtype)
+    centers = -torch.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
+    return sh_to_color(int(sh_degree), features.to(dtype), means, centers)  # [C, N, D]
+
+
+@torch.no_grad()
+def _tile_bins(proj, cam, ids, m2d, con, op, width: int, height: int, tile_size: int, alpha_min: float):
+    """(Gaussian-tile pairs of the visible list, whether any conic is so thin that the per-pixel sigma < 0
+    test is needed); ``cam``, ``ids`` [M] the visible list, the rest [M, ...] from :func:`_gather_visible`."""
+    bins = bin_gaussians(m2d.detach(), con.detach(), proj.cov2d[cam, ids].detach(), op.detach(), width, height,
+                         tile_size, alpha_min, image_ids=cam, num_images=proj.depths.shape[0])
+    cd = con.detach()
+    thin = bool((cd[:, 1] ** 2 > _THIN_CORRELATION * cd[:, 0] * cd[:, 2]).any()) if ids.numel() else False
+    return bins, thin
+
+
+@torch.no_grad()
+def _visible_by_depth(proj, opac: torch.Tensor, per_camera: bool, alpha_min: float
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every camera's visible Gaussians, depth-sorted per camera, in one list (camera after camera) ->
+    (camera [M], Gaussian id [M]): one tile sweep then renders the whole batch, and no step loops over cameras.
+    Visible: not culled and opacity above ``alpha_min``; ties in depth keep index order."""
+    C, n = proj.depths.shape
+    opac_c = opac if per_camera else opac[None].expand(C, n)  # [C, N]
+    vis = (proj.radii > 0).all(-1) & (opac_c > alpha_min)
+    order = torch.argsort(torch.where(vis, proj.depths, torch.full_like(proj.depths, float("inf"))), dim=1,
+                          stable=True)  # visible first, by depth, ties in index order
+    n_vis = vis.sum(1)
+    dev = proj.depths.device  # the means' device
+    keep = torch.arange(n, device=dev)[None, :] < n_vis[:, None]
+    cam = torch.arange(C, device=dev)[:, None].expand(C, n)[keep]
+    return cam, order[keep]
+
+
+def _gather_visible(proj, opac, colors, cam, ids, per_camera: bool, return_depth: bool):
+    """The tile rasterizer's inputs for the visible list (differentiable) -> means2d [M, 2], conics [M, 3],
+    opacities [M] and colours [M, D], with the camera depth as channel D + 1 when ``return_depth``."""
     m2d = proj.means2d[cam, ids]
     con = proj.conics[cam, ids]
     op = opac[cam, ids] if per_camera else opac.index_select(0, ids)
     col = colors[cam, ids] if colors.dim() == 3 else colors.index_select(0, ids)
     if return_depth:
         col = torch.cat([col, proj.depths[cam, ids][:, None]], -1)
-    bg = backgrounds.to(means.device, dtype) if backgrounds is not None else colors.new_zeros(C, D)
-    if return_depth:
-        bg = torch.cat([bg, bg.new_zeros(C, 1)], -1)
-    with torch.no_grad():
-        bins = bin_gaussians(m2d.detach(), con.detach(), proj.cov2d[cam, ids].detach(), op.detach(), width, height,
-                             tile_size, cfg.alpha_min, image_ids=cam, num_images=C)
-        cd = con.detach()
-        thin = bool((cd[:, 1] ** 2 > _THIN_CORRELATION * cd[:, 0] * cd[:, 2]).any()) if ids.numel() else False
-    stats: dict[str, int] = {}
-    img, alpha = RasterizeTiles.apply(m2d, con, op, col, bg, bins, width, height, cfg, thin, stats)
-    counters = dict(visible=int(ids.numel()), intersections=bins.n_pairs, candidate_intersections=bins.n_candidates,
-                    tiles_skipped=int((bins.counts == 0).sum()), **stats)
-    meta: dict[str, Any] = dict(radii=proj.radii, means2d=proj.means2d, depths=proj.depths, conics=proj.conics,
-                                counters=counters, tile_size=int(tile_size))
-    if return_depth:
-        meta["depth"] = img[..., D:]
-    return img[..., :D], alpha, meta
+    return m2d, con, op, col
 
 
 def render_scene(scene, cameras, *, use_sh: bool | None = None, **kw) -> tuple[torch.Tensor, torch.Tensor, dict]:

@@ -25,7 +25,7 @@ def skip_without_gl(why: str) -> None:
 
 def gl_available() -> bool:
     """Whether the shared headless EGL context comes up; raises its error instead when GL is required."""
-    from render.mesh_gl import shared_context
+    from render.gl_context import shared_context
 
     try:
         shared_context()
@@ -38,7 +38,7 @@ def gl_available() -> bool:
 
 def require_gl() -> None:
     """In a test body: skip (or fail, see :data:`REQUIRE_GL`) unless the shared EGL context comes up."""
-    from render.mesh_gl import shared_context
+    from render.gl_context import shared_context
 
     try:
         shared_context()

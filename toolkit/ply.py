@@ -11,6 +11,9 @@ scene metadata. Files from other tools load too: features become the SH DC colou
 ``clamp(0.5 + C0 · f_dc, 0, 1)`` and all SH coefficients are kept.
 
 The reader accepts ``binary_little_endian``, ``binary_big_endian`` and ``ascii`` PLY with any scalar types.
+
+This module speaks plain tensors (the pre-activation fields of ``toolkit.scene.GaussianScene``, by name) and
+knows nothing of the scene class: ``GaussianScene.to_ply`` / ``from_ply`` call it, never the other way round.
 """
 
 from __future__ import annotations
@@ -45,38 +48,44 @@ def sh_dc_to_rgb(dc: torch.Tensor) -> torch.Tensor:
     return dc * SH_C0 + 0.5
 
 
-def write_scene_ply(scene, path: str | os.PathLike) -> None:
-    """Write ``scene`` (a validated GaussianScene) to ``path`` as a binary little-endian 3DGS PLY."""
-    scene.validate()
-    n = scene.num_gaussians
-    d = scene.features.shape[1]
+def write_gaussian_ply(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata: dict) -> None:
+    """Write Gaussians to ``path`` as a binary little-endian 3DGS PLY, atomically.
+
+    ``tensors``: the pre-activation fields, checked by the caller (``GaussianScene.tensors()``): means [N, 3],
+    quats [N, 4] wxyz, log_scales [N, 3], opacity_logits [N], features [N, D], part [N] int, optional
+    sh [N, K, 3]. ``metadata``: JSON-able, written to the header (``feature_kind`` "rgb", the default, makes
+    the first three features the SH DC colour when there is no ``sh``).
+    """
+    sh_coeffs = tensors.get("sh")
+    n = tensors["means"].shape[0]
+    d = tensors["features"].shape[1]
     cols: list[tuple[str, torch.Tensor]] = []
     f32 = lambda t: t.detach().to("cpu", torch.float32)  # noqa: E731
-    means = f32(scene.means)
+    means = f32(tensors["means"])
     cols += [("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2])]
     cols += [(f"n{a}", torch.zeros(n)) for a in "xyz"]
-    if scene.sh is not None:
-        sh = f32(scene.sh)
+    if sh_coeffs is not None:
+        sh = f32(sh_coeffs)
         dc, rest = sh[:, 0, :], sh[:, 1:, :].transpose(1, 2).reshape(n, -1)  # channel-major
     else:
-        feats = f32(scene.features)
-        dc = rgb_to_sh_dc(feats[:, :3]) if (d >= 3 and scene.metadata.get("feature_kind", "rgb") == "rgb") else torch.zeros(n, 3)
+        feats = f32(tensors["features"])
+        dc = rgb_to_sh_dc(feats[:, :3]) if (d >= 3 and metadata.get("feature_kind", "rgb") == "rgb") else torch.zeros(n, 3)
         if dc.shape[1] < 3:
             dc = torch.cat([dc, torch.zeros(n, 3 - dc.shape[1])], 1)
         rest = torch.zeros(n, 0)
     cols += [(f"f_dc_{i}", dc[:, i]) for i in range(3)]
     cols += [(f"f_rest_{i}", rest[:, i]) for i in range(rest.shape[1])]
-    cols += [("opacity", f32(scene.opacity_logits))]
-    ls = f32(scene.log_scales)
+    cols += [("opacity", f32(tensors["opacity_logits"]))]
+    ls = f32(tensors["log_scales"])
     cols += [(f"scale_{i}", ls[:, i]) for i in range(3)]
-    q = f32(scene.quats)
+    q = f32(tensors["quats"])
     cols += [(f"rot_{i}", q[:, i]) for i in range(4)]
-    feats = f32(scene.features)
+    feats = f32(tensors["features"])
     cols += [(f"feat_{i}", feats[:, i]) for i in range(d)]
-    cols += [("part", scene.part.to("cpu", torch.float32))]
+    cols += [("part", tensors["part"].to("cpu", torch.float32))]
 
-    meta = dict(scene.metadata)
-    meta["has_sh"] = scene.sh is not None
+    meta = dict(metadata)
+    meta["has_sh"] = sh_coeffs is not None
     meta["feature_dim"] = d
     meta_json = json.dumps(meta, sort_keys=True, separators=(",", ":"))
     if "\n" in meta_json or "\r" in meta_json:
@@ -184,10 +193,12 @@ def read_ply_vertices(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], l
     return cols, comments
 
 
-def read_scene_ply(path: str | os.PathLike):
-    """Read a 3DGS PLY (graphdeco layout, this toolkit's or another tool's) into a GaussianScene."""
-    from toolkit.scene import GaussianScene
+def read_gaussian_ply(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor | None], dict]:
+    """Read a 3DGS PLY (graphdeco layout, this toolkit's or another tool's) -> (tensors, metadata).
 
+    The tensors are the pre-activation fields named as in ``GaussianScene`` (means, quats, log_scales,
+    opacity_logits, features, part, sh: None without SH coefficients), unchecked beyond the file's layout.
+    """
     cols, comments = read_ply_vertices(path)
     required = ["x", "y", "z", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     missing = [p for p in required if p not in cols]
@@ -236,9 +247,6 @@ def read_scene_ply(path: str | os.PathLike):
     part = t("part").to(torch.int8) if "part" in cols else torch.zeros(n, dtype=torch.int8)
     for k in ("has_sh", "feature_dim", "format", "format_version"):
         meta.pop(k, None)
-    scene = GaussianScene(means=means, quats=quats, log_scales=log_scales, opacity_logits=opacity,
-                          features=features, part=part, sh=sh, metadata=meta)
-    try:
-        return scene.validate()
-    except ToolkitError as e:
-        raise ToolkitError(f"{path}: {e}") from None
+    tensors = dict(means=means, quats=quats, log_scales=log_scales, opacity_logits=opacity, features=features,
+                   part=part, sh=sh)
+    return tensors, meta

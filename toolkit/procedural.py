@@ -222,36 +222,8 @@ def demo_head_scene(
     n_face = n_gaussians - 2 * n_eye_each
     centers = shape.eye_centers()
     r_eye = shape.eye_radius
-
-    # Face: oversample directions, drop what falls inside the eye sockets, resample by area.
-    m = 4 * n_face + 1000
-    dirs = _fibonacci_sphere(m)
-    area, normals = _area_weights(shape, dirs)
-    pts = shape.surface_points(dirs)
-    socket = torch.cdist(pts, centers).min(1).values < 1.25 * r_eye
-    area = torch.where(socket, torch.zeros_like(area), area)
-    idx = torch.multinomial(area, n_face, replacement=False, generator=g)
-    face_pts, face_n = pts[idx], normals[idx]
-    jitter = torch.randn(n_face, 3, generator=g) * 1e-4
-    face_pts = face_pts + jitter - (jitter * face_n).sum(-1, keepdim=True) * face_n
-
-    # Eyes: area-uniform on the front cap (within 100° of the frontal gaze -z) of each eyeball.
-    eye_pts, eye_parts, eye_cols = [], [], []
-    cap = math.radians(100)
-    for part, c in ((PART_LEFT_EYE, centers[0]), (PART_RIGHT_EYE, centers[1])):
-        u = torch.rand(n_eye_each, generator=g)
-        cos_t = 1 - u * (1 - math.cos(cap))
-        ang = torch.rand(n_eye_each, generator=g) * 2 * math.pi
-        sin_t = torch.sqrt((1 - cos_t**2).clamp_min(0))
-        d = torch.stack([sin_t * torch.cos(ang), sin_t * torch.sin(ang), -cos_t], -1)
-        eye_pts.append(c + r_eye * d)
-        eye_parts.append(torch.full((n_eye_each,), part, dtype=torch.int8))
-        theta = torch.acos(cos_t.clamp(-1, 1))
-        col = torch.tensor([0.95, 0.94, 0.92]).expand(n_eye_each, 3).clone()
-        iris = theta < 0.50
-        col[iris] = torch.tensor(shape.iris) * (0.8 + 0.4 * torch.rand(int(iris.sum()), 1, generator=g))
-        col[theta < 0.2] = torch.tensor([0.03, 0.03, 0.03])
-        eye_cols.append(col)
+    face_pts, face_n = _face_points(shape, n_face, g)
+    eye_pts, eye_parts, eye_cols = _eye_points(shape, n_eye_each, g)
     eye_pts_t = torch.cat(eye_pts)
 
     # Scales from 3-NN spacing, per part so face Gaussians never size themselves on the eyeball.
@@ -284,6 +256,46 @@ def demo_head_scene(
         },
     )
     return scene.validate()
+
+
+def _face_points(shape: DemoHeadShape, n_face: int, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n_face`` points area-uniform on the head surface outside the eye sockets -> (points, unit normals),
+    both [n_face, 3]: oversampled directions, the sockets dropped, resampled by area, jittered in-plane."""
+    m = 4 * n_face + 1000
+    dirs = _fibonacci_sphere(m)
+    area, normals = _area_weights(shape, dirs)
+    pts = shape.surface_points(dirs)
+    socket = torch.cdist(pts, shape.eye_centers()).min(1).values < 1.25 * shape.eye_radius
+    area = torch.where(socket, torch.zeros_like(area), area)
+    idx = torch.multinomial(area, n_face, replacement=False, generator=g)
+    face_pts, face_n = pts[idx], normals[idx]
+    jitter = torch.randn(n_face, 3, generator=g) * 1e-4
+    return face_pts + jitter - (jitter * face_n).sum(-1, keepdim=True) * face_n, face_n
+
+
+def _eye_points(shape: DemoHeadShape, n_each: int, g: torch.Generator
+                ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+    """Each eyeball's ``n_each`` points, area-uniform on its front cap (within 100° of the frontal gaze -z)
+    -> per eye (left, right): points [n_each, 3], part labels [n_each] int8, RGB [n_each, 3] (sclera, iris,
+    pupil by the angle from the gaze axis)."""
+    eye_pts, eye_parts, eye_cols = [], [], []
+    centers, r_eye = shape.eye_centers(), shape.eye_radius
+    cap = math.radians(100)
+    for part, c in ((PART_LEFT_EYE, centers[0]), (PART_RIGHT_EYE, centers[1])):
+        u = torch.rand(n_each, generator=g)
+        cos_t = 1 - u * (1 - math.cos(cap))
+        ang = torch.rand(n_each, generator=g) * 2 * math.pi
+        sin_t = torch.sqrt((1 - cos_t**2).clamp_min(0))
+        d = torch.stack([sin_t * torch.cos(ang), sin_t * torch.sin(ang), -cos_t], -1)
+        eye_pts.append(c + r_eye * d)
+        eye_parts.append(torch.full((n_each,), part, dtype=torch.int8))
+        theta = torch.acos(cos_t.clamp(-1, 1))
+        col = torch.tensor([0.95, 0.94, 0.92]).expand(n_each, 3).clone()
+        iris = theta < 0.50
+        col[iris] = torch.tensor(shape.iris) * (0.8 + 0.4 * torch.rand(int(iris.sum()), 1, generator=g))
+        col[theta < 0.2] = torch.tensor([0.03, 0.03, 0.03])
+        eye_cols.append(col)
+    return eye_pts, eye_parts, eye_cols
 
 
 def _skin_colors(p: torch.Tensor, shape: DemoHeadShape, g: torch.Generator) -> torch.Tensor:

@@ -26,6 +26,7 @@ import torch
 
 from toolkit.errors import ToolkitError
 from toolkit.io import load_tensors, save_tensors
+from toolkit.ply import read_gaussian_ply, write_gaussian_ply
 from toolkit.rotations import normalize_quat
 
 FORMAT_NAME = "ditgaze.gaussian_scene"
@@ -252,23 +253,25 @@ class GaussianScene:
             raise ToolkitError(f"{path}: missing tensor(s) {missing}")
         scene = cls(**{k: tensors[k] for k in _FLOAT_FIELDS}, part=tensors["part"], sh=tensors.get("sh"),
                     metadata={k: v for k, v in meta.items() if k not in ("format", "format_version")})
+        return scene._validated_from(path)
+
+    def _validated_from(self, path: str | os.PathLike) -> "GaussianScene":
+        """``validate()``, its error prefixed with the file the scene came from."""
         try:
-            return scene.validate()
+            return self.validate()
         except ToolkitError as e:
             raise ToolkitError(f"{path}: {e}") from None
 
     def to_ply(self, path: str | os.PathLike) -> None:
         """Write the graphdeco 3DGS PLY layout (see ``toolkit.ply``), atomically."""
-        from toolkit.ply import write_scene_ply
-
-        write_scene_ply(self, path)
+        self.validate()
+        write_gaussian_ply(path, self.tensors(), self.metadata)
 
     @classmethod
     def from_ply(cls, path: str | os.PathLike, device: str | torch.device = "cpu") -> "GaussianScene":
         """Read a 3DGS PLY written by this toolkit or by other 3DGS tools."""
-        from toolkit.ply import read_scene_ply
-
-        return read_scene_ply(path).to(device)
+        tensors, meta = read_gaussian_ply(path)
+        return cls(**tensors, metadata=meta)._validated_from(path).to(device)
 
     @classmethod
     def read(cls, path: str | os.PathLike, device: str | torch.device = "cpu") -> "GaussianScene":

@@ -24,10 +24,10 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def egl():
-    from render import preview
+    from render.gl_context import shared_context
 
     try:
-        return preview._shared_context()
+        return shared_context()
     except ToolkitError as e:
         skip_without_gl(f"no headless OpenGL: {e}")
 
@@ -200,12 +200,12 @@ def test_missing_egl_is_a_clear_cli_error(tmp_path, capsys, monkeypatch):
     import ctypes.util
 
     from apps.preview import main
-    from render import mesh_gl
+    from render import gl_context
 
     def no_egl(*a, **k):
         raise Exception("libEGL.so.1: cannot open shared object file")
 
-    monkeypatch.setattr(mesh_gl, "_SHARED_CONTEXT", None)
+    monkeypatch.setattr(gl_context, "_SHARED_CONTEXT", None)
     monkeypatch.setattr(moderngl, "create_context", no_egl)
     monkeypatch.setattr(ctypes.util, "find_library", lambda name: None if name == "EGL" else f"lib{name}.so")
     assert run_cli(main, ["demo:200", "--headless", "--sweep", str(tmp_path / "o.png")]) == 2

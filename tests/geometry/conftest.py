@@ -1,4 +1,4 @@
-"""geometry tests keep the tet-grid disk cache in a per-session temporary folder, not in ~/.cache."""
+"""geometry tests keep the tet-grid disk cache in one temporary folder per test run, not in ~/.cache."""
 
 from __future__ import annotations
 

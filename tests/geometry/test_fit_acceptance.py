@@ -1,10 +1,10 @@
-"""Acceptance of the mesh stage on the synthetic dataset (issue 6), at the default (demo) FitConfig.
+"""Acceptance of the mesh stage on the synthetic dataset, at the default (demo) FitConfig.
 
 A subject is rendered by train.data (18 ETH-XGaze-like cameras x 3 frames, 128 px), the neutral head is
 fitted by ``geometry.fit_dataset.fit_dataset`` from its head masks and 3D landmarks with rig cameras
 2, 7, 10 and 15 held out, and the result must reach silhouette IoU >= 0.97 on the held-out views and a
 Chamfer distance <= 1 % of the head's bounding-box diagonal to the generator's ground-truth neutral
-mesh. (Timing is reported in fit.json, never asserted; the issue's < 5 min on CPU is checked by hand.)
+mesh. (Timing is reported in fit.json, never asserted; the < 5 min CPU budget is checked by hand.)
 """
 
 from __future__ import annotations

@@ -7,18 +7,10 @@ import pytest
 import torch
 import trimesh
 
-from geometry.fit import (
-    FitConfig,
-    Views,
-    fit_mesh,
-    fit_points,
-    fit_sdf_to_targets,
-    fit_silhouettes,
-    mask_signed_distance,
-    visual_hull_sdf,
-)
+from geometry.fit import FitConfig, fit_mesh, fit_points, fit_sdf_to_targets, fit_silhouettes
 from geometry.mesh_stats import compare_meshes
 from geometry.sdf import SDFNet, SDFNetConfig, SphereInit, extract_mesh, pretrain_sphere
+from geometry.silhouettes import Views, mask_signed_distance, visual_hull_sdf
 from toolkit.cameras import orbit_rig
 from toolkit.errors import ToolkitError
 
@@ -148,7 +140,7 @@ def test_visual_hull_sdf_and_silhouette_fit():
     res = fit_silhouettes(train, _tiny(steps=100, extract_res=40), landmarks=lmk)
     cmp = compare_meshes(v, f, res.verts, res.faces, n_samples=4000)
     assert cmp["chamfer_rel_diag"] < 0.02, cmp
-    from geometry.fit import silhouette_iou
+    from geometry.silhouettes import silhouette_iou
     from tests.gl import require_gl
 
     require_gl()  # only a missing GL skips: a NaN or empty fitted mesh fails below

@@ -1,6 +1,7 @@
 """An independent, naive dense 3DGS reference for the tests: every pixel x every Gaussian, plain autograd.
 
-Written from the conventions in the issue (not from render/), deliberately slow and obvious.
+Written from the stated conventions (the ``render.splat`` module docstring), not from render/'s code;
+deliberately slow and obvious.
 """
 
 from __future__ import annotations

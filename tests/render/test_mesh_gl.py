@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+import render.gl_context as gl_context
 import render.mesh_gl as mesh_gl
+from render.mesh_inputs import face_normals
 from tests.gl import gl_available
 from toolkit.cameras import intrinsics, look_at, project_points
 from toolkit.errors import ToolkitError
@@ -42,7 +44,7 @@ def frontal_camera():
 
 def test_cube_outward_normals_in_fixture():
     v, f = cube()
-    n = mesh_gl.face_normals(v, f)
+    n = face_normals(v, f)
     centres = v[f].mean(1)
     assert (np.einsum("ij,ij->i", n, centres) > 0).all()
 
@@ -116,7 +118,7 @@ def test_oblique_cube_matches_ray_cast():
     np.testing.assert_allclose(out["depth"][both], z_ref[both], rtol=1e-4)
     np.testing.assert_array_equal(out["tri_id"][both], id_ref[both])
     # Normals: the camera-space normal of each hit face; three faces are visible, all facing the camera.
-    n_cam = mesh_gl.face_normals(v, f) @ view[:3, :3].T
+    n_cam = face_normals(v, f) @ view[:3, :3].T
     np.testing.assert_allclose(out["normals"][both], n_cam[id_ref[both]], atol=1e-5)
     assert len(np.unique(id_ref[both] // 2)) == 3
     jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
@@ -157,7 +159,7 @@ def test_texture_with_uvs():
 
 
 def test_one_context_many_sizes_and_torch_inputs():
-    ctx = mesh_gl.create_context()
+    ctx = gl_context.create_context()
     v, f = cube()
     view, K = frontal_camera()
     small = mesh_gl.MeshRasterizer(64, 48, ctx=ctx)
@@ -260,7 +262,7 @@ def test_missing_egl_names_the_library(monkeypatch):
 
     monkeypatch.setattr(moderngl, "create_context", fail)
     with pytest.raises(ToolkitError, match="EGL.*libEGL"):
-        mesh_gl.create_context()
+        gl_context.create_context()
 
 
 def test_render_views_equals_single_renders():
@@ -297,7 +299,7 @@ def _render_in_child() -> str:
 def test_forked_child_gets_a_clear_error_not_a_hang():
     import multiprocessing as mp
 
-    mesh_gl.shared_context()  # the parent holds a context before forking, as a DataLoader parent would
+    gl_context.shared_context()  # the parent holds a context before forking, as a DataLoader parent would
     with mp.get_context("fork").Pool(1) as pool:
         msg = pool.apply_async(_render_in_child).get(timeout=60)
     assert "forked after OpenGL was initialised" in msg and "spawn" in msg
@@ -305,13 +307,13 @@ def test_forked_child_gets_a_clear_error_not_a_hang():
 
 def test_renders_survive_another_current_context():
     """Two standalone contexts in one process (the mesh rasterizer's and, e.g., the preview's): whichever
-    was made current last must not receive the rasterizer's GL calls (it did: the data CLI's contact sheet
-    came out blank after the preview tests had run)."""
+    was made current last must not receive the rasterizer's GL calls (when it does, the data CLI's contact
+    sheet comes out blank after the preview tests have run)."""
     v, f = cube()
     view, K = frontal_camera()
     ras = mesh_gl.MeshRasterizer(64, 48)
     before = ras.render(v, f, view, K)
-    other = mesh_gl.create_context()  # made current on creation
+    other = gl_context.create_context()  # made current on creation
     tex = other.texture((16, 16), 4)  # objects in the other context must not clash with ours
     late = mesh_gl.MeshRasterizer(80, 60)  # created while the other context is current
     again = ras.render(v, f, view, K)

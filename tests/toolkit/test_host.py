@@ -13,7 +13,7 @@ from toolkit import host
 
 
 def test_keep_freed_memory_applies_on_glibc_and_is_a_no_op_elsewhere(monkeypatch):
-    # Applied to this pytest process too, for the rest of the session: harmless (train.run applies it anyway).
+    # Applied to this pytest process too, for the rest of the test run: harmless (train.run applies it anyway).
     if sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc":
         assert host.keep_freed_memory() is True
     monkeypatch.setattr(host.sys, "platform", "darwin")

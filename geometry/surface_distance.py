@@ -1,0 +1,78 @@
+"""Signed distances to a closed mesh (open3d ray casting) or to an oriented point cloud, the normals of a
+point cloud, and area-uniform samples on a mesh: the targets of the mesh and point-cloud fits.
+
+Negative inside, world units. open3d and scipy are imported inside the functions that use them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from toolkit.errors import ToolkitError
+
+
+def mesh_signed_distance(verts: torch.Tensor, faces: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Signed distance of [P, 3] points to a closed mesh (open3d RaycastingScene; negative inside)."""
+    try:
+        import open3d as o3d
+    except ImportError as e:  # pragma: no cover - open3d is a dependency
+        raise ToolkitError(f"open3d is needed for mesh signed distances ({e})") from None
+    scene = o3d.t.geometry.RaycastingScene()
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(verts.detach().cpu().numpy().astype(np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(faces.cpu().numpy().astype(np.int32))
+    scene.add_triangles(mesh)
+    q = o3d.core.Tensor(points.detach().cpu().numpy().astype(np.float32))
+    return torch.from_numpy(scene.compute_signed_distance(q).numpy()).float()
+
+
+def point_cloud_signed_distance(points: torch.Tensor, normals: torch.Tensor, queries: torch.Tensor,
+                                k: int = 8) -> torch.Tensor:
+    """Signed distance of queries to an oriented point cloud: distance to the nearest point, with the sign of
+    the mean (query - p_i) . n_i over the k nearest (outward normals; negative inside)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(points.detach().cpu().double().numpy())
+    d, idx = tree.query(queries.detach().cpu().double().numpy(), k=k)
+    idx = torch.from_numpy(idx)
+    diff = queries[:, None, :].double() - points.double()[idx]
+    side = (diff * normals.double()[idx]).sum(-1).mean(1)
+    return (torch.from_numpy(d[:, 0]) * torch.where(side < 0, -1.0, 1.0)).float()
+
+
+def estimate_normals(points: torch.Tensor, k: int = 16) -> torch.Tensor:
+    """Outward unit normals of a closed-surface point cloud (open3d PCA + consistent orientation)."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.detach().cpu().double().numpy()))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
+    pc.orient_normals_consistent_tangent_plane(k)
+    n = torch.from_numpy(np.asarray(pc.normals)).float()
+    # Consistent but maybe globally inward: flip if most normals point towards the centroid.
+    if float(((points - points.mean(0)) * n).sum(-1).mean()) < 0:
+        n = -n
+    return n
+
+
+def surface_samples(verts: torch.Tensor, faces: torch.Tensor, n: int, g: torch.Generator) -> torch.Tensor:
+    """[n, 3] points uniform by area on the mesh verts [V, 3] / faces [F, 3] (drawn from ``g``)."""
+    a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
+    area = torch.linalg.cross(b - a, c - a).norm(dim=-1)
+    if not bool(area.sum() > 0):
+        raise ToolkitError("fit_mesh: the mesh has zero surface area")
+    f = torch.multinomial(area, n, replacement=True, generator=g)
+    u, v = torch.rand(n, 1, generator=g), torch.rand(n, 1, generator=g)
+    flip = (u + v) > 1
+    u, v = torch.where(flip, 1 - u, u), torch.where(flip, 1 - v, v)
+    return a[f] + u * (b[f] - a[f]) + v * (c[f] - a[f])
+
+
+def check_points(p: torch.Tensor, what: str) -> None:
+    """``p`` is [N >= 4, 3], finite, with a non-zero extent; else a ToolkitError naming ``what``."""
+    if p.dim() != 2 or p.shape[1] != 3 or p.shape[0] < 4:
+        raise ToolkitError(f"fit: {what} must be [N >= 4, 3], got {list(p.shape)}")
+    if not bool(torch.isfinite(p).all()):
+        raise ToolkitError(f"fit: {what} contain NaN/inf")
+    if float((p.max(0).values - p.min(0).values).max()) <= 0:
+        raise ToolkitError(f"fit: {what} have zero extent")
