@@ -43,13 +43,9 @@ from benchmarks.common import (  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.io import load_tensors, save_tensors  # noqa: E402
 from toolkit.rotations import angular_error_deg  # noqa: E402
-from train.estimator.network import (  # noqa: E402
-    GazeEstimatorConfig,
-    GazeEstimatorTrainConfig,
-    evaluate_gaze_estimator,
-    eye_config,
-    train_gaze_estimator,
-)
+from train.estimator.config import GazeEstimatorConfig, GazeEstimatorTrainConfig, eye_config  # noqa: E402
+from train.estimator.network import GazeEstimator  # noqa: E402
+from train.estimator.training import evaluate_gaze_estimator, train_gaze_estimator  # noqa: E402
 
 TRAIN_SEEDS, TEST_SEEDS = 200_000, 300_000  # disjoint subject-seed ranges
 SET_KEYS = ("images", "labels", "landmarks", "iris")  # estimator_images' outputs, in order (iris optional)
@@ -152,7 +148,7 @@ def error_by_iris(pred: torch.Tensor, labels: torch.Tensor, iris: torch.Tensor, 
                        lambda lo, hi: f"[{lo}, {hi})" if hi < 10**9 else f">= {lo}", share=True)
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--subjects", type=count("--subjects", 1), default=32, help="procedural training subjects")
     ap.add_argument("--frames", type=count("--frames", 1), default=120, help="random gazes per training subject (2 cameras each)")
@@ -167,7 +163,7 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=positive("--lr"), default=2e-3)
     ap.add_argument("--input-size", type=count("--input-size", 1), default=64, help="face mode: input width")
     ap.add_argument("--res", type=count("--res", 1), default=128, help="face-crop size of the rendered images (eyes mode: "
-                    "train.estimator.network.eye_config(res), the estimator stage's design at that size)")
+                    "train.estimator.config.eye_config(res), the estimator stage's design at that size)")
     ap.add_argument("--landmark-noise", type=float, default=GazeEstimatorTrainConfig.landmark_noise,
                     help="training jitter of the landmarks, pixels")
     ap.add_argument("--mirror", type=float, default=GazeEstimatorTrainConfig.mirror,
@@ -186,17 +182,11 @@ def main(argv=None) -> int:
                     help="where the estimators train and run (default: cuda when available)")
     ap.add_argument("--workers", type=count("--workers", 1), default=os.cpu_count() or 1,
                     help="processes rendering the procedural subjects (the images do not depend on it)")
-    a = ap.parse_args(argv)
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    check_device(a.device)
-    torch.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest convolutions once
-    init = None
-    if a.init:
-        from train.estimator.network import GazeEstimator
+    return ap
 
-        init = GazeEstimator.load(a.init, frozen=False)
-        a.modes = "eyes" if init.config.eyes else "face"
+
+def _modes_and_channels(a: argparse.Namespace) -> tuple[list[str], tuple[int, ...] | None]:
+    """The designs to train (``--modes``) and the ``--channels`` override (None: each design's own)."""
     modes = [m for m in a.modes.split(",") if m]
     if not modes or set(modes) - {"eyes", "face"}:
         raise ToolkitError(f"--modes: expected a comma list of eyes, face; got {a.modes!r}")
@@ -208,7 +198,12 @@ def main(argv=None) -> int:
         raise ToolkitError(f"--channels: expected positive widths, got {a.channels!r}")
     if a.budget_s is not None and a.budget_s <= 0:
         raise ToolkitError(f"--budget-s: expected a positive number of seconds, got {a.budget_s}")
-    print(machine_info())
+    return modes, channels
+
+
+def _datasets(a: argparse.Namespace):
+    """(training set, test set, a description of the test set's source, the test images' visible iris pixels
+    or None), the training set on ``--device``."""
     t0 = time.perf_counter()
     train = procedural_set(range(TRAIN_SEEDS, TRAIN_SEEDS + a.subjects), n_frames=a.frames, seed=0, res=a.res,
                            workers=a.workers, iris=False, cache=a.cache)
@@ -222,36 +217,75 @@ def main(argv=None) -> int:
           f"{len(test[0])} test images ({source}), {train[0].shape[-1]}px, made in {time.perf_counter() - t0:.0f} s")
     # The training set lives where the models train (uint8: 7680 images at 256² are 1.5 GB), copied there once for
     # every mode, so a GPU step gathers its batch on the GPU instead of copying it from host memory.
-    train = [t.to(a.device) for t in train]
+    return [t.to(a.device) for t in train], test, source, iris
+
+
+def _design(a: argparse.Namespace, mode: str, init, channels: tuple[int, ...] | None) -> GazeEstimatorConfig:
+    """The estimator design of ``mode`` with the command line's overrides (``--init``'s own design when given)."""
+    if init is not None:
+        return init.config
+    cfg = eye_config(a.res) if mode == "eyes" else GazeEstimatorConfig(input_size=a.input_size)
+    cfg = dataclasses.replace(cfg, mirror_average=not a.no_mirror_average, head_frame=not a.camera_frame)
+    if channels is not None:
+        cfg = dataclasses.replace(cfg, channels=channels)
+    return cfg
+
+
+def _train_mode(a: argparse.Namespace, mode: str, cfg: GazeEstimatorConfig, train, test, init):
+    """Train one design, printing each held-out evaluation: (model, its training config, history, and the
+    training seconds at each history record, the held-out evaluations left out)."""
+    tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every,
+                                  landmark_noise=a.landmark_noise, mirror=a.mirror)
+    if a.budget_s is not None:
+        step_s = probe_step_s(train, cfg, tc, a.device, init=init)
+        tc = dataclasses.replace(tc, steps=max(1, int(a.budget_s / step_s)))
+        print(f"{mode}: {1e3 * step_s:.1f} ms per step (probe) -> {tc.steps} steps in {a.budget_s:g} s", flush=True)
+    start, stamps, eval_s = time.perf_counter(), [], [0.0]
+
+    def progress(step, rec):
+        eval_s[0] += rec["val_s"]  # training time: the trainer's held-out evaluations left out
+        stamps.append(time.perf_counter() - start - eval_s[0])
+        print(f"  {mode} step {step}: {stamps[-1]:.0f} s, loss {rec['loss']:.4f}, held-out gaze "
+              f"{rec['val_gaze_deg']:.2f} deg, head {rec['val_head_deg']:.2f} deg", flush=True)
+
+    if init is not None:
+        print(f"{mode}: starting from {a.init}: held-out gaze "
+              f"{evaluate_gaze_estimator(init.to(a.device), *test, device=a.device)['val_gaze_deg']:.2f} deg",
+              flush=True)
+    model, hist = train_gaze_estimator(train[0], train[1], cfg, tc, landmarks=train[2], val=test,
+                                       callback=progress, device=a.device, init=init)
+    return model, tc, hist, stamps
+
+
+def _report_mode(a: argparse.Namespace, mode: str, model, hist: list[dict], test, iris) -> None:
+    """Print a trained design's held-out error by view (and by visible iris) and its inference throughput."""
+    pred = predict(model, test[0], test[2])
+    print(format_table(error_by_view(pred, test[1])))
+    if iris is not None:
+        print(format_table(error_by_iris(pred, test[1], iris)))
+    x, lm = test[0][: a.batch].to(a.device).float() / 255, test[2][: a.batch].to(a.device)
+    with torch.no_grad():
+        sec = timeit(lambda: model(x, lm), repeats=5, sync_cuda=x.is_cuda)
+    print(f"{mode}: held-out gaze {hist[-1]['val_gaze_deg']:.2f} deg, head {hist[-1]['val_head_deg']:.2f} deg; "
+          f"inference {len(x) / sec:.0f} images/s (batch {len(x)}, {a.device}, {torch.get_num_threads()} threads)")
+
+
+def main(argv=None) -> int:
+    a = _parser().parse_args(argv)
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    check_device(a.device)
+    torch.backends.cudnn.benchmark = True  # fixed input shapes: let cuDNN pick its fastest convolutions once
+    init = None
+    if a.init:
+        init = GazeEstimator.load(a.init, frozen=False)
+        a.modes = "eyes" if init.config.eyes else "face"
+    modes, channels = _modes_and_channels(a)
+    print(machine_info())
+    train, test, source, iris = _datasets(a)
     rows, series = [], {}
     for mode in modes:
-        if init is not None:
-            cfg = init.config
-        else:
-            cfg = eye_config(a.res) if mode == "eyes" else GazeEstimatorConfig(input_size=a.input_size)
-            cfg = dataclasses.replace(cfg, mirror_average=not a.no_mirror_average, head_frame=not a.camera_frame)
-            if channels is not None:
-                cfg = dataclasses.replace(cfg, channels=channels)
-        tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every,
-                                      landmark_noise=a.landmark_noise, mirror=a.mirror)
-        if a.budget_s is not None:
-            step_s = probe_step_s(train, cfg, tc, a.device, init=init)
-            tc = dataclasses.replace(tc, steps=max(1, int(a.budget_s / step_s)))
-            print(f"{mode}: {1e3 * step_s:.1f} ms per step (probe) -> {tc.steps} steps in {a.budget_s:g} s", flush=True)
-        start, stamps, eval_s = time.perf_counter(), [], [0.0]
-
-        def progress(step, rec, st=stamps, t0=start, mode=mode, ev=eval_s):
-            ev[0] += rec["val_s"]  # training time: the trainer's held-out evaluations left out
-            st.append(time.perf_counter() - t0 - ev[0])
-            print(f"  {mode} step {step}: {st[-1]:.0f} s, loss {rec['loss']:.4f}, held-out gaze "
-                  f"{rec['val_gaze_deg']:.2f} deg, head {rec['val_head_deg']:.2f} deg", flush=True)
-
-        if init is not None:
-            print(f"{mode}: starting from {a.init}: held-out gaze "
-                  f"{evaluate_gaze_estimator(init.to(a.device), *test, device=a.device)['val_gaze_deg']:.2f} deg",
-                  flush=True)
-        model, hist = train_gaze_estimator(train[0], train[1], cfg, tc, landmarks=train[2], val=test,
-                                           callback=progress, device=a.device, init=init)
+        model, tc, hist, stamps = _train_mode(a, mode, _design(a, mode, init, channels), train, test, init)
         for rec, t in zip(hist, stamps):
             rows.append({"mode": mode, "step": rec["step"], "train_s": t, "loss": rec["loss"],
                          "heldout_gaze_deg": rec["val_gaze_deg"], "heldout_head_deg": rec["val_head_deg"]})
@@ -259,15 +293,7 @@ def main(argv=None) -> int:
         if a.save:
             model.save(Path(a.save) / f"{mode}.safetensors",
                        {"steps": tc.steps, "data": source, "heldout_gaze_deg": hist[-1]["val_gaze_deg"]})
-        pred = predict(model, test[0], test[2])
-        print(format_table(error_by_view(pred, test[1])))
-        if iris is not None:
-            print(format_table(error_by_iris(pred, test[1], iris)))
-        x, lm = test[0][: a.batch].to(a.device).float() / 255, test[2][: a.batch].to(a.device)
-        with torch.no_grad():
-            sec = timeit(lambda m=model, x=x, lm=lm: m(x, lm), repeats=5, sync_cuda=x.is_cuda)
-        print(f"{mode}: held-out gaze {hist[-1]['val_gaze_deg']:.2f} deg, head {hist[-1]['val_head_deg']:.2f} deg; "
-              f"inference {len(x) / sec:.0f} images/s (batch {len(x)}, {a.device}, {torch.get_num_threads()} threads)")
+        _report_mode(a, mode, model, hist, test, iris)
     print(format_table(rows, ["mode", "step", "train_s", "loss", "heldout_gaze_deg", "heldout_head_deg"]))
     png = save_plot(OUT_DIR / "gaze_estimator.png", series, xlabel="training time (s)",
                     ylabel="held-out gaze error (deg)", title=f"gaze estimator, {source}", logy=True)

@@ -21,7 +21,7 @@ def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path
 
     import h5py
 
-    import train.evaluation.protocol as evaluate
+    import train.evaluation.fitting as evaluate
     from apps.demo import run_pipeline
 
     shutil.copytree(tiny_trained_run, tmp_path / "run")

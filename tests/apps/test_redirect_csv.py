@@ -234,7 +234,7 @@ def test_code_fitting_compares_the_face_not_the_eyes(tiny_trained_run, crops, tm
     image's own gaze, which the code must not learn."""
     import torch.nn.functional as F
 
-    import train.evaluation.protocol as evaluate
+    import train.evaluation.fitting as evaluate
 
     folder, _ = crops
     seen = []

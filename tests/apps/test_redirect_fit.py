@@ -17,7 +17,7 @@ def _test_subject(run_dir):
 
 
 def test_fit_weights_fits_every_row_from_the_trained_weights(tiny_trained_run, tmp_path, monkeypatch):
-    import train.evaluation.protocol as evaluate
+    import train.evaluation.fitting as evaluate
 
     ctx = run.open_run(tiny_trained_run)
     model, renderer = run.load_trained(ctx, torch.device("cpu"))
@@ -68,7 +68,7 @@ def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_e
                                                                                    monkeypatch):
     """``--natural-eyes``: each row's fit takes ``NATURAL_EYES_FIT`` (weights, gaze weight, reach) instead of the
     run's eval section."""
-    import train.evaluation.protocol as evaluate
+    import train.evaluation.fitting as evaluate
 
     seen = []
     real_fit = evaluate.test_time_fit
@@ -110,7 +110,7 @@ def test_natural_eyes_without_fit_weights_is_one_line_error(tiny_trained_run, tm
 
 def test_term_gaze_order_cycles_or_spreads():
     from toolkit.errors import ToolkitError
-    from train.evaluation.protocol import term_gaze_order
+    from train.evaluation.fitting import term_gaze_order
 
     assert term_gaze_order(3, 7) == [0, 1, 2, 0, 1, 2, 0]
     many = term_gaze_order(25, 20)  # grid:5x5 under 40 steps, every 2nd: first to last, no repeats
@@ -156,7 +156,7 @@ def test_gaze_term_takes_the_target_gazes_in_turn(tiny_trained_run):
     """With ``batch["target_gazes"]`` [B, G, 2] the k-th gaze term of the fit reads gaze k mod G (every entry
     counted, the last fitting step included)."""
     from train.data.dataset import GazeDataset
-    from train.evaluation.protocol import FitGaze, test_time_fit
+    from train.evaluation.fitting import FitGaze, test_time_fit
 
     ctx = run.open_run(tiny_trained_run)
     model, renderer = run.load_trained(ctx, torch.device("cpu"))

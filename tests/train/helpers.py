@@ -62,7 +62,8 @@ def untrained_eval_parts():
     """(model on the procedural head, U-Net baseline renderer, whole-face gaze estimator), untrained, seeded:
     what ``train.evaluation.protocol`` needs, in eval mode."""
     from toolkit.procedural import demo_head_scene
-    from train.estimator.network import GazeEstimator, GazeEstimatorConfig
+    from train.estimator.config import GazeEstimatorConfig
+    from train.estimator.network import GazeEstimator
     from train.model.renderer import make_renderer
 
     torch.manual_seed(0)

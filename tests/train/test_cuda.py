@@ -63,7 +63,8 @@ def test_renderers_match_cpu(kind):
 
 
 def test_estimator_and_codec_training_take_the_same_first_steps_on_cuda():
-    from train.estimator.network import GazeEstimatorConfig, GazeEstimatorTrainConfig, train_gaze_estimator
+    from train.estimator.config import GazeEstimatorConfig, GazeEstimatorTrainConfig
+    from train.estimator.training import train_gaze_estimator
     from train.model.codec import AutoencoderConfig, train_autoencoder
 
     g = torch.Generator().manual_seed(0)
@@ -97,7 +98,7 @@ def test_tiny_pipeline_runs_on_cuda(tmp_path):
     pytest.importorskip("open3d")  # the geometry stage's mesh distances
     from train import run
     from train.data.dataset import GazeDataset
-    from train.evaluation.protocol import model_gaze_sweep
+    from train.evaluation.figures import model_gaze_sweep
 
     assert run.main(["--preset", "tiny", "--run-dir", str(tmp_path), "device=cuda"]) == 0
     m = json.loads((tmp_path / "metrics.json").read_text())["metrics"]

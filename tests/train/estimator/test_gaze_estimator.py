@@ -11,16 +11,11 @@ import torch
 from toolkit.errors import ToolkitError
 from toolkit.io import save_checkpoint
 from toolkit.rotations import angular_error_deg
+from train.estimator.augment import random_blur
+from train.estimator.config import EYE_BAND, GazeEstimatorConfig, GazeEstimatorTrainConfig
 from train.estimator.drawn_faces import draw_faces, drawn_face_dataset
-from train.estimator.network import (
-    EYE_BAND,
-    GazeEstimator,
-    GazeEstimatorConfig,
-    GazeEstimatorTrainConfig,
-    evaluate_gaze_estimator,
-    random_blur,
-    train_gaze_estimator,
-)
+from train.estimator.network import GazeEstimator
+from train.estimator.training import evaluate_gaze_estimator, train_gaze_estimator
 
 TINY = GazeEstimatorConfig(input_size=32, channels=(8, 16, 16), hidden=32)
 
@@ -228,7 +223,8 @@ def test_random_blur_of_the_chosen_images_equals_blurring_every_image(prob):
 
 
 def test_blurring_the_eye_patch_box_alone_gives_the_patches_of_the_whole_blurred_image():
-    from train.estimator.network import BLUR_BOX_MARGIN, eye_patch_box, eye_patches
+    from train.estimator.augment import BLUR_BOX_MARGIN
+    from train.estimator.crops import eye_patch_box, eye_patches
 
     g = torch.Generator().manual_seed(7)
     x = torch.rand(12, 3, 64, 64, generator=g)
@@ -254,7 +250,7 @@ def test_blurring_the_eye_patch_box_alone_gives_the_patches_of_the_whole_blurred
 
 
 def test_head_frame_output_is_composed_exactly():
-    from train.estimator.network import camera_to_head_gaze, head_to_camera_gaze
+    from train.estimator.frames import camera_to_head_gaze, head_to_camera_gaze
 
     torch.manual_seed(3)
     gh = (torch.rand(32, 2) * 2 - 1) * 0.8
@@ -302,7 +298,7 @@ def _draw_eye_dots(lm: torch.Tensor, W: int) -> torch.Tensor:
 
 
 def test_eye_patches_follow_the_eyes_through_roll_and_scale():
-    from train.estimator.network import eye_patches
+    from train.estimator.crops import eye_patches
 
     W = 128
     base = _eye_landmarks(1, W)
@@ -320,7 +316,7 @@ def test_eye_patches_follow_the_eyes_through_roll_and_scale():
 
 
 def test_eye_patches_are_differentiable_and_finite_for_degenerate_landmarks():
-    from train.estimator.network import eye_patches
+    from train.estimator.crops import eye_patches
 
     img = torch.rand(2, 3, 64, 64, requires_grad=True)
     lm = torch.full((2, 68, 2), 32.0, requires_grad=True)  # every landmark on one point: width clamps to 2 px
@@ -337,7 +333,7 @@ def test_eye_patches_are_differentiable_and_finite_for_degenerate_landmarks():
 @pytest.mark.parametrize("size,patch,stages", [(128, (24, 36), 3), (64, (24, 36), 3), (256, (48, 72), 4),
                                                (512, (96, 144), 5)])
 def test_eye_config_scales_the_patch_with_the_image(size, patch, stages):
-    from train.estimator.network import eye_config
+    from train.estimator.config import eye_config
 
     cfg = eye_config(size)
     assert cfg.eyes and cfg.mirror_average and tuple(cfg.eye_patch) == patch and len(cfg.channels) == stages
@@ -351,7 +347,7 @@ def test_eye_config_scales_the_patch_with_the_image(size, patch, stages):
 
 
 def test_eye_estimator_needs_landmarks_trains_and_round_trips(tmp_path):
-    from train.estimator.network import eye_config
+    from train.estimator.config import eye_config
 
     cfg = dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16)
     lm = _eye_landmarks(8, 64, scale=0.5)
@@ -376,7 +372,8 @@ def test_eye_estimator_needs_landmarks_trains_and_round_trips(tmp_path):
 def test_eye_augmentation_on_the_patches_matches_augmenting_the_image():
     """An integer shift of image and landmarks together leaves the patches as they were and moves the layout:
     augment_eye_inputs does exactly that on the small patches. Photometric jitter stays per sample."""
-    from train.estimator.network import augment_batch, augment_eye_inputs, eye_config
+    from train.estimator.augment import augment_batch, augment_eye_inputs
+    from train.estimator.config import eye_config
 
     model = GazeEstimator(dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16))
     lm = _eye_landmarks(4, 64, scale=0.5)
@@ -407,7 +404,7 @@ def test_mirrored_face_is_the_mirrored_scene_with_exact_labels():
     from toolkit.cameras import eth_xgaze_rig
     from train.data.generate import RIG_RADIUS, frame_cameras
     from train.data.synthetic import SubjectParams, build_subject, render_views
-    from train.estimator.network import IBUG_MIRROR, mirror_faces
+    from train.estimator.crops import IBUG_MIRROR, mirror_faces
 
     assert sorted(IBUG_MIRROR) == list(range(68)) and all(IBUG_MIRROR[IBUG_MIRROR[i]] == i for i in range(68))
     rig = eth_xgaze_rig(radius=RIG_RADIUS)
@@ -441,7 +438,9 @@ def test_mirrored_face_is_the_mirrored_scene_with_exact_labels():
 
 @pytest.mark.parametrize("eyes", [False, True])
 def test_mirror_average_makes_the_estimator_mirror_equivariant(eyes, tmp_path):
-    from train.estimator.network import MIRROR_SIGNS, eye_config, mean_direction, mirror_faces
+    from train.estimator.config import eye_config
+    from train.estimator.crops import MIRROR_SIGNS, mirror_faces
+    from train.estimator.frames import mean_direction
 
     torch.manual_seed(0)
     cfg = dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16) if eyes else TINY
@@ -470,7 +469,7 @@ def test_mirror_average_makes_the_estimator_mirror_equivariant(eyes, tmp_path):
 
 
 def test_mirror_average_rejects_bad_landmarks_clearly_and_face_designs_ignore_them():
-    from train.estimator.network import eye_config
+    from train.estimator.config import eye_config
 
     eyes = GazeEstimator(dataclasses.replace(eye_config(64), channels=(8, 8, 8), hidden=16))
     x = torch.rand(4, 3, 64, 64)
@@ -493,7 +492,7 @@ def test_benchmark_cuda_device_without_cuda_is_one_line_error(capsys):
 
 def test_benchmark_cache_returns_the_rendered_set_and_probe_times_steps(tmp_path):
     import benchmarks.gaze_estimator as bench
-    from train.estimator.network import eye_config
+    from train.estimator.config import eye_config
 
     kw = dict(n_frames=2, seed=0, res=64, workers=1, iris=True, cache=str(tmp_path))
     first = bench.procedural_set(range(7, 8), **kw)
@@ -532,7 +531,7 @@ def test_benchmark_unknown_device_is_a_one_line_error(capsys):
 
 def test_benchmark_fine_tunes_a_saved_estimator(tmp_path, monkeypatch, capsys):
     import benchmarks.gaze_estimator as bench
-    from train.estimator.network import eye_config
+    from train.estimator.config import eye_config
 
     monkeypatch.setattr(bench, "OUT_DIR", tmp_path)  # the plot goes to tmp, not out/benchmarks
     torch.manual_seed(0)

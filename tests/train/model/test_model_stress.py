@@ -10,7 +10,8 @@ import torch
 
 from tests.train.helpers import model_inputs, small_model
 from toolkit.procedural import demo_head_scene
-from train.estimator.network import GazeEstimator, GazeEstimatorConfig
+from train.estimator.config import GazeEstimatorConfig
+from train.estimator.network import GazeEstimator
 from train.losses import GazeLoss, ImageLoss, OrthogonalityLoss
 
 TINY_EST = GazeEstimatorConfig(input_size=32, channels=(8, 16), hidden=16)
