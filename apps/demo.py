@@ -101,7 +101,8 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     from apps.preview import write_contact_sheet, write_video
     from train import run
     from train.data.dataset import GazeDataset
-    from train.evaluation.protocol import model_gaze_sweep, restored_weights, sweep_gazes
+    from train.evaluation.figures import model_gaze_sweep, sweep_gazes
+    from train.evaluation.fitting import restored_weights
     from train.run_config import eval_sampling_steps
 
     run_dir = out / "run"

@@ -22,7 +22,7 @@ column                         required  meaning
 ``mask``                       no        head mask image (non-zero = head), same size as the image; default:
                                          the trained model's splatted head silhouette
 ``code``                       no        ``.npy`` file with the 144-d shape code (identity 80 + expression 64);
-                                         default: fitted on the image (``train.evaluation.protocol.test_time_fit``)
+                                         default: fitted on the image (``train.evaluation.fitting.test_time_fit``)
 =============================  ========  =====================================================================
 
 Frames: the head-to-camera rotation is rebuilt from (pitch, yaw, roll) with the normalization's no-roll
@@ -308,7 +308,7 @@ class LabelsCsvSource:
         Rows without a code get one by test-time fitting on their image (``fit_steps`` steps from the zero
         code, the mean of the synthetic codes); rows without a mask use the model's splatted silhouette.
         """
-        from train.evaluation.protocol import face_only_mask, test_time_fit
+        from train.evaluation.fitting import face_only_mask, test_time_fit
 
         geo = {k: v.to(device) for k, v in self.geometry(idx).items()}
         rows = [self.rows[i] for i in idx]

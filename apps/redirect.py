@@ -26,7 +26,7 @@ Inputs:
 
 ``--fit-weights`` fits every row as the evaluation fits a pair before rendering it (:func:`row_fitter`):
 what a face the run never trained on needs (docs/redirect.md). ``--natural-eyes`` fits other weights with a gaze
-term that may only turn the eyes (``train.evaluation.protocol.NATURAL_EYES_FIT``, :func:`row_fitter`).
+term that may only turn the eyes (``train.evaluation.fitting.NATURAL_EYES_FIT``, :func:`row_fitter`).
 
 Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun skips finished chunks,
 and the final file is assembled (atomically) when all chunks exist. ``OUT.parts/settings.json`` records the
@@ -160,7 +160,7 @@ def render_chunk(model, renderer, items: list[dict], rows: list[int], gazes: np.
     ``LabelsCsvSource.items``; ``rows`` their input row numbers) -> arrays of the output schema.
 
     ``fit`` (:func:`row_fitter`): fit each row before rendering its gazes, from the trained weights each time."""
-    from train.evaluation.protocol import restored_weights
+    from train.evaluation.fitting import restored_weights
 
     out: dict[str, list] = {k: [] for k in ("face_patch", "head_mask", "pitchyaw_head", "pitchyaw_cam", "pose",
                                             "w2c_Rmat", "w2c_Tvec", "inmat", "latent_codes", "face_head_pose",
@@ -264,7 +264,7 @@ def redirect_settings(ctx, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
         settings["eval"] = as_json({k: v for k, v in vars(ctx.config.eval).items()
                                     if k.startswith("tta_") and k != "tta_steps"})  # the steps: fit_steps
         if args.natural_eyes:  # what the fit then uses in place of the section's weights and gaze term
-            from train.evaluation.protocol import NATURAL_EYES_FIT
+            from train.evaluation.fitting import NATURAL_EYES_FIT
 
             settings["natural_eyes_fit"] = as_json(NATURAL_EYES_FIT)
     return settings
@@ -387,7 +387,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "trained weights each time (CSV rows need their own gaze)")
     ap.add_argument("--natural-eyes", action="store_true",
                     help="with --fit-weights: fit the face features, eye rotation field and renderer, with a gaze "
-                         "term that may only turn the eyes (train.evaluation.protocol.NATURAL_EYES_FIT): no coloured specks "
+                         "term that may only turn the eyes (train.evaluation.fitting.NATURAL_EYES_FIT): no coloured specks "
                          "in the eyes (the demo preset's own fit since session 22; docs/redirect.md)")
     args = ap.parse_args(argv)
     keep_freed_memory()

@@ -107,7 +107,7 @@ def main(argv=None) -> int:
     from apps.redirect import parse_gazes, render_chunk, row_fitter
     from train import run
     from train.data.dataset import GazeDataset
-    from train.evaluation.protocol import spread_indices
+    from train.evaluation.pairs import spread_indices
 
     run_dir = args.run_dir or default_run_dir()
     ctx = run.open_run(run_dir)

@@ -198,7 +198,8 @@ def paper_trainer(ctx, device, n_gaussians: int, batch: int):
     from toolkit.cameras import resize_intrinsics
     from toolkit.procedural import demo_head_scene
     from train import run
-    from train.estimator.network import GazeEstimator, GazeEstimatorConfig
+    from train.estimator.config import GazeEstimatorConfig
+    from train.estimator.network import GazeEstimator
     from train.model.codec import AutoencoderConfig, KLAutoencoder
     from train.model.gaussian_model import GaussianModel
     from train.model.renderer import make_renderer

@@ -303,7 +303,8 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
     ``threads`` torch threads): its training split plus its own extra procedural subjects, validated on the
     held-out split (``data``: :func:`_estimator_data`, loaded here when None). Returns (file name in
     ``run_dir``, its last history record with ``train_images``)."""
-    from train.estimator.network import GazeEstimatorTrainConfig, train_gaze_estimator
+    from train.estimator.config import GazeEstimatorTrainConfig
+    from train.estimator.training import train_gaze_estimator
 
     torch.set_num_threads(threads)
     e, res = config.estimator, config.data.res
@@ -341,7 +342,7 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
 def _estimator_design(config: RunConfig):
     """The estimator stage's network design for ``config.estimator.crop``: eye patches sized for the image, or a
     face / eye-band crop resized to ``estimator.input_size``."""
-    from train.estimator.network import EYE_BAND, GazeEstimatorConfig, eye_config
+    from train.estimator.config import EYE_BAND, GazeEstimatorConfig, eye_config
 
     e = config.estimator
     if e.crop == "eyes":
@@ -548,10 +549,10 @@ REFERENCES_NOTE = (
 
 
 def fit_gaze_term(ctx: RunContext, device, **given):
-    """The test-time fitting's gaze term as the run's eval section sets it (``train.evaluation.protocol.FitGaze`` around the
+    """The test-time fitting's gaze term as the run's eval section sets it (``train.evaluation.fitting.FitGaze`` around the
     frozen loss estimator), or None when its weight is 0. ``given`` (``gaze_weight``, ``terms``, ``every``,
-    ``reach``) replace the section's settings (``train.evaluation.protocol.NATURAL_EYES_FIT``'s, say)."""
-    from train.evaluation.protocol import FitGaze
+    ``reach``) replace the section's settings (``train.evaluation.fitting.NATURAL_EYES_FIT``'s, say)."""
+    from train.evaluation.fitting import FitGaze
     from train.losses import GazeLoss
 
     e = ctx.config.eval
@@ -568,13 +569,13 @@ def row_fitter(ctx, model, renderer, device, steps: int, *, gaze_term: bool = Tr
     """The evaluation's test-time fitting for one input row, as a function (item, gazes [G, 2]) -> fitted code
     [1, C]: ``steps`` Adam steps of the code and the run's ``eval.tta_weights`` (by default the face Gaussians'
     features and the renderer) on the input image, compared on ``eval.tta_region``, with the loss estimator's
-    gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn (``train.evaluation.protocol.term_gaze_order``:
+    gaze term (``eval.tta_gaze_weight``) at the row's target gazes in turn (``train.evaluation.fitting.term_gaze_order``:
     spread over them when they outnumber the term's entries). The weights are tuned in place:
-    the caller restores them (``train.evaluation.protocol.restored_weights``) after rendering the row. ``gaze_term=False``
+    the caller restores them (``train.evaluation.fitting.restored_weights``) after rendering the row. ``gaze_term=False``
     leaves the gaze term out whatever the run's weight (``benchmarks/redirect.py`` measures what it adds).
-    ``natural_eyes`` fits ``train.evaluation.protocol.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the
+    ``natural_eyes`` fits ``train.evaluation.fitting.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the
     term may turn the eyes but not repaint them, so the redirected eyes carry no coloured specks."""
-    from train.evaluation.protocol import NATURAL_EYES_FIT, face_only_mask, test_time_fit
+    from train.evaluation.fitting import NATURAL_EYES_FIT, face_only_mask, test_time_fit
 
     e = ctx.config.eval
     weights = NATURAL_EYES_FIT["weights"] if natural_eyes else tuple(e.tta_weights)
@@ -672,13 +673,8 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     """The evaluation protocol on the test split, the report and the figure. Test subjects may be evaluated in
     two processes at once (:func:`eval_groups`); each subject's scores depend only on the threads its process
     has, and the merged result is what one process with that many threads gives (tested)."""
-    from train.evaluation.protocol import (
-        eye_views_grid,
-        image_grid,
-        in_subject_order,
-        merge_raw_evaluations,
-        summarize_evaluation,
-    )
+    from train.evaluation.figures import eye_views_grid, image_grid
+    from train.evaluation.summary import in_subject_order, merge_raw_evaluations, summarize_evaluation
     from train.losses.metrics import table1_markdown
 
     cfg = ctx.config
@@ -765,9 +761,10 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
 
 def _eval_sweep(ctx: RunContext, device) -> torch.Tensor:
     """The qualitative figure's last row [G, 3, H, W]: the first held-out pair's input, fitted as the evaluation
-    fits it, rendered at ``eval.sweep_frames`` gazes (``train.evaluation.protocol.sweep_gazes``)."""
+    fits it, rendered at ``eval.sweep_frames`` gazes (``train.evaluation.figures.sweep_gazes``)."""
     from train.data.pairing import SyntheticRedirectionPairs
-    from train.evaluation.protocol import model_gaze_sweep, restored_weights, sweep_gazes
+    from train.evaluation.figures import model_gaze_sweep, sweep_gazes
+    from train.evaluation.fitting import restored_weights
 
     cfg = ctx.config
     item = SyntheticRedirectionPairs(_split(ctx, "test")[0], res=cfg.data.res, seed=cfg.seed)[0]["input"]

@@ -109,7 +109,7 @@ class EstimatorStageConfig:
     crop: Literal["eyes", "face", "eye_band"] = "eyes"
     """what the estimators read: two eye patches cut at the eye landmarks plus the landmark layout
     (``GazeEstimatorConfig.eyes``), the whole normalized face crop, or the fixed band holding both eyes
-    (``train.estimator.network.EYE_BAND``)."""
+    (``train.estimator.config.EYE_BAND``)."""
     synthetic_subjects: int = 20
     """extra procedural subjects rendered for each estimator's training only (synthetic runs; ignored with
     data.root): many gazes, few cameras each. Seeds are disjoint from the data stage's subjects and
@@ -241,7 +241,7 @@ class EvalConfig:
     """Adam learning rate of the renderer's weights in test-time fitting (code and features: 1e-2)."""
     tta_gaze_weight: float = 0.0002
     """weight of a gaze term in test-time fitting (0 disables): the frozen *loss* estimator, never the evaluation
-    one, reads renders of the fitted input (``train.evaluation.protocol.FitGaze``), in degrees, like ``gaussian.lambda_gaze``.
+    one, reads renders of the fitted input (``train.evaluation.fitting.FitGaze``), in degrees, like ``gaussian.lambda_gaze``.
     Session 15, demo model, 40 steps, the term at every step, weight 0 / 0.00003 / 0.0001 / 0.0005 / 0.002: gaze
     9.48° / 6.01° / 5.38° / 5.51° / 5.64° (an independent judge estimator: 9.29° / 6.26° / 5.24° / 5.48° / 5.55°),
     PSNR 33.12 / 33.12 / 33.07 / 32.74 / 32.16 dB; at every 2nd step (the default) weight 0.0002: 5.40° (judge
@@ -301,7 +301,7 @@ def eval_sampling_steps(cfg: "RunConfig") -> int:
 NATURAL_EYES_FIT = {"weights": ("features", "eye_field", "renderer"), "gaze_weight": 0.002,
                     "reach": ("code", "eye_field"), "terms": ("target", "own"), "every": 2}
 """A test-time fit whose gaze term turns a new face's eyes but cannot repaint them
-(``train.evaluation.protocol.FitGaze.reach``): no coloured specks, and the iris keeps the trained model's colour rather
+(``train.evaluation.fitting.FitGaze.reach``): no coloured specks, and the iris keeps the trained model's colour rather
 than the new face's. Session 21, demo run (the term then read ``target`` alone): gaze 6.95°, PSNR 33.28 dB,
 against 5.81°, 33.55 dB for the demo preset's fit of then, whose side views show specks (docs/evaluation.md).
 ``apps.redirect --natural-eyes`` fits this way (``train.evaluation.protocol`` re-exports it), and so does the demo preset

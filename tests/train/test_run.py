@@ -194,7 +194,7 @@ def test_eval_in_two_processes_equals_one_process(tiny_run, tmp_path, monkeypatc
         torch.set_num_threads(1)
     assert any("2 test subjects in 2 processes at once, 1 thread(s) each" in s for s in lines)
     got = json.loads((d / "metrics.json").read_text())
-    from train.evaluation.protocol import summarize_evaluation
+    from train.evaluation.summary import summarize_evaluation
 
     raw = run._eval_subjects(config=ctx.config, run_dir=d, outputs=dict(ctx.outputs), files=[src, twin], threads=1)
     want = summarize_evaluation(raw, own_gaze_row=True, log=lambda m: None)
@@ -267,7 +267,7 @@ def test_eval_gaze_term_fits_with_the_loss_estimator(tiny_run, tmp_path, capsys,
     one's), the metric still reads the evaluation estimator, and the report names the term."""
     from safetensors.torch import load_file
 
-    import train.evaluation.protocol as ev
+    import train.evaluation.fitting as ev
 
     d = tmp_path / "run"
     shutil.copytree(tiny_run, d)
@@ -602,7 +602,7 @@ def test_demo_preset_renders_in_pixel_space_at_its_resolution():
     assert (cfg.codec.kind, g.dit_model, cfg.estimator.steps) == ("pixel", "DiT-Gaze-pixel", 1200)
     assert (g.steps, cfg.eval.tta_steps) == (240, 30)  # session 19: sized for the slowest 2-core machine seen
     # Session 22: the natural fit (the gaze term only turns the eyes), and the Gaussian stage at twice the rates.
-    from train.evaluation.protocol import NATURAL_EYES_FIT
+    from train.evaluation.fitting import NATURAL_EYES_FIT
 
     assert (cfg.eval.tta_weights, cfg.eval.tta_gaze_weight, cfg.eval.tta_gaze_reach, cfg.eval.tta_gaze_terms,
             cfg.eval.tta_gaze_every) == tuple(NATURAL_EYES_FIT[k] for k in ("weights", "gaze_weight", "reach",
@@ -700,7 +700,7 @@ def test_config_and_report_know_every_fitting_group():
     listings of one set: a group added to one must be added to all."""
     import typing
 
-    from train.evaluation.protocol import TTA_WEIGHT_GROUPS
+    from train.evaluation.fitting import TTA_WEIGHT_GROUPS
     from train.run_config import EvalConfig
 
     (allowed, _) = typing.get_args(typing.get_type_hints(EvalConfig)["tta_weights"])
@@ -795,7 +795,7 @@ def test_a_stage_rerun_continues_the_runs_config_and_a_refused_run_leaves_it_alo
 def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
     from dataclasses import replace
 
-    from train.evaluation.protocol import NATURAL_EYES_FIT
+    from train.evaluation.fitting import NATURAL_EYES_FIT
     from train.run import _labels_note
     from train.run_config import EvalConfig, RunConfig
 
