@@ -11,8 +11,9 @@ from apps.labels_csv import is_labels_csv
 from toolkit.errors import ToolkitError
 
 SETTINGS_VERSION = 3
-"""Of ``OUT.parts/settings.json``: 2 since the fitting's noise is seeded per chunk (version 1 had no field), 3
-since the input's contents are stamped (``input_stamp``), not only its path."""
+"""The format of ``OUT.parts/settings.json`` this app writes (chunks of another are refused): 2 seeds the
+fitting's noise per chunk (1 had no version field), 3 stamps the input's contents (``input_stamp``), not only
+its path."""
 
 
 def chunk_path(parts: Path, k: int) -> Path:
