@@ -11,7 +11,7 @@ estimators, the two-stream Gaussian model with the DiT renderer, evaluation on h
 ground truth (``report.md``), a gaze-sweep video of a held-out subject rendered by the trained model, and a
 redirected mini-dataset (HDF5). The held-out face is fitted first, as the evaluation fits one, for the sweep,
 and for the mini-dataset (``apps.redirect --fit-weights --natural-eyes``: eyes, not specks repainted for the
-loss estimator; the demo preset's own fit since session 22, so both are fitted alike).
+loss estimator; the demo preset's own fit, so both are fitted alike).
 """
 
 from __future__ import annotations
@@ -104,16 +104,17 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     from train.evaluation.figures import model_gaze_sweep, sweep_gazes
     from train.evaluation.fitting import restored_weights
     from train.run_config import eval_sampling_steps
+    from train.trained_run import TrainedRun
 
     run_dir = out / "run"
     print(f"== DiT-Gaze pipeline ({preset} preset) -> {run_dir} ==", flush=True)
     code = run.main(["--preset", preset, "--run-dir", str(run_dir), *overrides])
     if code:
         raise ToolkitError(f"the training pipeline stopped (exit {code})")
-    ctx = run.open_run(run_dir)
-    cfg = ctx.config
-    test_file = run._split(ctx, "test")[0]
-    model, renderer = run.load_trained(ctx, "cpu")
+    trained = TrainedRun.open(run_dir)
+    cfg = trained.config
+    test_file = trained.split("test")[0]
+    model, renderer = trained.load_model("cpu")
     with h5py.File(test_file, "r") as f:  # the labels alone: no image needs decoding to choose the view
         row = most_frontal(f["face_head_pose"][:])
     item = GazeDataset([test_file], res=cfg.data.res)[row]
@@ -123,7 +124,7 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     fit_steps = cfg.eval.tta_steps
     with restored_weights(model, renderer):
         if fit_steps > 0:
-            fit = redirect.row_fitter(ctx, model, renderer, torch.device("cpu"), fit_steps)
+            fit = trained.row_fitter(model, renderer, torch.device("cpu"), fit_steps)
             item = {**item, "latent_code": fit(item, gazes)[0]}
         frames = model_gaze_sweep(model, renderer, item, gazes, cfg.data.res, eval_sampling_steps(cfg))
     rgb = (frames.clamp(0, 1).permute(0, 2, 3, 1).numpy() * 255).round().astype("uint8")

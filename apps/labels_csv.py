@@ -91,6 +91,12 @@ def labels_csv_file(path: str | os.PathLike) -> Path:
     return (p / "labels.csv" if p.is_dir() else p).resolve()
 
 
+def is_labels_csv(path: str | os.PathLike) -> bool:
+    """Whether a dataset argument names a labels CSV (a ``.csv`` file, or a folder holding ``labels.csv``)."""
+    p = Path(path)
+    return p.suffix.lower() == ".csv" or (p.is_dir() and (p / "labels.csv").is_file())
+
+
 def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, distance: float | None = None,
                 default_distance: float = 0.6, default_crop: float = 0.26) -> tuple[list[LabelRow], int]:
     """Validate a labels CSV and every file it names -> (rows, image size S).
@@ -104,6 +110,23 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
     for name, v in (("--focal", focal), ("--distance", distance)):
         if v is not None and not (math.isfinite(v) and v > 0):
             raise ToolkitError(f"{name} must be a positive number, got {v}")
+    header, raw = _read_table(p)
+    rows: list[LabelRow] = []
+    size: tuple[int, int] | None = None
+    for line, r in raw:
+        if None in r:  # cells beyond the header's: csv.DictReader files them under None, and they would be lost
+            raise ToolkitError(f"{p} line {line}: {len(header) + len(r[None])} cells, the header has {len(header)}")
+        cells = _Cells(p, line, {(k or "").strip(): (v or "").strip() if isinstance(v, str) else "" for k, v in r.items()})
+        row, hw = _label_row(cells, size, focal=focal, distance=distance, default_distance=default_distance,
+                             default_crop=default_crop)
+        size = size or hw
+        rows.append(row)
+    return rows, size[0]
+
+
+def _read_table(p: Path) -> tuple[list[str], list[tuple[int, dict]]]:
+    """The CSV's header (checked: no column twice, the required ones present, none unknown, the gaze columns
+    together) and its data rows as (line number, {column: cell})."""
     try:
         with open(p, newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)
@@ -124,90 +147,104 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
         raise ToolkitError(f"{p}: columns gaze_pitch and gaze_yaw go together; only one is present")
     if not raw:
         raise ToolkitError(f"{p}: no data rows")
-    base = p.parent
-    rows: list[LabelRow] = []
-    size: tuple[int, int] | None = None
-    for line, r in raw:
-        if None in r:  # cells beyond the header's: csv.DictReader files them under None, and they would be lost
-            raise ToolkitError(f"{p} line {line}: {len(header) + len(r[None])} cells, the header has {len(header)}")
-        r = {(k or "").strip(): (v or "").strip() if isinstance(v, str) else "" for k, v in r.items()}
-        where = f"{p} line {line}"
+    return header, raw
 
-        def num(col: str, *, required: bool = False, lo: float = -math.inf, hi: float = math.inf,
-                positive: bool = False, where=where, r=r) -> float | None:
-            s = r.get(col, "")
-            if s == "":
-                if required:
-                    raise ToolkitError(f"{where}, column '{col}': empty; expected a number")
-                return None
-            try:
-                v = float(s)
-            except ValueError:
-                raise ToolkitError(f"{where}, column '{col}': expected a number, got {s!r}") from None
-            if not math.isfinite(v):
-                raise ToolkitError(f"{where}, column '{col}': expected a finite number, got {s!r}")
-            if positive and v <= 0:
-                raise ToolkitError(f"{where}, column '{col}': expected a positive number, got {s!r}")
-            if not lo <= v <= hi:
-                raise ToolkitError(f"{where}, column '{col}': expected degrees in [{lo:g}, {hi:g}], got {s!r}")
-            return v
 
-        def path(col: str, where=where, r=r) -> Path | None:
-            s = r.get(col, "")
-            if s == "":
-                return None
-            q = Path(s)
-            return q if q.is_absolute() else base / q
+@dataclass
+class _Cells:
+    """One CSV row's stripped cells, read as numbers or paths with errors naming the line and column."""
 
-        img_path = path("image")
-        if img_path is None:
-            raise ToolkitError(f"{where}, column 'image': empty; expected an image path")
-        hw = _image_size(img_path, f"{where}, column 'image':")
-        if hw[0] != hw[1]:
-            raise ToolkitError(f"{where}, column 'image': {img_path} is {hw[1]}x{hw[0]} (width x height); "
-                               "expected a square crop")
-        if size is None:
-            size = hw
-        elif hw != size:
-            raise ToolkitError(f"{where}, column 'image': {img_path} is {hw[1]}x{hw[0]}; the first image is "
-                               f"{size[1]}x{size[0]} (all images must have the same size)")
-        # Pitch is an asin (±90°); yaw an atan2 (±180°: extreme ETH-XGaze cameras see |yaw| > 90°).
-        head = tuple(math.radians(num(c, required=c != "head_roll", lo=-lim, hi=lim) or 0.0)
-                     for c, lim in (("head_pitch", 90), ("head_yaw", 180), ("head_roll", 180)))
-        gp, gy = num("gaze_pitch", lo=-90, hi=90), num("gaze_yaw", lo=-180, hi=180)
-        if (gp is None) != (gy is None):
-            raise ToolkitError(f"{where}: gaze_pitch and gaze_yaw must both be given or both be empty")
-        gaze = None if gp is None else (math.radians(gp), math.radians(gy))
-        f = num("focal", positive=True)
-        d = num("distance", positive=True)
-        d = d if d is not None else (distance if distance is not None else default_distance)
-        if f is None:
-            f = focal if focal is not None else size[0] * default_distance / default_crop
-        mask_path = path("mask")
-        if mask_path is not None:
-            mhw = _image_size(mask_path, f"{where}, column 'mask':")
-            if mhw != hw:
-                raise ToolkitError(f"{where}, column 'mask': {mask_path} is {mhw[1]}x{mhw[0]}; expected the image's "
-                                   f"size {hw[1]}x{hw[0]}")
-        code_path, code = path("code"), None
-        if code_path is not None:
-            if not code_path.is_file():
-                raise ToolkitError(f"{where}, column 'code': {code_path}: no such file")
-            try:
-                code = np.load(code_path, allow_pickle=False)
-            except (OSError, ValueError, EOFError) as e:  # EOFError: an empty file
-                raise ToolkitError(f"{where}, column 'code': {code_path}: not a .npy array ({e})") from None
-            code = np.asarray(code, np.float32).reshape(-1) if np.asarray(code).size == CODE_DIM else None
-            if code is None:
-                raise ToolkitError(f"{where}, column 'code': {code_path}: expected {CODE_DIM} numbers (identity 80 + "
-                                   "expression 64)")
-            if not np.isfinite(code).all():
-                raise ToolkitError(f"{where}, column 'code': {code_path}: contains NaN or inf")
-        if code is None and gaze is None:
-            raise ToolkitError(f"{where}: no 'code' given, so the code is fitted on the image, which needs the "
-                               "image's own gaze: fill gaze_pitch and gaze_yaw (or give a code)")
-        rows.append(LabelRow(line, img_path, head, gaze, float(f), float(d), mask_path, code))
-    return rows, size[0]
+    csv_path: Path
+    line: int
+    cells: dict[str, str]
+    where: str = ""  # "<csv> line <n>", for the errors
+
+    def __post_init__(self):
+        self.where = f"{self.csv_path} line {self.line}"
+
+    def num(self, col: str, *, required: bool = False, lo: float = -math.inf, hi: float = math.inf,
+            positive: bool = False) -> float | None:
+        s, where = self.cells.get(col, ""), self.where
+        if s == "":
+            if required:
+                raise ToolkitError(f"{where}, column '{col}': empty; expected a number")
+            return None
+        try:
+            v = float(s)
+        except ValueError:
+            raise ToolkitError(f"{where}, column '{col}': expected a number, got {s!r}") from None
+        if not math.isfinite(v):
+            raise ToolkitError(f"{where}, column '{col}': expected a finite number, got {s!r}")
+        if positive and v <= 0:
+            raise ToolkitError(f"{where}, column '{col}': expected a positive number, got {s!r}")
+        if not lo <= v <= hi:
+            raise ToolkitError(f"{where}, column '{col}': expected degrees in [{lo:g}, {hi:g}], got {s!r}")
+        return v
+
+    def path(self, col: str) -> Path | None:
+        s = self.cells.get(col, "")
+        return None if s == "" else Path(s) if Path(s).is_absolute() else self.csv_path.parent / s
+
+
+def _label_row(c: _Cells, size: tuple[int, int] | None, *, focal: float | None, distance: float | None,
+               default_distance: float, default_crop: float) -> tuple[LabelRow, tuple[int, int]]:
+    """One data row, validated with every file it names -> (the row, its image's (height, width)); ``size`` is
+    the first image's, which every image must match (None for the first row)."""
+    where = c.where
+    img_path = c.path("image")
+    if img_path is None:
+        raise ToolkitError(f"{where}, column 'image': empty; expected an image path")
+    hw = _image_size(img_path, f"{where}, column 'image':")
+    if hw[0] != hw[1]:
+        raise ToolkitError(f"{where}, column 'image': {img_path} is {hw[1]}x{hw[0]} (width x height); "
+                           "expected a square crop")
+    if size is None:
+        size = hw
+    elif hw != size:
+        raise ToolkitError(f"{where}, column 'image': {img_path} is {hw[1]}x{hw[0]}; the first image is "
+                           f"{size[1]}x{size[0]} (all images must have the same size)")
+    # Pitch is an asin (±90°); yaw an atan2 (±180°: extreme ETH-XGaze cameras see |yaw| > 90°).
+    head = tuple(math.radians(c.num(col, required=col != "head_roll", lo=-lim, hi=lim) or 0.0)
+                 for col, lim in (("head_pitch", 90), ("head_yaw", 180), ("head_roll", 180)))
+    gp, gy = c.num("gaze_pitch", lo=-90, hi=90), c.num("gaze_yaw", lo=-180, hi=180)
+    if (gp is None) != (gy is None):
+        raise ToolkitError(f"{where}: gaze_pitch and gaze_yaw must both be given or both be empty")
+    gaze = None if gp is None else (math.radians(gp), math.radians(gy))
+    f = c.num("focal", positive=True)
+    d = c.num("distance", positive=True)
+    d = d if d is not None else (distance if distance is not None else default_distance)
+    if f is None:
+        f = focal if focal is not None else size[0] * default_distance / default_crop
+    mask_path = c.path("mask")
+    if mask_path is not None:
+        mhw = _image_size(mask_path, f"{where}, column 'mask':")
+        if mhw != hw:
+            raise ToolkitError(f"{where}, column 'mask': {mask_path} is {mhw[1]}x{mhw[0]}; expected the image's "
+                               f"size {hw[1]}x{hw[0]}")
+    code = _read_code(c.path("code"), where)
+    if code is None and gaze is None:
+        raise ToolkitError(f"{where}: no 'code' given, so the code is fitted on the image, which needs the "
+                           "image's own gaze: fill gaze_pitch and gaze_yaw (or give a code)")
+    return LabelRow(c.line, img_path, head, gaze, float(f), float(d), mask_path, code), hw
+
+
+def _read_code(code_path: Path | None, where: str) -> np.ndarray | None:
+    """The row's ``code`` file -> [CODE_DIM] float32 (None when the cell is empty), checked."""
+    if code_path is None:
+        return None
+    if not code_path.is_file():
+        raise ToolkitError(f"{where}, column 'code': {code_path}: no such file")
+    try:
+        code = np.load(code_path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:  # EOFError: an empty file
+        raise ToolkitError(f"{where}, column 'code': {code_path}: not a .npy array ({e})") from None
+    if np.asarray(code).size != CODE_DIM:
+        raise ToolkitError(f"{where}, column 'code': {code_path}: expected {CODE_DIM} numbers (identity 80 + "
+                           "expression 64)")
+    code = np.asarray(code, np.float32).reshape(-1)
+    if not np.isfinite(code).all():
+        raise ToolkitError(f"{where}, column 'code': {code_path}: contains NaN or inf")
+    return code
 
 
 def head_rotation(pitch_yaw_roll: torch.Tensor) -> torch.Tensor:

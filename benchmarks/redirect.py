@@ -3,7 +3,7 @@
 For a trained run, every held-out subject's rows (``--rows``, spread over the file) are redirected to
 ``--gazes`` with ``apps.redirect.render_chunk`` -- the app's own rendering path -- once per ``--fit-steps``
 value: 0 renders with the file's codes and the trained weights as they are (the app's default for HDF5
-input); N > 0 first fits each row as the evaluation fits a pair (``apps.redirect.row_fitter``, the app's
+input); N > 0 first fits each row as the evaluation fits a pair (``TrainedRun.row_fitter``, the app's
 ``--fit-weights``: code, ``eval.tta_weights``, the loss estimator's gaze term at the row's target gazes), N
 steps (``--no-gaze-steps``: also N steps without the gaze term; ``--natural-steps``: N steps as the app's
 ``--natural-eyes`` fits). Each redirected image is compared with the generator's ground truth of the same row
@@ -71,6 +71,19 @@ def ground_truth(files, rows: dict, gazes: np.ndarray, res: int) -> dict[str, to
     return {k: torch.stack(v) for k, v in out.items()}
 
 
+def spread_rows(files, n: int, res: int) -> tuple[dict, list]:
+    """``n`` rows spread over each file: ({file: row numbers}, [(file, row, GazeDataset item)])."""
+    from train.data.dataset import GazeDataset
+    from train.evaluation.pairs import spread_indices
+
+    rows, items = {}, []
+    for f in files:
+        ds = GazeDataset([f], res=res, with_mesh=True)
+        rows[f] = spread_indices(len(ds), min(n, len(ds)))
+        items += [(f, r, ds[r]) for r in rows[f]]
+    return rows, items
+
+
 def score(images: torch.Tensor, landmarks: torch.Tensor, labels: torch.Tensor, truth: dict, estimator) -> dict:
     from toolkit.rotations import angular_error_deg
     from train.losses.metrics import composite_on_white, psnr, ssim
@@ -104,24 +117,18 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
 
-    from apps.redirect import parse_gazes, render_chunk, row_fitter
-    from train import run
-    from train.data.dataset import GazeDataset
-    from train.evaluation.pairs import spread_indices
+    from apps.redirect import parse_gazes, render_chunk
+    from train.trained_run import TrainedRun
 
     run_dir = args.run_dir or default_run_dir()
-    ctx = run.open_run(run_dir)
-    cfg = ctx.config
+    trained = TrainedRun.open(run_dir)
+    cfg = trained.config
     res, device = cfg.data.res, torch.device("cpu")
-    model, renderer = run.load_trained(ctx, device)
-    estimator = run._estimator(ctx, "eval", device)
+    model, renderer = trained.load_model(device)
+    estimator = trained.estimator("eval", device)
     gazes = parse_gazes(args.gazes)
-    files = run._split(ctx, "test")
-    rows, items = {}, []
-    for f in files:
-        ds = GazeDataset([f], res=res, with_mesh=True)
-        rows[f] = spread_indices(len(ds), min(args.rows, len(ds)))
-        items += [(f, r, ds[r]) for r in rows[f]]
+    files = trained.split("test")
+    rows, items = spread_rows(files, args.rows, res)
     G = len(gazes)
     landmarks = torch.stack([torch.as_tensor(it["landmarks"]).float() for _, _, it in items]).repeat_interleave(G, 0)
     t0 = time.perf_counter()
@@ -137,9 +144,9 @@ def main(argv=None) -> int:
     # One discarded call, the first row fitted for one step: the first render and the first fit pay one-time
     # costs that would land on whichever variant ran first.
     render_chunk(model, renderer, [items[0][2]], [items[0][1]], gazes[:1], res, cfg.gaussian.sampling_steps, device,
-                 row_fitter(ctx, model, renderer, device, 1))
+                 trained.row_fitter(model, renderer, device, 1))
     for steps, gaze_term, natural in variants:
-        fit = (row_fitter(ctx, model, renderer, device, steps, gaze_term=gaze_term, natural_eyes=natural)
+        fit = (trained.row_fitter(model, renderer, device, steps, gaze_term=gaze_term, natural_eyes=natural)
                if steps > 0 else None)
         t0 = time.perf_counter()
         arrays = render_chunk(model, renderer, [it for _, _, it in items], [r for _, r, _ in items], gazes, res,

@@ -1,7 +1,7 @@
 """Training of the gaussian stage: step time broken down, and held-out quality against wall-clock time.
 
 Part 1, step breakdown: real ``GaussianTrainer.step`` calls (the stage's own step: main pass + weak
-supervision pass), with the parts timed in place by wrapping them (same inputs, same code path):
+supervision pass), the parts timed in place by wrapping them (same inputs, same code path):
 
 - ``fields``: the face deformation field and the eye rotation field (+ the rigid head transform);
 - ``splat``: ``render.splat.rasterize`` calls;
@@ -10,20 +10,19 @@ supervision pass), with the parts timed in place by wrapping them (same inputs, 
 - ``other fwd``: the rest of the forward step (batch gather, RGB loss, gaze sampler, sums);
 - ``backward``: ``total.backward()``; ``optim``: gradient clipping + Adam.
 
-At the ``demo`` configuration (the run's geometry scene, codec and loss estimator) and at the ``paper``
-configuration (DiT-Gaze-paper at 512², codec downsample 8 / 64 channels, 224² estimator, hidden 256) with an
-untrained codec/estimator and the procedural head as the Gaussians; on CPU the paper row uses fewer Gaussians
-and a smaller batch than the paper (``--paper-gaussians``, ``--paper-batch``; the row says which).
+At the ``demo`` configuration (the run's geometry scene, codec and loss estimator) and at the ``paper`` one
+(DiT-Gaze-paper at 512², codec downsample 8 / 64 channels, 224² estimator, hidden 256; untrained codec and
+estimator, the procedural head; on CPU ``--paper-gaussians``/``--paper-batch`` below the paper's, as shown).
 
 Part 2, time to quality: for each variant (default ``dit`` and ``unet``, i.e. ``gaussian.renderer=...``) the
-stage's own ``train_loop`` + ``GaussianTrainer`` train from the same initialization seed for the same
-budget of training time (``--budget-s`` each; evaluation time is not counted; ``--clock cpu``, the default on
-CPU, counts this process's CPU seconds, which with one thread equal wall-clock on an idle core and do not
-depend on other jobs sharing the machine; ``--clock wall`` counts wall-clock), and every
-``--eval-every-s`` the held-out PSNR/SSIM/gaze error of ``train.evaluation.protocol.evaluate`` (the eval stage's pairs and
+stage's own ``train_loop`` + ``GaussianTrainer`` train from the same initialization seed for the same budget
+of training time (``--budget-s`` each; evaluation time is not counted; ``--clock cpu``, the default on CPU,
+counts this process's CPU seconds, which with one thread equal wall-clock on an idle core and do not depend on
+other jobs sharing the machine; ``--clock wall`` counts wall-clock), and every ``--eval-every-s`` the held-out
+PSNR/SSIM/gaze error of ``train.evaluation.protocol.evaluate`` is recorded (the eval stage's pairs and
 metrics, ``--pairs`` pairs per held-out subject, but no test-time fit: the renders take the held-out subjects'
-generator codes, so the curve follows the training alone and its PSNR is not the report's) is recorded. Prints both tables and writes
-``out/benchmarks/train.png`` (PSNR against training seconds).
+generator codes, so the curve follows the training alone and its PSNR is not the report's). Prints both tables
+and writes ``out/benchmarks/train.png`` (PSNR against training seconds).
 
     .venv/bin/python benchmarks/train.py --run-dir out/demo/run [--budget-s 180] [--threads 1]
     .venv/bin/python benchmarks/train.py --run-dir RUN --skip-breakdown --variants dit:,nogaze:gaussian.lambda_gaze=0
@@ -36,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
 import statistics
 import sys
 import tempfile
@@ -53,13 +53,15 @@ from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 PARTS = ("fields", "splat", "renderer", "losses")
 
 
-# ----------------------------------------------------------------------------- run context
+# ----------------------------------------------------------------------------- the run
 def open_prereqs(run_dir: Path, overrides: list[str]):
-    """A RunContext whose stages data..estimator are up to date (run them when missing)."""
+    """A ``TrainedRun`` whose stages data..estimator are up to date (run them when missing)."""
     from train import run
     from train.config import apply_overrides, load_yaml_config
     from train.run_config import RunConfig
+    from train.stages import STAGES
     from train.stages.pipeline import RunContext, run_stages
+    from train.trained_run import TrainedRun
 
     need = ("data", "geometry", "codec", "estimator")
     if not (run_dir / "config.yaml").is_file():
@@ -67,21 +69,24 @@ def open_prereqs(run_dir: Path, overrides: list[str]):
         code = run.main(["--preset", "demo", "--run-dir", str(run_dir), "--stages", ",".join(need)])
         if code:
             raise ToolkitError(f"the prerequisite stages failed (exit {code})")
-    cfg = apply_overrides(load_yaml_config(RunConfig, run_dir / "config.yaml"), overrides)
-    ctx = RunContext(run_dir, cfg, log=lambda m: None)
-    run_stages(run.STAGES, [], ctx)
+    ctx = RunContext(run_dir, apply_overrides(load_yaml_config(RunConfig, run_dir / "config.yaml"), overrides),
+                     log=lambda m: None)
+    run_stages(STAGES, [], ctx)
     missing = [s for s in need if s not in ctx.outputs]
     if missing:
         raise ToolkitError(f"{run_dir}: stage(s) {missing} are not up to date; run "
                            f"python -m train.run --run-dir {run_dir} --stages {','.join(need)}")
-    return ctx
+    return TrainedRun(ctx)
 
 
-def with_overrides(ctx, overrides: list[str]):
+def with_overrides(trained, overrides: list[str]):
+    """``trained`` (a ``TrainedRun``) under its config with ``overrides``, reading the same stage outputs."""
     from train.config import apply_overrides
     from train.stages.pipeline import RunContext
+    from train.trained_run import TrainedRun
 
-    return RunContext(ctx.run_dir, apply_overrides(ctx.config, overrides), outputs=dict(ctx.outputs), log=ctx.log)
+    c = trained.context
+    return TrainedRun(RunContext(c.run_dir, apply_overrides(c.config, overrides), outputs=dict(c.outputs), log=c.log))
 
 
 # ----------------------------------------------------------------------------- part 1: breakdown
@@ -89,10 +94,8 @@ class PartTimer:
     """Wraps callables so their wall-clock time adds up under a part name (CUDA synchronized)."""
 
     def __init__(self, device: torch.device, clock=time.perf_counter):
-        self.sync = device.type == "cuda"
-        self.clock = clock
-        self.t = dict.fromkeys(PARTS, 0.0)
-        self.depth = 0
+        self.sync, self.clock, self.depth = device.type == "cuda", clock, 0
+        self.reset()
 
     def wrap(self, part: str, fn):
         @functools.wraps(fn)
@@ -177,27 +180,24 @@ def time_steps(trainer, params, device, *, warmup: int, repeats: int, seed: int 
     return {k: statistics.median(r[k] for r in rows) for k in rows[0]}
 
 
-def demo_trainer(ctx, device):
-    from train import run
+def demo_trainer(trained, device):
     from train.training.trainer import GaussianTrainer, load_split
 
-    cfg = ctx.config
+    cfg = trained.config
     torch.manual_seed(cfg.seed)
-    model, renderer = run._gaussian_modules(ctx, device)
-    data = load_split(run._split(ctx, "train"), "all", cfg.data.res)
-    trainer = GaussianTrainer(cfg.gaussian, model, renderer, run._estimator(ctx, "loss", device), data, device,
+    model, renderer = trained.build_model(device)
+    data = load_split(trained.split("train"), "all", cfg.data.res)
+    trainer = GaussianTrainer(cfg.gaussian, model, renderer, trained.estimator("loss", device), data, device,
                               cfg.gaussian.steps, seed=cfg.seed)
-    n = model.num_face + model.num_eye
-    return trainer, n
+    return trainer, model.num_face + model.num_eye
 
 
-def paper_trainer(ctx, device, n_gaussians: int, batch: int):
+def paper_trainer(trained, device, n_gaussians: int, batch: int):
     """The paper configuration's modules (untrained codec/estimator, procedural head) on 512² data."""
     import torch.nn.functional as F
 
     from toolkit.cameras import resize_intrinsics
     from toolkit.procedural import demo_head_scene
-    from train import run
     from train.estimator.config import GazeEstimatorConfig
     from train.estimator.network import GazeEstimator
     from train.model.codec import AutoencoderConfig, KLAutoencoder
@@ -214,7 +214,7 @@ def paper_trainer(ctx, device, n_gaussians: int, batch: int):
     codec = KLAutoencoder(AutoencoderConfig(downsample=p.codec.downsample, base_channels=p.codec.base_channels)).to(device)
     renderer = make_renderer("dit", codec, model=g.dit_model, output_size=res, upscale=g.feature_upscale).to(device)
     est = GazeEstimator(GazeEstimatorConfig(input_size=p.estimator.input_size)).to(device)
-    d = load_split(run._split(ctx, "train"), "all", ctx.config.data.res)
+    d = load_split(trained.split("train"), "all", trained.config.data.res)
     n = min(len(d), 4 * batch)
     up = lambda x, mode: F.interpolate(x[:n], size=(res, res), mode=mode)  # noqa: E731
     r0 = d.res
@@ -226,26 +226,26 @@ def paper_trainer(ctx, device, n_gaussians: int, batch: int):
     return GaussianTrainer(g, model, renderer, est, data, device, g.steps), n_gaussians
 
 
-def unet_label(ctx) -> str:
+def unet_label(trained) -> str:
     """The baseline renderer as configured: GazeGaussian's renderer upsamples log2(feature_upscale) times, so at
     ``feature_upscale=1`` (the demo's) it is one 1x1 convolution of the splatted features, and says so."""
-    up = ctx.config.gaussian.feature_upscale
+    up = trained.config.gaussian.feature_upscale
     return f"U-Net, upscale {up}" + (": a 1x1 conv, no upsampling blocks" if up == 1 else "")
 
 
-def breakdown(ctx, device, args) -> list[dict]:
+def breakdown(trained, device, args) -> list[dict]:
     rows = []
-    configs = [("demo", lambda: demo_trainer(ctx, device), ctx.config.gaussian.batch, ctx.config.data.res,
-                ctx.config.gaussian.dit_model)]
-    run_preset = ctx.config.preset  # the row is the run's configuration, whichever preset made it
+    cfg = trained.config
+    configs = [("demo", lambda: demo_trainer(trained, device), cfg.gaussian.batch, cfg.data.res, cfg.gaussian.dit_model)]
+    run_preset = cfg.preset  # the row is the run's configuration, whichever preset made it
     if not args.skip_paper:
-        configs.append(("paper", lambda: paper_trainer(ctx, device, args.paper_gaussians, args.paper_batch),
+        configs.append(("paper", lambda: paper_trainer(trained, device, args.paper_gaussians, args.paper_batch),
                         args.paper_batch, 512, "DiT-Gaze-paper"))
     for name, make, batch, res, dit in configs:
         for kind in args.breakdown_renderers.split(","):
             if name == "paper" and kind != "dit":
                 continue  # the paper configuration is the DiT's
-            sub = with_overrides(ctx, [f"gaussian.renderer={kind}"]) if name == "demo" else ctx
+            sub = with_overrides(trained, [f"gaussian.renderer={kind}"]) if name == "demo" else trained
             print(f"[bench] step breakdown: {name} / {kind} ...", flush=True)
             trainer, n_g = (demo_trainer(sub, device) if name == "demo" else make())
             params = [p for m in (trainer.model, trainer.renderer) for p in m.parameters() if p.requires_grad]
@@ -255,35 +255,33 @@ def breakdown(ctx, device, args) -> list[dict]:
             label = f"{shown} ({res}², batch {batch}, {n_g} Gaussians, {dit if kind == 'dit' else unet_label(sub)})"
             if name == "paper":
                 label += f" [paper: 100000 Gaussians, batch 4{'; reduced for CPU' if device.type == 'cpu' else ''}]"
-            row = {"config": label, **{k: 1000 * v for k, v in t.items()}}
-            rows.append(row)
+            rows.append({"config": label, **{k: 1000 * v for k, v in t.items()}})
     return rows
 
 
 # ----------------------------------------------------------------------------- part 2: time to quality
 class _BudgetReached(Exception):
-    pass
+    """A variant's training budget is spent: raised from the loop's log hook to stop it."""
 
 
-def time_to_quality(ctx, device, overrides: list[str], args, test_files) -> list[dict]:
+def time_to_quality(trained, device, overrides: list[str], args, test_files) -> list[dict]:
     """Train the stage for ``budget_s`` seconds of training time; evaluate every ``eval_every_s``."""
-    from train import run
     from train.evaluation.protocol import evaluate
     from train.run_config import eval_sampling_steps
     from train.training.loop import train_loop
     from train.training.trainer import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
 
-    sub = with_overrides(ctx, overrides)
+    sub = with_overrides(trained, overrides)
     cfg = sub.config
     g = cfg.gaussian
     torch.manual_seed(cfg.seed)
-    model, renderer = run._gaussian_modules(sub, device)
-    data = load_split(run._split(sub, "train"), "all", cfg.data.res)
+    model, renderer = sub.build_model(device)
+    data = load_split(sub.split("train"), "all", cfg.data.res)
     if g.rgb_init:
         init_rgb(model, data)
-    trainer = GaussianTrainer(g, model, renderer, run._estimator(sub, "loss", device), data, device, g.steps,
+    trainer = GaussianTrainer(g, model, renderer, sub.estimator("loss", device), data, device, g.steps,
                               seed=cfg.seed)
-    est = run._estimator(sub, "eval", device)
+    est = sub.estimator("eval", device)
     opt = torch.optim.Adam(optimizer_groups(model, renderer, g))
     points: list[dict] = []
     now = time.process_time if args.clock == "cpu" else time.perf_counter
@@ -359,8 +357,6 @@ def main(argv=None) -> int:
     if args.budget_s <= 0 or args.eval_every_s <= 0:
         raise ToolkitError("--budget-s and --eval-every-s must be > 0")
     torch.set_num_threads(args.threads)
-    import os
-
     print(machine_info())
     print(f"load average at start: {os.getloadavg()[0]:.2f} (1 min)")
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -369,22 +365,19 @@ def main(argv=None) -> int:
     if args.clock == "cpu" and args.threads != 1:
         print("note: --clock cpu with several threads counts the CPU time of all of them")
     variants = parse_variants(args.variants)  # before any measurement: a typo should not cost the breakdown
-    ctx = open_prereqs(Path(args.run_dir), args.overrides)
+    trained = open_prereqs(Path(args.run_dir), args.overrides)
     if not args.skip_breakdown:
-        rows = breakdown(ctx, device, args)
+        rows = breakdown(trained, device, args)
         print(f"\nTraining step time ({'CPU ms of the training thread' if args.clock == 'cpu' else 'wall ms'}, median "
               f"of {args.repeats} steps after {args.warmup} warm-up; main pass + weak-supervision pass):")
         print(format_table(rows, ["config", *PARTS, "other fwd", "backward", "optim", "step"]))
     if not args.skip_curve:
-        from train import run
-
-        test_files = run._split(ctx, "test")
+        test_files = trained.split("test")
         series, final = {}, []
         for name, ovs in variants:
-            print(f"[bench] time to quality: {name} ({' '.join(ovs) or 'run config'}), {args.budget_s:.0f} {args.clock} s "
-                  "budget",
-                  flush=True)
-            pts = time_to_quality(ctx, device, ovs, args, test_files)
+            print(f"[bench] time to quality: {name} ({' '.join(ovs) or 'run config'}), {args.budget_s:.0f} "
+                  f"{args.clock} s budget", flush=True)
+            pts = time_to_quality(trained, device, ovs, args, test_files)
             series[name] = ([p["train_s"] for p in pts], [p["psnr"] for p in pts])
             last = pts[-1]
             final.append({"variant": name, "overrides": " ".join(ovs) or "-", "train s": last["train_s"],
@@ -396,9 +389,8 @@ def main(argv=None) -> int:
               f"{len(test_files)} held-out subjects x {args.pairs} pairs):")
         print(format_table(final))
         path = save_plot(OUT_DIR / "train.png", series, xlabel=f"training time ({args.clock} s)",
-                         ylabel="held-out PSNR (dB)",
-                         title=f"gaussian stage: time to quality ({machine_info().split(',')[0]}, "
-                               f"{args.threads} thread(s))")
+                         ylabel="held-out PSNR (dB)", title=f"gaussian stage: time to quality "
+                                                            f"({machine_info().split(',')[0]}, {args.threads} thread(s))")
         print(f"wrote {path}")
     print(f"load average at end: {os.getloadavg()[0]:.2f} (1 min)")
     return 0

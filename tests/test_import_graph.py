@@ -16,11 +16,12 @@ TRAIN_LAYERS = (
     ("train.data", "train.model", "train.estimator"),
     ("train.run_config",),
     ("train.training", "train.evaluation"),
-    ("train.stages", "train.trained_run"),
-    ("train.run",),
+    ("train.stages",),
+    ("train.trained_run", "train.run"),
 )
 """train/'s parts from the bottom up: a part imports only parts of lower layers (and itself). The configs sit
-above the components whose configs they nest; the stages and the finished-run API above everything they run."""
+above the components whose configs they nest; the stages above everything they run; the
+finished-run API and the CLI on top."""
 
 
 def _module_name(path: Path) -> str:

@@ -62,6 +62,36 @@ def test_layering(pkg):
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}; {pkg} may import {sorted(ALLOWED[pkg])}"
 
 
+def _private_train_names(path: Path) -> list[str]:
+    """``from train... import _x`` and ``name._x`` where ``name`` was imported from ``train``, in ``path``."""
+    tree = ast.parse(path.read_text())
+    private = lambda name: name.startswith("_") and not name.startswith("__")  # noqa: E731
+    bound, found = set(), []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            bound |= {(a.asname or a.name.split(".")[0]) for a in node.names if a.name.split(".")[0] == "train"}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").split(".")[0] == "train":
+            found += [f"line {node.lineno}: from {node.module} import {a.name}" for a in node.names if private(a.name)]
+            bound |= {a.asname or a.name for a in node.names}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and private(node.attr):
+            root = node.value
+            while isinstance(root, ast.Attribute):
+                root = root.value
+            if isinstance(root, ast.Name) and root.id in bound:
+                found.append(f"line {node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+@pytest.mark.parametrize("folder", ["apps", "benchmarks"])
+def test_apps_and_benchmarks_use_only_the_public_names_of_train(folder):
+    """A finished run is opened with ``train.trained_run.TrainedRun``; nothing outside train reaches into its
+    private names."""
+    bad = {str(p.relative_to(ROOT)): found for p in sorted((ROOT / folder).rglob("*.py"))
+           if (found := _private_train_names(p))}
+    assert not bad, bad
+
+
 @pytest.mark.parametrize("pkg", PACKAGES)
 def test_package_docstring_states_ownership_and_imports(pkg):
     doc = ast.get_docstring(ast.parse((ROOT / pkg / "__init__.py").read_text()))

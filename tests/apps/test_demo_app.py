@@ -51,6 +51,6 @@ def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path
 
 
 def run_config_of(run_dir):
-    from train import run
+    from train.trained_run import TrainedRun
 
-    return run.open_run(run_dir).config
+    return TrainedRun.open(run_dir).config

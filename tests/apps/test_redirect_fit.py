@@ -9,7 +9,7 @@ import torch
 from apps import redirect
 from tests.apps.helpers import interrupt_redirect_before_assembly
 from toolkit.errors import ToolkitError, run_cli
-from train import run
+from train.trained_run import TrainedRun
 
 
 def _test_subject(run_dir):
@@ -19,8 +19,8 @@ def _test_subject(run_dir):
 def test_fit_weights_fits_every_row_from_the_trained_weights(tiny_trained_run, tmp_path, monkeypatch):
     import train.evaluation.fitting as evaluate
 
-    ctx = run.open_run(tiny_trained_run)
-    model, renderer = run.load_trained(ctx, torch.device("cpu"))
+    ctx = TrainedRun.open(tiny_trained_run)
+    model, renderer = ctx.load_model(torch.device("cpu"))
     state = lambda m, r: {**{f"m.{k}": v.clone() for k, v in m.state_dict().items()},  # noqa: E731
                           **{f"r.{k}": v.clone() for k, v in r.state_dict().items()}}
     trained = state(model, renderer)
@@ -47,7 +47,7 @@ def test_fit_weights_fits_every_row_from_the_trained_weights(tiny_trained_run, t
             assert kw["renderer_lr"] == ctx.config.eval.tta_renderer_lr
             assert kw["gaze"] is not None and kw["gaze"].weight == ctx.config.eval.tta_gaze_weight
             # The gaze term reads the loss estimator, never the evaluation one.
-            loss_w = run._estimator(ctx, "loss", "cpu").state_dict()
+            loss_w = ctx.estimator("loss", "cpu").state_dict()
             assert all(torch.equal(kw["gaze"].loss.estimator.state_dict()[k], v) for k, v in loss_w.items())
             assert torch.equal(batch["target_gazes"][0], gz)
             assert np.allclose(batch["code"][0].numpy(), f["latent_codes"][r])
@@ -85,7 +85,7 @@ def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_e
     assert redirect.main(args) == 0 and out.is_file()
     nat = evaluate.NATURAL_EYES_FIT
     assert len(seen) == 1 and seen[0]["weights"] == nat["weights"]
-    assert seen[0]["weights"] != tuple(run.open_run(tiny_trained_run).config.eval.tta_weights)
+    assert seen[0]["weights"] != tuple(TrainedRun.open(tiny_trained_run).config.eval.tta_weights)
     assert seen[0]["gaze"].weight == nat["gaze_weight"] and seen[0]["gaze"].reach == nat["reach"]
     with h5py.File(out) as f:
         assert f["face_patch"].shape == (2, 64, 64, 3) and np.isfinite(f["latent_codes"][:]).all()
@@ -93,9 +93,9 @@ def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_e
     import argparse
 
     ns = argparse.Namespace(dataset=str(src), batch=1, steps=0, fit_weights=True, natural_eyes=True, seed=0)
-    settings = redirect.redirect_settings(run.open_run(tiny_trained_run), ns, ns, np.zeros((2, 2)), 1, 2)
+    settings = redirect.redirect_settings(TrainedRun.open(tiny_trained_run), ns, ns, np.zeros((2, 2)), 1, 2)
     assert settings["natural_eyes"] and settings["natural_eyes_fit"]["reach"] == list(nat["reach"])
-    assert "natural_eyes_fit" not in redirect.redirect_settings(run.open_run(tiny_trained_run), ns,
+    assert "natural_eyes_fit" not in redirect.redirect_settings(TrainedRun.open(tiny_trained_run), ns,
                                                                 argparse.Namespace(**{**vars(ns), "natural_eyes": False}),
                                                                 np.zeros((2, 2)), 1, 2)
 
@@ -143,7 +143,7 @@ def test_resumed_run_with_other_settings_is_refused(tiny_trained_run, tmp_path, 
 
     os.chdir(src.parent)
     same = [str(tiny_trained_run), src.name, str(out), "--gazes", "grid:1x2:10", "--rows", "2", "--batch", "1",
-            "--steps", str(run.open_run(tiny_trained_run).config.gaussian.sampling_steps), "--seed", "7"]
+            "--steps", str(TrainedRun.open(tiny_trained_run).config.gaussian.sampling_steps), "--seed", "7"]
     assert redirect.main(same) == 0 and out.is_file() and not parts.exists()
     # Settings with no chunk yet (stopped before the first) are replaced, not held against the next run.
     parts.mkdir()
@@ -158,8 +158,8 @@ def test_gaze_term_takes_the_target_gazes_in_turn(tiny_trained_run):
     from train.data.dataset import GazeDataset
     from train.evaluation.fitting import FitGaze, test_time_fit
 
-    ctx = run.open_run(tiny_trained_run)
-    model, renderer = run.load_trained(ctx, torch.device("cpu"))
+    ctx = TrainedRun.open(tiny_trained_run)
+    model, renderer = ctx.load_model(torch.device("cpu"))
     it = GazeDataset([_test_subject(tiny_trained_run)], res=64)[0]
     t = lambda k: torch.as_tensor(it[k]).float()[None]  # noqa: E731
     gazes = torch.tensor([[[0.1, 0.2], [-0.3, 0.0], [0.0, 0.4]]])
@@ -172,7 +172,7 @@ def test_gaze_term_takes_the_target_gazes_in_turn(tiny_trained_run):
 
     from train.losses import GazeLoss
 
-    gaze = Recording(GazeLoss(run._estimator(ctx, "loss", "cpu")), 0.01, ("target",), every=2)
+    gaze = Recording(GazeLoss(ctx.estimator("loss", "cpu")), 0.01, ("target",), every=2)
     batch = {"code": t("latent_code"), "in_pose": t("pose"), "in_gaze_head": t("pitchyaw_head"),
              "in_viewmat": t("viewmat"), "K": t("K"), "landmarks": t("landmarks"), "in_head_mask": t("head_mask"),
              "gaze_head": gazes[:, 0], "target_gazes": gazes}
@@ -304,13 +304,15 @@ def test_a_replaced_input_file_is_not_resumed(tiny_trained_run, tmp_path, capsys
 def test_a_long_gaze_list_renders_in_slices_with_the_images_of_one_pass(tiny_trained_run, monkeypatch):
     """More gazes than RENDER_BATCH are rendered a slice at a time, each image as the whole list in one
     forward pass renders it (a diffusion renderer's noise is drawn for all of them first)."""
-    model, renderer = run.load_trained(run.open_run(tiny_trained_run), torch.device("cpu"))
+    model, renderer = TrainedRun.open(tiny_trained_run).load_model(torch.device("cpu"))
     ds_item = __import__("train.data.dataset", fromlist=["GazeDataset"]).GazeDataset(
-        [_test_subject(tiny_trained_run)], res=run.open_run(tiny_trained_run).config.data.res, with_mesh=True)[0]
-    res = run.open_run(tiny_trained_run).config.data.res
+        [_test_subject(tiny_trained_run)], res=TrainedRun.open(tiny_trained_run).config.data.res, with_mesh=True)[0]
+    res = TrainedRun.open(tiny_trained_run).config.data.res
     gazes = redirect.parse_gazes("random:7:30", seed=3)
     whole = redirect.render_chunk(model, renderer, [ds_item], [0], gazes, res, 2, torch.device("cpu"))
-    monkeypatch.setattr(redirect, "RENDER_BATCH", 3)
+    from apps import redirect_render
+
+    monkeypatch.setattr(redirect_render, "RENDER_BATCH", 3)
     sliced = redirect.render_chunk(model, renderer, [ds_item], [0], gazes, res, 2, torch.device("cpu"))
     assert whole["face_patch"].shape[0] == 7
     assert np.abs(whole["face_patch"].astype(int) - sliced["face_patch"].astype(int)).max() <= 1

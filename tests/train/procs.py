@@ -1,4 +1,4 @@
-"""Jobs for the spawned-process tests (train.run.run_at_once): plain functions that import nothing heavy."""
+"""Jobs for the spawned-process tests (train.stages.processes.run_at_once): plain functions that import nothing heavy."""
 
 import os
 import time

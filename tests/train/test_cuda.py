@@ -99,16 +99,17 @@ def test_tiny_pipeline_runs_on_cuda(tmp_path):
     from train import run
     from train.data.dataset import GazeDataset
     from train.evaluation.figures import model_gaze_sweep
+    from train.trained_run import TrainedRun
 
     assert run.main(["--preset", "tiny", "--run-dir", str(tmp_path), "device=cuda"]) == 0
     m = json.loads((tmp_path / "metrics.json").read_text())["metrics"]
     for k in ("gaze_error_deg", "head_pose_error_deg", "psnr", "ssim"):
         assert m[k] is not None and m[k] == m[k], k
-    ctx = run.open_run(tmp_path)
-    item = GazeDataset([run._split(ctx, "test")[0]], res=ctx.config.data.res)[0]
+    trained = TrainedRun.open(tmp_path)
+    item = GazeDataset([trained.split("test")[0]], res=trained.config.data.res)[0]
     gazes = torch.tensor([[0.0, 0.0], [0.2, -0.3]])
     frames = []
     for device in ("cpu", "cuda"):
-        model, renderer = run.load_trained(ctx, device)
-        frames.append(model_gaze_sweep(model, renderer, item, gazes, ctx.config.data.res, device=device))
+        model, renderer = trained.load_model(device)
+        frames.append(model_gaze_sweep(model, renderer, item, gazes, trained.config.data.res, device=device))
     _close(frames[0], frames[1], 2e-2)

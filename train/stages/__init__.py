@@ -1,1 +1,36 @@
-"""train.stages: the pipeline of a run — the stage runner (``pipeline``) and one module per stage."""
+"""train.stages: the pipeline of a run — the stage runner (``pipeline``), one module per stage, and the
+stage table.
+
+Each stage writes its outputs into the run directory and is skipped when they exist and its inputs (its
+config section and the stages it reads) are unchanged; a stage's fingerprint hashes exactly those.
+
+    data       generate the synthetic dataset (skipped when data.root points at HDF5 files)
+    geometry   fit the SDF to one training subject's views -> DMTet mesh -> Gaussian initialization
+    codec      train the small KL autoencoder (or use the SD-VAE / pixel codec)
+    estimator  train the loss and the evaluation gaze estimators (independent seeds)
+    gaussian   end-to-end training of the two-stream model and the renderer
+    eval       the GazeNeRF protocol on held-out subjects -> report.md, metrics.json, qualitative PNG
+"""
+
+from train.stages.codec import stage_codec
+from train.stages.data import stage_data
+from train.stages.estimator import stage_estimator
+from train.stages.eval import stage_eval
+from train.stages.gaussian import GAUSSIAN_INPUTS, gaussian_section, stage_gaussian
+from train.stages.geometry import stage_geometry
+from train.stages.pipeline import Stage
+
+STAGES = [
+    # Stage(name, body, the stages it reads, the part of the config it reads)
+    Stage("data", stage_data, config=lambda c: c.data),
+    Stage("geometry", stage_geometry, ("data",), config=lambda c: (c.seed, c.geometry)),
+    Stage("codec", stage_codec, ("data",), config=lambda c: (c.seed, c.codec)),
+    Stage("estimator", stage_estimator, ("data",), config=lambda c: (c.seed, c.estimator)),
+    # ("geometry", "codec", "estimator") and (seed, gaussian): declared beside the stage, whose checkpoints'
+    # resume key hashes them too.
+    Stage("gaussian", stage_gaussian, GAUSSIAN_INPUTS, config=gaussian_section),
+    Stage("eval", stage_eval, ("gaussian",), config=lambda c: c.eval),
+]
+"""The stages of a run, in the order they run."""
+
+STAGE_NAMES = tuple(s.name for s in STAGES)

@@ -61,7 +61,7 @@ def check_config(cfg: RunConfig) -> None:
                            f"got {cfg.estimator.cameras_per_frame}")
     if cfg.estimator.crop != "eyes":
         from train.estimator.network import GazeEstimator
-        from train.run import _estimator_design as estimator_design
+        from train.stages.estimator import estimator_design
 
         try:  # the network's constructor holds the size rule; building it costs milliseconds
             GazeEstimator(estimator_design(cfg))

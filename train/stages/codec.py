@@ -1,0 +1,47 @@
+"""Stage ``codec``: train the small KL autoencoder the latent DiT works in (nothing to train for the pixel
+codec or a user's SD-VAE)."""
+
+from __future__ import annotations
+
+from toolkit.errors import ToolkitError
+from train.stages.artifacts import RunArtifacts
+from train.stages.pipeline import RunContext
+
+
+def stage_codec(ctx: RunContext) -> dict[str, str]:
+    """Train the autoencoder on the training split's images (eye pixels weighted by ``codec.eye_weight``) ->
+    ``codec.safetensors``; logs to ``metrics.jsonl`` as it trains."""
+    c = ctx.config.codec
+    if c.kind != "ae":
+        if c.kind == "sd-vae" and not c.sd_vae_path:
+            raise ToolkitError("codec.kind=sd-vae needs codec.sd_vae_path (a local diffusers AutoencoderKL folder)")
+        return {}
+    from tqdm import tqdm
+
+    from train.model.codec import AutoencoderConfig, eye_weights, save_autoencoder, train_autoencoder
+    from train.training.loop import MetricsLogger
+    from train.training.trainer import load_split
+
+    run = RunArtifacts(ctx)
+    data = load_split(run.split("train"), "all", ctx.config.data.res)
+    weights = eye_weights(data.eyes * data.head, c.eye_weight) if c.eye_weight > 0 else None
+    metrics = MetricsLogger(ctx.run_dir, tensorboard=True)
+    metrics.start("codec", 0)  # no checkpoints: a re-run trains from the start
+    every = max(1, c.steps // 50)
+    with tqdm(total=c.steps, desc="codec", dynamic_ncols=True) as bar:
+        def log(step: int, values: dict[str, float]) -> None:
+            bar.update(1)
+            if (step + 1) % every == 0 or step + 1 == c.steps:
+                bar.set_postfix({k: f"{v:.4g}" for k, v in values.items()})
+                metrics.log("codec", step + 1, values)
+
+        try:
+            model, hist = train_autoencoder(data.image, AutoencoderConfig(downsample=c.downsample,
+                                                                          base_channels=c.base_channels),
+                                            steps=c.steps, batch_size=c.batch, seed=ctx.config.seed,
+                                            pixel_weights=weights, device=run.device, log=log)
+        finally:
+            metrics.close()
+    save_autoencoder(ctx.run_dir / "codec.safetensors", model, {"final_loss": hist[-1] if hist else None})
+    ctx.log(f"[codec] autoencoder trained: final loss {hist[-1] if hist else float('nan'):.4f}")
+    return {"codec": "codec.safetensors"}

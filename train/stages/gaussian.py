@@ -1,0 +1,97 @@
+"""Stage ``gaussian``: end-to-end training of the two-stream Gaussian model and its renderer (DiT or U-Net),
+resumable from its checkpoints and distributed under ``torchrun``."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from toolkit.errors import ToolkitError
+from toolkit.io import load_metadata
+from train.run_config import RunConfig
+from train.stages.artifacts import RunArtifacts, resolve_device
+from train.stages.pipeline import RunContext, Stage, fingerprint
+
+GAUSSIAN_INPUTS = ("geometry", "codec", "estimator")
+"""The stages whose outputs the Gaussian stage reads (its Gaussians, codec and loss estimator)."""
+
+
+def gaussian_section(cfg: RunConfig):
+    """The part of the config the Gaussian stage's fingerprint hashes: the seed and the ``gaussian`` section."""
+    return cfg.seed, cfg.gaussian
+
+
+def stage_gaussian(ctx: RunContext) -> dict[str, str]:
+    """Train the model and the renderer for ``gaussian.steps`` steps (checkpoints in ``gaussian/checkpoints``;
+    ``--resume`` continues from the newest) -> ``gaussian/final.safetensors``, the weight average when
+    ``gaussian.ema_decay`` > 0."""
+    from train.training.checkpoint import CheckpointManager, save_training_checkpoint
+    from train.training.distributed import cleanup, init_distributed, shard
+    from train.training.loop import MetricsLogger, train_loop
+    from train.training.trainer import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
+
+    cfg = ctx.config
+    g = cfg.gaussian
+    run = RunArtifacts(ctx)
+    info = init_distributed(cfg.device if cfg.device != "auto" else "auto")
+    device = torch.device(info.device) if info.enabled else resolve_device(cfg)
+    torch.manual_seed(cfg.seed)
+    model, renderer = run.build_model(device)
+    data = load_split(run.split("train"), "all", cfg.data.res)
+    if g.rgb_init:
+        seen = init_rgb(model, data)
+        ctx.log(f"[gaussian] RGB channels initialized from the training images ({100 * seen:.0f}% of the Gaussians seen)")
+    trainer = GaussianTrainer(g, model, renderer, run.estimator("loss", device), data, device, g.steps,
+                              shard=shard(g.batch, info) if info.enabled else None, seed=cfg.seed)
+    opt = torch.optim.Adam(optimizer_groups(model, renderer, g))
+    stage_dir = ctx.run_dir / "gaussian"
+    mgr = CheckpointManager(stage_dir / "checkpoints")
+    if ctx.resume and mgr.latest() is not None:
+        if g.ema_decay > 0 and "ema_model" not in load_metadata(mgr.latest()).get("modules", []):
+            raise ToolkitError(f"{mgr.latest()}: written without a weight average, so it cannot resume with "
+                               f"gaussian.ema_decay={g.ema_decay}; resume with the run's earlier value (0), or "
+                               "rerun the stage without --resume")
+        trainer.fast_forward(int(mgr.latest().name[5:13]))
+    modules, final, after_step = _trained_modules(model, renderer, g.ema_decay)
+    metrics = MetricsLogger(ctx.run_dir, tensorboard=True)
+    try:
+        train_loop("gaussian", trainer.step, modules=modules, optimizers={"adam": opt},
+                   steps=g.steps, run_dir=stage_dir, seed=cfg.seed, ckpt_every=g.ckpt_every, log_every=g.log_every,
+                   resume=ctx.resume, grad_clip=g.grad_clip, metrics=metrics, is_main=info.is_main,
+                   dist_info=info if info.enabled else None, lr_factor=lr_factor(g), after_step=after_step,
+                   fingerprint=_resume_key(ctx), log=ctx.log)
+        if info.is_main:  # the ranks hold the same weights; the others wait for this file at cleanup's barrier
+            save_training_checkpoint(stage_dir / "final.safetensors", step=g.steps, modules=final,
+                                     extra={"renderer": g.renderer, "ema_decay": g.ema_decay})
+    finally:
+        metrics.close()
+        cleanup(info)
+    return {"checkpoint": "gaussian/final.safetensors"}
+
+
+def _trained_modules(model, renderer, ema_decay: float):
+    """(the modules the checkpoints hold, the modules the final file holds, the loop's after-step hook): with
+    ``ema_decay`` > 0 a weight average of the model and the renderer, updated after every step, is checkpointed
+    too and is what the final file holds."""
+    modules = {"model": model, "renderer": renderer}
+    if not ema_decay > 0:
+        return modules, modules, None
+    from train.training.ema import averaged_copy, update_average
+
+    final = {"model": averaged_copy(model), "renderer": averaged_copy(renderer)}
+
+    def after_step(done: int) -> None:  # noqa: ARG001
+        for name in ("model", "renderer"):
+            update_average(final[name], modules[name], ema_decay)
+
+    return {**modules, "ema_model": final["model"], "ema_renderer": final["renderer"]}, final, after_step
+
+
+def _resume_key(ctx: RunContext) -> str:
+    """What the Gaussian stage's checkpoints must share with a run that resumes them: the stage's own fingerprint
+    (its seed and config, the fingerprints of the stages it reads) with the step counts left out, since a
+    resumed run may train longer, or checkpoint and log at other intervals."""
+    counts = dataclasses.replace(ctx.config.gaussian, steps=1, ckpt_every=1, log_every=1)
+    stage = Stage("gaussian", stage_gaussian, GAUSSIAN_INPUTS, config=gaussian_section)
+    return fingerprint(stage, dataclasses.replace(ctx.config, gaussian=counts), ctx.fingerprints)
