@@ -40,7 +40,7 @@ import torch  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.host import keep_freed_memory  # noqa: E402
 from toolkit.io import atomic_write_json, atomic_write_text, load_metadata  # noqa: E402
-from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
+from train.config import apply_overrides, component, load_yaml_config, save_yaml_config  # noqa: E402
 from train.run_config import PRESETS, RunConfig, eval_sampling_steps, preset  # noqa: E402
 from train.stages.checks import check_config  # noqa: E402
 from train.stages.pipeline import RunContext, Stage, check_run, fingerprint, finished_stages, run_stages  # noqa: E402
@@ -85,8 +85,6 @@ def stage_data(ctx: RunContext) -> dict[str, str]:
 
 
 def stage_geometry(ctx: RunContext) -> dict[str, str]:
-    from dataclasses import replace
-
     from geometry.fit import FitConfig
     from geometry.fit_dataset import fit_dataset, read_subject
     from geometry.init_gaussians import InitConfig, init_gaussians
@@ -97,17 +95,13 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     train_files = _split(ctx, "train")
     src = train_files[min(g.subject, len(train_files) - 1)]
     out = ctx.run_dir / "geometry"
-    fit_cfg = replace(FitConfig(), steps=g.steps, extract_res=g.extract_res, pretrain_steps=g.pretrain_steps,
-                      pool=g.pool, seed=ctx.config.seed)
-    summary = fit_dataset(src, out, fit_cfg, init_scene=False, log=None)
+    summary = fit_dataset(src, out, component(FitConfig, g, seed=ctx.config.seed), init_scene=False, log=None)
     ctx.log(f"[geometry] held-out silhouette IoU {summary.get('heldout_iou_mean', float('nan')):.3f}, "
             f"Chamfer/diag {summary.get('chamfer_rel_diag', float('nan')):.4f}, {summary['fit_seconds']:.0f} s")
     data = read_subject(src)
     verts, faces = load_mesh(out / "neutral_mesh.ply")
     net = SDFNet.load(out / "sdf.safetensors")
-    scene = init_gaussians(verts, faces, data["landmarks"], net, InitConfig(n_points=g.gaussians, eye_points=g.eye_gaussians,
-                                                                          lid_points=g.lid_gaussians,
-                                                                          seed=ctx.config.seed))
+    scene = init_gaussians(verts, faces, data["landmarks"], net, component(InitConfig, g, seed=ctx.config.seed))
     scene.metadata["landmarks"] = data["landmarks"].tolist()
     scene.save(out / "gaussians.safetensors")
     return {"scene": "geometry/gaussians.safetensors", "mesh": "geometry/neutral_mesh.ply", "fit": "geometry/fit.json"}
@@ -138,8 +132,7 @@ def stage_codec(ctx: RunContext) -> dict[str, str]:
                 metrics.log("codec", step + 1, values)
 
         try:
-            model, hist = train_autoencoder(data.image, AutoencoderConfig(downsample=c.downsample,
-                                                                          base_channels=c.base_channels),
+            model, hist = train_autoencoder(data.image, component(AutoencoderConfig, c),
                                             steps=c.steps, batch_size=c.batch, seed=ctx.config.seed,
                                             pixel_weights=weights, device=_device(ctx.config), log=log)
         finally:
@@ -329,9 +322,8 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
                 bar.set_postfix(loss=f"{loss:.4g}")
 
         model, hist = train_gaze_estimator(
-            images, targets, dataclasses.replace(_estimator_design(config), mirror_average=e.mirror_average),
-            GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=config.seed * 10 + seed,
-                                     log_every=max(1, e.steps), blur_prob=e.blur_prob, blur_sigma=e.blur_sigma),
+            images, targets, component(_estimator_design(config), e),
+            component(GazeEstimatorTrainConfig, e, seed=config.seed * 10 + seed, log_every=max(1, e.steps)),
             landmarks=lms, val=val, device=device, on_step=on_step)
     file = f"estimator_{role}.safetensors"
     model.save(Path(run_dir) / file, {"role": role, "train_images": len(images)})
