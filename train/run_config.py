@@ -206,7 +206,7 @@ class GaussianStageConfig:
     """hidden width of the Gaussian model's MLPs."""
     feature_upscale: int = 1
     """output size / splatted feature-map size, a power of two dividing ``data.res``. GazeGaussian uses 4 at
-    512² (the paper preset); at 128² a 1:1 map keeps the eyes ~12 px wide (docs/results.md, 2026-11-23)."""
+    512² (the paper preset); at 128² a 1:1 map keeps the eyes ~12 px wide (docs/results.md, 2026-11-22)."""
     eyes_follow_face: bool = field(default=True, metadata=maps_to("GaussianModelConfig", "eyes_follow_face"))
     """move each eyeball with its socket as the face field deforms the face, so the eyes follow the identity
     the code describes and a fit of a new face's code moves them too."""
@@ -333,7 +333,7 @@ def demo_preset() -> RunConfig:
     - 12000 Gaussians: a sharper splat and a lower gaze error (docs/results.md, 2026-11-24);
     - parametric eyeball colours: a lower gaze error than free eye colours (docs/results.md, 2026-11-24);
     - the Gaussian stage at twice the default rates (4e-3, renderer 1e-3) (docs/results.md, 2026-11-23);
-    - the natural-eyes fit (:data:`NATURAL_EYES_FIT`), 30 steps (docs/results.md, 2026-11-24);
+    - the natural-eyes fit (:data:`NATURAL_EYES_FIT`), 30 steps (docs/results.md, 2026-11-23 and 2026-11-24);
     - step counts (estimators 1200, Gaussian stage 240, fit 30) sized for the slowest 2-core machines seen
       (docs/results.md, 2026-11-23)."""
     return RunConfig(preset="demo", geometry=GeometryStageConfig(gaussians=12_000),
