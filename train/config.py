@@ -46,41 +46,29 @@ def to_dict(cfg: Any, skip: Callable[[Any, dataclasses.Field], bool] | None = No
 
 
 # ----------------------------------------------------------------------------- field metadata
-@dataclasses.dataclass(frozen=True)
-class Rule:
-    """A field's value rule: ``ok(value)`` is true, else the error reads "expected {expected}, got {value}"."""
-
-    ok: Callable[[Any], bool]
-    expected: str
-
-
 class Checks(dict):
-    """A config field's metadata: ``rules`` (checked in order), ``neutral``, ``maps_to``; ``a | b`` keeps the
-    rules of both."""
+    """A config field's metadata: ``rules`` (``(ok, expected)`` pairs, checked in order: ``ok(value)`` true, else
+    the error reads "expected {expected}, got {value}"), ``neutral``, ``maps_to``; ``a | b`` keeps both's rules."""
 
     def __or__(self, other: dict) -> "Checks":
         return Checks({**self, **other, "rules": (*self.get("rules", ()), *other.get("rules", ()))})
 
 
 def rule(ok: Callable[[Any], bool], expected: str) -> Checks:
-    return Checks(rules=(Rule(ok, expected),))
-
-
-def _bound(what: str, text: str) -> str:
-    return what.format(text) if "{}" in what else f"{what} {text}"
+    return Checks(rules=((ok, expected),))
 
 
 def at_least(low: float, what: str = "a value") -> Checks:
-    """``value >= low``; ``what`` names the value ("a count" -> "a count >= 1"; a ``{}`` in it places the bound)."""
-    return rule(lambda v: v >= low, _bound(what, f">= {low}"))
+    """``value >= low``: "a count >= 1" for ``what`` "a count" (a ``{}`` in ``what`` places the bound)."""
+    return rule(lambda v: v >= low, what.format(f">= {low}") if "{}" in what else f"{what} >= {low}")
 
 
 def within(low: float, high: float, what: str = "a value", *, low_open: bool = False,
            high_open: bool = False) -> Checks:
-    """``low <= value <= high``, either end open ("a learning rate in (0, 1]")."""
-    interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+    """``low <= value <= high``, either end open: "a learning rate in (0, 1]"."""
+    bound = f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
     return rule(lambda v: (low < v if low_open else low <= v) and (v < high if high_open else v <= high),
-                _bound(what, f"in {interval}"))
+                what.format(bound) if "{}" in what else f"{what} {bound}")
 
 
 NEUTRAL = Checks(neutral=True)
@@ -95,12 +83,17 @@ def maps_to(component: str, name: str) -> Checks:
     return Checks(maps_to=(component, name))
 
 
+def _mapping(cls: type, section: Any) -> dict[str, str]:
+    """{component field: stage field} for the fields of ``section`` that map to the component config ``cls``."""
+    return {f.metadata["maps_to"][1]: f.name for f in dataclasses.fields(section)
+            if f.metadata.get("maps_to", ("",))[0] == cls.__name__}
+
+
 def component(base: Any, section: Any, **stage_set: Any) -> Any:
     """The component config ``base`` (a dataclass, or an instance of one to update) with every field that a field
     of ``section`` maps to (:func:`maps_to`) set from ``section``, and ``stage_set``; the others as in ``base``."""
     cls, base = (base, base()) if isinstance(base, type) else (type(base), base)
-    mapped = {f.metadata["maps_to"][1]: getattr(section, f.name) for f in dataclasses.fields(section)
-              if f.metadata.get("maps_to", ("",))[0] == cls.__name__}
+    mapped = {name: getattr(section, stage_field) for name, stage_field in _mapping(cls, section).items()}
     return dataclasses.replace(base, **mapped, **stage_set)
 
 
@@ -111,9 +104,8 @@ def check_component(cls: type, section: Any, prefix: str) -> None:
         component(cls, section).validate()
     except ToolkitError as err:
         text = str(err)
-        for f in dataclasses.fields(section):
-            if f.metadata.get("maps_to", ("",))[0] == cls.__name__:
-                text = text.replace(f"{cls.__name__}.{f.metadata['maps_to'][1]}:", f"config key '{prefix}{f.name}':")
+        for name, stage_field in _mapping(cls, section).items():
+            text = text.replace(f"{cls.__name__}.{name}:", f"config key '{prefix}{stage_field}':")
         raise ToolkitError(text) from None
 
 
@@ -170,9 +162,9 @@ def check_fields(cfg: T, prefix: str = "") -> T:
     for f in dataclasses.fields(cfg):
         key, value = prefix + f.name, getattr(cfg, f.name)
         _coerce(value, hints[f.name], key)
-        for r in f.metadata.get("rules", ()):
-            if not r.ok(value):
-                raise ToolkitError(f"config key '{key}': expected {r.expected}, got {value!r}")
+        for ok, expected in f.metadata.get("rules", ()):
+            if not ok(value):
+                raise ToolkitError(f"config key '{key}': expected {expected}, got {value!r}")
     return cfg
 
 

@@ -12,6 +12,7 @@ from train.run_config import RunConfig
 
 
 def _require(ok: object, key: str, text: str) -> None:
+    """Raise "config key '{key}': {text}" unless ``ok``."""
     if not ok:
         raise ToolkitError(f"config key '{key}': {text}")
 
@@ -26,6 +27,7 @@ def check_config(cfg: RunConfig) -> None:
 
 
 def _check_sizes(cfg: RunConfig) -> None:
+    """What the data, the image size, the scale factors, the rig and the Gaussian counts must agree on."""
     from train.data.generate import RES_RANGE, RIG_RADIUS, eth_xgaze_rig
 
     d, lo, hi = cfg.data, *RES_RANGE
@@ -39,9 +41,10 @@ def _check_sizes(cfg: RunConfig) -> None:
              f"input and target are different frames), got {d.frames}; set data.test_frames to an even count")
     _require(cfg.codec.kind != "sd-vae" or d.res % 8 == 0, "data.res",
              f"the SD-VAE codec downsamples 8x, so the image size must be a multiple of 8, got {d.res}")
-    # the SD-VAE and pixel codecs fix their own factor; only the trained autoencoder reads codec.downsample
-    for key in ["gaussian.feature_upscale"] + (["codec.downsample"] if cfg.codec.kind == "ae" else []):
-        f = getattr(getattr(cfg, key.split(".")[0]), key.split(".")[1])
+    factors = {"gaussian.feature_upscale": cfg.gaussian.feature_upscale}
+    if cfg.codec.kind == "ae":  # the SD-VAE and pixel codecs fix their own factor
+        factors["codec.downsample"] = cfg.codec.downsample
+    for key, f in factors.items():
         _require(f >= 1 and not f & (f - 1) and d.res % f == 0, key,
                  f"expected a power of two dividing data.res={d.res}, got {f}")
     n_cams = len(eth_xgaze_rig(radius=RIG_RADIUS))
@@ -54,6 +57,7 @@ def _check_sizes(cfg: RunConfig) -> None:
 
 
 def _check_models(cfg: RunConfig) -> None:
+    """What the estimator, the renderer and the gaze sampler accept."""
     from train.model.diffusion import DiffusionConfig
     from train.model.dit import DIT_MODELS
     from train.training.gaze_sampler import GazeSamplerConfig
@@ -80,6 +84,7 @@ def _check_models(cfg: RunConfig) -> None:
 
 
 def _check_fit(cfg: RunConfig) -> None:
+    """What the test-time fit's settings need of each other and of the trained model."""
     e, g = cfg.eval, cfg.gaussian
     _require("eye_colours" not in e.tta_weights or g.eyeball_colours, "eval.tta_weights",
              "'eye_colours' needs gaussian.eyeball_colours=true (the parametric eyeball whose colours it fits)")
@@ -94,6 +99,7 @@ def _check_fit(cfg: RunConfig) -> None:
 
 
 def _check_files(cfg: RunConfig) -> None:
+    """The files the config names: present, and the pairing file readable whole."""
     if cfg.eval.pairing_file:
         from train.data.pairing import load_pairing
 
