@@ -1,12 +1,17 @@
 """Configs as dataclasses: YAML in and out, ``key.sub=value`` command-line overrides, strict checking.
 
-A config is a (nested) dataclass with defaults and a docstring per field (``#:`` comments). Everything
-that reaches a run is checked *before any work*: an unknown key or a value of the wrong type raises one
-``ToolkitError`` naming the key (with a suggestion for typos) and the expected type.
+A config is a (nested) dataclass with defaults and a docstring per field. Each field declares its range in its
+metadata (``field(default=300, metadata=at_least(1, "a count"))``), read by one checker, :func:`check_fields`,
+at load and override time; rules across fields live in ``train.stages.checks``. Every failure is one
+``ToolkitError`` naming the key (with a suggestion for typos) and the expected value.
+
+Field metadata rather than pydantic models: the configs stay plain dataclasses like the component configs
+they set (``dataclasses.replace``, the fingerprints' YAML), the messages keep their wording, no new dependency.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import difflib
 import math
@@ -40,76 +45,127 @@ def to_dict(cfg: Any, skip: Callable[[Any, dataclasses.Field], bool] | None = No
     return conv(cfg)
 
 
+# ----------------------------------------------------------------------------- field metadata
+class Checks(dict):
+    """A config field's metadata: ``rules`` (``(ok, expected)`` pairs, checked in order: ``ok(value)`` true, else
+    the error reads "expected {expected}, got {value}"), ``neutral``, ``maps_to``; ``a | b`` keeps both's rules."""
+
+    def __or__(self, other: dict) -> "Checks":
+        return Checks({**self, **other, "rules": (*self.get("rules", ()), *other.get("rules", ()))})
+
+
+def rule(ok: Callable[[Any], bool], expected: str) -> Checks:
+    return Checks(rules=((ok, expected),))
+
+
+def at_least(low: float, what: str = "a value") -> Checks:
+    """``value >= low``: "a count >= 1" for ``what`` "a count" (a ``{}`` in ``what`` places the bound)."""
+    return rule(lambda v: v >= low, what.format(f">= {low}") if "{}" in what else f"{what} >= {low}")
+
+
+def within(low: float, high: float, what: str = "a value", *, low_open: bool = False,
+           high_open: bool = False) -> Checks:
+    """``low <= value <= high``, either end open: "a learning rate in (0, 1]"."""
+    bound = f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+    return rule(lambda v: (low < v if low_open else low <= v) and (v < high if high_open else v <= high),
+                what.format(bound) if "{}" in what else f"{what} {bound}")
+
+
+NEUTRAL = Checks(neutral=True)
+"""Field metadata of an option added with a default that keeps the behaviour from before it existed:
+:func:`config_hash` leaves it out while it holds that default, so the stages of runs made before it was added
+stay up to date."""
+
+
+def maps_to(component: str, name: str) -> Checks:
+    """Field metadata: this stage field sets field ``name`` of the component config class named ``component``
+    (see :func:`component`)."""
+    return Checks(maps_to=(component, name))
+
+
+def _mapping(cls: type, section: Any) -> dict[str, str]:
+    """{component field: stage field} for the fields of ``section`` that map to the component config ``cls``."""
+    return {f.metadata["maps_to"][1]: f.name for f in dataclasses.fields(section)
+            if f.metadata.get("maps_to", ("",))[0] == cls.__name__}
+
+
+def component(base: Any, section: Any, **stage_set: Any) -> Any:
+    """The component config ``base`` (a dataclass, or an instance of one to update) with every field that a field
+    of ``section`` maps to (:func:`maps_to`) set from ``section``, and ``stage_set``; the others as in ``base``."""
+    cls, base = (base, base()) if isinstance(base, type) else (type(base), base)
+    mapped = {name: getattr(section, stage_field) for name, stage_field in _mapping(cls, section).items()}
+    return dataclasses.replace(base, **mapped, **stage_set)
+
+
+def check_component(cls: type, section: Any, prefix: str) -> None:
+    """Run the ``validate()`` of component config ``cls`` on what ``section`` sets, so that its rules are stated
+    once, there; its errors name the config key (``prefix`` + the stage field) instead of the component field."""
+    try:
+        component(cls, section).validate()
+    except ToolkitError as err:
+        text = str(err)
+        for name, stage_field in _mapping(cls, section).items():
+            text = text.replace(f"{cls.__name__}.{name}:", f"config key '{prefix}{stage_field}':")
+        raise ToolkitError(text) from None
+
+
+# ----------------------------------------------------------------------------- checking
 def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
 _EXPONENT_ONLY = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+_EXPECTED = {bool: "true/false", int: "an integer", float: "a number", str: "a string", dict: "a mapping",
+             list: "a list", tuple: "a list"}
 
 
 def _coerce(value: Any, tp: Any, key: str) -> Any:
-    """Check ``value`` against the annotation ``tp`` (after YAML parsing); ints are accepted as floats."""
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
+    """``value`` checked against the annotation ``tp`` (after YAML parsing); ints pass as floats, bools as
+    neither; a nested section is read with :func:`from_dict`."""
+    origin, args = typing.get_origin(tp) or tp, typing.get_args(tp)
+    fail = lambda what: ToolkitError(f"config key '{key}': expected {what}, got {value!r}")  # noqa: E731
     if tp is Any:
         return value
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        errors = []
-        for a in args:
-            if a is type(None):
-                continue
-            try:
+        for a in (a for a in args if a is not type(None)):
+            with contextlib.suppress(ToolkitError):
                 return _coerce(value, a, key)
-            except ToolkitError as e:
-                errors.append(str(e))
-        raise ToolkitError(f"config key '{key}': expected {_type_name(tp)}, got {value!r}")
-    if origin is typing.Literal:
-        if value not in args:
-            raise ToolkitError(f"config key '{key}': expected one of {list(args)}, got {value!r}")
-        return value
-    if origin in (list, tuple):
-        if not isinstance(value, (list, tuple)):
-            raise ToolkitError(f"config key '{key}': expected a list, got {value!r}")
-        if origin is tuple and args and args[-1] is not Ellipsis:
-            if len(value) != len(args):
-                raise ToolkitError(f"config key '{key}': expected {len(args)} values, got {len(value)}")
-            return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-        inner = args[0] if args else Any
-        out = [_coerce(v, inner, f"{key}[{i}]") for i, v in enumerate(value)]
-        return tuple(out) if origin is tuple else out
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ToolkitError(f"config key '{key}': expected a mapping, got {value!r}")
-        return dict(value)
+        raise fail(_type_name(tp))
+    if origin is typing.Literal and value not in args:
+        raise fail(f"one of {list(args)}")
     if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            raise ToolkitError(f"config key '{key}': expected a mapping of {tp.__name__} fields, got {value!r}")
-        return from_dict(tp, value, prefix=key + ".")
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ToolkitError(f"config key '{key}': expected true/false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ToolkitError(f"config key '{key}': expected an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, str) and _EXPONENT_ONLY.fullmatch(value.strip()):
-            value = float(value)  # PyYAML (YAML 1.1) reads "4e-3", with no dot, as a string
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ToolkitError(f"config key '{key}': expected a number, got {value!r}")
-        if not math.isfinite(value):  # YAML reads .nan / .inf as floats; no setting means either
-            raise ToolkitError(f"config key '{key}': expected a finite number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ToolkitError(f"config key '{key}': expected a string, got {value!r}")
-        return value
-    if isinstance(tp, type) and not isinstance(value, tp):
-        raise ToolkitError(f"config key '{key}': expected {_type_name(tp)}, got {value!r}")
-    return value
+        if not isinstance(value, (dict, tp)):
+            raise fail(f"a mapping of {tp.__name__} fields")
+        return check_fields(value, key + ".") if isinstance(value, tp) else from_dict(tp, value, prefix=key + ".")
+    if tp is float and isinstance(value, str) and _EXPONENT_ONLY.fullmatch(value.strip()):
+        value = float(value)  # PyYAML (YAML 1.1) reads "4e-3", with no dot, as a string
+    accepted = {list: (list, tuple), tuple: (list, tuple), float: (int, float)}.get(origin, origin)
+    if isinstance(accepted, (type, tuple)) and (not isinstance(value, accepted)
+                                               or isinstance(value, bool) and tp in (int, float)):
+        raise fail(_EXPECTED.get(origin, _type_name(tp)))
+    if tp is float and not math.isfinite(value):  # YAML reads .nan / .inf as floats; no setting means either
+        raise fail("a finite number")
+    if origin in (list, tuple):
+        fixed = origin is tuple and args and args[-1] is not Ellipsis
+        if fixed and len(value) != len(args):
+            raise ToolkitError(f"config key '{key}': expected {len(args)} values, got {len(value)}")
+        items = [_coerce(v, args[i] if fixed else args[0] if args else Any, f"{key}[{i}]") for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    return float(value) if tp is float else value
+
+
+def check_fields(cfg: T, prefix: str = "") -> T:
+    """``cfg``, a dataclass, once every field (its sections' too) passes its type and its declared rules."""
+    hints = typing.get_type_hints(type(cfg))
+    for f in dataclasses.fields(cfg):
+        key, value = prefix + f.name, getattr(cfg, f.name)
+        _coerce(value, hints[f.name], key)
+        for ok, expected in f.metadata.get("rules", ()):
+            if not ok(value):
+                raise ToolkitError(f"config key '{key}': expected {expected}, got {value!r}")
+    return cfg
 
 
 def _unknown(key: str, known: list[str]) -> ToolkitError:
@@ -119,17 +175,15 @@ def _unknown(key: str, known: list[str]) -> ToolkitError:
 
 
 def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
-    """Build dataclass ``cls`` from a (partial) dict; missing keys keep their defaults."""
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    kwargs = {}
-    for k, v in data.items():
-        if k not in fields:
-            raise _unknown(prefix + k, sorted(fields))
-        kwargs[k] = _coerce(v, hints[k], prefix + k)
-    return cls(**kwargs)
+    """Build dataclass ``cls`` from a (partial) dict, checked (:func:`check_fields`); missing keys keep their
+    defaults."""
+    hints, names = typing.get_type_hints(cls), sorted(f.name for f in dataclasses.fields(cls))
+    if unknown := [k for k in data if k not in names]:
+        raise _unknown(prefix + unknown[0], names)
+    return check_fields(cls(**{k: _coerce(v, hints[k], prefix + k) for k, v in data.items()}), prefix)
 
 
+# ----------------------------------------------------------------------------- overrides, files, hashes
 _YAML11_NUMBER = re.compile(r"[-+]?(0[0-7_]+|[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?)")
 """Numbers YAML 1.1 (PyYAML) reads in base 8 (a leading 0) or base 60 (colons)."""
 
@@ -193,11 +247,6 @@ def load_yaml_config(cls: type[T], path: str | Path) -> T:
 def save_yaml_config(cfg: Any, path: str | Path) -> None:
     atomic_write_text(path, yaml.safe_dump(to_dict(cfg), sort_keys=False))
 
-
-NEUTRAL = {"neutral": True}
-"""Field metadata (``dataclasses.field(default=..., metadata=NEUTRAL)``) of an option added with a default that
-keeps the behaviour from before it existed: :func:`config_hash` leaves it out while it holds that default, so
-the stages of runs made before it was added stay up to date."""
 
 
 def _default(f: dataclasses.Field) -> Any:

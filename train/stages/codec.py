@@ -4,6 +4,7 @@ codec or a user's SD-VAE)."""
 from __future__ import annotations
 
 from toolkit.errors import ToolkitError
+from train.config import component
 from train.stages.artifacts import RunArtifacts
 from train.stages.pipeline import RunContext
 
@@ -36,8 +37,7 @@ def stage_codec(ctx: RunContext) -> dict[str, str]:
                 metrics.log("codec", step + 1, values)
 
         try:
-            model, hist = train_autoencoder(data.image, AutoencoderConfig(downsample=c.downsample,
-                                                                          base_channels=c.base_channels),
+            model, hist = train_autoencoder(data.image, component(AutoencoderConfig, c),
                                             steps=c.steps, batch_size=c.batch, seed=ctx.config.seed,
                                             pixel_weights=weights, device=run.device, log=log)
         finally:

@@ -3,12 +3,12 @@ training split plus extra procedural subjects of their own, validated on the hel
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import torch
 
 from toolkit.io import atomic_write_json
+from train.config import component
 from train.run_config import RunConfig
 from train.stages.artifacts import RunArtifacts
 from train.stages.pipeline import RunContext
@@ -125,9 +125,8 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
                 bar.set_postfix(loss=f"{loss:.4g}")
 
         model, hist = train_gaze_estimator(
-            images, targets, dataclasses.replace(estimator_design(config), mirror_average=e.mirror_average),
-            GazeEstimatorTrainConfig(steps=e.steps, batch_size=e.batch, seed=config.seed * 10 + seed,
-                                     log_every=max(1, e.steps), blur_prob=e.blur_prob, blur_sigma=e.blur_sigma),
+            images, targets, component(estimator_design(config), e),
+            component(GazeEstimatorTrainConfig, e, seed=config.seed * 10 + seed, log_every=max(1, e.steps)),
             landmarks=lms, val=val, device=device, on_step=on_step)
     file = f"estimator_{role}.safetensors"
     model.save(Path(run_dir) / file, {"role": role, "train_images": len(images)})

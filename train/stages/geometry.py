@@ -3,6 +3,7 @@ Gaussians on it (the two-stream model's initialization)."""
 
 from __future__ import annotations
 
+from train.config import component
 from train.stages.artifacts import RunArtifacts
 from train.stages.pipeline import RunContext
 
@@ -10,8 +11,6 @@ from train.stages.pipeline import RunContext
 def stage_geometry(ctx: RunContext) -> dict[str, str]:
     """The training subject ``geometry.subject`` -> ``geometry/`` (the SDF, the neutral mesh, the fit's summary
     and the Gaussian scene, with the subject's 3D landmarks in its metadata)."""
-    from dataclasses import replace
-
     from geometry.fit import FitConfig
     from geometry.fit_dataset import fit_dataset, read_subject
     from geometry.init_gaussians import InitConfig, init_gaussians
@@ -22,17 +21,13 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     train_files = RunArtifacts(ctx).split("train")
     src = train_files[min(g.subject, len(train_files) - 1)]
     out = ctx.run_dir / "geometry"
-    fit_cfg = replace(FitConfig(), steps=g.steps, extract_res=g.extract_res, pretrain_steps=g.pretrain_steps,
-                      pool=g.pool, seed=ctx.config.seed)
-    summary = fit_dataset(src, out, fit_cfg, init_scene=False, log=None)
+    summary = fit_dataset(src, out, component(FitConfig, g, seed=ctx.config.seed), init_scene=False, log=None)
     ctx.log(f"[geometry] held-out silhouette IoU {summary.get('heldout_iou_mean', float('nan')):.3f}, "
             f"Chamfer/diag {summary.get('chamfer_rel_diag', float('nan')):.4f}, {summary['fit_seconds']:.0f} s")
     data = read_subject(src)
     verts, faces = load_mesh(out / "neutral_mesh.ply")
     net = SDFNet.load(out / "sdf.safetensors")
-    init = InitConfig(n_points=g.gaussians, eye_points=g.eye_gaussians, lid_points=g.lid_gaussians,
-                      seed=ctx.config.seed)
-    scene = init_gaussians(verts, faces, data["landmarks"], net, init)
+    scene = init_gaussians(verts, faces, data["landmarks"], net, component(InitConfig, g, seed=ctx.config.seed))
     scene.metadata["landmarks"] = data["landmarks"].tolist()
     scene.save(out / "gaussians.safetensors")
     return {"scene": "geometry/gaussians.safetensors", "mesh": "geometry/neutral_mesh.ply", "fit": "geometry/fit.json"}

@@ -25,6 +25,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from train.config import component
 from train.losses import (
     GazeLoss,
     ImageLoss,
@@ -111,11 +112,10 @@ class GaussianTrainer:
         self.cfg, self.model, self.renderer, self.data, self.device = cfg, model, renderer, data, device
         self.total_steps = total_steps
         self.shard = shard
-        self.image_loss = ImageLoss(ImageLossConfig(lambda_ssim=cfg.lambda_ssim, lambda_perceptual=0.0))
+        self.image_loss = ImageLoss(component(ImageLossConfig, cfg, lambda_perceptual=0.0))
         self.gaze_loss = GazeLoss(estimator).to(device)
         self.ortho = OrthogonalityLoss(*model.orthogonality_layers()) if cfg.orthogonality else None
-        self.sampler = GazeSampler(GazeSamplerConfig(mode=cfg.sampler_mode, range_deg=cfg.sampler_range_deg,
-                                                     progressive=True, seed=seed))
+        self.sampler = GazeSampler(component(GazeSamplerConfig, cfg, progressive=True, seed=seed))
 
     def fast_forward(self, steps: int) -> None:
         """Replay the sampler's draws of ``steps`` earlier steps so a resumed run sees the same gazes."""
@@ -193,10 +193,9 @@ def build_model(scene_path: Path, cfg: GaussianStageConfig, device) -> GaussianM
 
 
 def model_config(cfg: GaussianStageConfig) -> GaussianModelConfig:
-    """The two-stream model's configuration that the stage's options set."""
-    return GaussianModelConfig(hidden=cfg.gaussians_hidden, eyes_follow_face=cfg.eyes_follow_face,
-                               eye_appearance=cfg.eye_appearance, eyeball_colours=cfg.eyeball_colours,
-                               render_scale=1.0 / cfg.feature_upscale)
+    """The two-stream model's configuration that the stage's options set (the fields that map to it, and the
+    splat's scale from ``feature_upscale``)."""
+    return component(GaussianModelConfig, cfg, render_scale=1.0 / cfg.feature_upscale)
 
 
 CANONICAL_MEANS = ("face_means", "eye_means")
