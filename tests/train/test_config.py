@@ -253,10 +253,10 @@ def test_every_run_config_field_rule_reads_its_own_default():
 def _component_classes():
     from geometry.fit import FitConfig
     from geometry.init_gaussians import InitConfig
-    from train.estimator.network import GazeEstimatorConfig, GazeEstimatorTrainConfig
+    from train.estimator.config import GazeEstimatorConfig, GazeEstimatorTrainConfig
     from train.losses import ImageLossConfig
     from train.model.codec import AutoencoderConfig
-    from train.model.gaussian_model import GaussianModelConfig
+    from train.model.gaussian_config import GaussianModelConfig
     from train.training.gaze_sampler import GazeSamplerConfig
 
     return {c.__name__: c for c in (FitConfig, InitConfig, GazeEstimatorConfig, GazeEstimatorTrainConfig,
