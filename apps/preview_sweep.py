@@ -9,7 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
-from apps.preview_scene import NO_EYES, GazeScene, frame_camera
+from apps.gaze_scene import NO_EYES, GazeScene, frame_camera
 from toolkit.errors import ToolkitError
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.preview_scene import NO_EYES, GazeScene, frame_camera, orbit_camera
+from apps.gaze_scene import NO_EYES, GazeScene, frame_camera, orbit_camera
 from toolkit.errors import ToolkitError
 
 IDLE_WAIT_S = 0.1

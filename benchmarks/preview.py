@@ -51,8 +51,9 @@ def torch_reference(scene, colors, camera, background):
 
 
 def run(n: int, res: int, frames: int, ctx) -> dict:
-    from apps.preview import GazeScene, frame_camera, orbit_camera
-    from render.preview import PreviewSplatter, project_footprints
+    from apps.gaze_scene import GazeScene, frame_camera, orbit_camera
+    from render.preview import PreviewSplatter
+    from render.preview_footprints import project_footprints
     from toolkit.procedural import demo_head_scene
 
     scene = demo_head_scene(n)

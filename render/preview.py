@@ -39,27 +39,21 @@ from typing import Any
 import numpy as np
 
 from render.gl_context import shared_context
-from render.preview_footprints import (  # noqa: F401 (re-exported: part of the preview API)
+from render.preview_footprints import (
     as_float32,
     back_to_front,
     check_frame_inputs,
-    covariances,
     dynamic_mask,
     is_back_to_front,
     merge_rects,
-    pack_gaussians,
     project_footprints,
     sort_back_to_front,
-    tangent_limits,
     union_rect,
 )
 from render.preview_gl import GaussianTexture, IdList, SplatPrograms
 from render.preview_layers import boxes_touching, dynamic_depth_range, rect_within, sphere_zone, split_layers
-from render.preview_scene import FeatureColors, eye_dynamics, scene_colors  # noqa: F401
+from render.preview_scene import eye_dynamics, scene_colors
 from toolkit.errors import ToolkitError
-
-ALPHA_THRESHOLD = 1.0 / 255.0
-MAX_ALPHA = 0.99
 
 
 class PreviewSplatter:

@@ -5,8 +5,8 @@ pairing), ``train.model`` (two-stream Gaussian model, fields, DiT and U-Net rend
 ``train.losses`` (image, gaze and orthogonality losses, metrics, LPIPS, VGG, identity), ``train.estimator``
 (the gaze estimator), ``train.training`` (trainer, intermediate-gaze sampler, loop, checkpoints, DDP),
 ``train.stages`` (the pipeline and one module per stage), ``train.evaluation`` (protocol, test-time fitting,
-report, figures, FID); the run configuration (``train.config``, ``train.run_config``) and the CLI
-(``train.run``).
+report, figures, FID); the run configuration (``train.config``, ``train.run_config``), the CLI
+(``train.run``) and ``train.trained_run.TrainedRun``, which opens a finished run for apps and benchmarks.
 
 May import: toolkit, render, geometry.
 """

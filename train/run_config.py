@@ -128,12 +128,10 @@ class EstimatorStageConfig:
     mirror_average: bool = field(default=True, metadata=maps_to("GazeEstimatorConfig", "mirror_average"))
     """the estimators trained here also read the mirrored image and average the two (estimators given by path
     keep their own setting)."""
-    blur_prob: float = field(default=0.5, metadata=within(0, 1, "a probability")
-                             | maps_to("GazeEstimatorTrainConfig", "blur_prob"))
+    blur_prob: float = field(default=0.5, metadata=maps_to("GazeEstimatorTrainConfig", "blur_prob"))
     """probability of a random Gaussian blur on a training image, in [0, 1], so a softer render of the same eyes
     reads as the same gaze (docs/results.md, 2026-11-22)."""
-    blur_sigma: float = field(default=1.2, metadata=at_least(0, "a width {} (pixels)")
-                              | maps_to("GazeEstimatorTrainConfig", "blur_sigma"))
+    blur_sigma: float = field(default=1.2, metadata=maps_to("GazeEstimatorTrainConfig", "blur_sigma"))
     """largest standard deviation of that blur, pixels, >= 0."""
 
 

@@ -61,7 +61,8 @@ def outside_mask(shape, boxes):
 
 # ------------------------------------------------------------------ headless sweep
 def test_png_contact_sheet_differs_only_in_eye_regions(egl, head, tmp_path):
-    from apps.preview import frame_camera, render_gaze_sweep
+    from apps.gaze_scene import frame_camera
+    from apps.preview_sweep import render_gaze_sweep
 
     S = 96
     out = tmp_path / "sheet.png"
@@ -83,7 +84,7 @@ def test_png_contact_sheet_differs_only_in_eye_regions(egl, head, tmp_path):
 def test_a_passed_in_splatter_that_drew_another_scene_shows_this_one(egl, head, tmp_path):
     """The sweep compares only the eye rows frame to frame; its first frame must compare them all, since a
     caller's splatter may last have drawn another scene of the same size."""
-    from apps.preview import render_gaze_sweep
+    from apps.preview_sweep import render_gaze_sweep
     from render.preview import PreviewSplatter
     from toolkit.scene import GaussianScene
 
@@ -108,7 +109,8 @@ def _umask() -> int:
 
 
 def test_mp4_sweep_is_a_valid_video(egl, head, tmp_path):
-    from apps.preview import frame_camera, render_gaze_sweep
+    from apps.gaze_scene import frame_camera
+    from apps.preview_sweep import render_gaze_sweep
 
     S = 96
     out = tmp_path / "sweep.mp4"
@@ -257,7 +259,7 @@ def xdisplay(monkeypatch):
 WINDOW_SCRIPT = r"""
 import json, math, sys
 import glfw
-from apps.preview import run_window
+from apps.preview_window import run_window
 from toolkit.errors import ToolkitError
 from toolkit.procedural import demo_head_scene
 
@@ -305,7 +307,7 @@ def test_window_scrubs_gaze_with_synthetic_events(xdisplay, tmp_path):
 
 
 def test_gaze_scene_matches_redirect_eyes(head):
-    from apps.preview import GazeScene
+    from apps.gaze_scene import GazeScene
     from toolkit.eyes import redirect_eyes
 
     head = head.clone()

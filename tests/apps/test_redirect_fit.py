@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from apps import redirect
+from apps import redirect, redirect_parts
 from tests.apps.helpers import interrupt_redirect_before_assembly
 from toolkit.errors import ToolkitError, run_cli
 from train.trained_run import TrainedRun
@@ -93,9 +93,9 @@ def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_e
     import argparse
 
     ns = argparse.Namespace(dataset=str(src), batch=1, steps=0, fit_weights=True, natural_eyes=True, seed=0)
-    settings = redirect.redirect_settings(TrainedRun.open(tiny_trained_run), ns, ns, np.zeros((2, 2)), 1, 2)
+    settings = redirect_parts.redirect_settings(TrainedRun.open(tiny_trained_run), ns, ns, np.zeros((2, 2)), 1, 2)
     assert settings["natural_eyes"] and settings["natural_eyes_fit"]["reach"] == list(nat["reach"])
-    assert "natural_eyes_fit" not in redirect.redirect_settings(TrainedRun.open(tiny_trained_run), ns,
+    assert "natural_eyes_fit" not in redirect_parts.redirect_settings(TrainedRun.open(tiny_trained_run), ns,
                                                                 argparse.Namespace(**{**vars(ns), "natural_eyes": False}),
                                                                 np.zeros((2, 2)), 1, 2)
 
@@ -147,7 +147,7 @@ def test_resumed_run_with_other_settings_is_refused(tiny_trained_run, tmp_path, 
     assert redirect.main(same) == 0 and out.is_file() and not parts.exists()
     # Settings with no chunk yet (stopped before the first) are replaced, not held against the next run.
     parts.mkdir()
-    redirect.check_parts_settings(parts, {"anything": 1})
+    redirect_parts.check_parts_settings(parts, {"anything": 1})
     out.unlink()
     assert redirect.main(args + ["--fit-weights", "--fit-steps", "1"]) == 0 and out.is_file()
 
@@ -337,13 +337,13 @@ def test_chunks_without_their_settings_are_refused(tmp_path):
     parts.mkdir()
     np.savez(parts / "part_00000.npz", face_patch=np.zeros((1, 4, 4, 3), np.uint8))
     with pytest.raises(ToolkitError, match="holds chunks but no settings.json"):
-        redirect.check_parts_settings(parts, {"anything": 1})
+        redirect_parts.check_parts_settings(parts, {"anything": 1})
     assert not (parts / "settings.json").exists()
     # Settings an older version wrote lack a key no flag can now match: say so, not "rerun with the same".
     (parts / "settings.json").write_text('{"anything": 1}')
     with pytest.raises(ToolkitError, match=r"from another version of apps.redirect \(settings version 1, this one "
-                                           rf"writes {redirect.SETTINGS_VERSION}\); delete"):
-        redirect.check_parts_settings(parts, {"anything": 1, "version": redirect.SETTINGS_VERSION})
+                                           rf"writes {redirect_parts.SETTINGS_VERSION}\); delete"):
+        redirect_parts.check_parts_settings(parts, {"anything": 1, "version": redirect_parts.SETTINGS_VERSION})
 
 
 _FAILING_RANK = """
@@ -393,7 +393,7 @@ def test_assembly_streams_the_chunks_into_one_file_with_sensible_hdf5_chunks(tmp
               for n in (1, 3, 2)]
     for k, c in enumerate(chunks):
         np.savez(parts / f"part_{k:05d}.npz", **c)
-    assert redirect.assemble(parts, 3, tmp_path / "o.h5", {"generator": "test"}) == 6
+    assert redirect_parts.assemble(parts, 3, tmp_path / "o.h5", {"generator": "test"}) == 6
     with h5py.File(tmp_path / "o.h5") as h:
         for key in chunks[0]:
             np.testing.assert_array_equal(h[key][:], np.concatenate([c[key] for c in chunks]))

@@ -170,7 +170,8 @@ def test_equal_depths_blend_in_the_torch_splatters_order(ctx):
 
 
 def test_feature_maps_for_any_width(ctx):
-    from render.preview import FeatureColors, render_scene
+    from render.preview import render_scene
+    from render.preview_scene import FeatureColors
     from tests.conftest import random_scene
 
     for n, d in ((0, 8), (1, 8), (2, 8)):  # fewer Gaussians than colour axes

@@ -100,4 +100,18 @@ class GazeEstimatorTrainConfig:
     seed: int = 0
     log_every: int = 250
 
+    def validate(self) -> None:
+        """ToolkitError naming the first field no training can run with."""
+        if self.loss_space not in ("vectors", "angles"):
+            raise ToolkitError(f"GazeEstimatorTrainConfig.loss_space: expected 'vectors' or 'angles', got {self.loss_space!r}")
+        for name in ("mirror", "blur_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ToolkitError(f"GazeEstimatorTrainConfig.{name}: expected a probability in [0, 1], "
+                                   f"got {getattr(self, name)}")
+        if not self.blur_sigma >= 0:
+            raise ToolkitError(f"GazeEstimatorTrainConfig.blur_sigma: expected a width >= 0 (pixels), got {self.blur_sigma}")
+        if self.steps < 1 or self.batch_size < 1:
+            raise ToolkitError(f"GazeEstimatorTrainConfig: steps and batch_size must be >= 1, got {self.steps}, "
+                               f"{self.batch_size}")
+
 

@@ -106,15 +106,7 @@ def _check_training_inputs(images: torch.Tensor, labels: torch.Tensor, config: G
     if val is not None:
         _check_data(val[0], val[1], "val")
         _check_landmarks(val[2] if len(val) > 2 else None, val[0].shape[0], needs, "val")
-    if tc.loss_space not in ("vectors", "angles"):
-        raise ToolkitError(f"GazeEstimatorTrainConfig.loss_space: expected 'vectors' or 'angles', got {tc.loss_space!r}")
-    if not 0.0 <= tc.mirror <= 1.0:
-        raise ToolkitError(f"GazeEstimatorTrainConfig.mirror: expected a probability in [0, 1], got {tc.mirror}")
-    if not (0.0 <= tc.blur_prob <= 1.0 and tc.blur_sigma >= 0):
-        raise ToolkitError(f"GazeEstimatorTrainConfig: expected blur_prob in [0, 1] and blur_sigma >= 0, got "
-                           f"{tc.blur_prob}, {tc.blur_sigma}")
-    if tc.steps < 1 or tc.batch_size < 1:
-        raise ToolkitError(f"GazeEstimatorTrainConfig: steps and batch_size must be >= 1, got {tc.steps}, {tc.batch_size}")
+    tc.validate()
 
 
 def _check_data(images: torch.Tensor, labels: torch.Tensor, name: str) -> None:

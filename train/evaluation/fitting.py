@@ -19,7 +19,6 @@ import torch.nn.functional as F
 from toolkit.errors import ToolkitError
 from train.evaluation.pairs import spread_indices
 from train.losses.metrics import composite_on_white, dilate_mask
-from train.run_config import NATURAL_EYES_FIT  # noqa: F401  (re-exported: the fit's settings live with the config)
 
 TTA_WEIGHT_GROUPS = ("features", "eye_features", "eye_colours", "eye_field", "renderer", "decoder")
 """Weights test-time fitting may tune besides the code: the face Gaussians' canonical features (all channels;

@@ -17,7 +17,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
-from train.losses.metrics import composite_on_white  # noqa: F401  (the loss and the metrics composite alike)
+from train.losses.metrics import composite_on_white
 from train.losses.precision import fp32, no_autocast
 
 log = logging.getLogger(__name__)

@@ -58,6 +58,7 @@ def _check_sizes(cfg: RunConfig) -> None:
 
 def _check_models(cfg: RunConfig) -> None:
     """What the estimator, the renderer and the gaze sampler accept."""
+    from train.estimator.config import GazeEstimatorTrainConfig
     from train.model.diffusion import DiffusionConfig
     from train.model.dit import DIT_MODELS
     from train.training.gaze_sampler import GazeSamplerConfig
@@ -78,6 +79,7 @@ def _check_models(cfg: RunConfig) -> None:
         _require(g.dit_model in DIT_MODELS, "gaussian.dit_model",
                  f"expected one of {sorted(DIT_MODELS)}, got {g.dit_model!r}")
     check_component(GazeSamplerConfig, g, "gaussian.")
+    check_component(GazeEstimatorTrainConfig, cfg.estimator, "estimator.")
     if g.eyeball_colours and g.eye_appearance:
         raise ToolkitError("config keys 'gaussian.eyeball_colours' and 'gaussian.eye_appearance' both set the eye "
                            "Gaussians' colours: enable one of them")

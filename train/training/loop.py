@@ -1,6 +1,6 @@
 """The training loop of the Gaussian stage (the one long training): resumable, NaN-guarded, interruptible,
 logged. The codec and the gaze estimators train in minutes in loops of their own (``train.model.codec``,
-``train.estimator.network``), which stop on a non-finite loss too but keep no checkpoints: a crashed one reruns.
+``train.estimator.training``), which stop on a non-finite loss too but keep no checkpoints: a crashed one reruns.
 
 A stage supplies ``step_fn(step, generator) -> {"total": loss, term: value, ...}``; the loop does the
 backward pass, gradient clipping, the optimizer steps, periodic atomic checkpoints, metrics (JSONL and

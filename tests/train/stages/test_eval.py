@@ -220,7 +220,7 @@ def test_corrupt_checkpoint_is_clear_error(tiny_run, tmp_path):
 
 
 def test_config_and_report_know_every_fitting_group():
-    """The config's allowed ``eval.tta_weights``, the report's wording and ``train.evaluation.protocol``'s groups are three
+    """The config's allowed ``eval.tta_weights``, the report's wording and ``train.evaluation.fitting``'s groups are three
     listings of one set: a group added to one must be added to all."""
     import typing
 
@@ -237,9 +237,8 @@ def test_config_and_report_know_every_fitting_group():
 def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
     from dataclasses import replace
 
-    from train.evaluation.fitting import NATURAL_EYES_FIT
     from train.evaluation.report import labels_note
-    from train.run_config import EvalConfig, RunConfig
+    from train.run_config import NATURAL_EYES_FIT, EvalConfig, RunConfig
 
     def note(eye_appearance=False, eyeball_colours=False, **ev):
         cfg = RunConfig(eval=EvalConfig(**ev))

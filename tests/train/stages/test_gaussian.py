@@ -140,7 +140,7 @@ def test_demo_preset_renders_in_pixel_space_at_its_resolution():
     assert (cfg.codec.kind, g.dit_model, cfg.estimator.steps) == ("pixel", "DiT-Gaze-pixel", 1200)
     assert (g.steps, cfg.eval.tta_steps) == (240, 30)  # sized for the slowest 2-core machine measured
     # The natural fit (the gaze term only turns the eyes), and the Gaussian stage at twice the rates.
-    from train.evaluation.fitting import NATURAL_EYES_FIT
+    from train.run_config import NATURAL_EYES_FIT
 
     assert (cfg.eval.tta_weights, cfg.eval.tta_gaze_weight, cfg.eval.tta_gaze_reach, cfg.eval.tta_gaze_terms,
             cfg.eval.tta_gaze_every) == tuple(NATURAL_EYES_FIT[k] for k in ("weights", "gaze_weight", "reach",

@@ -44,6 +44,7 @@ def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, tmp
         ("geometry.lid_gaussians=-1", "'geometry.lid_gaussians': expected 0"),
         ("estimator.blur_prob=1.5", "'estimator.blur_prob': expected a probability"),
         ("estimator.blur_sigma=-1", "'estimator.blur_sigma': expected a width >= 0"),
+        ("estimator.blur_prob=-0.1", "'estimator.blur_prob': expected a probability"),
         ("data.test_frames=-1", "'data.test_frames': expected 0"),
         ("data.test_frames=3", "'data.test_frames': expected 0"),
         ("data.test_frames=0", "'data.frames': with data.test_frames=0 the held-out subjects get data.frames frames, "

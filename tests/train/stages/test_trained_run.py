@@ -47,7 +47,8 @@ def test_redirect_app_writes_a_loadable_dataset(tiny_run, tmp_path):
 
 
 def test_preview_opens_a_trained_run(tiny_run, tmp_path):
-    from apps.preview import load_scene, render_gaze_sweep
+    from apps.preview import load_scene
+    from apps.preview_sweep import render_gaze_sweep
 
     scene = load_scene(str(tiny_run))
     assert scene.features.shape[1] == 3 and {1, 2} <= set(scene.part.unique().tolist())

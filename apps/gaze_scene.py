@@ -60,7 +60,7 @@ class GazeScene:
 
     @classmethod
     def prepare(cls, scene) -> "GazeScene":
-        from render.preview import FeatureColors, eye_dynamics
+        from render.preview_scene import FeatureColors, eye_dynamics
         from toolkit.eyes import EYE_PARTS, eyeball_info
 
         scene.validate()
