@@ -23,6 +23,7 @@ def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path
 
     import train.evaluation.fitting as evaluate
     from apps.demo import run_pipeline
+    from train.run_config import NATURAL_EYES_FIT
 
     shutil.copytree(tiny_trained_run, tmp_path / "run")
     fits = []
@@ -45,7 +46,7 @@ def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path
         assert f["face_patch"].shape[0] == 4 * 9 and np.isfinite(f["latent_codes"][:]).all()
     sweep = 3  # the tiny preset's eval.sweep_frames
     run_weights = tuple(run_config_of(tmp_path / "run").eval.tta_weights)
-    natural = evaluate.NATURAL_EYES_FIT["weights"]
+    natural = NATURAL_EYES_FIT["weights"]
     assert run_weights != natural
     assert fits == [((1, sweep, 2), run_weights)] + [((1, 9, 2), natural)] * 4
 

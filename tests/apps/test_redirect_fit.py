@@ -69,6 +69,7 @@ def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_e
     """``--natural-eyes``: each row's fit takes ``NATURAL_EYES_FIT`` (weights, gaze weight, reach) instead of the
     run's eval section."""
     import train.evaluation.fitting as evaluate
+    from train.run_config import NATURAL_EYES_FIT
 
     seen = []
     real_fit = evaluate.test_time_fit
@@ -83,7 +84,7 @@ def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_e
     args = [str(tiny_trained_run), str(src), str(out), "--gazes", "grid:1x2:20", "--rows", "1", "--fit-weights",
             "--fit-steps", "2", "--natural-eyes"]
     assert redirect.main(args) == 0 and out.is_file()
-    nat = evaluate.NATURAL_EYES_FIT
+    nat = NATURAL_EYES_FIT
     assert len(seen) == 1 and seen[0]["weights"] == nat["weights"]
     assert seen[0]["weights"] != tuple(TrainedRun.open(tiny_trained_run).config.eval.tta_weights)
     assert seen[0]["gaze"].weight == nat["gaze_weight"] and seen[0]["gaze"].reach == nat["reach"]
