@@ -4,12 +4,8 @@ stage table.
 Each stage writes its outputs into the run directory and is skipped when they exist and its inputs (its
 config section and the stages it reads) are unchanged; a stage's fingerprint hashes exactly those.
 
-    data       generate the synthetic dataset (skipped when data.root points at HDF5 files)
-    geometry   fit the SDF to one training subject's views -> DMTet mesh -> Gaussian initialization
-    codec      train the small KL autoencoder (or use the SD-VAE / pixel codec)
-    estimator  train the loss and the evaluation gaze estimators (independent seeds)
-    gaussian   end-to-end training of the two-stream model and the renderer
-    eval       the GazeNeRF protocol on held-out subjects -> report.md, metrics.json, qualitative PNG
+The stages, in order: ``data``, ``geometry``, ``codec``, ``estimator``, ``gaussian``, ``eval``; each module's
+docstring says what its stage writes, and ``python -m train.run --help`` lists them.
 """
 
 from train.stages.codec import stage_codec
