@@ -99,13 +99,18 @@ def component(base: Any, section: Any, **stage_set: Any) -> Any:
 
 def check_component(cls: type, section: Any, prefix: str) -> None:
     """Run the ``validate()`` of component config ``cls`` on what ``section`` sets, so that its rules are stated
-    once, there; its errors name the config key (``prefix`` + the stage field) instead of the component field."""
+    once, there; its errors name the config key (``prefix`` + the stage field) instead of the component field:
+    "Cls.name: ..." (a rule on one field) becomes "config key 'prefix.field': ...", and "Cls: name and name ..."
+    (a rule across fields) "config keys 'prefix.field' and 'prefix.field' ..."."""
     try:
         component(cls, section).validate()
     except ToolkitError as err:
-        text = str(err)
-        for name, stage_field in _mapping(cls, section).items():
-            text = text.replace(f"{cls.__name__}.{name}:", f"config key '{prefix}{stage_field}':")
+        text, keys = str(err), {name: prefix + field for name, field in _mapping(cls, section).items()}
+        for name, key in keys.items():
+            text = text.replace(f"{cls.__name__}.{name}:", f"config key '{key}':")
+        if text.startswith(f"{cls.__name__}: ") and keys:
+            names = re.compile(r"\b(" + "|".join(map(re.escape, keys)) + r")\b")
+            text = "config keys " + names.sub(lambda m: f"'{keys[m[1]]}'", text[len(cls.__name__) + 2:])
         raise ToolkitError(text) from None
 
 

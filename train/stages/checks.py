@@ -61,6 +61,7 @@ def _check_models(cfg: RunConfig) -> None:
     from train.estimator.config import GazeEstimatorTrainConfig
     from train.model.diffusion import DiffusionConfig
     from train.model.dit import DIT_MODELS
+    from train.model.gaussian_config import GaussianModelConfig
     from train.training.gaze_sampler import GazeSamplerConfig
 
     g = cfg.gaussian
@@ -80,9 +81,7 @@ def _check_models(cfg: RunConfig) -> None:
                  f"expected one of {sorted(DIT_MODELS)}, got {g.dit_model!r}")
     check_component(GazeSamplerConfig, g, "gaussian.")
     check_component(GazeEstimatorTrainConfig, cfg.estimator, "estimator.")
-    if g.eyeball_colours and g.eye_appearance:
-        raise ToolkitError("config keys 'gaussian.eyeball_colours' and 'gaussian.eye_appearance' both set the eye "
-                           "Gaussians' colours: enable one of them")
+    check_component(GaussianModelConfig, g, "gaussian.")
 
 
 def _check_fit(cfg: RunConfig) -> None:
