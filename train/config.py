@@ -25,6 +25,7 @@ import yaml
 
 from toolkit.errors import ToolkitError
 from toolkit.io import atomic_write_text, check_readable_file
+from toolkit.safe_yaml import YAMLSyntaxError, load_yaml, load_yaml_file
 
 T = TypeVar("T")
 
@@ -189,8 +190,6 @@ def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
 
 
 # ----------------------------------------------------------------------------- overrides, files, hashes
-_YAML11_NUMBER = re.compile(r"[-+]?(0[0-7_]+|[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?)")
-"""Numbers YAML 1.1 (PyYAML) reads in base 8 (a leading 0) or base 60 (colons)."""
 
 
 def _merged(base: dict, new: dict) -> dict:
@@ -209,15 +208,10 @@ def apply_overrides(cfg: T, overrides: list[str]) -> T:
             raise ToolkitError(f"override {item!r}: expected KEY=VALUE (e.g. train.steps=100)")
         key, raw = item.split("=", 1)
         key = key.strip().removeprefix("--")
-        r = raw.strip()
-        if _YAML11_NUMBER.fullmatch(r) and (":" in r or int(r.replace("_", "")) != yaml.safe_load(r)):
-            # YAML 1.1 reads 010 as 8 and 1:30 as 90, silently
-            raise ToolkitError(f"override {item!r}: {r!r} would read as a base-8 or base-60 number "
-                               f"({yaml.safe_load(r)}); write the number without leading zeros or colons")
         try:
-            value = yaml.safe_load(raw) if raw.strip() else ""
-        except yaml.YAMLError:
-            value = raw
+            value = load_yaml(raw, f"override {item!r}") if raw.strip() else ""
+        except YAMLSyntaxError:
+            value = raw  # not YAML: the text itself (a path with a colon, say)
         node, cls = data, type(cfg)
         parts = key.split(".")
         for i, p in enumerate(parts):
@@ -237,10 +231,7 @@ def apply_overrides(cfg: T, overrides: list[str]) -> T:
 
 def load_yaml_config(cls: type[T], path: str | Path) -> T:
     path = check_readable_file(path, "config file")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except yaml.YAMLError as e:
-        raise ToolkitError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    data = load_yaml_file(path) or {}
     if not isinstance(data, dict):
         raise ToolkitError(f"{path}: expected a mapping at the top level")
     try:
