@@ -24,7 +24,7 @@ WEIGHT = at_least(0, "a finite value")
 """A loss weight or an optional count: 0 turns it off."""
 RATE = within(0, 1, "a learning rate", low_open=True)
 """An Adam learning rate: Adam's step is about the rate, so > 1 overflows."""
-SEED = at_least(0, "a seed")
+SEED = at_least(0, "a seed") | rule(lambda s: s < 2**32, "a seed below 2^32")
 
 
 @dataclass
@@ -309,12 +309,12 @@ class RunConfig:
     preset: str = "demo"
     """the preset the config started from (named in the report)."""
     seed: int = field(default=0, metadata=SEED)
-    """seed of every stage's training, >= 0."""
+    """seed of every stage's training, in [0, 2^32)."""
     device: str = field(default="auto", metadata=rule(lambda d: re.fullmatch(r"auto|cpu|cuda(:\d+)?", d) is not None,
                                                       "auto, cpu, cuda or cuda:N"))
     """"auto" (CUDA when available), "cpu", "cuda" or "cuda:N"."""
-    threads: int = 0
-    """torch CPU threads (0: torch's default)."""
+    threads: int = field(default=0, metadata=within(0, 1024, "a thread count {}"))
+    """torch CPU threads, 0 to 1024 (0: torch's default)."""
     data: DataConfig = field(default_factory=DataConfig)
     geometry: GeometryStageConfig = field(default_factory=GeometryStageConfig)
     codec: CodecStageConfig = field(default_factory=CodecStageConfig)

@@ -94,6 +94,8 @@ def test_unchanged_stages_are_skipped_and_changes_rerun_downstream(tiny_run, tmp
         ("codec.downsample=3", "'codec.downsample': expected a power of two dividing"),
         ("seed=-1", "'seed': expected a seed >= 0"),
         ("data.seed=-3", "'data.seed': expected a seed >= 0"),
+        ("seed=18446744073709551616", "'seed': expected a seed below 2\\^32"),
+        ("threads=100000000000", "'threads': expected a thread count in \\[0, 1024\\]"),
         ("geometry.gaussians=8", "'geometry.gaussians': expected >= 16"),
         ("geometry.pool=2", "'geometry.pool': expected >= 1000"),
         ("estimator.cameras_per_frame=40", "'estimator.cameras_per_frame': expected at most the rig's"),
