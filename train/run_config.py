@@ -46,7 +46,7 @@ class DataConfig:
     test_fraction: float = field(default=0.2, metadata=within(0, 1, "a share", high_open=True))
     """share of the subjects held out for evaluation, in [0, 1)."""
     seed: int = field(default=0, metadata=SEED)
-    """seed of the synthetic subjects, >= 0."""
+    """seed of the synthetic subjects, in [0, 2^32)."""
     light_jitter: float = field(default=0.0, metadata=within(0, 2))
     """spread of the synthetic per-frame light direction, in [0, 2]; 0: one frontal light, like ETH-XGaze's
     full-lighting frames. The model has no light input: only test-time fitting recovers a held-out light."""
