@@ -29,6 +29,7 @@ import torch
 from apps.preview_sweep import parse_range, render_gaze_sweep
 from apps.preview_window import run_window
 from toolkit.errors import ToolkitError, run_cli
+from toolkit.io import check_not_an_input
 
 WINDOW_HELP = """window controls:
   left drag / arrow keys        change gaze pitch and yaw
@@ -111,6 +112,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise ToolkitError(f"--background: expected R,G,B, got {args.background!r}") from None
     if args.headless and not args.sweep:
         raise ToolkitError("--headless needs --sweep OUT.mp4 or OUT.png")
+    if args.sweep:
+        check_not_an_input(args.sweep, [args.scene], "--sweep", "scene")
     scene = load_scene(args.scene)
     if args.headless:
         t0 = time.perf_counter()

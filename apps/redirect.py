@@ -60,6 +60,7 @@ from apps.redirect_parts import (
 from apps.redirect_render import render_chunk
 from toolkit.errors import ToolkitError, run_cli
 from toolkit.host import keep_freed_memory
+from toolkit.io import check_not_an_input
 
 GRID_EXAMPLE = "grid:5x5:30 (pitch rows × yaw columns over ±30°), random:200:35 (200 gazes uniform in ±35°), file:gazes.csv"
 
@@ -202,8 +203,9 @@ def check_args(args: argparse.Namespace) -> None:
         raise ToolkitError(f"--fit-lr must be in (0, 1], got {args.fit_lr}")
     if not 0 <= args.seed < 2**32:  # each chunk's stream is seeded from it (and numpy takes it for random: gazes)
         raise ToolkitError(f"--seed must be in [0, 2^32), got {args.seed}")
-    if Path(args.out).resolve() == Path(args.dataset).resolve():
-        raise ToolkitError(f"out {args.out}: is the input dataset; the output would replace it, give another path")
+    data = Path(args.dataset)
+    read = [data, *(sorted(data.glob("*.h5")) + sorted(data.glob("*.hdf5")) if data.is_dir() else [])]
+    check_not_an_input(args.out, [*read, args.run_dir], "out", "dataset")
 
 
 def fit_steps_for(args: argparse.Namespace, cfg, src) -> int:

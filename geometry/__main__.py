@@ -12,6 +12,7 @@ from typing import Sequence
 
 from geometry.fit import FitConfig
 from toolkit.errors import ToolkitError, run_cli
+from toolkit.io import check_not_an_input
 
 
 def _cmd_inspect(a) -> int:
@@ -43,6 +44,7 @@ def _cmd_clean(a) -> int:
     from geometry.mesh_stats import check_mesh_extension, load_mesh, save_mesh
 
     check_mesh_extension(a.output)  # before the pipeline runs, not after
+    check_not_an_input(a.output, [a.input])
     if a.target_faces is not None and a.target_faces < 4:
         raise ToolkitError(f"--target-faces must be >= 4, got {a.target_faces}")
     cfg = CleanupConfig(weld_tolerance=a.weld_tolerance, min_component_fraction=a.min_component_fraction,
@@ -60,6 +62,7 @@ def _cmd_extract(a) -> int:
     from geometry.sdf import SDFNet, extract_mesh
 
     check_mesh_extension(a.output)
+    check_not_an_input(a.output, [a.ckpt])
     if a.res != 0 and a.res < 2:
         raise ToolkitError(f"--res must be 0 (the checkpoint's grid) or >= 2, got {a.res}")
     net = SDFNet.load(a.ckpt)

@@ -11,6 +11,7 @@ import sys
 from typing import Sequence
 
 from toolkit.errors import ToolkitError, run_cli
+from toolkit.io import check_not_an_input
 from toolkit.scene import GaussianScene
 
 
@@ -28,6 +29,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{args.scene}")
         print(scene.summary())
     elif args.cmd == "convert":
+        check_not_an_input(args.dst, [args.src], "dst")
         scene = GaussianScene.read(args.src)
         if args.dst.lower().endswith(".ply"):
             scene.to_ply(args.dst)

@@ -103,6 +103,18 @@ def check_readable_file(path: str | os.PathLike, what: str = "file") -> Path:
     return path
 
 
+def check_not_an_input(output: str | os.PathLike, inputs: list[str | os.PathLike], flag: str = "output",
+                       kind: str = "file") -> None:
+    """A ToolkitError, before any work, when writing ``output`` would replace what the command reads: ``inputs``
+    lists every file and folder it reads (a folder's files that it reads among them); paths are compared
+    resolved, links followed."""
+    out = Path(output).resolve()
+    for given in inputs:
+        if out == Path(given).resolve():
+            raise ToolkitError(f"{flag} {output}: is the input {kind} ({given}); writing it would replace it, give "
+                               "another path")
+
+
 def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata: dict[str, Any] | None = None) -> None:
     """Write tensors as safetensors with JSON-encodable ``metadata`` stored under the key ``"json"``."""
     from safetensors.torch import save as st_save

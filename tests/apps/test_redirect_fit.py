@@ -284,6 +284,18 @@ def test_output_that_is_the_input_dataset_is_refused(tiny_trained_run, tmp_path,
     assert src.read_bytes() == before and not (tmp_path / "in.h5.parts").exists()
 
 
+def test_output_that_is_a_subject_of_the_input_folder_is_refused(tiny_trained_run, tmp_path, capsys):
+    folder = tmp_path / "subjects"
+    folder.mkdir()
+    subject = folder / "subject0009.h5"
+    subject.write_bytes(_test_subject(tiny_trained_run).read_bytes())
+    before = subject.read_bytes()
+    code = run_cli(redirect.main, [str(tiny_trained_run), str(folder), str(subject)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "is the input dataset" in err[0], err
+    assert subject.read_bytes() == before and not (folder / "subject0009.h5.parts").exists()
+
+
 def test_a_replaced_input_file_is_not_resumed(tiny_trained_run, tmp_path, capsys, monkeypatch):
     """The chunks are tied to the input's contents, not only its path: a file replaced under the same name
     between two runs would otherwise mix two subjects' rows in one output."""

@@ -17,6 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from toolkit.errors import ToolkitError, run_cli
+from toolkit.io import check_not_an_input
 
 
 def _table(rows: list[dict], columns: list[str]) -> str:
@@ -120,6 +121,9 @@ def cmd_inspect(a) -> int:
                   "head pitch/yaw (deg)", "head mask", "extra keys"]))
     p = Path(a.path)
     sheet = Path(a.sheet) if a.sheet else (p / "contact_sheet.png" if p.is_dir() else p.with_name(p.stem + "_sheet.png"))
+    if sheet.suffix.lower() != ".png":
+        raise ToolkitError(f"--sheet {sheet}: the contact sheet is a PNG; expected a file name ending in .png")
+    check_not_an_input(sheet, [p, *(Path(i["path"]) for i in ds.info)], "--sheet")
     n = min(a.n, len(ds))
     idx = np.linspace(0, len(ds) - 1, n).round().astype(int) if n > 0 else []
     contact_sheet(ds, idx, sheet, tile=a.tile)
