@@ -76,3 +76,14 @@ def test_data_inspect_sheet(tmp_path):
 def test_preview_sweep(scene_file):
     before = scene_file.read_bytes()
     _refused(_run("apps/preview.py", str(scene_file), "--headless", "--sweep", str(scene_file)), (scene_file, before))
+
+
+def test_geometry_extract(tmp_path):
+    from geometry.sdf import SDFNet, SDFNetConfig
+
+    ckpt = tmp_path / "sdf.safetensors"
+    SDFNet(SDFNetConfig(grid_res=8)).save(ckpt)
+    before = ckpt.read_bytes()
+    link = tmp_path / "mesh.ply"
+    link.symlink_to(ckpt)  # a mesh name that is the checkpoint
+    _refused(_run("-m", "geometry", "extract", str(ckpt), str(link)), (ckpt, before))
