@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import socket
 import tempfile
 from pathlib import Path
 from typing import IO, Any, Iterator
@@ -39,16 +40,49 @@ def _new_file_mode(path: Path) -> int:
         return 0o666 & ~_UMASK
 
 
+def _writer_tag() -> str:
+    """This process's mark in its temporary files' names: the host and the process id."""
+    return f"{socket.gethostname().replace('.', '-')}-{os.getpid()}"
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def remove_stale_temps(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files in ``folder`` that a writer on this host left when it was killed mid-write
+    (``.NAME.HOST-PID.*.tmp`` whose process is gone); a live writer's, or another host's, are kept. Returns
+    what was removed."""
+    host = _writer_tag().rsplit("-", 1)[0]
+    removed = []
+    for tmp in Path(folder).glob(f".*.{host}-*.tmp"):
+        pid = tmp.name[tmp.name.index(f".{host}-") + len(host) + 2:].split(".", 1)[0]
+        if pid.isdigit() and not _process_alive(int(pid)):
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+                removed.append(tmp)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
     """A temporary file name beside ``path`` (ending in ``suffix``), for writers that take a file name; on clean
-    exit the file is given ``path``'s mode, fsynced and renamed onto ``path``, else deleted."""
+    exit the file is given ``path``'s mode, fsynced and renamed onto ``path``, else deleted. The name carries
+    the writer's host and process id, so that a later write to the folder removes what a killed writer left
+    (:func:`remove_stale_temps`)."""
     path = Path(path)
     if path.is_dir():
         raise ToolkitError(f"{path}: is a directory, expected a file path to write")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+        remove_stale_temps(path.parent)  # a killed writer's leftovers: the next write to the folder clears them
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{_writer_tag()}.", suffix=suffix, dir=path.parent)
     except OSError as e:  # a parent that is a file, a read-only or missing mount, no permission
         raise ToolkitError(f"{path}: cannot write here ({e.strerror or e})") from None
     try:

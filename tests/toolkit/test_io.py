@@ -121,3 +121,27 @@ def test_text_is_written_as_utf8_whatever_the_locale(tmp_path):
     r = subprocess.run([sys.executable, "-X", "utf8=0", "-c", code], env=env, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "r.md").read_bytes() == "5.2° ± 0.2°".encode("utf-8")
+
+
+def test_a_killed_writers_temp_file_is_removed_by_the_next_write(tmp_path):
+    """A writer killed mid-write leaves ``.NAME.HOST-PID.*.tmp``; the next write to that folder removes it, while
+    a live writer's temp file (this process's) and another host's stay."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from toolkit.io import atomic_write_bytes
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = socket.gethostname().replace(".", "-")
+    stale = tmp_path / f".ckpt_00000004.safetensors.{host}-{dead.pid}.abc123.tmp"
+    live = tmp_path / f".subject0000.h5.{host}-{os.getpid()}.def456.tmp"
+    other_host = tmp_path / f".ckpt_00000002.safetensors.elsewhere-{dead.pid}.ghi789.tmp"
+    for f in (stale, live, other_host):
+        f.write_bytes(b"partial")
+    atomic_write_bytes(tmp_path / "metrics.json", b"{}")
+    assert not stale.exists() and live.exists() and other_host.exists()
+    assert (tmp_path / "metrics.json").read_bytes() == b"{}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, other_host.name, "metrics.json"])
