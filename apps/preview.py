@@ -106,10 +106,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise ToolkitError(f"--size: expected 1..8192 pixels per side, got {w} {h}")
     try:
         bg = [float(v) for v in args.background.split(",")]
-        if len(bg) != 3:
+        if len(bg) != 3 or not all(0.0 <= v <= 1.0 for v in bg):  # NaN fails the range too
             raise ValueError
     except ValueError:
-        raise ToolkitError(f"--background: expected R,G,B, got {args.background!r}") from None
+        raise ToolkitError(f"--background: expected R,G,B each in [0, 1], got {args.background!r}") from None
+    if not 0.1 <= args.fps <= 240:  # NaN too; OpenCV reports a bad rate as a missing encoder
+        raise ToolkitError(f"--fps: expected a video frame rate in [0.1, 240], got {args.fps}")
     if args.headless and not args.sweep:
         raise ToolkitError("--headless needs --sweep OUT.mp4 or OUT.png")
     if args.sweep:

@@ -172,6 +172,8 @@ def test_scene_without_eyes_sweeps_with_a_message(egl, head, tmp_path, capsys):
     ("bad_pitch", "--pitch: expected MIN:MAX:N"),
     ("nan_yaw", "--yaw: expected finite degrees"),
     ("bad_demo", "demo:N"),
+    ("fps_zero", "--fps: expected a video frame rate"),
+    ("nan_background", "--background: expected R,G,B each in [0, 1]"),
 ])
 def test_bad_input_exits_2_with_one_line(egl, tmp_path, capsys, case, match):
     from apps.preview import main
@@ -190,6 +192,8 @@ def test_bad_input_exits_2_with_one_line(egl, tmp_path, capsys, case, match):
         "bad_pitch": ["demo:200", "--headless", "--sweep", str(tmp_path / "o.png"), "--pitch", "a:b"],
         "nan_yaw": ["demo:200", "--headless", "--sweep", str(tmp_path / "o.png"), "--yaw", "nan,1"],
         "bad_demo": ["demo:many", "--headless", "--sweep", str(tmp_path / "o.png")],
+        "fps_zero": ["demo:200", "--headless", "--sweep", str(tmp_path / "o.mp4"), "--fps", "0"],
+        "nan_background": ["demo:200", "--headless", "--sweep", str(tmp_path / "o.png"), "--background", "nan,nan,nan"],
     }[case]
     assert run_cli(main, argv) == 2
     err = capsys.readouterr().err.strip()
