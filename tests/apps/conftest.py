@@ -4,7 +4,7 @@ import pytest
 import torch
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def tiny_trained_run(tmp_path_factory):
     from train import run
 

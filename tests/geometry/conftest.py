@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 
-@pytest.fixture(autouse=True, scope="session")
+@pytest.fixture(autouse=True, scope="package")
 def _tet_cache(tmp_path_factory):
     mp = pytest.MonkeyPatch()
     mp.setenv("DITGAZE_CACHE", str(tmp_path_factory.mktemp("ditgaze_cache")))

@@ -10,21 +10,21 @@ EGL = gl_available()
 needs_gl = pytest.mark.skipif(not EGL, reason="no headless EGL OpenGL 3.3 context on this machine")
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def subject_params():
     from train.data.subject_params import SubjectParams
 
     return SubjectParams.sample(11)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def subject(subject_params):
     from train.data.synthetic import build_subject
 
     return build_subject(subject_params)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def subject_file(tmp_path_factory, subject_params, subject):
     if not EGL:
         skip_without_gl("no headless EGL OpenGL 3.3 context on this machine")

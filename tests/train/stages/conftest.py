@@ -5,7 +5,7 @@ import pytest
 import torch
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def tiny_run(tmp_path_factory):
     from train import run
 
