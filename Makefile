@@ -8,7 +8,7 @@ VPY := $(VENV)/bin/python
 # The install stamp changes with the dependency list and the torch spec, so a second run skips pip.
 STAMP := $(VENV)/.ditgaze-installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)-$(shell echo '$(TORCH_SPEC)' | cksum | cut -d' ' -f1)
 
-.PHONY: test test-all demo setup sysdeps lint bench fid clean
+.PHONY: test test-all fuzz demo setup sysdeps lint bench fid clean
 
 # DITGAZE_REQUIRE_GL=1: setup has installed EGL/Mesa, so a test that needs headless OpenGL fails rather than
 # skips when its context does not come up (tests/gl.py).
@@ -17,6 +17,11 @@ test: setup
 
 test-all: setup
 	DITGAZE_REQUIRE_GL=1 $(VPY) -m pytest
+
+# The fuzz suite (tests marked fuzz: property tests of every reader, the bad-input CLI corpus) with many more
+# freshly drawn examples than the derandomized sample `make test` runs.
+fuzz: setup
+	HYPOTHESIS_PROFILE=fuzz $(VPY) -m pytest -m fuzz
 
 demo: setup
 	$(VPY) -m apps.demo --out out/demo

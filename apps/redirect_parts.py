@@ -104,30 +104,30 @@ def check_parts_settings(parts: Path, settings: dict) -> None:
 
 def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
     """Concatenate the chunk files into one HDF5 file (atomic); returns the number of images."""
-    import h5py
-
-    from toolkit.io import atomic_write
+    from toolkit.io import atomic_h5
+    from toolkit.limits import check_allocation
 
     n = 0
-    with atomic_write(out_path, "w+b") as f:
-        with h5py.File(f, "w") as h:
-            # One chunk in memory at a time: the datasets grow as the chunks are appended (h5py reads back
-            # what it wrote as they grow: the temp file is opened for reading too).
-            for k in range(n_chunks):
-                with np.load(chunk_path(parts, k)) as z:
-                    for name in z.files:
-                        v = z[name]
-                        if name not in h:
-                            # Growing datasets need chunks: one image each (as write_subject_h5 stores them),
-                            # small rows ~64 KiB at a time (h5py's guess from the first part may be 1 row).
-                            rows = 1 if v.ndim >= 3 else max(1, min(4096, (1 << 16) // max(1, v[0].nbytes)))
-                            h.create_dataset(name, data=v, maxshape=(None, *v.shape[1:]), chunks=(rows, *v.shape[1:]),
-                                             compression="lzf" if v.ndim >= 3 else None)
-                            continue
-                        d = h[name]
-                        d.resize(d.shape[0] + v.shape[0], axis=0)
-                        d[-v.shape[0]:] = v
-                    n += int(z["face_patch"].shape[0])
-            for k, v in attrs.items():
-                h.attrs[k] = v
+    # The file is built in memory (a full disk then fails cleanly, see atomic_h5): at most its parts' size.
+    check_allocation(sum(chunk_path(parts, k).stat().st_size for k in range(n_chunks)), f"writing {out_path}",
+                     "ask for fewer target gazes or inputs per run")
+    with atomic_h5(out_path) as h:
+        # One chunk in memory at a time: the datasets grow as the chunks are appended.
+        for k in range(n_chunks):
+            with np.load(chunk_path(parts, k)) as z:
+                for name in z.files:
+                    v = z[name]
+                    if name not in h:
+                        # Growing datasets need chunks: one image each (as write_subject_h5 stores them),
+                        # small rows ~64 KiB at a time (h5py's guess from the first part may be 1 row).
+                        rows = 1 if v.ndim >= 3 else max(1, min(4096, (1 << 16) // max(1, v[0].nbytes)))
+                        h.create_dataset(name, data=v, maxshape=(None, *v.shape[1:]), chunks=(rows, *v.shape[1:]),
+                                         compression="lzf" if v.ndim >= 3 else None)
+                        continue
+                    d = h[name]
+                    d.resize(d.shape[0] + v.shape[0], axis=0)
+                    d[-v.shape[0]:] = v
+                n += int(z["face_patch"].shape[0])
+        for k, v in attrs.items():
+            h.attrs[k] = v
     return n

@@ -2,11 +2,20 @@
 
 from __future__ import annotations
 
+import os
 import random
 
 import numpy as np
 import pytest
 import torch
+from hypothesis import HealthCheck, settings
+
+# Property tests: `make test` runs a small, derandomized sample (the same examples on every run, no example
+# database written); `make fuzz` (HYPOTHESIS_PROFILE=fuzz) runs many more, freshly drawn each time.
+settings.register_profile("default", max_examples=25, derandomize=True, database=None, deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("fuzz", max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 # Test tensors are small: extra threads only add overhead, and on a busy 2-core machine they thrash
 # (10-50x slowdowns were measured). Benchmarks, not tests, measure multi-threaded speed.

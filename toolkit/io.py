@@ -10,6 +10,7 @@ checkpoints are read only with ``weights_only=True``.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import socket
@@ -70,6 +71,11 @@ def remove_stale_temps(folder: str | os.PathLike) -> list[Path]:
     return removed
 
 
+# A write that the file system refuses for room: one line naming the destination, whatever layer raised it.
+_FULL = {errno.ENOSPC: "no space left on device", errno.EDQUOT: "disk quota exceeded",
+         errno.EFBIG: "file too large for this file system or process limit"}
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
     """A temporary file name beside ``path`` (ending in ``suffix``), for writers that take a file name; on clean
@@ -97,9 +103,11 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
         finally:
             os.close(fd)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and e.errno in _FULL:
+            raise ToolkitError(f"{path}: {_FULL[e.errno]}; nothing was written (the partial file was removed)") from None
         raise
 
 
@@ -119,6 +127,24 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     with atomic_write(path, "w") as f:
         f.write(text)
+
+
+@contextlib.contextmanager
+def atomic_h5(path: str | os.PathLike) -> Iterator[Any]:
+    """An ``h5py.File`` built in memory, written to ``path`` through :func:`atomic_write_bytes` when the block
+    exits cleanly (nothing is written otherwise). HDF5 never writes to disk itself: through h5py a full disk
+    makes the library fail inside its own clean-up and crash the interpreter; here a full disk is the one
+    ``ToolkitError`` of :func:`atomic_path`. The file's image is held in memory: callers bound what they put in."""
+    import h5py
+
+    f = h5py.File(f"{path}.{id(object())}", "w", driver="core", backing_store=False)  # the name is only a label
+    try:
+        yield f
+        f.flush()
+        image = f.id.get_file_image()
+    finally:
+        f.close()
+    atomic_write_bytes(path, image)
 
 
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from toolkit.errors import ToolkitError
@@ -66,7 +66,7 @@ def test_files_must_be_utf8(tmp_path):
         load_yaml_file(binary)
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@pytest.mark.fuzz
 @given(st.text(alphabet=st.sampled_from(list("ab01:-[]{}&*!|>'\"#,.~ \n\t?%@`9e")), max_size=60))
 def test_any_text_parses_or_is_refused_with_a_toolkit_error(text):
     try:

@@ -57,9 +57,7 @@ def write_subject_h5(path: str | os.PathLike, rows: dict[str, np.ndarray], *, su
             ``eyeball_centers`` [2, 3] head frame, ``eyeball_radii`` [2], ``identity_params`` [22]).
         attrs: JSON-able file attributes (strings, numbers).
     """
-    import h5py
-
-    from toolkit.io import atomic_write
+    from toolkit.io import atomic_h5
 
     missing = [k for k in REQUIRED if k not in rows]
     if missing:
@@ -69,7 +67,7 @@ def write_subject_h5(path: str | os.PathLike, rows: dict[str, np.ndarray], *, su
         if len(v) != n:
             raise ToolkitError(f"write_subject_h5: {k} has {len(v)} rows, face_patch has {n}")
     path = Path(path)
-    with atomic_write(path, "wb") as fh, h5py.File(fh, "w") as f:
+    with atomic_h5(path) as f:
         for k, v in rows.items():
             v = np.asarray(v)
             big = v.ndim >= 3 and v[0].size >= 1024
