@@ -50,6 +50,10 @@ from toolkit.errors import ToolkitError
 from toolkit.rotations import pitchyaw_to_vector, so3_exp
 
 REQUIRED_COLUMNS = ("image", "head_pitch", "head_yaw")
+MAX_FOCAL = 1000
+"""Largest focal length, in image widths (pixels per pixel of width): a field of view of 0.06°."""
+MAX_DISTANCE = 100.0
+"""Largest camera-to-face distance, metres."""
 OPTIONAL_COLUMNS = ("head_roll", "gaze_pitch", "gaze_yaw", "focal", "distance", "mask", "code")
 CODE_DIM = 144
 FACE_CENTER_LANDMARKS = [36, 39, 42, 45, 48, 54]
@@ -70,17 +74,14 @@ class LabelRow:
 
 
 def _read_image(path: Path, what: str, *, gray: bool = False) -> np.ndarray:
-    import cv2
+    from toolkit.images import read_image
 
-    if not path.is_file():
-        raise ToolkitError(f"{what} {path}: no such file")
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-    if img is None or img.size == 0:
-        raise ToolkitError(f"{what} {path}: not a readable image")
-    return img
+    return read_image(path, what, gray=gray)
 
 
 def _image_size(path: Path, what: str) -> tuple[int, int]:
+    """(height, width); decoded once (its size checked from the header first), so that a file whose pixels do
+    not decode is refused with every other check of the CSV rather than mid-run."""
     img = _read_image(path, what, gray=True)
     return int(img.shape[0]), int(img.shape[1])
 
@@ -107,9 +108,10 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
     p = labels_csv_file(csv_path)
     if not p.is_file():
         raise ToolkitError(f"{p}: no such labels CSV (expected columns {', '.join(REQUIRED_COLUMNS)}, ...)")
-    for name, v in (("--focal", focal), ("--distance", distance)):
-        if v is not None and not (math.isfinite(v) and v > 0):
-            raise ToolkitError(f"{name} must be a positive number, got {v}")
+    for name, v, hi in (("--focal", focal, math.inf), ("--distance", distance, MAX_DISTANCE)):
+        if v is not None and not (math.isfinite(v) and 0 < v <= hi):
+            raise ToolkitError(f"{name} must be a positive number{f', at most {hi:g} metres' if hi < math.inf else ''}, "
+                               f"got {v}")
     header, raw = _read_table(p)
     rows: list[LabelRow] = []
     size: tuple[int, int] | None = None
@@ -163,7 +165,7 @@ class _Cells:
         self.where = f"{self.csv_path} line {self.line}"
 
     def num(self, col: str, *, required: bool = False, lo: float = -math.inf, hi: float = math.inf,
-            positive: bool = False) -> float | None:
+            positive: bool = False, unit: str = "degrees") -> float | None:
         s, where = self.cells.get(col, ""), self.where
         if s == "":
             if required:
@@ -178,7 +180,7 @@ class _Cells:
         if positive and v <= 0:
             raise ToolkitError(f"{where}, column '{col}': expected a positive number, got {s!r}")
         if not lo <= v <= hi:
-            raise ToolkitError(f"{where}, column '{col}': expected degrees in [{lo:g}, {hi:g}], got {s!r}")
+            raise ToolkitError(f"{where}, column '{col}': expected {unit} in [{lo:g}, {hi:g}], got {s!r}")
         return v
 
     def path(self, col: str) -> Path | None:
@@ -210,9 +212,14 @@ def _label_row(c: _Cells, size: tuple[int, int] | None, *, focal: float | None, 
     if (gp is None) != (gy is None):
         raise ToolkitError(f"{where}: gaze_pitch and gaze_yaw must both be given or both be empty")
     gaze = None if gp is None else (math.radians(gp), math.radians(gy))
-    f = c.num("focal", positive=True)
-    d = c.num("distance", positive=True)
+    # A focal length beyond MAX_FOCAL image widths (a field of view under 0.06°) or a distance beyond
+    # MAX_DISTANCE is a typo; left through, it overflows the projection into NaN far from this line.
+    f = c.num("focal", positive=True, lo=0, hi=MAX_FOCAL * hw[1], unit="pixels")
+    d = c.num("distance", positive=True, lo=0, hi=MAX_DISTANCE, unit="metres")
     d = d if d is not None else (distance if distance is not None else default_distance)
+    if f is None and focal is not None and focal > MAX_FOCAL * hw[1]:
+        raise ToolkitError(f"--focal {focal:g}: expected at most {MAX_FOCAL} image widths ({MAX_FOCAL * hw[1]} pixels "
+                           f"for the {hw[1]}-pixel images of {c.csv_path})")
     if f is None:
         f = focal if focal is not None else size[0] * default_distance / default_crop
     mask_path = c.path("mask")

@@ -61,12 +61,17 @@ from apps.redirect_render import render_chunk
 from toolkit.errors import ToolkitError, run_cli
 from toolkit.host import keep_freed_memory
 from toolkit.io import check_not_an_input
+from toolkit.limits import check_allocation, check_count
 
 GRID_EXAMPLE = "grid:5x5:30 (pitch rows × yaw columns over ±30°), random:200:35 (200 gazes uniform in ±35°), file:gazes.csv"
 
 
 MAX_GAZES = 100_000
 """Target gazes per input row (``--gazes``): more is a typo, not a dataset (each row is rendered at every one)."""
+MAX_FIT_STEPS = 20_000
+"""Test-time fitting steps per row (``--fit-steps``): runs fit in tens to hundreds; more would run for days."""
+MAX_BATCH = 4096
+"""Input rows per chunk (``--batch``)."""
 
 
 def _spec_range(spec: str, deg: str) -> float:
@@ -102,6 +107,9 @@ def parse_gazes(spec: str, seed: int = 0) -> np.ndarray:
             path = Path(rest)
             if not path.is_file():
                 raise ToolkitError(f"--gazes file {path}: no such file")
+            if path.stat().st_size > MAX_GAZES * 64:  # a 'pitch,yaw' line is far shorter than 64 bytes
+                raise ToolkitError(f"--gazes file {path}: {path.stat().st_size} bytes; expected at most {MAX_GAZES} "
+                                   f"lines of 'pitch,yaw' (at most {MAX_GAZES * 64} bytes)")
             try:
                 with warnings.catch_warnings():  # numpy warns of an empty file; the check below says it in one line
                     warnings.simplefilter("ignore", UserWarning)
@@ -113,6 +121,8 @@ def parse_gazes(spec: str, seed: int = 0) -> np.ndarray:
                 raise ToolkitError(f"--gazes file {path}: no gazes in the file (expected lines of 'pitch,yaw' in degrees)")
             if vals.shape[1] != 2:
                 raise ToolkitError(f"--gazes file {path}: expected two columns (pitch, yaw in degrees), got {vals.shape[1]}")
+            if len(vals) > MAX_GAZES:
+                raise ToolkitError(f"--gazes file {path}: {len(vals)} gazes; at most {MAX_GAZES} per input row")
             out = np.radians(vals)
         else:
             raise ValueError
@@ -189,12 +199,11 @@ def check_args(args: argparse.Namespace) -> None:
     """The flags' own checks, before the run or the input is opened (each a one-line ToolkitError)."""
     if args.natural_eyes and not args.fit_weights:
         raise ToolkitError("--natural-eyes sets how --fit-weights fits each row; give --fit-weights too")
-    if args.batch < 1:
-        raise ToolkitError(f"--batch must be >= 1, got {args.batch}")
-    if args.rows < 0:
-        raise ToolkitError(f"--rows must be >= 0 (0 = all rows), got {args.rows}")
-    if args.steps < 0:
-        raise ToolkitError(f"--steps must be >= 0 (0 = the run's setting), got {args.steps}")
+    check_count(args.batch, "--batch", 1, MAX_BATCH, "input rows per chunk")
+    check_count(args.rows, "--rows", 0, 2**62, "a row count (0 = all rows)")
+    check_count(args.steps, "--steps", 0, 100_000, "DDIM steps (0 = the run's setting)")
+    if args.fit_steps != -1:
+        check_count(args.fit_steps, "--fit-steps", 0, MAX_FIT_STEPS, "test-time fitting steps per row")
     if Path(args.out).suffix.lower() not in (".h5", ".hdf5"):
         raise ToolkitError(f"out {args.out}: expected an HDF5 file name ending in .h5 or .hdf5")
     if Path(args.out).is_dir():  # before any rendering: the file is only written once every chunk is done
@@ -206,6 +215,19 @@ def check_args(args: argparse.Namespace) -> None:
     data = Path(args.dataset)
     read = [data, *(sorted(data.glob("*.h5")) + sorted(data.glob("*.hdf5")) if data.is_dir() else [])]
     check_not_an_input(args.out, [*read, args.run_dir], "out", "dataset")
+
+
+def check_sizes(n_rows: int, n_gazes: int, res: int, args: argparse.Namespace) -> None:
+    """Refuse, before any work, a job whose memory would not fit (``toolkit.limits.check_allocation``): one row's
+    diffusion noise for all its gazes at once (at most 4 float32 channels per pixel), a chunk's images, and the
+    output file, built in memory (RGB and three masks, a byte each, per pixel)."""
+    px = res * res
+    check_allocation(n_gazes * px * 16, f"--gazes {args.gazes!r} ({n_gazes} gazes of {res}x{res} pixels per row)",
+                     "ask for fewer gazes")
+    check_allocation(args.batch * n_gazes * px * 6, f"--batch {args.batch} x {n_gazes} gazes",
+                     "lower --batch or ask for fewer gazes")
+    check_allocation(n_rows * n_gazes * px * 6, f"the output {args.out} ({n_rows} rows x {n_gazes} gazes)",
+                     "ask for fewer gazes or --rows, or split the input")
 
 
 def fit_steps_for(args: argparse.Namespace, cfg, src) -> int:
@@ -265,6 +287,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     cfg = run.config
     src = open_source(run, args)  # validates the whole input before any model is loaded
     fit_steps = fit_steps_for(args, cfg, src)
+    n_rows = len(src) if args.rows <= 0 else min(args.rows, len(src))
+    check_sizes(n_rows, len(gazes), cfg.data.res, args)
     info = init_distributed("cpu" if not torch.cuda.is_available() else "auto")
     device = torch.device(info.device)
     model, renderer = run.load_model(device)
@@ -280,7 +304,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             return src.items(rows, model, renderer, device, fit_steps=fit_steps, fit_lr=args.fit_lr)
         return [src[r] for r in rows]
 
-    n_rows = len(src) if args.rows <= 0 else min(args.rows, len(src))
     chunks = [list(range(i, min(i + args.batch, n_rows))) for i in range(0, n_rows, args.batch)]
     out = Path(args.out)
     parts = out.with_suffix(out.suffix + ".parts")

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -88,7 +87,9 @@ def select_stages(args: argparse.Namespace) -> tuple[list[str], list[str]]:
     force = _stage_names("--force", args.force)
     if idle := [s for s in force if s not in stages]:
         raise ToolkitError(f"--force: stage(s) {idle} are not among --stages {args.stages}, so nothing would re-run them")
-    world = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    from train.training.distributed import world_size
+
+    world = world_size()
     if world > 1 and stages != ["gaussian"]:
         # Every rank would run every other stage in full, writing the same files side by side.
         raise ToolkitError(f"--stages {args.stages}: under torchrun (WORLD_SIZE={world}) only stage gaussian is "

@@ -25,6 +25,9 @@ WEIGHT = at_least(0, "a finite value")
 RATE = within(0, 1, "a learning rate", low_open=True)
 """An Adam learning rate: Adam's step is about the rate, so > 1 overflows."""
 SEED = at_least(0, "a seed") | rule(lambda s: s < 2**32, "a seed below 2^32")
+MAX_STEPS = 10_000_000
+STEP_CAP = rule(lambda n: n <= MAX_STEPS, f"at most {MAX_STEPS} steps (a loop that long is a typo)")
+"""Every step count's upper bound: the paper's longest schedule is 100,000 steps."""
 
 
 @dataclass
@@ -54,12 +57,12 @@ class DataConfig:
 
 @dataclass
 class GeometryStageConfig:
-    steps: int = field(default=300, metadata=COUNT | maps_to("FitConfig", "steps"))
+    steps: int = field(default=300, metadata=COUNT | maps_to("FitConfig", "steps") | STEP_CAP)
     """SDF fitting steps after the sphere pre-training, >= 1."""
     extract_res: int = field(default=64, metadata=within(4, 512, "a tet-grid resolution")
                              | maps_to("FitConfig", "extract_res"))
     """DMTet grid resolution of the neutral mesh, in [4, 512]."""
-    pretrain_steps: int = field(default=100, metadata=WEIGHT | maps_to("FitConfig", "pretrain_steps"))
+    pretrain_steps: int = field(default=100, metadata=WEIGHT | maps_to("FitConfig", "pretrain_steps") | STEP_CAP)
     """sphere pre-training steps of the SDF network, >= 0."""
     pool: int = field(default=100_000, metadata=COUNT | maps_to("FitConfig", "pool") | rule(
         lambda n: n >= 1000, ">= 1000 pool points (the SDF fit draws its batches and surface seeds from them)"))
@@ -87,7 +90,7 @@ class CodecStageConfig:
     DiT-Gaze-pixel``; the stage then does nothing)."""
     sd_vae_path: str = ""
     """local diffusers AutoencoderKL folder, for ``kind=sd-vae``."""
-    steps: int = field(default=640, metadata=COUNT)
+    steps: int = field(default=640, metadata=COUNT | STEP_CAP)
     """Adam steps of the autoencoder. A better reconstruction raised the DiT's renders with it
     (docs/results.md, 2026-11-22)."""
     base_channels: int = field(default=16, metadata=COUNT | maps_to("AutoencoderConfig", "base_channels"))
@@ -107,7 +110,7 @@ class EstimatorStageConfig:
     """a trained gaze estimator (.safetensors) for the gaze loss; empty: train one."""
     eval_path: str = ""
     """an independently trained estimator for the evaluation; empty: train one (another seed)."""
-    steps: int = field(default=1000, metadata=COUNT | maps_to("GazeEstimatorTrainConfig", "steps"))
+    steps: int = field(default=1000, metadata=COUNT | maps_to("GazeEstimatorTrainConfig", "steps") | STEP_CAP)
     """training steps of each estimator."""
     input_size: int = field(default=64, metadata=COUNT)
     """width in pixels the estimator's input region is resized to (``face`` and ``eye_band`` crops only)."""
@@ -168,7 +171,7 @@ class GaussianStageConfig:
     """how the intermediate gazes are drawn (``train.training.gaze_sampler``)."""
     sampler_range_deg: float = field(default=35.0, metadata=maps_to("GazeSamplerConfig", "range_deg"))
     """half-width of the intermediate gazes' pitch and yaw range, degrees, in (0, 89]."""
-    steps: int = field(default=320, metadata=COUNT)
+    steps: int = field(default=320, metadata=COUNT | STEP_CAP)
     """training steps of the stage."""
     batch: int = field(default=4, metadata=COUNT)
     """images per step (split over the processes under torchrun)."""
@@ -229,7 +232,7 @@ FittedWeight = Literal["features", "eye_features", "eye_colours", "eye_field", "
 class EvalConfig:
     pairs_per_subject: int = field(default=12, metadata=COUNT)
     """redirection pairs per held-out subject (GazeNeRF protocol: inputs paired with a fixed permutation)."""
-    tta_steps: int = field(default=40, metadata=at_least(0, "a step count"))
+    tta_steps: int = field(default=40, metadata=at_least(0, "a step count") | STEP_CAP)
     """test-time fitting steps on each input image, >= 0 (0: none), restarted per pair from the trained
     weights; more steps fit better and cost time (docs/results.md, 2026-11-22)."""
     tta_weights: tuple[FittedWeight, ...] = ("features", "renderer")

@@ -23,6 +23,7 @@ def check_config(cfg: RunConfig) -> None:
     _check_sizes(cfg)
     _check_models(cfg)
     _check_fit(cfg)
+    _check_memory(cfg)
     _check_files(cfg)  # last: what names something outside the config, once the values themselves are sound
 
 
@@ -97,6 +98,41 @@ def _check_fit(cfg: RunConfig) -> None:
                                                  f"eval.tta_weights {list(e.tta_weights)}, got {outside}")
     _require(e.tta_gaze_terms or not e.tta_gaze_weight > 0, "eval.tta_gaze_terms",
              "expected at least one of target, own when eval.tta_gaze_weight > 0")
+
+
+def _memory_needs(cfg: RunConfig) -> list[tuple[str, float]]:
+    """(config keys, bytes) of one array each stage must hold, a strict lower bound of its memory (no gradients,
+    no activations): enough to refuse a typo such as ``geometry.gaussians=1e9`` before anything is allocated."""
+    d, g, c, e, geo = cfg.data, cfg.gaussian, cfg.codec, cfg.estimator, cfg.geometry
+    px, n_gauss = d.res * d.res, geo.gaussians + 2 * (geo.eye_gaussians + geo.lid_gaussians)
+    rig = 18  # ETH-XGaze's cameras: every synthetic frame is rendered by each
+    return [
+        ("data.frames, data.test_frames, data.res", max(d.frames, d.test_frames) * rig * px * 6),  # uint8 image, masks
+        ("geometry.pool", geo.pool * 16.0),  # a point and its signed distance
+        ("geometry.gaussians, gaussian.batch, gaussian.gaussians_hidden", n_gauss * g.batch * g.gaussians_hidden * 4),
+        ("gaussian.batch, data.res, gaussian.feature_upscale", g.batch * px * g.feature_upscale ** 2 * 32 * 4),
+        ("codec.batch, codec.base_channels, data.res", c.batch * px * c.base_channels * 4),
+        ("estimator.batch, estimator.input_size", e.batch * e.input_size ** 2 * 3 * 4),
+        ("estimator.synthetic_subjects, estimator.synthetic_frames, estimator.cameras_per_frame, data.res",
+         e.synthetic_subjects * e.synthetic_frames * e.cameras_per_frame * px * 3),  # uint8 RGB
+    ]
+
+
+def _check_memory(cfg: RunConfig) -> None:
+    """Every count that sizes an allocation, bounded by what it would allocate (``toolkit.limits``)."""
+    from toolkit.limits import check_allocation
+
+    for keys, nbytes in _memory_needs(cfg):
+        check_allocation(nbytes, f"config keys {keys} ({', '.join(_values(cfg, keys))})",
+                         "lower them, or raise DITGAZE_MEMORY_GB on a larger machine")
+
+
+def _values(cfg: RunConfig, keys: str) -> list[str]:
+    out = []
+    for key in keys.split(", "):
+        section, name = key.split(".")
+        out.append(f"{name}={getattr(getattr(cfg, section), name)}")
+    return out
 
 
 def _check_files(cfg: RunConfig) -> None:

@@ -7,6 +7,7 @@ the update equals a single-process step on the whole global batch (the loss is a
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 
 import torch
@@ -31,11 +32,24 @@ class DistInfo:
         return self.world_size > 1
 
 
+def env_count(name: str, default: int, low: int, high: int) -> int:
+    """An integer environment variable (torchrun's) in [low, high]; one ``ToolkitError`` naming it otherwise."""
+    text = os.environ.get(name, "").strip() or str(default)
+    if not re.fullmatch(r"[+-]?\d{1,9}", text) or not low <= int(text) <= high:
+        raise ToolkitError(f"environment variable {name}: expected an integer in [{low}, {high}], got {text!r}")
+    return int(text)
+
+
+def world_size() -> int:
+    """torchrun's ``WORLD_SIZE`` (1 when not launched by it), checked."""
+    return env_count("WORLD_SIZE", 1, 1, 65536)
+
+
 def init_distributed(device: str = "auto") -> DistInfo:
     """Initialise the process group when launched by torchrun (WORLD_SIZE > 1); else a single process."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
-    local = int(os.environ.get("LOCAL_RANK", "0"))
+    world = world_size()
+    rank = env_count("RANK", 0, 0, world - 1)
+    local = env_count("LOCAL_RANK", 0, 0, 1023)
     use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
     dev = f"cuda:{local}" if use_cuda else "cpu"
     if world > 1 and not dist.is_initialized():
