@@ -21,6 +21,7 @@ from typing import IO, Any, Iterator
 import torch
 
 from toolkit.errors import ToolkitError
+from toolkit.limits import check_allocation
 
 
 def _process_umask() -> int:
@@ -194,22 +195,72 @@ def load_metadata(path: str | os.PathLike) -> dict[str, Any]:
     return _read(path, "cpu", tensors=False)[1]
 
 
+MAX_JSON_DEPTH = 64
+"""Deepest nesting a file's JSON metadata may have: copying or re-encoding it recurses once per level, so a
+forged file nested thousands deep would be a RecursionError far from the reader (as ``toolkit.safe_yaml``)."""
+
+
+_JSON_NAMES = {list: "array", str: "string", int: "number", float: "number", bool: "boolean", type(None): "null"}
+
+
+def _one_line(e: BaseException, limit: int = 200) -> str:
+    text = " ".join(str(e).split())
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def json_depth(obj: Any) -> int:
+    """Nesting depth of a parsed JSON value (a scalar is 0), counted without recursion."""
+    deepest, todo = 0, [(obj, 0)]
+    while todo:
+        item, depth = todo.pop()
+        if isinstance(item, (dict, list)):
+            deepest = max(deepest, depth + 1)
+            if depth + 1 > MAX_JSON_DEPTH:
+                break  # already too deep: no need to walk the rest
+            todo += [(v, depth + 1) for v in (item.values() if isinstance(item, dict) else item)]
+    return deepest
+
+
+def parse_json_object(text: str | bytes, where: str) -> dict[str, Any]:
+    """``text`` parsed as a JSON object of bounded depth, else one ToolkitError "``where`` is not ..." (``where``
+    names the file and the field)."""
+    try:
+        obj = json.loads(text)
+    except RecursionError:  # json's C scanner recurses once per level and refuses past the recursion limit
+        raise ToolkitError(f"{where} is JSON nested deeper than {MAX_JSON_DEPTH} levels") from None
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, and integers over Python's digit limit
+        raise ToolkitError(f"{where} is not valid JSON ({_one_line(e)})") from None
+    if not isinstance(obj, dict):
+        raise ToolkitError(f"{where} is not a JSON object (got a JSON {_JSON_NAMES.get(type(obj), type(obj).__name__)})")
+    if json_depth(obj) > MAX_JSON_DEPTH:
+        raise ToolkitError(f"{where} is JSON nested deeper than {MAX_JSON_DEPTH} levels")
+    return obj
+
+
 def _read(path, device, tensors: bool) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """The one safetensors reader. The library (0.8, as tested) itself refuses, as ``SafetensorError``: a file
+    under 8 bytes, a header length (the first 8 bytes) past the file's end or over its header limit, a header
+    that is not JSON or not a map of string metadata and tensor entries, an unknown dtype, a negative shape
+    or one whose byte size overflows, and tensor byte ranges that overlap, leave gaps, miss or overrun the
+    file's end, or differ from dtype x shape. It memory-maps the file, so none of that allocates; each of its
+    errors is wrapped here into one line naming the file (and the tensor, when one fails to load)."""
     from safetensors import safe_open
 
     path = check_readable_file(path, "safetensors file")
+    if tensors:  # the tensors' bytes lie in the file (checked by the library), so the file's size bounds them
+        check_allocation(path.stat().st_size, f"{path}: reading its tensors")
+    name = None
     try:
         with safe_open(str(path), framework="pt", device=str(device)) as f:
             raw_meta = f.metadata() or {}
-            out = {k: f.get_tensor(k) for k in f.keys()} if tensors else {}
-    except Exception as e:  # safetensors raises its own types for garbage, truncation, bad headers
-        raise ToolkitError(f"{path}: not a valid safetensors file ({type(e).__name__}: {str(e)[:120]})") from None
-    try:
-        meta = json.loads(raw_meta.get("json", "{}"))
-    except json.JSONDecodeError as e:
-        raise ToolkitError(f"{path}: metadata is not valid JSON ({e})") from None
-    if not isinstance(meta, dict):
-        raise ToolkitError(f"{path}: metadata 'json' is not a JSON object (got {type(meta).__name__})")
+            out = {}
+            for name in f.keys() if tensors else ():
+                out[name] = f.get_tensor(name)
+    except Exception as e:  # SafetensorError, or torch refusing a dtype it lacks or a device it has not
+        what = f": tensor {name!r}" if name is not None else ""
+        raise ToolkitError(f"{path}: not a valid safetensors file{what} ({type(e).__name__}: {_one_line(e)})") \
+            from None
+    meta = parse_json_object(raw_meta.get("json", "{}"), f"{path}: metadata 'json'")
     return out, meta
 
 

@@ -7,6 +7,7 @@ from toolkit.io import (
     atomic_write_json,
     load_checkpoint,
     load_foreign_torch_checkpoint,
+    load_state_dict_file,
     save_checkpoint,
 )
 
@@ -145,3 +146,48 @@ def test_a_killed_writers_temp_file_is_removed_by_the_next_write(tmp_path):
     assert not stale.exists() and live.exists() and other_host.exists()
     assert (tmp_path / "metrics.json").read_bytes() == b"{}"
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, other_host.name, "metrics.json"])
+
+
+def _forged(path, header: dict, body: bytes = b"", length: int | None = None):
+    """A safetensors file with this JSON header (and, when given, a header length that lies)."""
+    import json
+    import struct
+
+    raw = json.dumps(header).encode()
+    path.write_bytes(struct.pack("<Q", len(raw) if length is None else length) + raw + body)
+    return path
+
+
+_F32x2 = {"dtype": "F32", "shape": [2], "data_offsets": [0, 8]}
+
+
+@pytest.mark.parametrize("header,body,length,msg", [
+    ({"w": _F32x2}, b"\0" * 8, 1 << 40, r"not a valid safetensors file \(SafetensorError: .*header too large"),
+    ({"w": _F32x2}, b"\0" * 8, 10_000, r"not a valid safetensors file \(SafetensorError: .*invalid header length"),
+    ({"w": _F32x2}, b"\0" * 4, None, r"not a valid safetensors file \(SafetensorError: .*not fully covered"),
+    ({"w": {"dtype": "F32", "shape": [3], "data_offsets": [0, 8]}}, b"\0" * 8, None, "invalid shape, data type"),
+    ({"w": {"dtype": "F99", "shape": [2], "data_offsets": [0, 8]}}, b"\0" * 8, None, "unknown variant `F99`"),
+    ({"w": {"dtype": "F32", "shape": [1 << 62, 1 << 62], "data_offsets": [0, 8]}}, b"\0" * 8, None, "overflow"),
+    ({"__metadata__": {"json": 5}, "w": _F32x2}, b"\0" * 8, None, "expected a string"),
+    ({"__metadata__": {"json": "[" * 5000}, "w": _F32x2}, b"\0" * 8, None,
+     r"metadata 'json' is JSON nested deeper than 64 levels"),
+    ({"__metadata__": {"json": '{"a": ' + "9" * 5000 + "}"}, "w": _F32x2}, b"\0" * 8, None,
+     r"metadata 'json' is not valid JSON \(Exceeds the limit"),
+    ({"__metadata__": {"json": "{oops"}, "w": _F32x2}, b"\0" * 8, None, r"metadata 'json' is not valid JSON"),
+])
+def test_forged_safetensors_are_one_line_naming_the_file(tmp_path, header, body, length, msg):
+    p = _forged(tmp_path / "f.safetensors", header, body, length)
+    for read in (lambda: load_checkpoint(p), lambda: load_state_dict_file(p)):
+        with pytest.raises(ToolkitError, match=r"f.safetensors: .*" + msg) as e:
+            read()
+        assert "\n" not in str(e.value)
+
+
+def test_a_checkpoint_too_big_for_the_memory_budget_is_refused_before_reading(tmp_path, monkeypatch):
+    save_checkpoint(tmp_path / "c.safetensors", {"w": torch.zeros(1000)})
+    monkeypatch.setenv("DITGAZE_MEMORY_GB", str(1000 / (1 << 30)))
+    with pytest.raises(ToolkitError, match=r"c.safetensors: reading its tensors would allocate"):
+        load_checkpoint(tmp_path / "c.safetensors")
+    from toolkit.io import load_metadata
+
+    assert load_metadata(tmp_path / "c.safetensors") == {}  # the header alone is read whatever the budget
