@@ -1,3 +1,6 @@
+import json
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -108,7 +111,7 @@ def test_nan_field(tmp_path):
     start = raw.index(b"end_header\n") + len(b"end_header\n")
     raw[start:start + 4] = np.array([np.nan], "<f4").tobytes()  # x of the first Gaussian
     (tmp_path / "n.ply").write_bytes(bytes(raw))
-    with pytest.raises(ToolkitError, match="means: 1 Gaussian"):
+    with pytest.raises(ToolkitError, match=r"n.ply: vertex property 'x': 1 of 5 values are NaN or inf"):
         GaussianScene.from_ply(tmp_path / "n.ply")
 
 
@@ -167,3 +170,158 @@ def test_metadata_naming_end_header_round_trips_and_oversized_metadata_is_refuse
 def test_empty_foreign_ply_loads_as_an_empty_scene(tmp_path, fmt):
     write_graphdeco_ply(tmp_path / "e.ply", n=0, degree=0, fmt=fmt)
     assert GaussianScene.from_ply(tmp_path / "e.ply").means.shape == (0, 3)
+
+
+def _with_header_line(path, old: bytes, new: bytes):
+    raw = path.read_bytes()
+    head, body = raw.split(b"end_header\n", 1)
+    assert old in head
+    path.write_bytes(head.replace(old, new, 1) + b"end_header\n" + body)
+
+
+def _ascii_ply(path, names, rows, extra_header=b""):
+    head = b"ply\nformat ascii 1.0\n" + extra_header + b"element vertex %d\n" % len(rows)
+    head += b"".join(b"property float %s\n" % n.encode() for n in names) + b"end_header\n"
+    path.write_bytes(head + b"".join(b" ".join(b"%r" % v for v in r) + b"\n" for r in rows))
+
+
+_GRAPHDECO = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+              "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+@pytest.mark.parametrize("extra,msg", [
+    (["f_rest_abc"], r"vertex property 'f_rest_abc': expected f_rest_<index>"),
+    (["f_rest_0", "f_rest_01"], r"vertex property 'f_rest_01'"),
+    (["f_rest_0", "f_rest_2", "f_rest_3"], r"f_rest_\*: 3 of them, but 'f_rest_1' is missing"),
+    (["feat_x"], r"vertex property 'feat_x'"),
+])
+def test_misnamed_indexed_property_is_named(tmp_path, extra, msg):
+    p = tmp_path / "n.ply"
+    _ascii_ply(p, _GRAPHDECO + extra, [[0.0] * (len(_GRAPHDECO) + len(extra))] * 2)
+    with pytest.raises(ToolkitError, match=msg):
+        GaussianScene.from_ply(p)
+
+
+@pytest.mark.parametrize("comment,msg", [
+    (b"[1, 2]", "is not a JSON object \\(got a JSON array\\)"),
+    (b'"text"', "is not a JSON object \\(got a JSON string\\)"),
+    (b"[" * 5000, "nested deeper than 64 levels"),
+    (b'{"a":' * 100 + b"1" + b"}" * 100, "nested deeper than 64 levels"),
+    (b'{"a": ' + b"9" * 5000 + b"}", "is not valid JSON"),
+    (b"{not json", "is not valid JSON"),
+    (b'{"has_sh": "no"}', "has_sh: expected true or false"),
+    (b'{"feature_dim": -1}', "feature_dim: expected an integer >= 0"),
+    (b'{"feature_dim": 4}', "feature_dim=4, the vertex has 3 feat_"),
+])
+def test_bad_metadata_comment_is_one_error(tmp_path, comment, msg):
+    p = tmp_path / "m.ply"
+    random_scene(3).to_ply(p)
+    head = p.read_bytes().split(b"\n")
+    line = next(ln for ln in head if ln.startswith(b"comment ditgaze "))
+    _with_header_line(p, line, b"comment ditgaze " + comment)
+    with pytest.raises(ToolkitError, match=r"m.ply: .*" + msg):
+        GaussianScene.from_ply(p)
+
+
+@pytest.mark.parametrize("degree", [None, 0, 1, 2, 3])
+@pytest.mark.parametrize("d", [0, 1, 3])
+def test_empty_and_featureless_scenes_round_trip(tmp_path, degree, d):
+    for n in (0, 4):
+        s = random_scene(n, d=d, sh_degree=degree)
+        s.to_ply(tmp_path / "e.ply")
+        _assert_scene_equal(s, GaussianScene.from_ply(tmp_path / "e.ply"))
+
+
+def test_metadata_strings_with_newlines_and_odd_characters_round_trip(tmp_path):
+    s = random_scene(3)
+    s.metadata.update(note="line one\nline two\r\nend_header\n\x00\x1b[31m\u2028é🙂", **{"key\nwith newline": [None, 1.5]})
+    s.to_ply(tmp_path / "m.ply")
+    assert GaussianScene.from_ply(tmp_path / "m.ply").metadata == s.metadata
+
+
+def test_writer_refuses_what_the_reader_would_refuse(tmp_path):
+    wide = random_scene(2, d=70000)  # a header of 70 000 property lines is over the bound readers read
+    with pytest.raises(ToolkitError, match=r"w.ply: the PLY header for 70018 properties .* bytes, more than"):
+        wide.to_ply(tmp_path / "w.ply")
+    far = random_scene(2)
+    far.means = far.means.double() * 1e300  # finite in float64, inf in a PLY's float32
+    with pytest.raises(ToolkitError, match=r"f.ply: GaussianScene.means: values beyond float32's range"):
+        far.to_ply(tmp_path / "f.ply")
+    deep = random_scene(2)
+    deep.metadata["deep"] = json.loads("[" * 70 + "]" * 70)
+    with pytest.raises(ToolkitError, match=r"metadata: nested deeper than 64 levels"):
+        deep.to_ply(tmp_path / "d.ply")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+def test_a_huge_declared_count_is_refused_before_allocating(tmp_path, monkeypatch, fmt):
+    p = tmp_path / "h.ply"
+    write_graphdeco_ply(p, n=3, degree=0, fmt=fmt)
+    _with_header_line(p, b"element vertex 3", b"element vertex 20000000")
+    # Were the body read or parsed, these would run: the count must be refused from the header and file size.
+    monkeypatch.setattr(np, "frombuffer", lambda *a, **k: pytest.fail("read the body"))
+    monkeypatch.setattr(np, "loadtxt", lambda *a, **k: pytest.fail("parsed the body"))
+    with pytest.raises(ToolkitError, match=r"h.ply: element 'vertex' \(the header declares 20000000 vertices of "
+                                           r".*bytes\) needs \d+ bytes but the file holds \d+"):
+        GaussianScene.from_ply(p)
+
+
+@pytest.mark.parametrize("content,msg", [
+    (b"ply\nformat ascii 1.0\nelement vertex " + b"9" * 5000 + b"\nproperty float x\nend_header\n", "bad element line 3"),
+    (b"ply\nformat ascii 1.0\nformat ascii 1.0\nelement vertex 0\nproperty float x\nend_header\n", "second format"),
+    (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nelement vertex 0\nend_header\n", "declared twice"),
+    (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty half x\nend_header\n", "bad property line 4: .*expected"),
+    (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n1\n", "not a PLY file"),
+    (b"plyfoo\nformat ascii 1.0\nelement vertex 0\nproperty float x\nend_header\n", "not a PLY file"),
+    (b"ply\nformat ascii 1.0\ncomment \xff\xfe\nelement vertex 0\nproperty float x\nend_header\n", "not UTF-8"),
+    (b"ply\nformat ascii 1.0\nelement vertex 5\nend_header\n", "declares no properties"),
+    (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nend_header\n1 2\n3  \n",
+     "not 2 numbers each"),
+    (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2 3\n",
+     "rows have 3 values"),
+])
+def test_malformed_headers_and_bodies(tmp_path, content, msg):
+    p = tmp_path / "bad.ply"
+    p.write_bytes(content)
+    with pytest.raises(ToolkitError, match=msg):
+        GaussianScene.from_ply(p)
+
+
+def test_utf8_comments_of_other_tools_are_read(tmp_path):
+    p = tmp_path / "u.ply"
+    _ascii_ply(p, _GRAPHDECO, [[0.0] * len(_GRAPHDECO)], extra_header="comment créé par un outil\n".encode())
+    assert len(GaussianScene.from_ply(p)) == 1
+
+
+def test_many_declared_properties_are_quick(tmp_path):
+    p = tmp_path / "wide.ply"
+    names = _GRAPHDECO + [f"e{i}" for i in range(45000)]  # about the most 1 MiB of header holds
+    _ascii_ply(p, names, [[0.0] * len(names)])
+    t0 = time.perf_counter()
+    assert len(GaussianScene.from_ply(p)) == 1
+    assert time.perf_counter() - t0 < 10
+
+
+@pytest.mark.parametrize("name", ["opacity", "scale_1", "rot_3", "f_dc_2", "x"])
+def test_non_finite_values_of_used_properties_are_named(tmp_path, name):
+    p = tmp_path / "nf.ply"
+    row = [0.0] * len(_GRAPHDECO)
+    row[_GRAPHDECO.index(name)] = float("inf")
+    _ascii_ply(p, _GRAPHDECO, [[0.0] * len(_GRAPHDECO), row])
+    with pytest.raises(ToolkitError, match=rf"nf.ply: vertex property '{name}': 1 of 2 values are NaN or inf"):
+        GaussianScene.from_ply(p)
+
+
+def test_non_finite_normals_are_unused_and_kept(tmp_path):
+    p = tmp_path / "nn.ply"
+    names = _GRAPHDECO + ["nx", "ny", "nz"]
+    _ascii_ply(p, names, [[0.0] * len(_GRAPHDECO) + [float("nan")] * 3])
+    assert len(GaussianScene.from_ply(p)) == 1
+
+
+def test_a_double_beyond_float32_is_refused(tmp_path):
+    p = tmp_path / "d.ply"
+    _ascii_ply(p, _GRAPHDECO, [[1e300] + [0.0] * (len(_GRAPHDECO) - 1)])
+    with pytest.raises(ToolkitError, match=r"vertex property 'x': .*beyond float32"):
+        GaussianScene.from_ply(p)
