@@ -45,39 +45,57 @@ def fit_sphere(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return (c + mu).to(points.dtype), torch.sqrt(r2).to(points.dtype)
 
 
-def _stored_eyeball(entry: Any, name: str) -> tuple[list[float], float]:
-    """``metadata["eyes"][name]`` -> (centre [3], radius), checked: the scene file is user input."""
-    where = f"scene metadata eyes.{name}"
+def _stored_eyeball(entry: Any, where: str) -> tuple[list[float], float]:
+    """One eye's entry of ``metadata["eyes"]`` -> (centre [3], radius), checked: the scene file is user input."""
     if not isinstance(entry, dict):
         raise ToolkitError(f"{where}: expected a mapping with 'center' and 'radius', got {type(entry).__name__}")
     c, r = entry.get("center"), entry.get("radius")
     ok = (isinstance(c, (list, tuple)) and len(c) == 3
           and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in c))
     if not ok:
-        raise ToolkitError(f"{where}.center: expected 3 finite numbers, got {c!r}")
+        raise ToolkitError(f"{where}.center: expected 3 finite numbers, got {_short(c)}")
     if isinstance(r, bool) or not isinstance(r, (int, float)) or not (math.isfinite(r) and r > 0):
-        raise ToolkitError(f"{where}.radius: expected a finite number > 0, got {r!r}")
+        raise ToolkitError(f"{where}.radius: expected a finite number > 0, got {_short(r)}")
     return [float(v) for v in c], float(r)
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = " ".join(repr(value).split())  # one line, however the file spelled it
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def check_eyes_metadata(eyes: Any, where: str = "scene metadata eyes") -> dict[str, tuple[list[float], float]]:
+    """``metadata["eyes"]`` checked -> {eye name: (centre, radius)} for the eyes it gives (absent, None or {}:
+    none, the spheres are fitted). Anything else is one ToolkitError naming ``where`` and the entry, whether or
+    not the scene has that eye's Gaussians: invalid metadata is never taken for missing metadata."""
+    if eyes is None:
+        return {}
+    if not isinstance(eyes, dict):
+        raise ToolkitError(f"{where}: expected a mapping of left/right eyeballs, got {type(eyes).__name__}")
+    return {name: _stored_eyeball(eyes[name], f"{where}.{name}") for name in EYE_PARTS if name in eyes}
 
 
 def eyeball_info(scene) -> dict[str, dict[str, torch.Tensor]]:
     """Per-eye {"center": [3], "radius": []} from metadata, else fitted to that eye's Gaussian means.
 
-    Eyes without Gaussians are left out; the result is empty for a scene with no eye Gaussians.
+    Eyes without Gaussians are left out; the result is empty for a scene with no eye Gaussians. Invalid
+    ``metadata["eyes"]`` is a ToolkitError naming it (:func:`check_eyes_metadata`), as is an eye whose
+    Gaussians do not determine a sphere (:func:`fit_sphere`): neither means "no eye Gaussians".
     """
-    meta = scene.metadata.get("eyes", {}) or {}
-    if not isinstance(meta, dict):
-        raise ToolkitError(f"scene metadata eyes: expected a mapping of left/right eyeballs, got {type(meta).__name__}")
+    stored = check_eyes_metadata(scene.metadata.get("eyes"))
     out = {}
     for name, part in EYE_PARTS.items():
         mask = scene.part == part
         if not bool(mask.any()):
             continue
-        if name in meta:
-            c, r = _stored_eyeball(meta[name], name)
-            c, r = (torch.tensor(v, dtype=scene.means.dtype, device=scene.device) for v in (c, r))
+        if name in stored:
+            c, r = (torch.tensor(v, dtype=scene.means.dtype, device=scene.device) for v in stored[name])
         else:
-            c, r = fit_sphere(scene.means[mask])
+            try:
+                c, r = fit_sphere(scene.means[mask])
+            except ToolkitError as e:
+                raise ToolkitError(f"scene {name} eye: its {int(mask.sum())} Gaussians give no eyeball sphere and "
+                                   f"metadata eyes.{name} gives none ({e})") from None
         out[name] = {"center": c, "radius": r}
     return out
 

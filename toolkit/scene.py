@@ -25,7 +25,8 @@ from typing import Any, Sequence
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.io import load_tensors, save_tensors
+from toolkit.eyes import check_eyes_metadata
+from toolkit.io import MAX_JSON_DEPTH, json_depth, load_tensors, save_tensors
 from toolkit.ply import read_gaussian_ply, write_gaussian_ply
 from toolkit.rotations import normalize_quat
 
@@ -36,6 +37,8 @@ PART_FACE, PART_LEFT_EYE, PART_RIGHT_EYE = 0, 1, 2
 PART_NAMES = {PART_FACE: "face", PART_LEFT_EYE: "left_eye", PART_RIGHT_EYE: "right_eye"}
 
 _FLOAT_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "features")
+# What every consumer computes in; float8 and other exotic safetensors dtypes load, but are refused by name.
+_FLOAT_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
 
 
 @dataclass
@@ -118,8 +121,9 @@ class GaussianScene:
                 )
         for name in _FLOAT_FIELDS + (("sh",) if self.sh is not None else ()):
             t = getattr(self, name)
-            if not t.is_floating_point():
-                raise ToolkitError(f"GaussianScene.{name}: expected a floating-point tensor, got {t.dtype}")
+            if t.dtype not in _FLOAT_DTYPES:
+                raise ToolkitError(f"GaussianScene.{name}: expected a floating-point tensor (float16, bfloat16, "
+                                   f"float32 or float64), got {t.dtype}")
             if t.numel() and not bool(torch.isfinite(t).all()):
                 bad = int((~torch.isfinite(t)).any(dim=-1).sum()) if t.dim() > 1 else int((~torch.isfinite(t)).sum())
                 raise ToolkitError(f"GaussianScene.{name}: {bad} Gaussian(s) have NaN or inf values")
@@ -130,6 +134,7 @@ class GaussianScene:
         devices = {getattr(self, f).device for f in _FLOAT_FIELDS + ("part",)}
         if len(devices) > 1:
             raise ToolkitError(f"GaussianScene: fields live on different devices {sorted(map(str, devices))}")
+        _check_metadata(self.metadata)
         return self
 
     # ------------------------------------------------------------------ construction and selection
@@ -243,7 +248,7 @@ class GaussianScene:
         if meta.get("format") != FORMAT_NAME:
             raise ToolkitError(f"{path}: not a GaussianScene file (format={meta.get('format')!r})")
         version = meta.get("format_version")
-        if not isinstance(version, int) or version < 1 or version > FORMAT_VERSION:
+        if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
             raise ToolkitError(
                 f"{path}: scene format version {version!r} is not supported (this toolkit reads 1..{FORMAT_VERSION});"
                 " upgrade ditgaze to read it"
@@ -298,6 +303,16 @@ class GaussianScene:
             lines.append(f"scales: min {s.min():.3g} median {s.median():.3g} max {s.max():.3g}; "
                          f"opacity mean {self.opacities.mean():.3f}")
         return "\n".join(lines)
+
+
+def _check_metadata(meta: Any) -> None:
+    """The metadata a file can carry and every reader takes back: a JSON object of bounded depth (as
+    ``toolkit.io.parse_json_object`` reads it) whose ``eyes`` entry, if any, is valid (``toolkit.eyes``)."""
+    if not isinstance(meta, dict):
+        raise ToolkitError(f"GaussianScene.metadata: expected a dict, got {type(meta).__name__}")
+    if json_depth(meta) > MAX_JSON_DEPTH:
+        raise ToolkitError(f"GaussianScene.metadata: nested deeper than {MAX_JSON_DEPTH} levels")
+    check_eyes_metadata(meta.get("eyes"), "GaussianScene.metadata.eyes")
 
 
 def _shape(t: Any) -> str:

@@ -131,3 +131,85 @@ def test_directory_and_missing_file(tmp_path):
         GaussianScene.read(tmp_path / "x.obj")
     with pytest.raises(ToolkitError, match="is a directory"):
         random_scene(3).save(tmp_path)
+
+
+def _eyed_scene():
+    from toolkit.procedural import demo_head_scene
+
+    s = demo_head_scene(2000)
+    assert int((s.part == 1).sum()) == int((s.part == 2).sum()) == 80
+    return s
+
+
+@pytest.mark.parametrize("eyes,msg", [
+    ([1, 2], r"metadata.eyes: expected a mapping of left/right eyeballs, got list"),
+    ("left", r"metadata.eyes: expected a mapping"),
+    ({"left": {"center": [0, 0], "radius": 0.01}}, r"metadata.eyes.left.center: expected 3 finite numbers"),
+    ({"right": {"center": [0, 0, 0], "radius": 0}}, r"metadata.eyes.right.radius: expected a finite number > 0"),
+    ({"right": 5}, r"metadata.eyes.right: expected a mapping"),
+])
+def test_invalid_eye_metadata_is_refused_naming_it_not_taken_for_no_eyes(tmp_path, eyes, msg):
+    from toolkit.eyes import eyeball_info
+    from toolkit.io import save_tensors
+
+    s = _eyed_scene()
+    s.metadata["eyes"] = eyes
+    with pytest.raises(ToolkitError, match=msg):
+        eyeball_info(s)  # never {} ("no eye Gaussians") for a scene with hundreds of them
+    with pytest.raises(ToolkitError, match="GaussianScene." + msg):
+        s.validate()
+    with pytest.raises(ToolkitError, match=msg):
+        s.save(tmp_path / "w.safetensors")
+    meta = dict(s.metadata, format="ditgaze.gaussian_scene", format_version=FORMAT_VERSION)
+    save_tensors(tmp_path / "e.safetensors", s.tensors(), meta)
+    with pytest.raises(ToolkitError, match=r"e.safetensors: GaussianScene." + msg):
+        GaussianScene.load(tmp_path / "e.safetensors")
+    assert not (tmp_path / "w.safetensors").exists()
+
+
+def test_an_eye_that_gives_no_sphere_says_so(tmp_path):
+    from toolkit.eyes import eyeball_info
+
+    s = random_scene(20)
+    s.part[:] = 0
+    s.part[:3] = 1
+    s.metadata.pop("eyes", None)
+    with pytest.raises(ToolkitError, match=r"scene left eye: its 3 Gaussians give no eyeball sphere"):
+        eyeball_info(s)
+
+
+def _forge(tmp_path, name, tensors, **meta):
+    from toolkit.io import save_tensors
+
+    s = random_scene(5)
+    t = s.tensors()
+    t.update(tensors)
+    save_tensors(tmp_path / name, t, {"format": "ditgaze.gaussian_scene", "format_version": FORMAT_VERSION, **meta})
+    return tmp_path / name
+
+
+@pytest.mark.parametrize("tensors,meta,msg", [
+    ({"means": torch.zeros(5, 2)}, {}, r"GaussianScene.means: expected shape \[N, 3\], got \[5, 2\]"),
+    ({"means": torch.zeros(5, 3, 1)}, {}, r"GaussianScene.means: expected shape"),
+    ({"part": torch.full((5,), 3, dtype=torch.int8)}, {}, r"GaussianScene.part: labels must be 0"),
+    ({"part": torch.zeros(5, dtype=torch.int64)}, {}, r"GaussianScene.part: expected int8"),
+    ({"quats": torch.zeros(5, 4, dtype=torch.float8_e4m3fn)}, {}, r"GaussianScene.quats: expected a floating"),
+    ({"opacity_logits": torch.zeros(5, dtype=torch.int32)}, {}, r"GaussianScene.opacity_logits: expected a floating"),
+    ({"sh": torch.zeros(5, 5, 3)}, {}, r"GaussianScene.sh: expected shape"),
+    ({"features": torch.zeros(4, 3)}, {}, r"GaussianScene.features: expected shape \[N=5, D\]"),
+    ({}, {"format_version": True}, r"scene format version True is not supported"),
+    ({}, {"format_version": "1"}, r"scene format version '1' is not supported"),
+])
+def test_a_scene_file_with_wrong_tensors_names_the_file_and_the_field(tmp_path, tensors, meta, msg):
+    p = _forge(tmp_path, "bad.safetensors", tensors, **meta)
+    with pytest.raises(ToolkitError, match=r"bad.safetensors: " + msg):
+        GaussianScene.load(p)
+
+
+def test_over_deep_metadata_is_refused_by_validate(tmp_path):
+    import json
+
+    s = random_scene(3)
+    s.metadata["deep"] = json.loads("[" * 70 + "]" * 70)
+    with pytest.raises(ToolkitError, match=r"GaussianScene.metadata: nested deeper than 64 levels"):
+        s.save(tmp_path / "d.safetensors")
