@@ -29,13 +29,16 @@ def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:
     path = Path(path)
     if not path.is_file():
         raise ToolkitError(f"{what} {path}: no such file")
+    limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None  # Pillow's own bomb check: the one below words it
     try:
-        with warnings.catch_warnings():  # Pillow warns of a large image; the check below says it in one line
+        with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             with Image.open(path) as im:
                 w, h = im.size
-    except (OSError, ValueError, Image.DecompressionBombError, SyntaxError) as e:
+    except (OSError, ValueError, SyntaxError) as e:
         raise ToolkitError(f"{what} {path}: not a readable image ({e.__class__.__name__})") from None
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
     if w < 1 or h < 1 or w * h > MAX_IMAGE_PIXELS:
         raise ToolkitError(f"{what} {path}: {w}x{h} pixels (width x height); expected at most {MAX_IMAGE_PIXELS} "
                            f"pixels")

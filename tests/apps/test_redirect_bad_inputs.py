@@ -1,0 +1,135 @@
+"""Bad input to ``python -m apps.redirect`` (flags, gaze specs, labels CSVs, image bombs, a full disk): one line,
+exit 2, inputs unchanged, nothing new beside the output. Part of the fuzz suite (marker ``fuzz``)."""
+
+from __future__ import annotations
+
+import os
+import resource
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.apps.test_redirect_csv import HEADER, write_crops
+from tests.fuzz.cli import assert_refused
+
+pytestmark = pytest.mark.fuzz
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _h5(run: Path) -> Path:
+    return sorted((run / "data").glob("*.h5"))[-1]
+
+
+# (id, extra flags, error regex): refused by the flags' own checks or the sizes they imply, before any render.
+FLAGS = [
+    ("fit-steps-1e8", ["--fit-steps", "100000000"], r"--fit-steps: expected test-time fitting steps per row in \[0, 20000\]"),
+    ("batch-0", ["--batch", "0"], r"--batch: expected input rows per chunk in \[1, 4096\]"),
+    ("batch-huge", ["--batch", "1000000"], r"--batch: expected input rows per chunk"),
+    ("rows-negative", ["--rows", "-3"], r"--rows: expected a row count"),
+    ("steps-negative", ["--steps", "-1"], r"--steps: expected DDIM steps"),
+    ("steps-huge", ["--steps", "10000000"], r"--steps: expected DDIM steps"),
+    ("seed-2^32", ["--seed", "4294967296"], r"--seed must be in \[0, 2\^32\)"),
+    ("fit-lr-nan", ["--fit-lr", "nan"], r"--fit-lr must be in \(0, 1\]"),
+    ("grid-zero", ["--gazes", "grid:0x3:20"], r"at least 1 row and 1 column"),
+    ("grid-cap", ["--gazes", "grid:1000x1000:20"], r"at most 100000 per input row"),
+    ("grid-noise", ["--gazes", "grid:316x316:30"], r"99856 gazes.*would allocate"),
+    ("random-cap", ["--gazes", "random:1000000:30"], r"expected 1..100000 random gazes"),
+    ("range-90", ["--gazes", "grid:3x3:90"], r"expected a range in \[0, 90\) degrees"),
+    ("range-nan", ["--gazes", "random:3:nan"], r"expected a range in \[0, 90\) degrees"),
+    ("bad-kind", ["--gazes", "spiral:3"], r"expected grid:"),
+    ("no-file", ["--gazes", "file:/nonexistent/g.csv"], r"--gazes file /nonexistent/g.csv: no such file"),
+    ("natural-eyes-alone", ["--natural-eyes"], r"--natural-eyes sets how --fit-weights fits"),
+    ("fit-weights-0-steps", ["--fit-weights", "--fit-steps", "0"], r"--fit-weights needs --fit-steps >= 1"),
+]
+
+
+@pytest.mark.parametrize("flags, match", [pytest.param(f, m, id=i) for i, f, m in FLAGS])
+def test_bad_flags(tiny_trained_run, tmp_path, flags, match):
+    data = _h5(tiny_trained_run)
+    assert_refused("apps.redirect", [tiny_trained_run, data, tmp_path / "out.h5", *flags], match,
+                   inputs=[data], out_dir=tmp_path)
+
+
+def test_outputs_that_are_inputs_or_not_hdf5(tiny_trained_run, tmp_path):
+    data = _h5(tiny_trained_run)
+    assert_refused("apps.redirect", [tiny_trained_run, data, data], r"out", inputs=[data], out_dir=tmp_path)
+    assert_refused("apps.redirect", [tiny_trained_run, data, tmp_path / "out.png"], r"ending in .h5",
+                   inputs=[data], out_dir=tmp_path)
+
+
+def test_gaze_files(tiny_trained_run, tmp_path):
+    data, gz = _h5(tiny_trained_run), tmp_path / "in" / "g.csv"
+    gz.parent.mkdir()
+    cases = [("pitch,yaw\n", r"expected lines of 'pitch,yaw'"), ("", r"no gazes in the file"),
+             ("1,2,3\n", r"expected two columns"), ("95,0\n", r"within ±90°"), ("nan,0\n", r"finite"),
+             ("0,0\n" * 100_001, r"at most 100000")]
+    for text, match in cases:
+        gz.write_text(text)
+        assert_refused("apps.redirect", [tiny_trained_run, data, tmp_path / "out.h5", "--gazes", f"file:{gz}"],
+                       match, inputs=[data, gz], out_dir=tmp_path)
+    gz.write_bytes(b"0,0\n" * 2_000_000)  # 8 MB: refused from its size, before it is parsed
+    assert_refused("apps.redirect", [tiny_trained_run, data, tmp_path / "out.h5", "--gazes", f"file:{gz}"],
+                   r"bytes; expected at most 100000 lines", inputs=[data, gz], out_dir=tmp_path)
+
+
+def _bomb(path: Path, side: int = 20_000) -> None:
+    """A PNG declaring side x side pixels of one colour: a few hundred KB that decode to side² x 3 bytes."""
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+    row = b"\0" * (side + 1)  # a filter byte, then one grey byte a pixel
+    comp = zlib.compressobj(9)
+    body = b"".join(comp.compress(row) for _ in range(side)) + comp.flush()
+    ihdr = side.to_bytes(4, "big") * 2 + bytes([8, 0, 0, 0, 0])
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", body) + chunk(b"IEND", b""))
+
+
+def test_labels_csv_bad_rows(tiny_trained_run, tmp_path):
+    crops = tmp_path / "crops"
+    write_crops(tiny_trained_run, crops, n=1)
+    labels = crops / "labels.csv"
+    good = labels.read_text().splitlines()[1]
+    cells = good.split(",")
+    cases = [
+        (",".join(cells[:3] + ["1e300", cells[4]] + cells[5:]), r"column 'gaze_pitch': expected degrees"),
+        (",".join(["img0.png"] + cells[1:]) + ",extra", r"cells, the header has"),
+        (",".join(["missing.png"] + cells[1:]), r"column 'image': missing.png|no such file"),
+    ]
+    for row, match in cases:
+        labels.write_text(HEADER + "\n" + row + "\n")
+        assert_refused("apps.redirect", [tiny_trained_run, labels, tmp_path / "out.h5"], match,
+                       inputs=[crops], out_dir=tmp_path)
+    labels.write_text(HEADER + ",focal\n" + good + ",1e300\n")
+    assert_refused("apps.redirect", [tiny_trained_run, labels, tmp_path / "out.h5"],
+                   r"line 2, column 'focal': expected pixels in \[0, ", inputs=[crops], out_dir=tmp_path)
+    _bomb(crops / "bomb.png")
+    assert (crops / "bomb.png").stat().st_size < 1_000_000
+    labels.write_text(HEADER + "\n" + ",".join(["bomb.png"] + cells[1:]) + "\n")
+    assert_refused("apps.redirect", [tiny_trained_run, labels, tmp_path / "out.h5"],
+                   r"bomb.png: 20000x20000 pixels .* expected at most", inputs=[crops], out_dir=tmp_path)
+    labels.write_text(HEADER + "\n" + good + "\n")
+    assert_refused("apps.redirect", [tiny_trained_run, labels, tmp_path / "out.h5", "--focal", "1e300"],
+                   r"--focal 1e\+300: expected at most 1000 image widths", inputs=[crops], out_dir=tmp_path)
+
+
+def _limited() -> None:
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (40_000, 40_000))
+
+
+def test_redirect_on_a_full_disk(tiny_trained_run, tmp_path):
+    """The chunk being written is removed; the chunks finished before are kept for a resume (by design)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-m", "apps.redirect", str(tiny_trained_run), str(_h5(tiny_trained_run)),
+                        str(tmp_path / "out.h5"), "--gazes", "grid:3x3:20", "--rows", "4"], env=env,
+                       preexec_fn=_limited, capture_output=True, text=True, timeout=300)
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert len(errors) == 1 and "file too large" in errors[0], r.stderr[-2000:]
+    assert not [p for p in tmp_path.rglob("*") if p.name.endswith(".tmp")]
+    assert not (tmp_path / "out.h5").exists()
