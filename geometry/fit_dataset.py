@@ -1,6 +1,7 @@
 """``geometry fit DATASET OUT``: the neutral head from a multi-view HDF5 subject file (docs/data.md).
 
-geometry must not import train, so the keys are read here directly with h5py. Every row's camera is
+The keys are read through train.data.format's bounded reader (it imports only toolkit): links, external
+storage and forged sizes are refused there, before any row is read. Every row's camera is
 moved into the **head** frame (camera-from-head = w2c o pose, with the pose's scale), so silhouettes from
 all frames and all rig cameras constrain one neutral head; the 3D landmarks are moved into the head frame
 the same way and their per-landmark median over the frames (robust to the expressions) is used.
@@ -28,11 +29,15 @@ ROW_KEYS = ("head_mask", "inmat", "w2c_Rmat", "w2c_Tvec", "pose", "facial_landma
 DEFAULT_HOLDOUT = (2, 7, 10, 15)
 
 
-def _read(f, path, key, shape_tail=None):
+def _read(f, path, key, shape_tail=None, *, copies: int = 1):
+    from train.data.format import read_array
+
     if key not in f:
         raise ToolkitError(f"{path}: missing dataset {key!r} (expected the keys of docs/data.md)")
-    a = np.asarray(f[key])
-    if shape_tail is not None and tuple(a.shape[1:]) != shape_tail:
+    a = read_array(path, f, key, copies=copies)
+    if a.dtype.kind not in "biuf":
+        raise ToolkitError(f"{path}: key '{key}' has dtype {a.dtype}, expected numbers")
+    if shape_tail is not None and (a.ndim == 0 or tuple(a.shape[1:]) != shape_tail):
         raise ToolkitError(f"{path}: {key} has shape {list(a.shape)}, expected [N, {', '.join(map(str, shape_tail))}]")
     if a.dtype.kind == "f" and not np.isfinite(a).all():
         raise ToolkitError(f"{path}: {key} contains NaN/inf")
@@ -45,7 +50,7 @@ def _read_rows(f, path, key, n: int, width: int = 1, default=None):
     if key not in f and default is not None:
         return default
     a = _read(f, path, key)
-    if a.size != n * width or a.shape[0] != n:
+    if a.ndim == 0 or a.size != n * width or a.shape[0] != n:
         want = f"[{n}]" if width == 1 else f"[{n}, {width}]"
         raise ToolkitError(f"{path}: {key} has shape {list(a.shape)}, expected {want} (one row per head_mask image)")
     return a.reshape(n) if width == 1 else a.reshape(n, width)
@@ -58,17 +63,14 @@ def read_subject(path: str | os.PathLike) -> dict:
     in), landmarks [68, 3] (head frame, median over frames), cam_index [N], and when present the
     generator's ground truth: gt_verts [V, 3] (head frame), gt_faces [F, 3].
     """
-    import h5py
+    from train.data.format import check_subject_arrays, open_h5
 
     path = check_readable_file(path, "HDF5 subject file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise ToolkitError(f"{path}: not an HDF5 file ({str(e)[:120]})") from None
-    with f:
-        masks = _read(f, path, "head_mask")
-        if masks.ndim != 3 or masks.shape[0] < 1:
-            raise ToolkitError(f"{path}: head_mask must be [N, H, W], got {list(masks.shape)}")
+    with open_h5(path) as f:
+        masks = _read(f, path, "head_mask", copies=3)  # + the boolean masks and their tensor views
+        if masks.ndim != 3 or masks.shape[0] < 1 or min(masks.shape[1:]) < 8:
+            raise ToolkitError(f"{path}: head_mask must be [N, H, W] with N >= 1 and H, W >= 8 pixels, "
+                               f"got {list(masks.shape)}")
         n = masks.shape[0]
         K = _read(f, path, "inmat", (3, 3))
         Rc = _read(f, path, "w2c_Rmat", (3, 3))
@@ -81,10 +83,11 @@ def read_subject(path: str | os.PathLike) -> dict:
         for k, a in (("inmat", K), ("w2c_Rmat", Rc), ("pose", pose), ("facial_landmarks_3d", lmk_w)):
             if a.shape[0] != n:
                 raise ToolkitError(f"{path}: {k} has {a.shape[0]} rows, head_mask has {n}")
+        subject = check_subject_arrays(path, f)
         gt = {}
-        if "neutral_vertice" in f and "mesh_faces" in f:
-            gt = {"gt_verts": torch.from_numpy(np.asarray(f["neutral_vertice"], np.float32)),
-                  "gt_faces": torch.from_numpy(np.asarray(f["mesh_faces"]).astype(np.int64))}
+        if "neutral_vertice" in subject and "mesh_faces" in subject:
+            gt = {"gt_verts": torch.from_numpy(subject["neutral_vertice"].astype(np.float32)),
+                  "gt_faces": torch.from_numpy(subject["mesh_faces"].astype(np.int64))}
     if not (scale > 0).all():
         raise ToolkitError(f"{path}: scale must be > 0")
     R = so3_exp(torch.from_numpy(pose[:, :3].astype(np.float64))).numpy()  # head -> world rotation

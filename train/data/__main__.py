@@ -28,14 +28,16 @@ def _table(rows: list[dict], columns: list[str]) -> str:
 
 
 def summarize(path: Path, info: dict) -> dict:
-    from train.data.format import open_h5
+    from train.data.format import h5_dataset, open_h5, read_array, read_selection
 
-    with open_h5(path) as f:
-        g = np.degrees(f["pitchyaw_head"][()])
-        hp = np.degrees(f["face_head_pose"][()])
-        cams = len(np.unique(f["cam_index"][()]))
-        frames = len(np.unique(f["frame_index"][()]))
-        cov = float(np.mean([f["head_mask"][i].mean() / 255 for i in np.linspace(0, info["n"] - 1, 8).astype(int)]))
+    with open_h5(path) as f:  # validated by GazeDataset: the labels fit memory, one mask row does
+        g = np.degrees(read_array(path, f, "pitchyaw_head"))
+        hp = np.degrees(read_array(path, f, "face_head_pose"))
+        cams = len(np.unique(read_array(path, f, "cam_index")))
+        frames = len(np.unique(read_array(path, f, "frame_index")))
+        mask = h5_dataset(path, f, "head_mask")
+        rows = np.linspace(0, info["n"] - 1, 8).astype(int)
+        cov = float(np.mean([read_selection(path, "head_mask", mask, int(i)).mean() / 255 for i in rows]))
     return {
         "file": path.name, "images": info["n"], "res": f"{info['width']}x{info['height']}", "cameras": cams,
         "frames": frames, "vertices": info["n_vertices"],

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError
-from train.data.format import OPTIONAL, validate_subject_file
+from train.data.format import OPTIONAL, READ_ERRORS, read_array, read_selection, validate_subject_file
 
 SPLITS = ("all", "train", "test")
 
@@ -115,6 +115,9 @@ class GazeDataset(torch.utils.data.Dataset):
         self.res = None if res is None else int(res)
         self.composite, self.with_mesh = composite, with_mesh
         self.info = [validate_subject_file(f) for f in self.files]
+        from toolkit.limits import check_allocation
+
+        check_allocation(16 * sum(i["n"] for i in self.info), f"the row index of {len(self.files)} subject files")
         self.index = np.concatenate([np.stack([np.full(i["n"], k), np.arange(i["n"])], 1) for k, i in enumerate(self.info)])
         self._handles: dict[int, Any] = {}
         self._pid = os.getpid()
@@ -126,10 +129,7 @@ class GazeDataset(torch.utils.data.Dataset):
         """Raise a ToolkitError when a row's head ``scale`` is not 1: ``what`` (a consumer that poses the head
         rigidly, as the Gaussian model does) does not support scaled heads yet. The geometry stage does."""
         for k in range(len(self.files)):
-            try:
-                scale = np.asarray(self._file(k)["scale"][:], np.float64).reshape(-1)
-            except (OSError, KeyError, ValueError) as e:
-                raise ToolkitError(f"{self.files[k]}: cannot read key 'scale' ({e})") from e
+            scale = read_array(self.files[k], self._file(k), "scale").astype(np.float64).reshape(-1)
             bad = np.flatnonzero(np.abs(scale - 1) > 1e-6)
             if bad.size:
                 raise ToolkitError(f"{self.files[k]}: key 'scale' is {scale[bad[0]]:g} at row {int(bad[0])} "
@@ -144,8 +144,8 @@ class GazeDataset(torch.utils.data.Dataset):
         if h is None:
             try:
                 h = self._handles[k] = h5py.File(self.files[k], "r")
-            except OSError as e:
-                raise ToolkitError(f"{self.files[k]}: cannot open ({e})") from e
+            except READ_ERRORS as e:
+                raise ToolkitError(f"{self.files[k]}: cannot open ({' '.join(str(e).split())})") from e
         return h
 
     def close(self) -> None:
@@ -169,10 +169,15 @@ class GazeDataset(torch.utils.data.Dataset):
             keys.append("vertice")
         out = {}
         for key in keys:
+            # The file was validated when the dataset was built: its keys resolve inside it, one row fits memory.
             try:
-                out[key] = np.asarray(f[key][row])
-            except (OSError, KeyError, ValueError) as e:
-                raise ToolkitError(f"{self.files[k]}: cannot read key '{key}' row {row} (truncated or corrupt?): {e}") from e
+                ds = f[key]
+            except READ_ERRORS as e:
+                raise ToolkitError(f"{self.files[k]}: key '{key}' cannot be opened (changed since it was checked?): "
+                                   f"{' '.join(str(e).split())}") from e
+            out[key] = read_selection(self.files[k], key, ds, row)
+        if "vertice" in out and not np.isfinite(out["vertice"]).all():  # too large to check whole up front
+            raise ToolkitError(f"{self.files[k]}: key 'vertice' row {row} contains NaN or inf")
         return out
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:

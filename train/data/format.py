@@ -9,7 +9,10 @@ docs/data.md documents every key and the frames.
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 import os
+import posixpath
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +84,28 @@ def write_subject_h5(path: str | os.PathLike, rows: dict[str, np.ndarray], *, su
     return path
 
 
+
+# ----------------------------------------------------------------------------------------------
+# Bounded reading: every reader of subject files (validation, GazeDataset, `train.data inspect`,
+# `geometry fit`) opens files with open_h5 and datasets with h5_dataset, and reads through read_array /
+# read_selection, so a forged or damaged file is one ToolkitError naming the file and key.
+# ----------------------------------------------------------------------------------------------
+
+MAX_LINK_HOPS = 8
+"""Soft links followed from one key (HDF5's own limit is 16; a longer chain is a loop or a forgery)."""
+
+MAX_ATTR_BYTES = 1 << 16
+"""Bytes of one file attribute: attributes hold short text and numbers (the generator's are < 2 KiB)."""
+
+NUMERIC_KINDS = "biufc"
+READ_ERRORS = (OSError, RuntimeError, ValueError, TypeError, KeyError)
+"""What h5py raises on a damaged file: HDF5 errors come as OSError or RuntimeError, a few as the others."""
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())[:300]
+
+
 @contextlib.contextmanager
 def open_h5(path: str | os.PathLike):
     """Open an HDF5 file read-only, turning unreadable / truncated files into a ToolkitError."""
@@ -91,20 +116,171 @@ def open_h5(path: str | os.PathLike):
     path = check_readable_file(path, "HDF5 file")
     try:
         f = h5py.File(path, "r")
-    except OSError as e:
-        raise ToolkitError(f"{path}: not a readable HDF5 file (truncated or corrupt?): {e}") from e
+    except READ_ERRORS as e:
+        raise ToolkitError(f"{path}: not a readable HDF5 file (truncated or corrupt?): {_one_line(e)}") from e
     try:
         yield f
     finally:
         f.close()
 
 
-def _check_dataset(path, f, key: str, spec: tuple, kinds: str, sizes: dict, n: int | None) -> int:
+class _Unresolved(Exception):
+    pass
+
+
+class _External(Exception):
+    pass
+
+
+def _walk(f, name: str, hops: int):
+    """The object at absolute HDF5 path ``name``, one link at a time: h5py would follow external links (which
+    open any file on the machine) and report a dangling soft link as a bare KeyError."""
     import h5py
 
-    ds = f[key]
-    if not isinstance(ds, h5py.Dataset):
-        raise ToolkitError(f"{path}: key '{key}' is a {type(ds).__name__}, expected a dataset of rows")
+    obj, parts = f, [p for p in name.split("/") if p not in ("", ".")]
+    for i, part in enumerate(parts):
+        here = "/" + "/".join(parts[: i + 1])
+        if not isinstance(obj, h5py.Group):
+            raise _Unresolved(f"'{posixpath.dirname(here)}' is not a group")
+        link = obj.get(part, getlink=True)
+        if link is None:
+            raise _Unresolved(f"'{here}' does not exist")
+        if isinstance(link, h5py.ExternalLink):
+            raise _External(f"'{link.path}' in {link.filename}")
+        if isinstance(link, h5py.SoftLink):
+            if hops >= MAX_LINK_HOPS:
+                raise _Unresolved(f"soft links nest deeper than {MAX_LINK_HOPS}: a loop?")
+            target = link.path if link.path.startswith("/") else posixpath.join(posixpath.dirname(here), link.path)
+            obj = _walk(f, target, hops + 1)
+        elif isinstance(link, h5py.HardLink):
+            obj = obj[part]
+        else:
+            raise _Unresolved(f"'{here}' is a user-defined link")
+    return obj
+
+
+def dtype_name(dt: np.dtype) -> str:
+    """A dtype as a user reads it: strings, compounds and variable-length sequences by name."""
+    import h5py
+
+    if dt.names:
+        return "compound (" + ", ".join(dt.names)[:80] + ")"
+    if h5py.check_string_dtype(dt) is not None:
+        info = h5py.check_string_dtype(dt)
+        return "variable-length string" if info.length is None else f"fixed-length string ({dt})"
+    if h5py.check_vlen_dtype(dt) is not None:
+        return f"variable-length sequences of {h5py.check_vlen_dtype(dt)}"
+    if dt.subdtype is not None:
+        return f"array type {dt.subdtype[0]}{list(dt.subdtype[1])}"
+    if dt.kind == "O":
+        return "object reference"
+    return str(dt)
+
+
+def h5_dataset(path, f, key: str, kinds: str = NUMERIC_KINDS, expected: str = "numbers"):
+    """The dataset at ``key``, refused (one ToolkitError naming file and key) when it is missing, a link that
+    does not resolve inside the file, an external link, not a dataset, stored outside the file (external
+    storage, virtual), empty, not of the dtype ``kinds`` (named ``expected``), or a contiguous dataset that stores fewer bytes than its
+    shape declares (truncated, or a forged shape that would make a reader allocate for data it does not hold)."""
+    import h5py
+
+    try:
+        link = f.get(key, getlink=True)
+        if link is None:
+            raise ToolkitError(f"{path}: missing key '{key}'")
+        obj = _walk(f, "/" + key, 0)
+    except _External as e:
+        how = "is" if isinstance(link, h5py.ExternalLink) else "leads through"
+        raise ToolkitError(f"{path}: key '{key}' {how} an external link to {e}; expected data stored in this file "
+                           "(external links are not followed)") from None
+    except _Unresolved as e:
+        raise ToolkitError(f"{path}: key '{key}' is a soft link to '{link.path}', which does not resolve "
+                           f"({e})") from None
+    except READ_ERRORS as e:
+        raise ToolkitError(f"{path}: key '{key}' cannot be opened (truncated or corrupt?): {_one_line(e)}") from e
+    if not isinstance(obj, h5py.Dataset):
+        raise ToolkitError(f"{path}: key '{key}' is a {type(obj).__name__}, expected a dataset of rows")
+    try:
+        _check_storage(path, key, obj, kinds, expected)
+    except READ_ERRORS as e:
+        raise ToolkitError(f"{path}: key '{key}' cannot be opened (truncated or corrupt?): {_one_line(e)}") from e
+    return obj
+
+
+def _check_storage(path, key: str, ds, kinds: str, expected: str) -> None:
+    import h5py
+
+    from toolkit.limits import check_declared_size
+
+    plist = ds.id.get_create_plist()
+    if plist.get_layout() == h5py.h5d.VIRTUAL:
+        raise ToolkitError(f"{path}: key '{key}' is a virtual dataset (its data are mapped from other files); "
+                           "expected data stored in this file")
+    if plist.get_external_count():
+        raise ToolkitError(f"{path}: key '{key}' keeps its data in another file (HDF5 external storage); "
+                           "expected data stored in this file")
+    if ds.shape is None:
+        raise ToolkitError(f"{path}: key '{key}' has no data (an empty dataspace), expected an array")
+    dt = ds.dtype
+    if dt.kind not in kinds or dt.subdtype is not None:
+        raise ToolkitError(f"{path}: key '{key}' has dtype {dtype_name(dt)}, expected {expected}")
+    declared = math.prod(ds.shape) * dt.itemsize
+    if plist.get_layout() == h5py.h5d.CONTIGUOUS:
+        # Compressed data must be chunked, so contiguous data are stored whole: less is a truncated file or a
+        # forged shape. (Chunked data may be smaller than declared: constant rows compress to almost nothing.)
+        stored = ds.id.get_storage_size()
+        if stored < declared:
+            raise ToolkitError(f"{path}: key '{key}' declares {declared} bytes ({list(ds.shape)} {dt}) but stores "
+                               f"{stored} (truncated, never written, or a forged shape)")
+        check_declared_size(path, declared, f"key '{key}'")
+
+
+def row_nbytes(ds) -> int:
+    """Bytes that reading one row of ``ds`` allocates: the row, or the chunk HDF5 decompresses to get it."""
+    row = math.prod(ds.shape[1:]) * ds.dtype.itemsize
+    chunk = math.prod(ds.chunks) * ds.dtype.itemsize if ds.chunks else 0
+    return max(row, chunk)
+
+
+def read_selection(path, key: str, ds, sel=()) -> np.ndarray:
+    """``ds[sel]`` as an array, a damaged file's error as one ToolkitError. The caller bounded its size."""
+    try:
+        return np.asarray(ds[sel])
+    except READ_ERRORS as e:
+        where = f" row {sel}" if isinstance(sel, (int, np.integer)) else ""
+        raise ToolkitError(f"{path}: key '{key}'{where} cannot be read (truncated or corrupt?): {_one_line(e)}") from e
+
+
+def read_array(path, f, key: str, *, copies: int = 1) -> np.ndarray:
+    """The whole dataset ``key`` (checked by :func:`h5_dataset`), after bounding what it allocates with
+    ``check_allocation``; ``copies``: how many arrays of its size the caller derives from it."""
+    from toolkit.limits import check_allocation
+
+    ds = h5_dataset(path, f, key)
+    rows = f"{ds.shape[0]} rows" if ds.shape else "its value"
+    check_allocation(math.prod(ds.shape) * ds.dtype.itemsize * copies, f"{path}: key '{key}': reading {rows}")
+    return read_selection(path, key, ds)
+
+
+# ----------------------------------------------------------------------------------------------
+# Validation
+# ----------------------------------------------------------------------------------------------
+
+SIZE_RANGES = {"H": (8, 16384, "an image height in pixels"), "W": (8, 16384, "an image width in pixels"),
+               "V": (1, 2**31 - 1, "a vertex count")}
+"""The shared sizes of :data:`REQUIRED`: what a row's memory is checked against comes after these."""
+
+KIND_NAMES = {"u": "uint8", "f": "float", "iu": "integer"}
+
+
+def _check_dataset(path, f, key: str, spec: tuple, kinds: str, sizes: dict, n: int | None):
+    """The per-row dataset ``key`` checked against its spec (dtype, rank, shared sizes, row count, one row's
+    memory); returns it."""
+    from toolkit.limits import check_allocation
+
+    ds = h5_dataset(path, f, key, kinds, KIND_NAMES[kinds])
+    if kinds == "u" and ds.dtype != np.uint8:  # images are 8-bit, read / 255
+        raise ToolkitError(f"{path}: key '{key}' has dtype {dtype_name(ds.dtype)}, expected {KIND_NAMES[kinds]}")
     shape = tuple(ds.shape)
     if key == "scale" and len(shape) == 1:  # (N,) is accepted for scale
         shape = shape + (1,)
@@ -115,73 +291,205 @@ def _check_dataset(path, f, key: str, spec: tuple, kinds: str, sizes: dict, n: i
                            if spec else f"{path}: key '{key}' has shape {list(ds.shape)}, expected [N]")
     for s, d in zip(spec, shape[1:], strict=True):
         if isinstance(s, str):
+            low, high, what = SIZE_RANGES[s]
+            if s not in sizes and not low <= d <= high:
+                raise ToolkitError(f"{path}: key '{key}' has {s} = {d}, expected {what} in [{low}, {high}]")
             if sizes.setdefault(s, d) != d:
                 raise ToolkitError(f"{path}: key '{key}' has {s} = {d}, other keys have {sizes[s]} "
                                    f"(shape {list(ds.shape)})")
         elif s != d:
             raise ToolkitError(f"{path}: key '{key}' has shape {list(ds.shape)}, expected trailing {list(spec)}")
-    if ds.dtype.kind not in kinds or (kinds == "u" and ds.dtype != np.uint8):  # images are 8-bit, read / 255
-        raise ToolkitError(f"{path}: key '{key}' has dtype {ds.dtype}, expected "
-                           + {"u": "uint8", "f": "float", "iu": "integer"}[kinds])
     if n is not None and shape[0] != n:
         raise ToolkitError(f"{path}: key '{key}' has {shape[0]} rows, face_patch has {n}")
-    return shape[0]
+    check_allocation(row_nbytes(ds), f"{path}: key '{key}': reading one row ({list(ds.shape)} {ds.dtype})")
+    return ds
 
 
 def _bad(path, key, what):
     raise ToolkitError(f"{path}: key '{key}' {what}")
 
 
+def _read_labels(path, datasets: dict, n: int) -> dict[str, np.ndarray]:
+    """Every label key read whole (images and meshes are read a row at a time), after bounding the memory: a
+    small file may declare millions of rows of compressed constant data."""
+    from toolkit.limits import check_allocation
+
+    per_row = sum(math.prod(ds.shape[1:]) * ds.dtype.itemsize for ds in datasets.values())
+    # + float64 temporaries of the rotation check, ~10 x 9 doubles a row
+    check_allocation(n * (per_row + 720), f"{path}: reading the labels of {n} rows",
+                     hint="the file declares more rows than this machine can check")
+    return {k: read_selection(path, k, ds) for k, ds in datasets.items()}
+
+
+def _check_labels(path, lab: dict[str, np.ndarray], H: int, W: int) -> None:
+    """Label ranges: non-finite values in any float key would poison training silently; the rest name rows
+    that no camera, head or gaze can produce."""
+    for k, v in lab.items():
+        if v.dtype.kind in "fc" and not np.isfinite(v).all():
+            _bad(path, k, "contains NaN or inf")
+    for k in ("pitchyaw_head", "face_head_pose", "pitchyaw_cam"):
+        if k in lab and ((np.abs(lab[k][:, 0]) > np.pi / 2 + 1e-4).any() or (np.abs(lab[k][:, 1]) > np.pi + 1e-4).any()):
+            _bad(path, k, "is out of range: expected (pitch, yaw) radians with |pitch| <= pi/2, |yaw| <= pi")
+    R = lab["w2c_Rmat"].astype(np.float64)
+    if (np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-3) or (np.linalg.det(R) < 0).any():
+        _bad(path, "w2c_Rmat", "is not a rotation matrix in every row")
+    K = lab["inmat"]
+    if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any():
+        _bad(path, "inmat", "has non-positive focal lengths")
+    if (lab["scale"] <= 0).any():
+        _bad(path, "scale", "has non-positive values")
+    for k in ("cam_index", "frame_index"):
+        lab[k] = lab[k].reshape(-1)
+        if (lab[k] < 0).any():
+            _bad(path, k, "has negative values")
+    lm = lab["facial_landmarks"]
+    if (lm < -W).any() or (lm[..., 0] > 2 * W).any() or (lm[..., 1] > 2 * H).any():
+        _bad(path, "facial_landmarks", f"lies far outside the {W}x{H} image (pixels expected)")
+
+
+SUBJECT_SPECS: dict[str, tuple[tuple, str]] = {
+    "neutral_vertice": ((None, 3), "f"), "mesh_faces": ((None, 3), "iu"), "eyeball_centers": ((2, 3), "f"),
+    "eyeball_radii": ((2,), "f"), "identity_params": ((None,), "f"),
+}
+"""Subject-level arrays (None: any size >= 1): shape and dtype kinds."""
+
+
+def check_subject_arrays(path, f) -> dict[str, np.ndarray]:
+    """The subject-level arrays of :data:`SUBJECT_KEYS` the file has, read (bounded) and checked: shapes,
+    dtypes, finite values, positive eyeball radii, face indices within the neutral mesh."""
+    out = {}
+    for key, (spec, kinds) in SUBJECT_SPECS.items():
+        if key not in f:
+            continue
+        a = read_array(path, f, key)
+        if a.dtype.kind not in kinds:
+            _bad(path, key, f"has dtype {dtype_name(a.dtype)}, expected {KIND_NAMES[kinds]}")
+        if a.ndim != len(spec) or any(s is not None and s != d for s, d in zip(spec, a.shape, strict=True)) or not a.size:
+            want = ", ".join("V" if key == "neutral_vertice" and s is None else "F" if s is None else str(s)
+                             for s in spec)
+            _bad(path, key, f"has shape {list(a.shape)}, expected [{want}] (non-empty)")
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            _bad(path, key, "contains NaN or inf")
+        out[key] = a
+    if "eyeball_radii" in out and (out["eyeball_radii"] <= 0).any():
+        _bad(path, "eyeball_radii", "has non-positive values")
+    faces, verts = out.get("mesh_faces"), out.get("neutral_vertice")
+    if faces is not None and verts is not None and ((faces < 0).any() or (faces >= len(verts)).any()):
+        _bad(path, "mesh_faces", f"has vertex indices outside [0, {len(verts)}) (neutral_vertice has {len(verts)} rows)")
+    return out
+
+
+def _attr(path, f, name: str):
+    """One file attribute as a Python value (text decoded, numbers as scalars or arrays), its type and size
+    checked before it is read."""
+    import h5py
+
+    try:
+        aid = h5py.h5a.open(f.id, name.encode())
+        shape, dt = aid.shape, aid.dtype
+    except READ_ERRORS as e:
+        raise ToolkitError(f"{path}: attribute '{name}' cannot be read (corrupt?): {_one_line(e)}") from e
+    text = h5py.check_string_dtype(dt) is not None
+    if not text and (dt.kind not in NUMERIC_KINDS or dt.subdtype is not None):
+        raise ToolkitError(f"{path}: attribute '{name}' has type {dtype_name(dt)}, expected text or numbers")
+    if shape is None:
+        raise ToolkitError(f"{path}: attribute '{name}' has no value (an empty dataspace), expected text or numbers")
+    nbytes = math.prod(shape) * dt.itemsize
+    if nbytes > MAX_ATTR_BYTES:
+        raise ToolkitError(f"{path}: attribute '{name}' holds {nbytes} bytes, expected at most {MAX_ATTR_BYTES} "
+                           "(attributes hold short text and numbers)")
+    try:
+        v = f.attrs[name]
+    except READ_ERRORS as e:
+        raise ToolkitError(f"{path}: attribute '{name}' cannot be read (corrupt?): {_one_line(e)}") from e
+    if isinstance(v, np.ndarray) and v.ndim == 0:
+        v = v[()]
+    if isinstance(v, np.ndarray) and v.dtype.kind in "OS":  # an array of strings
+        return [_text(path, name, x) for x in v.tolist()]
+    if isinstance(v, (bytes, np.bytes_, str)):
+        return _text(path, name, v)
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _text(path, name: str, v) -> str:
+    # h5py decodes variable-length strings with surrogateescape: a non-UTF-8 byte comes back as a lone surrogate
+    try:
+        return bytes(v).decode("utf-8") if isinstance(v, (bytes, np.bytes_)) else str(v.encode("utf-8"), "utf-8")
+    except UnicodeError:
+        raise ToolkitError(f"{path}: attribute '{name}' is not UTF-8 text") from None
+
+
+def _check_known_attrs(path, attrs: dict) -> None:
+    """The attributes readers use: ``format_version`` (this module), ``subject_params`` and ``ambient``
+    (``train.data.pairing`` renders targets from them)."""
+    from train.data.subject_params import IDENTITY_NAMES
+
+    v = attrs.get("format_version", FORMAT_VERSION)
+    if not isinstance(v, int) or isinstance(v, bool) or not 1 <= v <= FORMAT_VERSION:
+        raise ToolkitError(f"{path}: attribute 'format_version' is {v!r}, expected an integer in [1, {FORMAT_VERSION}]"
+                           " (a file of a newer writer?)")
+    v = attrs.get("ambient", 0.5)
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 <= v <= 1:
+        raise ToolkitError(f"{path}: attribute 'ambient' is {v!r}, expected a number in [0, 1]")
+    if "subject_params" in attrs:
+        v = attrs["subject_params"]
+        try:
+            d = json.loads(v) if isinstance(v, str) else None
+        except ValueError:
+            d = None
+        if not isinstance(d, dict):
+            raise ToolkitError(f"{path}: attribute 'subject_params' is {str(v)[:60]!r}, expected JSON text of the "
+                               "generator's subject parameters")
+        ident, seed = d.get("identity"), d.get("seed", 0)
+        ok = isinstance(ident, list) and len(ident) == len(IDENTITY_NAMES) and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in ident)
+        if not ok or not isinstance(seed, int) or isinstance(seed, bool):
+            raise ToolkitError(f"{path}: attribute 'subject_params': expected {{\"identity\": [...], \"seed\": int}} "
+                               f"with an identity of {len(IDENTITY_NAMES)} finite numbers")
+
+
+def read_attrs(path, f) -> dict[str, Any]:
+    """The file's attributes, each checked (type, size, UTF-8 text), the ones readers use by value."""
+    try:
+        names = list(f.attrs)
+    except READ_ERRORS as e:
+        raise ToolkitError(f"{path}: attributes cannot be read (corrupt?): {_one_line(e)}") from e
+    attrs = {name: _attr(path, f, name) for name in names}
+    _check_known_attrs(path, attrs)
+    return attrs
+
+
 def validate_subject_file(path: str | os.PathLike) -> dict[str, Any]:
     """Check a subject file's schema and label ranges up front; return its summary.
 
-    Raises ToolkitError naming the file and key for: unreadable/truncated files, missing keys, wrong
-    shapes or dtypes, row counts that disagree, empty subjects, and out-of-range labels (non-finite
-    values, |pitch| > 90°, |yaw| > 180°, non-rotation ``w2c_Rmat``, non-positive focal lengths or scale,
-    negative indices, landmarks far outside the image). Image data are checked by shape and dtype only.
+    Raises ToolkitError naming the file and key for: unreadable/truncated files, missing keys, links that do
+    not resolve inside the file, external links and storage, wrong shapes or dtypes, row counts that disagree,
+    empty subjects, rows or labels too large for the memory budget, out-of-range labels (non-finite values,
+    |pitch| > 90°, |yaw| > 180°, non-rotation ``w2c_Rmat``, non-positive focal lengths or scale, negative
+    indices, landmarks far outside the image), bad subject-level arrays and attributes of the wrong type.
+    Image and mesh rows are checked by shape and dtype (``vertice`` rows for finite values when read).
     Returns ``{"path", "n", "height", "width", "n_vertices", "optional": [...], "attrs": {...}}``.
     """
     path = Path(path)
     with open_h5(path) as f:
-        missing = [k for k in REQUIRED if k not in f]
+        try:
+            missing = [k for k in REQUIRED if k not in f]
+        except READ_ERRORS as e:
+            raise ToolkitError(f"{path}: cannot list the keys (truncated or corrupt?): {_one_line(e)}") from e
         if missing:
             raise ToolkitError(f"{path}: missing key '{missing[0]}'" + (f" (and {missing[1:]})" if missing[1:] else ""))
         sizes: dict[str, int] = {}
-        n = _check_dataset(path, f, "face_patch", REQUIRED["face_patch"][0], "u", sizes, None)
+        n = _check_dataset(path, f, "face_patch", REQUIRED["face_patch"][0], "u", sizes, None).shape[0]
         if n == 0:
             raise ToolkitError(f"{path}: empty subject (0 rows in 'face_patch')")
-        for k, (spec, kinds) in REQUIRED.items():
-            _check_dataset(path, f, k, spec, kinds, sizes, n)
         optional = [k for k in OPTIONAL if k in f]
-        for k in optional:
-            _check_dataset(path, f, k, OPTIONAL[k][0], OPTIONAL[k][1], sizes, n)
-        H, W = sizes["H"], sizes["W"]
-        try:
-            lab = {k: f[k][()] for k in REQUIRED if k not in IMAGE_KEYS and k != "vertice"}
-            lab.update({k: f[k][()] for k in optional})
-        except (OSError, KeyError) as e:
-            raise ToolkitError(f"{path}: cannot read labels (truncated or corrupt?): {e}") from e
-        for k, v in lab.items():
-            if v.dtype.kind == "f" and not np.isfinite(v).all():
-                _bad(path, k, "contains NaN or inf")
-        for k in ("pitchyaw_head", "face_head_pose", "pitchyaw_cam"):
-            if k in lab and ((np.abs(lab[k][:, 0]) > np.pi / 2 + 1e-4).any() or (np.abs(lab[k][:, 1]) > np.pi + 1e-4).any()):
-                _bad(path, k, "is out of range: expected (pitch, yaw) radians with |pitch| <= pi/2, |yaw| <= pi")
-        R = lab["w2c_Rmat"].astype(np.float64)
-        if (np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-3) or (np.linalg.det(R) < 0).any():
-            _bad(path, "w2c_Rmat", "is not a rotation matrix in every row")
-        K = lab["inmat"]
-        if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any():
-            _bad(path, "inmat", "has non-positive focal lengths")
-        if (lab["scale"] <= 0).any():
-            _bad(path, "scale", "has non-positive values")
-        for k in ("cam_index", "frame_index"):
-            lab[k] = lab[k].reshape(-1)
-            if (lab[k] < 0).any():
-                _bad(path, k, "has negative values")
-        lm = lab["facial_landmarks"]
-        if (lm < -W).any() or (lm[..., 0] > 2 * W).any() or (lm[..., 1] > 2 * H).any():
-            _bad(path, "facial_landmarks", f"lies far outside the {W}x{H} image (pixels expected)")
-        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-        return {"path": str(path), "n": n, "height": H, "width": W, "n_vertices": sizes.get("V"),
-                "optional": optional, "subject_keys": [k for k in SUBJECT_KEYS if k in f], "attrs": attrs}
+        specs = {**REQUIRED, **{k: OPTIONAL[k] for k in optional}}
+        datasets = {k: _check_dataset(path, f, k, spec, kinds, sizes, n) for k, (spec, kinds) in specs.items()}
+        lab = _read_labels(path, {k: ds for k, ds in datasets.items() if k not in IMAGE_KEYS and k != "vertice"}, n)
+        _check_labels(path, lab, sizes["H"], sizes["W"])
+        subject = check_subject_arrays(path, f)
+        attrs = read_attrs(path, f)
+        return {"path": str(path), "n": n, "height": sizes["H"], "width": sizes["W"], "n_vertices": sizes.get("V"),
+                "optional": optional, "subject_keys": list(subject), "attrs": attrs}
