@@ -8,7 +8,9 @@ Conventions (gsplat >= 1.6 / the original 3DGS rasterizer):
 - Quaternions wxyz, normalized internally (zero -> identity); Sigma = R S S^T R^T with activated scales.
 - EWA projection with the Jacobian taken at the mean's tangent clamped to +-(c/f + 0.3 tan(half fov)) around
   the principal point; cov2d + eps2d I (dilation); conic = inverse of the dilated cov2d; per-axis radius
-  ceil(3.33 sqrt(cov2d_ii)); culled (radius 0) when z <= near or z >= far, det <= 0 or the box is off-image.
+  ceil(3.33 sqrt(cov2d_ii)); culled (radius 0) where ``render.cull`` drops it (the rule the preview splatter
+  shares: non-finite or degenerate parameters, z <= near or z >= far, a footprint too large for float32 or
+  too thin to invert) or the box is off-image.
 - alpha = min(0.99, o exp(-sigma)), sigma = 0.5 (a dx^2 + c dy^2) + b dx dy, dx = pixel - mean; a Gaussian is
   skipped for a pixel when sigma < 0 or alpha < 1/255; Gaussians are composited front to back by camera
   depth; a pixel stops before the Gaussian that would bring T (1 - alpha) <= 1e-4 (that one excluded).
