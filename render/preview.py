@@ -4,7 +4,8 @@ Conventions (identical to the torch splatter, see ``render.splat``): OpenCV came
 world-to-camera [4, 4], ``K`` [3, 3] in pixels, pixel (i, j) sampled at (j + 0.5, i + 0.5); quaternions
 wxyz normalized here (zero -> identity); Sigma = R S S^T R^T; EWA Jacobian with gsplat's tangent clamp
 (x/z in [-(cx/fx + 0.3 tan_x), (W - cx)/fx + 0.3 tan_x], tan_x = W / (2 fx), same for y); cov2d + 0.3 I;
-conic from the dilated covariance; cull z <= near or z >= far; alpha = min(0.99, o exp(-sigma)), skipped
+conic from the dilated covariance; the Gaussians drawn are those ``render.cull`` keeps (the torch splatter's
+own rule: finite, projectable, not needles, near < z < far); alpha = min(0.99, o exp(-sigma)), skipped
 below 1/255; premultiplied back-to-front "over" blending (sorted by camera depth of the means) into an
 RGBA32F target; C = sum c_i a_i T_i + T bg, alpha = 1 - T. The only difference is that GL blends every
 Gaussian, while the torch splatter stops a pixel once T <= 1e-4 (a difference below 1e-2 at a few pixels).
@@ -38,12 +39,15 @@ from typing import Any
 
 import numpy as np
 
+from render.cull import cull_counts
 from render.gl_context import shared_context
 from render.preview_footprints import (
     as_float32,
     back_to_front,
     check_frame_inputs,
+    drawable,
     dynamic_mask,
+    float32_tensor,
     is_back_to_front,
     merge_rects,
     project_footprints,
@@ -75,6 +79,9 @@ class PreviewSplatter:
             raise ToolkitError(f"PreviewSplatter: width and height must be >= 1, got {width}x{height}")
         self.width, self.height = int(width), int(height)
         self.near, self.far, self.eps2d = float(near_plane), float(far_plane), float(eps2d)
+        if not (0 <= self.near < self.far and 0 <= self.eps2d < math.inf):  # NaN fails too
+            raise ToolkitError(f"PreviewSplatter: need 0 <= near_plane < far_plane and a finite eps2d >= 0, got "
+                               f"{near_plane}, {far_plane}, {eps2d}")
         self.resort_tolerance = float(resort_tolerance)
         # Headless splatters share the process's one standalone context with render.mesh_gl: with two
         # standalone EGL contexts in a process, one's GL calls could land in the other's objects.
@@ -91,6 +98,8 @@ class PreviewSplatter:
         self._dirty: tuple[int, int, int, int] | None = None  # drawn since the last read-back
         self.last_rect: tuple[int, int, int, int] | None = None
         self._fp_cache = None
+        self._keep: np.ndarray | None = None         # the cull rule's keep [N] for _keep_camera
+        self._keep_camera: tuple | None = None
         self.stats: dict[str, Any] = {}
 
     @property
@@ -131,7 +140,7 @@ class PreviewSplatter:
         """-> (visible ids back to front, depth [N], whether a new order was uploaded). ``moved``: some
         Gaussians changed since the last order, so ``resort_tolerance`` (a view's) does not apply."""
         depth = self._depth(viewmat)
-        visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
+        visible = self._keep & (self._rows[:, 10] > 0)
         if self._order is not None and not structure_changed:
             if not moved and self._view_close(viewmat):  # the tolerance is for the view alone
                 return self._order, depth, False
@@ -146,7 +155,22 @@ class PreviewSplatter:
 
     # ------------------------------------------------------------------ drawing
     def _set_camera(self, viewmat: np.ndarray, K: np.ndarray) -> None:
-        self._gl.set_camera(viewmat, K, self.near, self.far, self.eps2d)
+        # The id lists hold only what the cull rule keeps, near / far included; the shader's own clip only
+        # guards its division by z (its z, rounded another way, must not drop a Gaussian the rule kept).
+        self._gl.set_camera(viewmat, K, 0.0, 3.0e38, self.eps2d)
+
+    def _update_keep(self, viewmat: np.ndarray, K: np.ndarray, cam: tuple, changed: np.ndarray | None) -> np.ndarray:
+        """The cull rule (``render.cull``) for this camera -> keep [N] bool; under the same camera only the
+        ``changed`` rows are decided again."""
+        means, quats, scales = self._gaussians.inputs[:3]
+        args = (K, self.width, self.height, self.near, self.far, self.eps2d)
+        if self._keep_camera == cam and changed is not None and self._keep is not None:
+            if changed.size:
+                self._keep[changed] = drawable(means[changed], quats[changed], scales[changed], viewmat, *args)
+        else:
+            self._keep = drawable(means, quats, scales, viewmat, *args)
+            self._keep_camera = cam
+        return self._keep
 
     def _splat_into(self, fbo, lst: IdList, rect=None, clear=True) -> None:
         self._gl.splat_into(fbo, lst, self._gaussians.texture, rect=rect, clear=clear)
@@ -164,12 +188,12 @@ class PreviewSplatter:
         if L is not None and L["camera"] == cam and np.array_equal(L["dynamic"], dynamic) \
                 and not (need_full_zone and L["zone"] is not None):
             dz = self._depth(viewmat, L["dyn_ids"])
-            vis = (dz > self.near) & (dz < self.far)
+            vis = self._keep[L["dyn_ids"]]
             if not vis.any() or (dz[vis].min() >= L["zlo"] and dz[vis].max() <= L["zhi"]):
                 return L
         t0 = time.perf_counter()
         depth = self._depth(viewmat)
-        visible = (depth > self.near) & (depth < self.far) & (self._rows[:, 10] > 0)
+        visible = self._keep & (self._rows[:, 10] > 0)
         lo, hi = dynamic_depth_range(depth[dynamic & visible], spheres, viewmat)
         zone = None
         if spheres and not need_full_zone:  # every gaze keeps the eyes' footprints in this zone
@@ -218,6 +242,7 @@ class PreviewSplatter:
             self._release_layers()  # their textures too: a preview may sit on an empty scene for long
             self._gaussians.forget()
             self._order = None
+            self._keep = self._keep_camera = None
             self._fbo.clear(0.0, 0.0, 0.0, 0.0)
             self._camera = None
             st["path"] = "empty"
@@ -235,13 +260,17 @@ class PreviewSplatter:
         if same_cam and changed is not None and changed.size == 0:
             st["path"] = "unchanged"
             return None
+        keep_old = self._keep[changed].copy() if changed is not None and self._keep is not None else None
+        keep = self._update_keep(viewmat, K, cam, changed)
+        st["culled"] = int(n - np.count_nonzero(keep))  # by the cull rule (render.cull), on or off the image
         if same_cam and changed is not None and dyn is not None and dyn[changed].all():
             st["path"] = "incremental"
-            rect = self._draw_incremental(changed, old_rows, dyn, dynamic_spheres, viewmat, K, cam)
+            rect = self._draw_incremental(changed, old_rows, keep_old, dyn, dynamic_spheres, viewmat, K, cam)
         else:
             st["path"] = "full"
-            _, _, st["resorted"] = self._sorted_ids(viewmat, structure_changed=changed is None,
-                                                    moved=changed is not None and changed.size > 0)
+            order, _, st["resorted"] = self._sorted_ids(viewmat, structure_changed=changed is None,
+                                                        moved=changed is not None and changed.size > 0)
+            st["drawn"] = int(order.size)  # kept by the cull rule and opacity above 1/255
             t2 = time.perf_counter()
             st["sort_s"] = t2 - t1
             self._set_camera(viewmat, K)
@@ -253,21 +282,32 @@ class PreviewSplatter:
         self.last_rect = rect
         return self._mark(rect)
 
-    def _footprint_rect(self, ids, rows, viewmat, K):
-        """Pixel rectangle of the footprints of ``rows`` (of Gaussians ``ids``), reusing the last frame's."""
+    def culled_by_test(self, viewmat, K) -> dict[str, int]:
+        """How many of the Gaussians last drawn the cull rule drops for this camera (viewmat [4, 4], K [3, 3]),
+        by the first test each fails (``render.cull.REASONS``); {} when it drops none."""
+        if self._gaussians.inputs is None:
+            return {}
+        viewmat, K = as_float32(viewmat, "viewmat", (4, 4)), as_float32(K, "K", (3, 3))
+        t = float32_tensor
+        return cull_counts(*(t(a) for a in self._gaussians.inputs[:3]), t(viewmat)[None], t(K)[None], self.width,
+                           self.height, near_plane=self.near, far_plane=self.far, eps2d=self.eps2d)
+
+    def _footprint_rect(self, ids, rows, keep, viewmat, K):
+        """Pixel rectangle of the footprints of ``rows`` (of Gaussians ``ids``, ``keep`` [M] what the cull rule
+        draws of them), reusing the last frame's."""
         c = self._fp_cache
         if c is not None and c[0] == (viewmat.tobytes(), K.tobytes()) and np.array_equal(c[1], ids) \
                 and np.array_equal(c[2], rows):
             return c[3]
-        fp = project_footprints(rows, viewmat, K, self.width, self.height, self.near, self.far, self.eps2d)
+        fp = project_footprints(rows[keep], viewmat, K, self.width, self.height, self.near, self.far, self.eps2d)
         return union_rect(fp["bbox"][fp["valid"]], self.width, self.height)
 
-    def _draw_incremental(self, changed, old_rows, dyn, spheres, viewmat, K, cam):
+    def _draw_incremental(self, changed, old_rows, keep_old, dyn, spheres, viewmat, K, cam):
         st = self.stats
         t1 = time.perf_counter()
-        rect_old = self._footprint_rect(changed, old_rows, viewmat, K)
+        rect_old = self._footprint_rect(changed, old_rows, keep_old, viewmat, K)
         new_rows = self._rows[changed]
-        rect_new = self._footprint_rect(changed, new_rows, viewmat, K)
+        rect_new = self._footprint_rect(changed, new_rows, self._keep[changed], viewmat, K)
         self._fp_cache = (cam, changed, new_rows, rect_new)
         rect = merge_rects(rect_old, rect_new)
         L = self._ensure_layers(dyn, spheres, viewmat, K, cam)
@@ -279,8 +319,7 @@ class PreviewSplatter:
             # Static mid-range Gaussians touching this frame's rectangle, plus every visible dynamic one.
             hit = boxes_touching(L["mid_bbox"], rect)
             dyn_ids = L["dyn_ids"]
-            dz = self._depth(viewmat, dyn_ids)
-            dyn_vis = dyn_ids[(dz > self.near) & (dz < self.far) & (self._rows[dyn_ids, 10] > 0)]
+            dyn_vis = dyn_ids[self._keep[dyn_ids] & (self._rows[dyn_ids, 10] > 0)]
             mids = np.sort(np.concatenate([L["mid_static"][hit], dyn_vis]))
             self._lists["mid"].set(back_to_front(mids, self._depth(viewmat, mids)))
         t3 = time.perf_counter()

@@ -60,33 +60,102 @@ def dynamic_mask(dynamic, n: int) -> np.ndarray | None:
 
 
 def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
-    """[N, 4] wxyz (any norm, zero -> identity), [N, 3] scales -> [N, 6] covariance xx, xy, xz, yy, yz, zz."""
-    q = quats.astype(np.float32)
+    """[N, 4] wxyz (any norm, zero -> identity), [N, 3] scales -> [N, 6] float32 covariance xx, xy, xz, yy, yz,
+    zz. Computed in float64, so any scale the cull rule keeps (<= ``render.cull.SCALE_MAX``) fits float32."""
+    q = quats.astype(np.float64)
     n = np.linalg.norm(q, axis=1, keepdims=True)
-    ident = np.array([1, 0, 0, 0], np.float32)
-    q = np.where(n > 1e-12, q / np.maximum(n, 1e-12), ident)
+    ident = np.array([1, 0, 0, 0], np.float64)
+    q = np.where(n > 0, q / np.where(n > 0, n, 1.0), ident)  # as toolkit.rotations.normalize_quat
     w, x, y, z = q.T
     R = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
                   2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
                   2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
-    M = R * scales[:, None, :]  # columns scaled: Sigma = M M^T, six unique entries as row dot products
+    M = R * scales.astype(np.float64)[:, None, :]  # columns scaled: Sigma = M M^T, six unique entries
     r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
     dot = lambda a, b: (a * b).sum(1)  # noqa: E731
-    return np.stack([dot(r0, r0), dot(r0, r1), dot(r0, r2), dot(r1, r1), dot(r1, r2), dot(r2, r2)], 1)
+    cov = np.stack([dot(r0, r0), dot(r0, r1), dot(r0, r2), dot(r1, r1), dot(r1, r2), dot(r2, r2)], 1)
+    return cov.astype(np.float32)
+
+
+def camera_free_ok(means: np.ndarray, quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """[N] bool: the camera-free tests of the shared cull rule (``render.cull.param_tests``) on float32
+    means [N, 3], quats [N, 4], scales [N, 3]."""
+    from render.cull import param_tests
+
+    tests = param_tests(*(float32_tensor(a) for a in (means, quats, scales)))
+    return (tests["params"] & tests["scale"] & tests["quat"]).numpy()
+
+
+def float32_tensor(a: np.ndarray):
+    """A numpy array as a float32 CPU tensor (no copy when it already is float32 and contiguous)."""
+    import torch
+
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
 
 
 def pack_gaussians(means, quats, scales, opacities, colors) -> np.ndarray:
-    """Activated Gaussians -> [N, 16] float32 rows in the data-texture layout of ``render.preview_shaders``."""
+    """Activated Gaussians -> [N, 16] float32 rows in the data-texture layout of ``render.preview_shaders``.
+    Rows that fail the camera-free tests of the cull rule get a zero covariance and r_cut 0 (the shader
+    skips them), so nothing overflows."""
     n = means.shape[0]
     out = np.zeros((n, 16), np.float32)
+    ok = camera_free_ok(means, quats, scales)
     out[:, 0:3] = means
     out[:, 3] = opacities
-    out[:, 4:10] = covariances(quats, scales)
+    out[ok, 4:10] = covariances(quats[ok], scales[ok])
     o = np.clip(opacities.astype(np.float64), 0.0, 1.0)
     # alpha = o exp(-sigma) >= 1/255  <=>  sigma <= ln(255 o): the quad's Mahalanobis half-size.
-    out[:, 10] = np.sqrt(2.0 * np.log(np.maximum(255.0 * o, 1.0)))
+    out[:, 10] = np.where(ok, np.sqrt(2.0 * np.log(np.maximum(255.0 * o, 1.0))), 0.0)
     out[:, 12:15] = colors
     return out
+
+
+def drawable(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, viewmat: np.ndarray, K: np.ndarray,
+             width: int, height: int, near: float, far: float, eps2d: float) -> np.ndarray:
+    """The shared cull rule ``render.cull.cull_mask`` for one camera -> keep [M] bool, on float32 means [M, 3],
+    quats [M, 4], scales [M, 3], viewmat [4, 4], K [3, 3].
+
+    Exactly the torch rule, but cheap: a float64 bound first proves most Gaussians kept (depth clear of
+    near / far by more than float32's rounding, a footprint too small to be a needle or to overflow) and the
+    rule itself runs only on the rest (at a 20k-Gaussian orbit frame, ~0.5 ms instead of ~10 ms).
+    """
+    from render.cull import cull_mask
+
+    ok = camera_free_ok(means, quats, scales)
+    sure = ok & _surely_kept(means, scales, viewmat, K, width, height, near, far, eps2d)
+    keep = sure.copy()
+    rest = np.flatnonzero(ok & ~sure)
+    if rest.size:
+        t = float32_tensor
+        keep[rest] = cull_mask(*(t(a[rest]) for a in (means, quats, scales)), t(viewmat)[None], t(K)[None], width,
+                               height, near_plane=near, far_plane=far, eps2d=eps2d)[0].numpy()
+    return keep
+
+
+def _surely_kept(means, scales, viewmat, K, width, height, near, far, eps2d) -> np.ndarray:
+    """[M] bool: Gaussians that every test of the cull rule's camera part passes, with margins far above
+    float32 rounding (a False only means "run the exact rule")."""
+    from render.cull import MAX_CONDITION
+
+    R, t = viewmat[:3, :3].astype(np.float64), viewmat[:3, 3].astype(np.float64)
+    m = means.astype(np.float64)
+    p = affine_rows(m, R, t)
+    with np.errstate(all="ignore"):  # a NaN or inf bound is a False: the exact rule decides
+        # float32 z = R m + t rounds by ~1e-7 of the magnitudes summed, whatever z itself is.
+        mag = np.abs(m[:, 0]) * abs(R[2, 0]) + np.abs(m[:, 1]) * abs(R[2, 1]) + np.abs(m[:, 2]) * abs(R[2, 2])
+        zerr = 1e-5 * (mag + abs(t[2])) + 1e-30
+        zlo = np.maximum(p[:, 2] - zerr, 1e-300)
+        fx, fy, sk = abs(float(K[0, 0])), abs(float(K[1, 1])), abs(float(K[0, 1]))
+        lim = np.abs(tangent_limits(K, width, height).astype(np.float64)) * 1.01
+        # ||J||_F with the clamped tangents at their extremes; ||J W R S||_F <= ||J||_F ||W||_2 ||s||.
+        jf2 = (fx / zlo) ** 2 * (1 + lim[:2].max() ** 2) + (fy / zlo) ** 2 * (1 + lim[2:].max() ** 2)
+        f2 = jf2 * np.linalg.norm(R, 2) ** 2 * (scales.astype(np.float64) ** 2).sum(1) * 1.01
+        e = float(eps2d)
+        # trace^2 / det <= (f2 + 2 e)^2 / (e f2 + e^2): det >= e ||F||^2 + e^2 by Cauchy-Binet.
+        kappa = (f2 + 2 * e) ** 2 / max(e * e, 1e-300) / (f2 / max(e, 1e-300) + 1)
+        big = np.maximum(np.maximum(fx * np.abs(p[:, 0]), sk * np.abs(p[:, 1])), fy * np.abs(p[:, 1]))
+        return ((p[:, 2] - zerr > near) & (p[:, 2] + zerr < far) & (e > 0) & (kappa <= 0.99 * MAX_CONDITION)
+                & (big < 1e30) & (big / zlo < 1e30))
 
 
 def tangent_limits(K: np.ndarray, width: int, height: int) -> np.ndarray:

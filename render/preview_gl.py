@@ -14,6 +14,12 @@ from render.preview_footprints import pack_gaussians, tangent_limits
 from toolkit.errors import ToolkitError
 
 
+def max_texture_size(ctx) -> int:
+    """The context's largest texture side (and viewport), in texels."""
+    info = ctx.info
+    return int(min(info["GL_MAX_TEXTURE_SIZE"], *info["GL_MAX_VIEWPORT_DIMS"]))
+
+
 class IdList:
     """A per-instance int32 index buffer (grown on demand) and the VAO that draws one quad per entry."""
 
@@ -107,9 +113,13 @@ class GaussianTexture:
     def _reload(self, new: tuple) -> None:
         """A new texture sized for these Gaussians, every row written."""
         n = new[0].shape[0]
+        rows_tex = max(1, -(-n // sh.GAUSSIANS_PER_ROW))
+        limit = max_texture_size(self.ctx)
+        if rows_tex > limit:  # a GL error (and a traceback) otherwise
+            raise ToolkitError(f"render_preview: {n} Gaussians need a data texture of {rows_tex} rows, more than "
+                               f"this OpenGL's limit of {limit} ({limit * sh.GAUSSIANS_PER_ROW} Gaussians)")
         self.rows = pack_gaussians(*new)
         self.inputs = tuple(a.copy() for a in new)
-        rows_tex = max(1, -(-n // sh.GAUSSIANS_PER_ROW))
         if self.texture is not None:
             self.texture.release()
         self.texture = self.ctx.texture((sh.TEXTURE_WIDTH, rows_tex), 4, dtype="f4")
@@ -133,6 +143,10 @@ class SplatPrograms:
     ``width`` x ``height`` float targets."""
 
     def __init__(self, ctx, width: int, height: int):
+        limit = max_texture_size(ctx)
+        if width > limit or height > limit:
+            raise ToolkitError(f"PreviewSplatter: {width}x{height} pixels exceed this OpenGL's limit of {limit} "
+                               "pixels per side")
         self.ctx, self.width, self.height = ctx, width, height
         self.splat = ctx.program(vertex_shader=sh.SPLAT_VERTEX, fragment_shader=sh.SPLAT_FRAGMENT)
         self._layer = ctx.program(vertex_shader=sh.FULLSCREEN_VERTEX, fragment_shader=sh.LAYER_FRAGMENT)
