@@ -82,6 +82,18 @@ def param_tests(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) 
     return {"params": finite, "scale": scales.abs().amax(-1) <= SCALE_MAX, "quat": quat_ok}
 
 
+def _sanitized(means, quats, scales, tests):
+    """The parameters with each field that fails a camera-free test (``tests``: :func:`param_tests`) replaced by
+    a harmless value (mean 0, identity, scale 0): those Gaussians are culled anyway, and their NaN / inf must
+    not reach any product, where 0 * inf = NaN would turn up in the gradients. Kept fields pass through
+    unchanged, bit for bit. (A NaN or inf fails the quat and scale tests: amax propagates it.)"""
+    good_m = torch.isfinite(means).all(-1, keepdim=True)
+    identity = torch.zeros_like(quats)
+    identity[..., 0] = 1
+    return (torch.where(good_m, means, torch.zeros_like(means)), torch.where(tests["quat"][..., None], quats, identity),
+            torch.where(tests["scale"][..., None], scales, torch.zeros_like(scales)))
+
+
 def footprints(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmats: torch.Tensor,
                Ks: torch.Tensor, width: int, height: int, *, near_plane: float = 0.01, far_plane: float = 1e10,
                eps2d: float = 0.3) -> Footprints:
@@ -91,6 +103,8 @@ def footprints(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, v
     set c); viewmats [C, 4, 4] world-to-camera (OpenCV axes), Ks [C, 3, 3] pixels; all one dtype.
     Conventions as ``render.projection.project_gaussians``.
     """
+    tests = param_tests(means, quats, scales)
+    means, quats, scales = _sanitized(means, quats, scales, tests)
     R = viewmats[:, :3, :3]  # [C, 3, 3]
     t = viewmats[:, :3, 3]  # [C, 3]
     per_camera = means.dim() == 3
@@ -102,6 +116,9 @@ def footprints(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, v
     in_depth = (z > near_plane) & (z < far_plane)
     # Culled Gaussians still flow through the graph: divide by a safe z so their gradients stay finite (zero).
     zs = torch.where(in_depth, z, torch.ones_like(z))
+    with torch.no_grad():  # a mean projecting beyond float32 is culled; its inf must not reach the graph
+        on_plane = torch.isfinite(fx * x / zs + Ks[:, 0, 1, None] * y / zs + cx) & torch.isfinite(fy * y / zs + cy)
+    x, y = torch.where(on_plane, x, torch.zeros_like(x)), torch.where(on_plane, y, torch.zeros_like(y))
     u = fx * x / zs + Ks[:, 0, 1, None] * y / zs + cx
     v = fy * y / zs + cy
     means2d = torch.stack([u, v], -1)
@@ -120,9 +137,8 @@ def footprints(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, v
     sane = torch.isfinite(F).all(-1).all(-1) & (F.abs().amax((-2, -1)) < MAX_FOOTPRINT)
     F = torch.where(sane[..., None, None], F, torch.zeros_like(F))
     sxx, sxy, syy, det = _dilated_cov2d(F, eps2d)
-    tests = param_tests(means, quats, scales)
     tests["depth"] = in_depth
-    tests["footprint"] = sane & torch.isfinite(means2d).all(-1)
+    tests["footprint"] = sane & on_plane
     tests["needle"] = _well_conditioned(sxx, syy, det)
     keep = in_depth
     for ok in tests.values():
