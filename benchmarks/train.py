@@ -233,6 +233,16 @@ def unet_label(trained) -> str:
     return f"U-Net, upscale {up}" + (": a 1x1 conv, no upsampling blocks" if up == 1 else "")
 
 
+def peak_memory_gib(device) -> float:
+    """Peak memory since the last reset: the GPU's allocations on CUDA; on CPU this process's peak resident set
+    so far (it never goes down, so a later row includes the earlier ones)."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**30
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
+
+
 def breakdown(trained, device, args) -> list[dict]:
     rows = []
     cfg = trained.config
@@ -250,12 +260,14 @@ def breakdown(trained, device, args) -> list[dict]:
             trainer, n_g = (demo_trainer(sub, device) if name == "demo" else make())
             params = [p for m in (trainer.model, trainer.renderer) for p in m.parameters() if p.requires_grad]
             clock = time.process_time if args.clock == "cpu" else time.perf_counter  # as the curves below
+            if device.type == "cuda":
+                torch.cuda.reset_peak_memory_stats(device)
             t = time_steps(trainer, params, device, warmup=args.warmup, repeats=args.repeats, clock=clock)
             shown = run_preset if name == "demo" else name
             label = f"{shown} ({res}², batch {batch}, {n_g} Gaussians, {dit if kind == 'dit' else unet_label(sub)})"
             if name == "paper":
                 label += f" [paper: 100000 Gaussians, batch 4{'; reduced for CPU' if device.type == 'cpu' else ''}]"
-            rows.append({"config": label, **{k: 1000 * v for k, v in t.items()}})
+            rows.append({"config": label, **{k: 1000 * v for k, v in t.items()}, "peak GiB": peak_memory_gib(device)})
     return rows
 
 
@@ -370,7 +382,7 @@ def main(argv=None) -> int:
         rows = breakdown(trained, device, args)
         print(f"\nTraining step time ({'CPU ms of the training thread' if args.clock == 'cpu' else 'wall ms'}, median "
               f"of {args.repeats} steps after {args.warmup} warm-up; main pass + weak-supervision pass):")
-        print(format_table(rows, ["config", *PARTS, "other fwd", "backward", "optim", "step"]))
+        print(format_table(rows, ["config", *PARTS, "other fwd", "backward", "optim", "step", "peak GiB"]))
     if not args.skip_curve:
         test_files = trained.split("test")
         series, final = {}, []
