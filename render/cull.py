@@ -82,6 +82,13 @@ def param_tests(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) 
     return {"params": finite, "scale": scales.abs().amax(-1) <= SCALE_MAX, "quat": quat_ok}
 
 
+def finite_scales(scales: torch.Tensor) -> torch.Tensor:
+    """scales [..., 3] with +inf replaced by the dtype's largest value. A scene's finite log-scale above ~88.7
+    activates to inf in float32; the rule culls it either way (above ``SCALE_MAX``), and this way it is culled
+    like any other huge Gaussian instead of tripping a splatter's NaN / inf input check."""
+    return torch.where(scales == torch.inf, torch.finfo(scales.dtype).max, scales)
+
+
 def _sanitized(means, quats, scales, tests):
     """The parameters with each field that fails a camera-free test (``tests``: :func:`param_tests`) replaced by
     a harmless value (mean 0, identity, scale 0): those Gaussians are culled anyway, and their NaN / inf must

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from render.cull import cull_counts
+from render.cull import cull_counts, finite_scales
 from render.gl_context import shared_context
 from render.preview_footprints import (
     as_float32,
@@ -101,6 +101,12 @@ class PreviewSplatter:
         self._keep: np.ndarray | None = None         # the cull rule's keep [N] for _keep_camera
         self._keep_camera: tuple | None = None
         self.stats: dict[str, Any] = {}
+
+    @property
+    def drawn(self) -> np.ndarray:
+        """Ids [M] the last full frame drew, back to front: those ``render.cull`` keeps for its camera whose
+        opacity reaches 1/255 (off-image ones included: GL clips them)."""
+        return np.zeros(0, np.int64) if self._order is None else self._order.copy()
 
     @property
     def _rows(self) -> np.ndarray:
@@ -384,8 +390,9 @@ class PreviewSplatter:
                                f"{self.width}x{self.height}")
         colors = scene_colors(scene, feature_map)
         dynamic, spheres = eye_dynamics(scene)
-        return self.render(scene.means, scene.quats, scene.scales, scene.opacities, colors, camera.viewmat,
-                           camera.K, background, return_alpha=return_alpha, dynamic=dynamic,
+        # finite_scales: a log-scale that overflows float32 is culled as huge (render.cull), not refused as inf.
+        return self.render(scene.means, scene.quats, finite_scales(scene.scales.float()), scene.opacities, colors,
+                           camera.viewmat, camera.K, background, return_alpha=return_alpha, dynamic=dynamic,
                            dynamic_spheres=spheres)
 
     def present(self, viewport: tuple[int, int, int, int], background=(0.0, 0.0, 0.0), overlay=None) -> None:

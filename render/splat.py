@@ -25,6 +25,7 @@ import torch
 
 from render._raster import ALPHA_MAX, ALPHA_MIN, T_MIN, RasterConfig, RasterizeTiles
 from render._tiles import bin_gaussians
+from render.cull import finite_scales
 from render.projection import project_gaussians
 from render.sh import sh_to_color
 from toolkit.errors import ToolkitError
@@ -254,5 +255,6 @@ def render_scene(scene, cameras, *, use_sh: bool | None = None, **kw) -> tuple[t
     if use_sh and scene.sh is None:
         raise ToolkitError("render_scene: use_sh=True but the scene has no 'sh' field")
     feats = scene.sh if sh else scene.features
-    return rasterize(scene.means, scene.unit_quats, scene.scales, scene.opacities, feats, viewmats, Ks, w, h,
-                     sh_degree=scene.sh_degree if sh else None, **kw)
+    # A finite log-scale can still overflow float32 when activated: culled as huge, not refused as inf.
+    return rasterize(scene.means, scene.unit_quats, finite_scales(scene.scales), scene.opacities, feats, viewmats,
+                     Ks, w, h, sh_degree=scene.sh_degree if sh else None, **kw)

@@ -286,3 +286,95 @@ def test_parity_with_torch_splatter_demo_head(ctx):
         img = live.render_scene(moved, cam, background=(1.0, 1.0, 1.0))  # the second frame is incremental
         ref, _, _ = splat.render_scene(moved, [cam], backgrounds=torch.ones(1, 3))
         assert _psnr(img, ref[0].numpy()) >= 45
+
+
+# ------------------------------------------------------------------ the shared cull rule (render.cull)
+def _torch_render(gs, V, K, W, H, bg, **kw):
+    import render.splat as splat
+
+    img, alpha, meta = splat.rasterize(*[torch.from_numpy(a) for a in gs], torch.from_numpy(V)[None],
+                                       torch.from_numpy(K)[None], W, H, backgrounds=torch.from_numpy(bg)[None], **kw)
+    return img[0].numpy(), alpha[0].numpy(), meta
+
+
+def _culled(gs, V, K, W, H, **kw):
+    from render.cull import cull_mask
+
+    return ~cull_mask(*(torch.from_numpy(a) for a in gs[:3]), torch.from_numpy(V)[None], torch.from_numpy(K)[None],
+                      W, H, **kw)[0].numpy()
+
+
+@pytest.mark.parametrize("log_scale", [-80.0, -20.0, 0.0, 10.0, 20.0, 23.0, 44.0, 80.0])
+def test_extreme_log_scales_draw_what_the_torch_splatter_draws(ctx, log_scale):
+    """Large finite scales (e^80 = 5.5e34) gave NaN footprints and a blank frame, and scales beyond the
+    torch splatter's footprint bound (log-scale >= ~20 here) were drawn by the preview only: both now draw
+    exactly what render.cull keeps, and every frame is finite."""
+    from render.preview import PreviewSplatter
+
+    W, H = 32, 24
+    V, K = camera(W, H)
+    gs = random_gaussians(6, seed=5)
+    gs[2] = np.full((6, 3), math.exp(log_scale), np.float32)
+    gs[2][0] = 0.05  # one ordinary Gaussian among them
+    bg = np.array([0.2, 0.3, 0.9], np.float32)
+    s = PreviewSplatter(W, H, ctx=ctx)
+    img, alpha = s.render(*gs, V, K, bg, return_alpha=True)
+    assert np.isfinite(img).all() and np.isfinite(alpha).all()
+    ref, ref_alpha, _ = _torch_render(gs, V, K, W, H, bg)
+    _agree(img, ref, tol=1e-3, frac=0.99, worst=1e-2)
+    _agree(alpha, ref_alpha, tol=1e-3, frac=0.99, worst=1e-2)
+    want = np.flatnonzero(~_culled(gs, V, K, W, H) & (gs[3] > 1 / 255))
+    np.testing.assert_array_equal(np.sort(s.drawn), want)
+
+
+def test_needles_and_near_far_planes_cull_like_the_torch_splatter(ctx):
+    from render.preview import PreviewSplatter
+
+    W, H = 48, 40
+    V, K = camera(W, H)  # camera z = world z
+    c, s = math.cos(0.3927), math.sin(0.3927)
+    means = np.array([[0, 0, 3], [0.1, 0, 3], [0, 0.1, 0.5], [0, 0, 0.5 + 1e-4], [0, 0, 10], [0, 0, 10 - 1e-3]],
+                     np.float32)
+    quats = np.tile(np.array([c, 0, 0, s], np.float32), (6, 1))
+    scales = np.array([[30.0, 1e-7, 1e-7], [0.3, 1e-7, 1e-7]] + [[0.05] * 3] * 4, np.float32)
+    gs = [means, quats, scales, np.full(6, 0.8, np.float32), np.eye(3, dtype=np.float32)[[0, 1, 2, 0, 1, 2]]]
+    bg = np.zeros(3, np.float32)
+    culled = _culled(gs, V, K, W, H, near_plane=0.5, far_plane=10.0)
+    assert culled.tolist() == [True, False, True, False, True, False]  # a needle beyond the bound, the planes
+    sp = PreviewSplatter(W, H, ctx=ctx, near_plane=0.5, far_plane=10.0)
+    img = sp.render(*gs, V, K, bg)
+    ref, _, meta = _torch_render(gs, V, K, W, H, bg, near_plane=0.5, far_plane=10.0)
+    _agree(img, ref, tol=1e-3, frac=0.99, worst=2e-2)
+    np.testing.assert_array_equal((meta["radii"][0] > 0).all(-1).numpy(), ~culled)
+    np.testing.assert_array_equal(np.sort(sp.drawn), np.flatnonzero(~culled))
+
+
+def test_a_scene_of_culled_gaussians_draws_the_background(ctx):
+    from render.preview import PreviewSplatter
+
+    V, K = camera()
+    gs = random_gaussians(5)
+    gs[2] = np.full((5, 3), 1e30, np.float32)  # every scale far above render.cull.SCALE_MAX
+    bg = np.array([0.25, 0.5, 0.75], np.float32)
+    s = PreviewSplatter(64, 48, ctx=ctx)
+    img, alpha = s.render(*gs, V, K, bg, return_alpha=True)
+    np.testing.assert_array_equal(img, np.broadcast_to(bg, img.shape))
+    assert (alpha == 0).all() and s.drawn.size == 0 and s.stats["culled"] == 5
+    assert s.culled_by_test(V, K) == {"scale": 5}
+
+
+def test_sizes_beyond_the_gl_limits_are_clear_errors(ctx, monkeypatch):
+    from render import preview_gl
+    from render.preview import PreviewSplatter
+
+    limit = preview_gl.max_texture_size(ctx)
+    with pytest.raises(ToolkitError, match=f"exceed this OpenGL's limit of {limit}"):
+        PreviewSplatter(limit + 1, 8, ctx=ctx)
+    s = PreviewSplatter(8, 8, ctx=ctx)
+    monkeypatch.setattr(preview_gl, "max_texture_size", lambda ctx: 1)  # one row: 1024 Gaussians
+    gs = random_gaussians(1025)
+    with pytest.raises(ToolkitError, match="1025 Gaussians need a data texture of 2 rows"):
+        s.render(*gs, *camera(8, 8))
+    for near, far in ((-1.0, 10.0), (1.0, 1.0), (float("nan"), 1.0)):
+        with pytest.raises(ToolkitError, match="near_plane < far_plane"):
+            PreviewSplatter(8, 8, ctx=ctx, near_plane=near, far_plane=far)

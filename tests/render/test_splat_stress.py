@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -174,3 +176,119 @@ def test_long_diagonal_needles_take_the_negative_sigma_path(monkeypatch):
     img32, _, _, _ = _run(*(t.float() for t in (means, quats, scales, opac, feats, V, K)), 64, 48)
     assert (img32.double() - rimg).abs().max() <= 1e-3
     assert seen == [True, True]  # correlation b^2 / (a c) > 0.999: the per-pixel sigma < 0 test is on
+
+
+# ------------------------------------------------------------------ the shared cull rule (render.cull)
+def _keep(means, quats, scales, V, K, w, h, **kw):
+    from render.cull import cull_mask
+
+    return cull_mask(means, quats, scales, V, K, w, h, **kw)
+
+
+@pytest.mark.parametrize("log_scale", [-80.0, -40.0, 10.0, 20.0, 40.0, 80.0])
+def test_log_scales_from_minus_80_to_80_draw_what_the_rule_keeps(log_scale):
+    """e^80 = 5.5e34 is finite in float32: every log-scale renders finite, and only what the rule keeps is
+    drawn; from ~20 on (footprints beyond 1e9 px, or scales above 1e18) nothing is, and the image is the
+    background."""
+    means, quats, _, opac, feats = ref.random_cloud(30, 3, seed=9)
+    scales = torch.full((30, 3), math.exp(log_scale))
+    V, K = ref.camera(24, 20)
+    bg = torch.tensor([[0.3, 0.6, 0.1]])
+    img, alpha, meta, _ = _run(means, quats, scales, opac, feats, V, K, 24, 20, bg=bg)
+    drawn = (meta["radii"] > 0).all(-1)
+    keep = _keep(means, quats, scales, V, K, 24, 20)
+    assert not (drawn & ~keep).any()
+    if log_scale <= 10:
+        assert drawn.all()
+    else:
+        assert not keep.any() and torch.equal(img, bg.view(1, 1, 1, 3).expand_as(img)) and (alpha == 0).all()
+
+
+def test_scene_log_scales_beyond_float32_are_culled_not_refused(scene_factory):
+    """A finite log-scale of 100 activates to inf in float32: render_scene culls that Gaussian like any huge
+    one (instead of refusing the scene for an inf it does not hold), and draws the rest unchanged."""
+    from render.splat import render_scene
+    from toolkit.cameras import Camera, intrinsics_from_fov, look_at
+
+    scene = scene_factory(40, d=3)
+    cam = Camera(intrinsics_from_fov(60, 32, 24), look_at(torch.tensor([0.0, 0, -6]), torch.zeros(3)), 32, 24)
+    before, _, _ = render_scene(scene, cam)
+    big = scene.select(torch.ones(40, dtype=torch.bool))
+    big.log_scales = big.log_scales.clone()
+    big.log_scales[[4, 11]] = 100.0
+    after, _, meta = render_scene(big, cam)
+    assert torch.isfinite(after).all() and (meta["radii"][0, [4, 11]] == 0).all()
+    keep = torch.ones(40, dtype=torch.bool)
+    keep[[4, 11]] = False
+    without, _, _ = render_scene(scene.select(keep), cam)
+    assert torch.allclose(after, without, atol=1e-6) and not torch.equal(after, before)
+
+
+def test_non_finite_parameters_are_culled_with_zero_gradients():
+    """With the input check off (check_finite=False), NaN / inf means, quats or scales, and means that
+    project beyond float32, are culled; no NaN reaches the image or any gradient."""
+    means, quats, scales, opac, feats = ref.random_cloud(12, 3, seed=10)
+    means[0, 0], quats[1, 2], scales[2, 1], scales[3, 0] = float("nan"), float("inf"), float("nan"), float("inf")
+    means[4] = torch.tensor([3e38, 3e38, 3.0])  # finite, but f x / z overflows
+    V, K = ref.camera(16, 12)
+    img, alpha, meta, grads = _run(means, quats, scales, opac, feats, V, K, 16, 12, check_finite=False)
+    assert (meta["radii"][0, :5] == 0).all() and (meta["radii"][0, 5:] > 0).all()
+    for g in grads[:4]:
+        assert (g[:5] == 0).all()
+    assert not _keep(means, quats, scales, V, K, 16, 12)[0, :5].any()
+
+
+def test_zero_quaternion_is_the_identity_and_degenerate_ones_are_culled():
+    """Zero is the identity (toolkit.rotations); a non-zero quaternion whose largest component lies outside
+    [1e-15, 1e15] is culled: its squared norm leaves float32's range, so normalizing it is not reliable."""
+    means, quats, scales, opac, feats = ref.random_cloud(8, 3, seed=11)
+    q = quats.clone()
+    q[0] = 0.0
+    q[1] = quats[1] * 1e-30
+    q[2] = quats[2] * 1e30
+    q[3] = quats[3] / quats[3].abs().max() * 1e-14  # tiny, but normalizes exactly
+    V, K = ref.camera(16, 12)
+    img, _, meta, _ = _run(means, q, scales, opac, feats, V, K, 16, 12)
+    assert (meta["radii"][0, [0, 3]] > 0).all() and (meta["radii"][0, [1, 2]] == 0).all()
+    ident = q.clone()
+    ident[0] = torch.tensor([1.0, 0, 0, 0])
+    ident[3] = quats[3]
+    keep = torch.tensor([True, False, False, True, True, True, True, True])
+    ref_img, _, _ = rasterize(means[keep], ident[keep], scales[keep], opac[keep], feats[keep], V, K, 16, 12)
+    assert torch.allclose(img, ref_img, atol=1e-6)
+
+
+def test_needles_beyond_the_condition_bound_are_culled():
+    """A needle whose 2D footprint's trace^2 / det exceeds MAX_CONDITION is culled; a thinner bound on its
+    length keeps it (and draws it as the dense reference does)."""
+    from render.cull import MAX_CONDITION, footprints
+
+    c, s = math.cos(0.3927), math.sin(0.3927)  # 45 degrees about z: a diagonal needle on screen
+    means = torch.tensor([[0.0, 0.0, 3.0], [0.1, 0.1, 3.0]])
+    quats = torch.tensor([[c, 0, 0, s], [c, 0, 0, s]])
+    opac, feats = torch.tensor([0.8, 0.8]), torch.ones(2, 3)
+    V, K = ref.camera(64, 48)
+    for length, culled in ((0.3, False), (30.0, True)):
+        scales = torch.tensor([[length, 1e-7, 1e-7], [0.05, 0.05, 0.05]])
+        fp = footprints(means, quats, scales, V, K, 64, 48)
+        kappa = float(((fp.sxx + fp.syy) ** 2 / fp.det)[0, 0])
+        assert (kappa > MAX_CONDITION) == culled
+        img, alpha, meta, _ = _run(means, quats, scales, opac, feats, V, K, 64, 48)
+        assert (meta["radii"][0, 0] == 0).all() == culled and (meta["radii"][0, 1] > 0).all()
+        if not culled:
+            rimg, _ = ref.render(means, quats, scales, opac, feats, V, K, 64, 48)
+            assert (img - rimg).abs().max() <= 1e-3
+
+
+def test_near_and_far_planes_cull_by_camera_depth():
+    V, K = ref.camera(16, 16)
+    tz = V[0, 2, 3].item()  # the camera adds tz to z
+    z = torch.tensor([0.5, 0.5 + 1e-4, 3.0, 10.0 - 1e-3, 10.0, 12.0]) - tz
+    means = torch.stack([torch.zeros(6), torch.zeros(6), z], -1)
+    quats = torch.tensor([[1.0, 0, 0, 0]] * 6)
+    scales = torch.full((6, 3), 0.01)
+    img, _, meta, _ = _run(means, quats, scales, torch.full((6,), 0.8), torch.rand(6, 3), V, K, 16, 16,
+                           near_plane=0.5, far_plane=10.0)
+    assert ((meta["radii"][0] > 0).all(-1)).tolist() == [False, True, True, True, False, False]
+    assert _keep(means, quats, scales, V, K, 16, 16, near_plane=0.5, far_plane=10.0)[0].tolist() == \
+        [False, True, True, True, False, False]
