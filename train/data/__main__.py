@@ -18,6 +18,7 @@ import numpy as np
 
 from toolkit.errors import ToolkitError, run_cli
 from toolkit.io import check_not_an_input
+from toolkit.limits import check_allocation, check_count
 
 
 def _table(rows: list[dict], columns: list[str]) -> str:
@@ -83,8 +84,11 @@ def contact_sheet(dataset, indices: Sequence[int], out: Path, *, tile: int = 160
 
     from toolkit.io import atomic_write_bytes
 
+    rows = math.ceil(len(indices) / cols)
+    # the tiles, the sheet and its PNG encoding: three images of the sheet's size at most
+    check_allocation(3 * rows * cols * tile * tile * 3, f"the contact sheet ({len(indices)} images of {tile} pixels)",
+                     hint="lower --n or --tile")
     tiles = [draw_tile(dataset[int(i)], tile) for i in indices]
-    rows = math.ceil(len(tiles) / cols)
     sheet = np.full((rows * tile, cols * tile, 3), 255, np.uint8)
     for k, t in enumerate(tiles):
         r, c = divmod(k, cols)
@@ -158,20 +162,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     return cmd_synth(a) if a.cmd == "synth" else cmd_inspect(a)
 
 
-def _check_flags(a) -> None:
-    """Flag values argparse's types cannot catch, named as the user typed them."""
-    if a.cmd == "synth":
-        from train.data.generate import RES_RANGE
+MAX_SHEET_IMAGES = 10_000
+"""Images on one contact sheet (each is a sample read, drawn and kept until the sheet is encoded)."""
 
-        counts = {"--subjects": a.subjects, "--frames": a.frames, "--test-frames": a.test_frames}
-        if not RES_RANGE[0] <= a.res <= RES_RANGE[1]:
-            raise ToolkitError(f"--res: expected an image size in [{RES_RANGE[0]}, {RES_RANGE[1]}] pixels, got {a.res}")
+TILE_RANGE = (16, 4096)
+"""Contact-sheet tile sides, pixels: smaller leaves no room for the drawn labels; larger only upscales."""
+
+
+def _check_flags(a) -> None:
+    """Every count and size flag bounded before any file is read or written, named as the user typed it."""
+    if a.cmd == "synth":
+        from train.data.generate import MAX_FRAMES, MAX_SUBJECTS, RES_RANGE, SEED_RANGE, check_subject_memory
+
+        check_count(a.subjects, "--subjects", 1, MAX_SUBJECTS, "a number of subject files")
+        check_count(a.frames, "--frames", 1, MAX_FRAMES, "frames per subject")
+        if a.test_frames is not None:
+            check_count(a.test_frames, "--test-frames", 1, MAX_FRAMES, "frames per subject")
+        check_count(a.res, "--res", *RES_RANGE, "an image size in pixels")
+        check_count(a.seed, "--seed", *SEED_RANGE, "a seed")
+        if not 0 <= a.light_jitter <= 2:  # NaN too
+            raise ToolkitError(f"--light-jitter: expected a spread in [0, 2], got {a.light_jitter}")
+        # One subject's images are held in memory until its file is written.
+        for flag, frames in (("--frames", a.frames), ("--test-frames", a.test_frames if a.subjects > 1 else None)):
+            if frames is not None:
+                check_subject_memory(frames, a.res, f"one subject of {flag} {frames} x 18 cameras at --res {a.res}",
+                                     hint="lower --frames or --res")
     else:
-        counts = {"--n": a.n, "--tile": a.tile}
-    for flag, value in counts.items():
-        least = 16 if flag == "--tile" else 1  # a smaller tile leaves no room for the drawn labels
-        if value is not None and value < least:
-            raise ToolkitError(f"{flag}: expected a count >= {least}, got {value}")
+        check_count(a.n, "--n", 1, MAX_SHEET_IMAGES, "a number of images")
+        check_count(a.tile, "--tile", *TILE_RANGE, "a tile side in pixels")
 
 
 if __name__ == "__main__":

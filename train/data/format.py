@@ -440,7 +440,7 @@ def _check_known_attrs(path, attrs: dict) -> None:
         except ValueError:
             d = None
         if not isinstance(d, dict):
-            raise ToolkitError(f"{path}: attribute 'subject_params' is {str(v)[:60]!r}, expected JSON text of the "
+            raise ToolkitError(f"{path}: attribute 'subject_params' is {repr(v)[:60]}, expected JSON text of the "
                                "generator's subject parameters")
         ident, seed = d.get("identity"), d.get("seed", 0)
         ok = isinstance(ident, list) and len(ident) == len(IDENTITY_NAMES) and all(

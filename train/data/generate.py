@@ -17,6 +17,7 @@ import torch
 
 from toolkit.cameras import Camera, eth_xgaze_rig
 from toolkit.errors import ToolkitError
+from toolkit.limits import check_allocation, check_count
 from train.data.dataset import held_out_count
 from train.data.format import write_subject_h5
 from train.data.poses import normalized_camera, pose_matrix, sample_head_pose
@@ -42,6 +43,26 @@ def rgb_to_u8(rgb: np.ndarray) -> np.ndarray:
 
 RES_RANGE = (16, 2048)
 """The image sizes the generator renders, pixels (inclusive)."""
+
+MAX_SUBJECTS = 10_000
+"""Subjects of one dataset: files are named subject0000 ... subject9999, more would not sort in order."""
+
+MAX_FRAMES = 100_000
+"""Frames of one subject (each seen by the 18 rig cameras; memory bounds most counts well below this)."""
+
+SEED_RANGE = (0, 2**32 - 1)
+"""Dataset seeds, as the run configuration's."""
+
+
+def subject_bytes(n_frames: int, res: int, n_cameras: int = 18) -> int:
+    """Bytes generating one subject holds before its file is written: ~290 KB + 64 res² per image were measured
+    (float RGB, masks, the posed 10242-vertex mesh and their copies), plus the file's image built in memory."""
+    return n_frames * n_cameras * (420_000 + 72 * res * res)
+
+
+def check_subject_memory(n_frames: int, res: int, what: str, hint: str = "lower the frames or the resolution",
+                         n_cameras: int = 18) -> None:
+    check_allocation(subject_bytes(n_frames, res, n_cameras), what, hint)
 
 
 def _check_res(res: int) -> None:
@@ -88,11 +109,12 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
                      rig: list[Camera] | None = None, subject: Subject | None = None,
                      light_jitter: float = LIGHT_JITTER):
     """Render one subject: returns (rows, subject_arrays, attrs) ready for ``write_subject_h5``."""
-    if n_frames < 1:
-        raise ToolkitError(f"n_frames must be >= 1, got {n_frames}")
+    check_count(n_frames, "n_frames", 1, MAX_FRAMES, "frames per subject")
     _check_res(res)
-    seed = params.seed if seed is None else seed
+    seed = params.seed if seed is None else check_count(seed, "seed", 0, 2**64 - 1, "a seed")
     rig = rig or eth_xgaze_rig(radius=RIG_RADIUS)
+    check_subject_memory(n_frames, res, f"generate_subject: {n_frames} frames x {len(rig)} cameras at {res} pixels",
+                         n_cameras=len(rig))
     with _torch_threads(1):
         subject = subject or build_subject(params)
         fr = sample_frames(seed, n_frames, light_jitter)
@@ -161,10 +183,12 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
     Evaluation pairs take their input from the first half of a subject's rows and their target from the second
     half (``train.data.pairing.synthetic_pairs``), so ``test_frames`` sets how many distinct redirections the
     gaze error averages over."""
-    if n_subjects < 1:
-        raise ToolkitError(f"--subjects must be >= 1, got {n_subjects}")
-    if test_frames is not None and test_frames < 1:
-        raise ToolkitError(f"test_frames must be >= 1, got {test_frames}")
+    check_count(n_subjects, "n_subjects", 1, MAX_SUBJECTS, "a number of subject files")
+    check_count(seed, "seed", *SEED_RANGE, "a seed")
+    for name, frames in (("n_frames", n_frames), ("test_frames", test_frames)):
+        if frames is not None:
+            check_count(frames, name, 1, MAX_FRAMES, "frames per subject")
+            check_subject_memory(frames, res, f"synth_dataset: one subject of {frames} frames at {res} pixels")
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ToolkitError(f"{out_dir}: exists and is not a directory")
@@ -210,12 +234,15 @@ def estimator_images(subject_seeds, *, n_frames: int, cameras_per_frame: int = 2
     n_cams = len(eth_xgaze_rig(radius=RIG_RADIUS))
     if not 1 <= cameras_per_frame <= n_cams:
         raise ToolkitError(f"cameras_per_frame must be in [1, {n_cams}], got {cameras_per_frame}")
-    if n_frames < 1:
-        raise ToolkitError(f"n_frames must be >= 1, got {n_frames}")
+    check_count(n_frames, "n_frames", 1, MAX_FRAMES, "frames per subject")
     subject_seeds = [int(s) for s in subject_seeds]
     if not subject_seeds:
         raise ToolkitError("estimator_images: no subject seeds given (expected at least one)")
     _check_res(res)
+    n = len(subject_seeds) * n_frames * cameras_per_frame
+    # the uint8 images twice (the per-subject parts, then their concatenation) and a float RGB render a frame
+    check_allocation(n * (6 * res * res + 512) + cameras_per_frame * 16 * res * res,
+                     f"estimator_images: {n} images at {res} pixels", "lower the subjects, frames or resolution")
     if workers < 1:
         raise ToolkitError(f"estimator_images: workers must be >= 1, got {workers}")
     args = dict(n_frames=n_frames, cameras_per_frame=cameras_per_frame, res=res, seed=seed, iris_pixels=iris_pixels)

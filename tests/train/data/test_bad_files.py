@@ -5,13 +5,18 @@ reader) refuses each with one ToolkitError naming the file and key, before readi
 
 from __future__ import annotations
 
-import shutil
-
 import h5py
 import numpy as np
 import pytest
 
-from tests.train.data.tiny_subject import tiny_rows, write_tiny_subject
+from tests.train.data.tiny_subject import (
+    edited_copy,
+    huge_rows,
+    link_key,
+    replace_key,
+    tiny_rows,
+    write_tiny_subject,
+)
 from toolkit.errors import ToolkitError
 from train.data.dataset import GazeDataset
 from train.data.format import validate_subject_file
@@ -23,25 +28,10 @@ def base(tmp_path_factory):
 
 
 def _mutated(base, tmp_path, edit, name="bad.h5"):
-    p = tmp_path / name
-    shutil.copy(base, p)
-    with h5py.File(p, "r+") as f:
-        edit(f)
-    return p
+    return edited_copy(base, tmp_path / name, edit)
 
 
-def _replace(key, **kw):
-    def edit(f):
-        del f[key]
-        f.create_dataset(key, **kw)
-    return edit
-
-
-def _link(key, link):
-    def edit(f):
-        del f[key]
-        f[key] = link
-    return edit
+_replace, _link = replace_key, link_key
 
 
 def _readers(p):
@@ -131,19 +121,9 @@ def test_contiguous_data_shorter_than_declared_is_refused(base, tmp_path):
     _assert_refused(p, r"key 'latent_codes' declares 2304 bytes .* stores 0", ("validate", "dataset", "inspect"))
 
 
-def _huge(rows):
-    """Every per-row key declares ``rows`` rows in chunked, compressed storage that holds almost nothing."""
-    def edit(f):
-        for k, v in tiny_rows(1).items():
-            del f[k]
-            f.create_dataset(k, shape=(rows,) + v.shape[1:], dtype=v.dtype, chunks=(1,) + v.shape[1:],
-                             compression="gzip")
-    return edit
-
-
 def test_millions_of_declared_rows_are_refused_before_reading_them(base, tmp_path, monkeypatch):
     monkeypatch.setenv("DITGAZE_MEMORY_GB", "1")
-    p = _mutated(base, tmp_path, _huge(20_000_000))
+    p = _mutated(base, tmp_path, huge_rows(20_000_000))
     assert p.stat().st_size < 200_000
     _assert_refused(p, r"20000000 rows.* would allocate .* more than the memory budget")
 

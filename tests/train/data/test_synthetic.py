@@ -325,5 +325,5 @@ def test_held_out_subjects_get_their_own_frame_count(tmp_path):
         assert len(gazes) == rows[-1] // 18  # one gaze per frame, each seen by the 18 rig cameras
     assert rows == [18, 36]
     assert json.loads((tmp_path / "split.json").read_text()) == {"train": ["subject0000.h5"], "test": ["subject0001.h5"]}
-    with pytest.raises(ToolkitError, match="test_frames must be >= 1"):
+    with pytest.raises(ToolkitError, match=r"test_frames: expected frames per subject in \[1, 100000\], got 0"):
         synth_dataset(tmp_path / "bad", n_subjects=2, n_frames=1, res=32, test_frames=0, log=lambda *a: None)

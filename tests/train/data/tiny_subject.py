@@ -59,3 +59,43 @@ def tiny_attrs() -> dict:
 def write_tiny_subject(path: str | Path, n: int = 4, **kw) -> Path:
     """A valid subject file (chunked, compressed images as the writer stores them)."""
     return write_subject_h5(path, tiny_rows(n), subject=tiny_subject_arrays(), attrs=tiny_attrs(), **kw)
+
+
+def edited_copy(base: Path, dst: Path, edit) -> Path:
+    """``base`` copied to ``dst``, then ``edit(h5py.File)`` applied to the copy in place."""
+    import shutil
+
+    import h5py
+
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(base, dst)
+    with h5py.File(dst, "r+") as f:
+        edit(f)
+    return dst
+
+
+def replace_key(key: str, **create_kw):
+    """An edit: ``key`` deleted and created again with ``create_dataset(key, **create_kw)``."""
+    def edit(f):
+        del f[key]
+        f.create_dataset(key, **create_kw)
+    return edit
+
+
+def link_key(key: str, link):
+    """An edit: ``key`` replaced by ``link`` (an h5py.SoftLink or h5py.ExternalLink)."""
+    def edit(f):
+        del f[key]
+        f[key] = link
+    return edit
+
+
+def huge_rows(rows: int):
+    """An edit: every per-row key declares ``rows`` rows in chunked, compressed storage holding almost nothing
+    (a file of a few KB that asks a reader for gigabytes)."""
+    def edit(f):
+        for k, v in tiny_rows(1).items():
+            del f[k]
+            f.create_dataset(k, shape=(rows,) + v.shape[1:], dtype=v.dtype, chunks=(1,) + v.shape[1:],
+                             compression="gzip")
+    return edit
