@@ -13,6 +13,7 @@ import contextlib
 import errno
 import json
 import os
+import re
 import socket
 import tempfile
 from pathlib import Path
@@ -203,8 +204,11 @@ forged file nested thousands deep would be a RecursionError far from the reader 
 _JSON_NAMES = {list: "array", str: "string", int: "number", float: "number", bool: "boolean", type(None): "null"}
 
 
-def _one_line(e: BaseException, limit: int = 200) -> str:
-    text = " ".join(str(e).split())
+def _one_line(e: BaseException | str, limit: int = 200) -> str:
+    """A library's message as one plain line: terminal colour codes dropped, line breaks and runs of blanks
+    made single spaces, cut at ``limit`` characters (torch's unpickling errors span lines and colour text)."""
+    text = re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", str(e))
+    text = " ".join("".join(c if c.isprintable() else " " for c in text).split())
     return text if len(text) <= limit else text[:limit] + "..."
 
 
@@ -289,7 +293,10 @@ def load_state_dict_file(path: str | os.PathLike) -> dict:
     """A third-party weight file as a dict: ``.safetensors`` (:func:`load_tensors`), else a ``.pt``/``.pth``
     read weights-only (:func:`load_foreign_torch_checkpoint`); anything but a dict is a ToolkitError."""
     path = Path(path)
-    state = load_tensors(path)[0] if path.suffix.lower() == ".safetensors" else load_foreign_torch_checkpoint(path)
+    try:
+        state = load_tensors(path)[0] if path.suffix.lower() == ".safetensors" else load_foreign_torch_checkpoint(path)
+    except ToolkitError as e:  # torch's unpickling errors span several lines: the promise is one
+        raise ToolkitError(_one_line(e, limit=400)) from None
     if not isinstance(state, dict):
         raise ToolkitError(f"{path}: expected a state dict (name -> tensor), got {type(state).__name__}")
     return state

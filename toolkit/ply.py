@@ -268,7 +268,8 @@ def _binary_rows(body: bytes, n: int, props: list[tuple[str, str]], fmt: str, pa
             f"{path}: truncated: header declares {n} vertices ({need} bytes), file has {len(body)} bytes of data"
         )
     rec = np.frombuffer(body, dtype=dtype, count=n)
-    return {name: rec[name].astype(np.float64) for name, _ in props}
+    with np.errstate(invalid="ignore"):  # a signalling NaN warns when widened; NaNs are refused by name later
+        return {name: rec[name].astype(np.float64) for name, _ in props}
 
 
 def read_gaussian_ply(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor | None], dict]:
@@ -356,7 +357,7 @@ def _float32_columns(cols: dict[str, np.ndarray], used: list[str], path: Path) -
     values do not matter."""
     out = {}
     for name in dict.fromkeys(used):
-        with np.errstate(over="ignore"):
+        with np.errstate(over="ignore", invalid="ignore"):  # counted just below
             v = cols[name].astype(np.float32)
         bad = int((~np.isfinite(v)).sum())
         if bad:
