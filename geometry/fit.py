@@ -25,12 +25,14 @@ or an oriented point cloud); this module samples them, trains the network and ex
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
 import torch
 
+from geometry.dmtet import grid_bytes
 from geometry.sdf import SDFNet, SDFNetConfig, SphereInit, extract_mesh, pretrain_sphere
 from geometry.silhouettes import Views, hull_bounds, visual_hull_sdf
 from geometry.surface_distance import (
@@ -40,7 +42,17 @@ from geometry.surface_distance import (
     point_cloud_signed_distance,
     surface_samples,
 )
+from geometry.tets import GRID_KINDS, MAX_RES
 from toolkit.errors import ToolkitError
+from toolkit.limits import check_allocation, check_count
+
+# Bounds on the settings: a CPU step on a 1024-point batch takes 10-50 ms, so 100k steps are about an hour;
+# each pool point holds ~64 bytes (float32 position and target, sampling temporaries).
+MAX_STEPS = 100_000
+MAX_BATCH = 1 << 20
+MAX_POOL = 50_000_000
+POOL_BYTES = 64
+MAX_SEED = 2**63 - 2  # the fit seeds torch with seed and seed + 1
 
 
 @dataclass
@@ -86,6 +98,31 @@ class FitResult:
     skipped_steps: int
 
 
+def _check_real(value, name: str, low: float, high: float, open_low: bool = False) -> None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or not (low < value if open_low else low <= value) or not value <= high:
+        raise ToolkitError(f"fit: {name}: expected a number in {'(' if open_low else '['}{low:g}, {high:g}], got {value!r}")
+
+
+def check_fit_config(cfg: FitConfig) -> None:
+    """Refuse counts that would not finish or not fit in memory, and NaN or negative weights, before any work."""
+    for name, low, high in (("steps", 0, MAX_STEPS), ("batch", 1, MAX_BATCH), ("pool", 16, MAX_POOL),
+                            ("eikonal_batch", 0, MAX_BATCH), ("laplacian_every", 1, MAX_STEPS),
+                            ("laplacian_res", 2, MAX_RES), ("extract_res", 2, MAX_RES),
+                            ("max_bad_steps", 0, MAX_STEPS), ("pretrain_steps", 0, MAX_STEPS), ("seed", 0, MAX_SEED)):
+        check_count(getattr(cfg, name), f"fit: {name}", low, high)
+    if cfg.grid_kind not in GRID_KINDS:
+        raise ToolkitError(f"fit: grid_kind: expected one of {GRID_KINDS}, got {cfg.grid_kind!r}")
+    _check_real(cfg.lr, "lr", 0, 10, open_low=True)
+    _check_real(cfg.truncation, "truncation", 0, 1e6, open_low=True)
+    _check_real(cfg.grad_clip, "grad_clip", 0, 1e6, open_low=True)
+    for name in ("w_sdf", "w_landmarks", "w_eikonal", "w_laplacian"):
+        _check_real(getattr(cfg, name), name, 0, 1e6)
+    check_allocation(cfg.pool * POOL_BYTES, f"fit: a sample pool of {cfg.pool} points", "lower pool")
+    check_allocation(grid_bytes(cfg.grid_kind, cfg.extract_res, cfg.net.feature_dim),
+                     f"fit: extracting the mesh on a {cfg.grid_kind} grid of {cfg.extract_res}", "lower extract_res")
+
+
 # ---------------------------------------------------------------------------------------- core loop
 def _sample_pool(box_min: torch.Tensor, box_max: torch.Tensor, target: Callable[[torch.Tensor], torch.Tensor],
                  n: int, band: float, g: torch.Generator, surface: torch.Tensor | None = None
@@ -125,6 +162,7 @@ def fit_sdf_to_targets(pool_pts: torch.Tensor, pool_sdf: torch.Tensor, cfg: FitC
                        log: Callable[[str], None] | None = None) -> FitResult:
     """Train an SDFNet on (points [P, 3], target sdf [P]) pairs + landmarks; extract the final mesh."""
     t0 = time.perf_counter()
+    check_fit_config(cfg)
     if pool_pts.shape[0] != pool_sdf.shape[0] or not bool(torch.isfinite(pool_sdf).all()):
         raise ToolkitError("fit: sample targets must be finite, one per point")
     torch.manual_seed(cfg.seed)
@@ -204,6 +242,7 @@ def fit_silhouettes(views: Views, cfg: FitConfig | None = None, *, landmarks: to
     the landmarks / the cameras' common target.
     """
     cfg = cfg or FitConfig()
+    check_fit_config(cfg)
     if landmarks is not None:
         landmarks = torch.as_tensor(landmarks, dtype=torch.float32).reshape(-1, 3)
         if not bool(torch.isfinite(landmarks).all()):
@@ -228,6 +267,7 @@ def fit_mesh(verts: torch.Tensor, faces: torch.Tensor, cfg: FitConfig | None = N
              landmarks: torch.Tensor | None = None, log=None) -> FitResult:
     """Fit the SDF network to a closed triangle mesh (signed distances from open3d)."""
     cfg = cfg or FitConfig(w_eikonal=0.0)
+    check_fit_config(cfg)
     check_points(verts, "mesh vertices")
     lo, hi = verts.min(0).values, verts.max(0).values
     cfg = _box_config(cfg, lo, hi)
@@ -245,6 +285,7 @@ def fit_points(points: torch.Tensor, normals: torch.Tensor | None = None, cfg: F
                log=None) -> FitResult:
     """Fit to a point cloud [P, 3]; normals [P, 3] (outward) are estimated with open3d when absent."""
     cfg = cfg or FitConfig()
+    check_fit_config(cfg)
     check_points(points, "point cloud")
     if normals is None:
         normals = estimate_normals(points)
@@ -259,4 +300,4 @@ def fit_points(points: torch.Tensor, normals: torch.Tensor | None = None, cfg: F
                               log=log)
 
 
-__all__ = ["FitConfig", "FitResult", "fit_silhouettes", "fit_mesh", "fit_points", "fit_sdf_to_targets"]
+__all__ = ["FitConfig", "FitResult", "check_fit_config", "fit_silhouettes", "fit_mesh", "fit_points", "fit_sdf_to_targets"]

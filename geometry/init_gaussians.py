@@ -29,6 +29,7 @@ import torch
 
 from toolkit.errors import ToolkitError
 from toolkit.eyes import fit_sphere
+from toolkit.limits import check_allocation, check_count
 from toolkit.procedural import knn_spacing
 from toolkit.scene import PART_FACE, PART_LEFT_EYE, PART_RIGHT_EYE, GaussianScene
 
@@ -36,6 +37,10 @@ PART_LID = -1  # lid points while the scene is assembled; they become face Gauss
 LEFT_EYE = list(range(36, 42))
 RIGHT_EYE = list(range(42, 48))
 INWARD = torch.tensor([0.0, 0.0, 1.0])  # the face looks towards -z (README conventions)
+# Gaussians a count setting may ask for: a head scene is ~10^5; each point costs ~0.5 KiB while the scene is
+# built (float32 fields, the neighbour search's float64 copies and index arrays).
+MAX_POINTS = 10_000_000  # also geometry.mesh_stats.MAX_SAMPLES, the most surface samples drawn
+BYTES_PER_POINT = 512
 
 
 @dataclass
@@ -192,6 +197,7 @@ def _check_inputs(verts: torch.Tensor, faces: torch.Tensor, landmarks, cfg: Init
     landmarks = torch.as_tensor(landmarks, dtype=torch.float32)
     if landmarks.shape != (68, 3) or not bool(torch.isfinite(landmarks).all()):
         raise ToolkitError(f"init_gaussians: landmarks must be finite [68, 3] (iBUG order), got {list(landmarks.shape)}")
+    _check_counts(cfg)
     if cfg.eye_points < 0 or 0 < cfg.eye_points < 4 or not 0 < cfg.eye_cap_deg <= 180:
         raise ToolkitError(f"init_gaussians: eye_points must be 0 or >= 4 and eye_cap_deg in (0, 180], got "
                            f"{cfg.eye_points} and {cfg.eye_cap_deg}")
@@ -206,6 +212,24 @@ def _check_inputs(verts: torch.Tensor, faces: torch.Tensor, landmarks, cfg: Init
     return landmarks
 
 
+def _check_counts(cfg: InitConfig) -> None:
+    """The count settings in range and what they ask for within the memory budget; NaN or out-of-range
+    opacities and eyeball priors refused (a NaN opacity would make every Gaussian NaN)."""
+    if cfg.n_points is not None:
+        check_count(cfg.n_points, "init_gaussians: n_points", 16, MAX_POINTS, "a number of points (or None)")
+    for name in ("eye_points", "lid_points", "min_eye_points"):
+        check_count(getattr(cfg, name), f"init_gaussians: {name}", 0, MAX_POINTS, "a number of points")
+    check_count(cfg.seed, "init_gaussians: seed", 0, 2**63 - 1, "a seed")
+    total = (cfg.n_points or 0) + 2 * (cfg.eye_points + cfg.lid_points + cfg.min_eye_points)
+    check_allocation(total * BYTES_PER_POINT, f"init_gaussians: {total} Gaussians", "lower the point counts")
+    for name in ("opacity_face", "opacity_eye"):
+        if not 0 < getattr(cfg, name) < 1:
+            raise ToolkitError(f"init_gaussians: {name}: expected an opacity in (0, 1), got {getattr(cfg, name)!r}")
+    if not (0 < cfg.eye_radius_ratio <= 10 and 0 < cfg.shell_tolerance <= 10):
+        raise ToolkitError(f"init_gaussians: expected eye_radius_ratio and shell_tolerance in (0, 10], got "
+                           f"{cfg.eye_radius_ratio!r} and {cfg.shell_tolerance!r}")
+
+
 def _mesh_points(verts: torch.Tensor, faces: torch.Tensor, cfg: InitConfig) -> torch.Tensor:
     """[P, 3] the used mesh vertices, or ``cfg.n_points`` area-uniform surface samples; at least 16."""
     from geometry.mesh_stats import sample_surface
@@ -214,7 +238,7 @@ def _mesh_points(verts: torch.Tensor, faces: torch.Tensor, cfg: InitConfig) -> t
     if cfg.n_points is None:
         pts = verts[torch.unique(faces)]
     else:
-        pts = sample_surface(verts, faces, int(cfg.n_points), cfg.seed)[0].float()
+        pts = sample_surface(verts, faces, cfg.n_points, cfg.seed, "init_gaussians mesh")[0].float()
     if pts.shape[0] < 16:
         raise ToolkitError(f"init_gaussians: the mesh gives only {pts.shape[0]} points; need at least 16")
     return pts
