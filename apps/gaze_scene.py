@@ -48,7 +48,8 @@ def orbit_camera(base, target, yaw: float, pitch: float):
 class GazeScene:
     """A scene prepared for live gaze changes: activated numpy arrays, display colours, the eye set and
     each eye's rotation sphere. A gaze frame rotates only the eye rows (rigidly about each eyeball's
-    centre, as ``toolkit.eyes.redirect_eyes`` does) and hands the splatter arrays that differ there only."""
+    centre, as ``toolkit.eyes.redirect_eyes`` does) and hands the splatter arrays that differ there only.
+    ``no_scrub`` says why gaze scrubbing is disabled ("" when it is not)."""
 
     scene: object
     colors: np.ndarray
@@ -57,24 +58,31 @@ class GazeScene:
     eye_info: dict = field(default_factory=dict)
     arrays: tuple = ()
     eye_index: dict = field(default_factory=dict)
+    no_scrub: str = ""
 
     @classmethod
     def prepare(cls, scene) -> "GazeScene":
+        from render.cull import finite_scales
         from render.preview_scene import FeatureColors, eye_dynamics
         from toolkit.eyes import EYE_PARTS, eyeball_info
 
         scene.validate()
         colors = FeatureColors(scene.features)(scene.features)
+        part = scene.part.cpu().numpy()
+        no_scrub = "" if np.isin(part, list(EYE_PARTS.values())).any() else NO_EYES
         try:
             info = eyeball_info(scene)
-        except ToolkitError:
+        except ToolkitError as e:
+            # The eye Gaussians are there, but their eyeballs are not (malformed metadata["eyes"], too few
+            # Gaussians for a sphere): say that, not that there are no eyes.
             info = {}
+            no_scrub = no_scrub or f"the scene's eye Gaussians cannot be turned ({e}): gaze scrubbing is disabled"
         dynamic, spheres = eye_dynamics(scene) if info else (None, None)
+        # finite_scales: a log-scale that overflows float32 is culled as huge (render.cull), not refused as inf.
         arrays = tuple(t.detach().cpu().float().numpy().copy() for t in
-                       (scene.means, scene.quats, scene.scales, scene.opacities))
-        part = scene.part.cpu().numpy()
+                       (scene.means, scene.quats, finite_scales(scene.scales.float()), scene.opacities))
         index = {name: np.flatnonzero(part == EYE_PARTS[name]) for name in info}
-        return cls(scene, colors, dynamic, spheres, info, arrays, index)
+        return cls(scene, colors, dynamic, spheres, info, arrays, index, no_scrub if not info else "")
 
     @property
     def can_scrub(self) -> bool:
@@ -126,3 +134,24 @@ class GazeScene:
 
 
 NO_EYES = "scene has no eye Gaussians (part 1 or 2): gaze scrubbing is disabled"
+
+
+def visibility_warning(camera, splatter) -> str | None:
+    """After a full frame through ``camera`` (``splatter.stats`` of that frame): why Gaussians are
+    not drawn, by the shared cull rule's tests (``render.cull``), or why nothing is; None when all are drawn."""
+    from render.cull import REASONS
+
+    st = splatter.stats
+    n, culled, drawn = st.get("n", 0), st.get("culled", 0), st.get("drawn")
+    if not culled and drawn != 0:
+        return None
+    why = ""
+    if culled:
+        counts = splatter.culled_by_test(camera.viewmat, camera.K)
+        why = "; ".join(f"{k} with {REASONS[name]}" for name, k in counts.items())
+    if drawn == 0:
+        faint = n - culled
+        parts = [f"{culled} culled ({why})" if culled else "", f"{faint} with opacity below 1/255" if faint else ""]
+        return (f"nothing is drawn from this view: of {n} Gaussians, {' and '.join(p for p in parts if p)}; "
+                "the frames show only the background")
+    return f"{culled} of {n} Gaussians are not drawn ({why})"

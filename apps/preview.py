@@ -26,10 +26,20 @@ if __package__ in (None, ""):  # run as a script (python apps/preview.py): make 
 
 import torch
 
-from apps.preview_sweep import parse_range, render_gaze_sweep
+from apps.preview_sweep import check_sweep, parse_range, render_gaze_sweep
 from apps.preview_window import run_window
 from toolkit.errors import ToolkitError, run_cli
 from toolkit.io import check_not_an_input
+from toolkit.limits import check_allocation, check_count
+
+DEMO_MAX = 2_000_000
+"""Most Gaussians of the procedural demo head (``demo:N``): ~15 us each to build (a 2 M head takes half a
+minute), and a full preview frame of a few million already takes seconds on a software GL."""
+DEMO_BYTES_PER_GAUSSIAN = 2048
+"""Peak memory per demo Gaussian, generously: building the head (~0.5 KB measured) plus the preview's copies."""
+MAX_SIDE = 8192
+"""Largest --size side: its float targets alone take W x H x 16 bytes each, four of them."""
+MAX_WINDOW_FRAMES = 10_000_000
 
 WINDOW_HELP = """window controls:
   left drag / arrow keys        change gaze pitch and yaw
@@ -71,6 +81,8 @@ def load_scene(spec: str):
             n = int(spec.split(":", 1)[1]) if ":" in spec else 20000
         except ValueError:
             raise ToolkitError(f"scene {spec!r}: expected demo or demo:N with an integer N") from None
+        check_count(n, f"scene {spec}", 64, DEMO_MAX, "a number of demo Gaussians (demo:N)")
+        check_allocation(n * DEMO_BYTES_PER_GAUSSIAN, f"scene {spec}", "ask for fewer Gaussians (demo:N)")
         return demo_head_scene(n)
     if os.path.isdir(spec) and os.path.isfile(os.path.join(spec, "config.yaml")):
         return load_trained_scene(spec)
@@ -102,8 +114,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--screenshot-dir", default="out/preview", help="window: where S saves screenshots")
     args = ap.parse_args(argv)
     w, h = args.size
-    if w < 1 or h < 1 or w > 8192 or h > 8192:
-        raise ToolkitError(f"--size: expected 1..8192 pixels per side, got {w} {h}")
+    check_count(w, "--size W", 1, MAX_SIDE, "pixels per side")
+    check_count(h, "--size H", 1, MAX_SIDE, "pixels per side")
+    check_allocation(4 * 16 * w * h, f"--size {w} {h} (the preview's float frames)", "lower --size")
     try:
         bg = [float(v) for v in args.background.split(",")]
         if len(bg) != 3 or not all(0.0 <= v <= 1.0 for v in bg):  # NaN fails the range too
@@ -112,15 +125,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise ToolkitError(f"--background: expected R,G,B each in [0, 1], got {args.background!r}") from None
     if not 0.1 <= args.fps <= 240:  # NaN too; OpenCV reports a bad rate as a missing encoder
         raise ToolkitError(f"--fps: expected a video frame rate in [0.1, 240], got {args.fps}")
+    if args.max_frames is not None:
+        check_count(args.max_frames, "--max-frames", 1, MAX_WINDOW_FRAMES, "a number of window frames")
     if args.headless and not args.sweep:
         raise ToolkitError("--headless needs --sweep OUT.mp4 or OUT.png")
+    if args.sweep and not args.headless:
+        raise ToolkitError("--sweep is the headless output: add --headless (without it the window opens)")
     if args.sweep:
+        # Everything about the sweep is refused before the scene is loaded or built.
+        pitches, yaws = parse_range(args.pitch, "pitch"), parse_range(args.yaw, "yaw")
+        check_sweep(args.sweep, len(pitches), len(yaws), w, h)
         check_not_an_input(args.sweep, [args.scene], "--sweep", "scene")
     scene = load_scene(args.scene)
     if args.headless:
         t0 = time.perf_counter()
-        res = render_gaze_sweep(scene, args.sweep, parse_range(args.pitch, "pitch"), parse_range(args.yaw, "yaw"),
-                                w, h, background=bg, fps=args.fps)
+        res = render_gaze_sweep(scene, args.sweep, pitches, yaws, w, h, background=bg, fps=args.fps)
         print(f"wrote {res['path']} ({len(res['frames'])} gazes, {w}x{h}, {scene.num_gaussians} Gaussians) "
               f"in {time.perf_counter() - t0:.1f} s")
         return 0

@@ -9,26 +9,68 @@ from typing import Sequence
 
 import numpy as np
 
-from apps.gaze_scene import NO_EYES, GazeScene, frame_camera
+from apps.gaze_scene import GazeScene, frame_camera, visibility_warning
 from toolkit.errors import ToolkitError
+from toolkit.limits import check_allocation, check_count
+
+MAX_GAZES = 1000
+"""Most gazes along one axis of a sweep (--pitch or --yaw)."""
+MAX_FRAMES = 10000
+"""Most frames of a sweep (pitches x yaws): at a few tens of ms per frame and read-back, minutes of work."""
+SHEET_MAX_SIDE = 1_000_000
+"""libpng refuses wider or taller PNGs."""
+SHEET_MAX_PIXELS = 1 << 30
+"""OpenCV reads no larger image back (its CV_IO_MAX_IMAGE_PIXELS)."""
+VIDEO_SIDES = (2, 8191)
+"""Frame sides the mp4v (MPEG-4 part 2) encoder accepts."""
 
 
 def parse_range(text: str, what: str) -> list[float]:
-    """'MIN:MAX:N' (degrees) or a comma list 'a,b,c' -> angles in degrees."""
+    """'MIN:MAX:N' (degrees) or a comma list 'a,b,c' -> angles in degrees (at most ``MAX_GAZES``)."""
     try:
         if ":" in text:
             lo, hi, n = text.split(":")
             n = int(n)
-            if n < 1:
-                raise ValueError
-            angles = [float(lo)] if n == 1 else list(np.linspace(float(lo), float(hi), n))
+            lo, hi = float(lo), float(hi)
         else:
             angles = [float(v) for v in text.split(",") if v.strip()]
+            n = len(angles)
     except ValueError:
         raise ToolkitError(f"--{what}: expected MIN:MAX:N or a comma list of degrees, got {text!r}") from None
+    check_count(n, f"--{what}", 1, MAX_GAZES, "a number of gazes")
+    if ":" in text:
+        with np.errstate(all="ignore"):  # -1e308:1e308 overflows: refused as not finite just below
+            angles = [lo] if n == 1 else list(np.linspace(lo, hi, n))
     if not all(math.isfinite(a) for a in angles):
         raise ToolkitError(f"--{what}: expected finite degrees, got {text!r}")
     return angles
+
+
+def check_sweep(out_path, n_pitch: int, n_yaw: int, width: int, height: int) -> None:
+    """Refuse, before any work, a sweep whose output could not be written or would cost too much: the output
+    type, the frame count, the memory its frames take and the size limits of the PNG / MPEG-4 encoders."""
+    path = Path(out_path)
+    ext = path.suffix.lower()
+    if ext not in (".mp4", ".png"):
+        raise ToolkitError(f"{path}: sweep output must end in .mp4 (video) or .png (contact sheet)")
+    if path.is_dir():
+        raise ToolkitError(f"--sweep {path}: is a directory, expected a .png or .mp4 file path")
+    up = next((q for q in path.parents if q.exists()), None)
+    if up is not None and not up.is_dir():
+        raise ToolkitError(f"--sweep {path}: {up} is a file, not a folder")
+    frames = check_count(n_pitch * n_yaw, "--pitch x --yaw", 1, MAX_FRAMES, "a number of sweep frames")
+    hint = "lower --size or the number of --pitch / --yaw gazes"
+    # The frames as uint8 RGB, then stacked, then reordered into the video or laid out on the sheet.
+    check_allocation(3.0 * frames * width * height * 3, f"a sweep of {frames} frames of {width}x{height}", hint)
+    if ext == ".mp4":
+        lo, hi = VIDEO_SIDES
+        check_count(width, "--size W (of an .mp4 sweep)", lo, hi, "pixels")
+        check_count(height, "--size H (of an .mp4 sweep)", lo, hi, "pixels")
+        return
+    sheet_w, sheet_h = n_yaw * (width + 2) - 2, n_pitch * (height + 2) - 2
+    if max(sheet_w, sheet_h) > SHEET_MAX_SIDE or sheet_w * sheet_h > SHEET_MAX_PIXELS:
+        raise ToolkitError(f"--sweep {path}: a contact sheet of {sheet_w}x{sheet_h} pixels, more than PNG readers "
+                           f"take (at most {SHEET_MAX_SIDE} per side and {SHEET_MAX_PIXELS} in all); {hint}")
 
 
 def render_gaze_sweep(scene, out_path, pitches: Sequence[float], yaws: Sequence[float], width: int = 512,
@@ -45,15 +87,14 @@ def render_gaze_sweep(scene, out_path, pitches: Sequence[float], yaws: Sequence[
 
     out_path = Path(out_path)
     ext = out_path.suffix.lower()
-    if ext not in (".mp4", ".png"):
-        raise ToolkitError(f"{out_path}: sweep output must end in .mp4 (video) or .png (contact sheet)")
     if not pitches or not yaws:
         raise ToolkitError("render_gaze_sweep: need at least one pitch and one yaw")
+    camera = camera or frame_camera(scene, width, height)
+    check_sweep(out_path, len(pitches), len(yaws), camera.width, camera.height)
     scale = math.pi / 180 if degrees else 1.0
     gs = GazeScene.prepare(scene)
     if not gs.can_scrub:
-        print(f"warning: {NO_EYES}; the sweep shows the unchanged scene", file=sys.stderr)
-    camera = camera or frame_camera(scene, width, height)
+        print(f"warning: {gs.no_scrub}; the sweep shows the unchanged scene", file=sys.stderr)
     own = splatter is None
     splatter = splatter or PreviewSplatter(camera.width, camera.height, ctx=shared_context())
     bg = np.asarray(background, np.float32)
@@ -64,6 +105,8 @@ def render_gaze_sweep(scene, out_path, pitches: Sequence[float], yaws: Sequence[
             for y in yaws:
                 g = (float(p) * scale, float(y) * scale)
                 gs.draw(splatter, camera, *g, fresh=not frames and not row)  # the first frame compares all rows
+                if not frames and not row and (why := visibility_warning(camera, splatter)):
+                    print(f"warning: {why}", file=sys.stderr)
                 rgba = splatter.read()
                 rgb = rgba[..., :3] + (1 - rgba[..., 3:]) * bg
                 row.append(((np.clip(rgb, 0, 1) * 255) + 0.5).astype(np.uint8))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import math
 import sys
 import time
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.gaze_scene import NO_EYES, GazeScene, frame_camera, orbit_camera
+from apps.gaze_scene import NO_EYES, GazeScene, frame_camera, orbit_camera, visibility_warning
 from toolkit.errors import ToolkitError
 
 IDLE_WAIT_S = 0.1
@@ -107,7 +108,7 @@ def run_window(scene, width: int = 512, height: int = 512, *, background=(1.0, 1
 
     gs = GazeScene.prepare(scene)
     if not gs.can_scrub:
-        print(f"warning: {NO_EYES}; orbiting still works", file=sys.stderr)
+        print(f"warning: {gs.no_scrub}; orbiting still works", file=sys.stderr)
     glfw.ERROR_REPORTING = "ignore"  # failures become one ToolkitError below, not Python warnings
     if not glfw.init():
         raise ToolkitError(f"could not open a window: glfw found no display ({_glfw_error() or 'is DISPLAY set?'}); "
@@ -166,7 +167,9 @@ def _scrub(win, gs: GazeScene, splatter, controls: WindowControls, base, bg: tup
 
     scene, state = gs.scene, controls.state
     target = scene.means.detach().cpu().double().quantile(0.5, 0)
-    frames, paths, shots, last_title, times, eye_rect = 0, {}, [], 0.0, [], None
+    # Frame times: the last 30 for the title, running totals for the mean (a long session keeps no list).
+    frames, paths, shots, last_title, eye_rect = 0, {}, [], 0.0, None
+    recent, total_s, timed = collections.deque(maxlen=30), 0.0, 0
     idle, idle_waits = False, 0
     while not glfw.window_should_close(win) and not state.quit:
         if max_frames is not None and frames >= max_frames:
@@ -179,7 +182,10 @@ def _scrub(win, gs: GazeScene, splatter, controls: WindowControls, base, bg: tup
         for name, *args in (events or {}).get(frames, []):
             getattr(controls, name)(win, *args)
         t0 = time.perf_counter()
-        gs.draw(splatter, orbit_camera(base, target, state.orbit_yaw, state.orbit_pitch), state.pitch, state.yaw)
+        camera = orbit_camera(base, target, state.orbit_yaw, state.orbit_pitch)
+        gs.draw(splatter, camera, state.pitch, state.yaw)
+        if frames == 0 and (why := visibility_warning(camera, splatter)):
+            print(f"warning: {why}", file=sys.stderr)
         path = splatter.stats.get("path", "full")
         paths[path] = paths.get(path, 0) + 1
         idle = path == "unchanged"
@@ -188,22 +194,24 @@ def _scrub(win, gs: GazeScene, splatter, controls: WindowControls, base, bg: tup
         fbw, fbh = glfw.get_framebuffer_size(win)
         splatter.present((0, 0, fbw, fbh), bg, eye_rect if state.overlay else None)
         glfw.swap_buffers(win)
-        times.append(time.perf_counter() - t0)
+        recent.append(time.perf_counter() - t0)
+        total_s, timed = total_s + recent[-1], timed + 1
         if state.screenshot:
             state.screenshot = False
             shots.append(_save_screenshot(splatter, bg, screenshot_dir))
             print(f"saved {shots[-1]}")
         now = time.perf_counter()
         if now - last_title > 0.25:
-            glfw.set_window_title(win, _title(gs, state, len(times[-30:]) / max(sum(times[-30:]), 1e-9)))
+            glfw.set_window_title(win, _title(gs, state, len(recent) / max(sum(recent), 1e-9)))
             last_title = now
         frames += 1
-    return {"frames": frames, "paths": paths, "screenshots": shots, "fps": len(times) / max(sum(times), 1e-9),
+    return {"frames": frames, "paths": paths, "screenshots": shots, "fps": timed / max(total_s, 1e-9),
             "idle_waits": idle_waits}
 
 
 def _title(gs: GazeScene, state: ScrubState, fps: float) -> str:
-    note = "" if gs.can_scrub else " | no eye Gaussians: scrubbing disabled"
+    why = "no eye Gaussians" if gs.no_scrub == NO_EYES else "eyeballs unusable (see the terminal)"
+    note = "" if gs.can_scrub else f" | {why}: scrubbing disabled"
     return (f"DiT-Gaze preview | gaze pitch {math.degrees(state.pitch):+.1f}° yaw {math.degrees(state.yaw):+.1f}° | "
             f"{gs.scene.num_gaussians} Gaussians | {fps:.1f} FPS{note}")
 

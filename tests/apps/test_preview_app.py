@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -159,6 +160,61 @@ def test_scene_without_eyes_sweeps_with_a_message(egl, head, tmp_path, capsys):
     assert "no eye Gaussians" in capsys.readouterr().err
     sheet = cv2.imread(str(out))
     np.testing.assert_array_equal(sheet[:, :48], sheet[:, 50:])
+
+
+def test_unusable_eyeballs_are_named_not_called_missing(egl, head, tmp_path, capsys):
+    """Eye Gaussians that give no eyeball (three of them, no metadata["eyes"]): the sweep runs without
+    scrubbing and says why, never that the scene has no eye Gaussians; malformed metadata["eyes"] is an
+    error naming it."""
+    from apps.preview import main
+    from apps.preview_sweep import render_gaze_sweep
+
+    left = torch.nonzero(head.part == 1).flatten()
+    keep = (head.part == 0) | (head.part == 2)
+    keep[left[:3]] = True
+    scene = head.select(keep)
+    scene.metadata = {k: v for k, v in scene.metadata.items() if k != "eyes"}
+    path = tmp_path / "three_eye_gaussians.safetensors"
+    scene.save(path)
+    out = tmp_path / "sheet.png"
+    assert run_cli(main, [str(path), "--headless", "--sweep", str(out), "--yaw=-20,20", "--pitch", "0",
+                          "--size", "32", "32"]) == 0
+    err = capsys.readouterr().err
+    assert "no eye Gaussians" not in err and len(err.strip().splitlines()) == 1
+    assert re.search(r"warning: the scene's eye Gaussians cannot be turned \(scene left eye: its 3 Gaussians give "
+                     r"no eyeball sphere.*\): gaze scrubbing is disabled", err)
+    sheet = cv2.imread(str(out))
+    np.testing.assert_array_equal(sheet[:, :32], sheet[:, 34:])
+    bad = head.select(torch.ones(head.num_gaussians, dtype=torch.bool))
+    bad.metadata["eyes"] = {"left": "junk"}
+    with pytest.raises(ToolkitError, match=r"metadata\.eyes\.left: expected a mapping"):
+        render_gaze_sweep(bad, tmp_path / "never.png", [0.0], [0.0], 32, 32)
+    assert not (tmp_path / "never.png").exists()
+
+
+def test_a_scene_that_draws_nothing_says_why(egl, head, tmp_path, capsys):
+    """Every Gaussian culled by render.cull (scales e^80): the sheet is the background, exit 0, and a warning
+    says why; a scene with some culled ones counts them."""
+    from apps.preview import main
+
+    scene = head.select(torch.ones(head.num_gaussians, dtype=torch.bool))
+    scene.log_scales = torch.full_like(scene.log_scales, 80.0)
+    scene.save(tmp_path / "huge.safetensors")
+    out = tmp_path / "huge.png"
+    assert run_cli(main, [str(tmp_path / "huge.safetensors"), "--headless", "--sweep", str(out), "--pitch", "0",
+                          "--yaw", "0", "--size", "32", "24", "--background", "0,1,0"]) == 0
+    err = capsys.readouterr().err
+    n = head.num_gaussians
+    assert f"warning: nothing is drawn from this view: of {n} Gaussians, {n} culled ({n} with a scale above 1e+18)" \
+        in err and "the frames show only the background" in err
+    np.testing.assert_array_equal(cv2.imread(str(out)), np.broadcast_to(np.uint8([0, 255, 0]), (24, 32, 3)))
+    some = head.select(torch.ones(n, dtype=torch.bool))
+    some.log_scales = some.log_scales.clone()
+    some.log_scales[:7] = 80.0
+    some.save(tmp_path / "some.safetensors")
+    assert run_cli(main, [str(tmp_path / "some.safetensors"), "--headless", "--sweep", str(tmp_path / "s.png"),
+                          "--pitch", "0", "--yaw", "0", "--size", "32", "24"]) == 0
+    assert f"warning: 7 of {n} Gaussians are not drawn (7 with a scale above 1e+18)" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------ bad input
