@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Sequence
 
@@ -30,13 +31,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(scene.summary())
     elif args.cmd == "convert":
         check_not_an_input(args.dst, [args.src], "dst")
-        scene = GaussianScene.read(args.src)
-        if args.dst.lower().endswith(".ply"):
-            scene.to_ply(args.dst)
-        elif args.dst.lower().endswith(".safetensors"):
-            scene.save(args.dst)
-        else:
+        ext = os.path.splitext(args.dst)[1].lower()
+        if ext not in (".ply", ".safetensors"):  # before reading: a typo costs nothing
             raise ToolkitError(f"{args.dst}: unknown output extension; expected .safetensors or .ply")
+        scene = GaussianScene.read(args.src)
+        # Each writer refuses, before writing, what its reader would refuse (toolkit.ply, GaussianScene.save).
+        if ext == ".ply":
+            scene.to_ply(args.dst)
+        else:
+            scene.save(args.dst)
         print(f"wrote {args.dst} ({scene.num_gaussians} Gaussians)")
     return 0
 
