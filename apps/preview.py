@@ -26,7 +26,7 @@ if __package__ in (None, ""):  # run as a script (python apps/preview.py): make 
 
 import torch
 
-from apps.preview_sweep import check_sweep, parse_range, render_gaze_sweep
+from apps.preview_sweep import MAX_FRAMES, MAX_GAZES, check_sweep, parse_range, render_gaze_sweep
 from apps.preview_window import run_window
 from toolkit.errors import ToolkitError, run_cli
 from toolkit.io import check_not_an_input
@@ -102,15 +102,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         epilog=WINDOW_HELP + "\nSCENE is a .safetensors or .ply Gaussian scene, a trained run directory "
         "(train/run.py: its Gaussians' RGB channels, posed with a training subject's code), or demo[:N] for the "
         "procedural head. The eye Gaussians are rotated rigidly about their eyeball centres.")
-    ap.add_argument("scene", help="scene file (.safetensors / .ply), a trained run directory, or demo[:N]")
+    ap.add_argument("scene", help="scene file (.safetensors / .ply), a trained run directory, or demo[:N] "
+                    f"(N in [64, {DEMO_MAX}], default 20000)")
     ap.add_argument("--headless", action="store_true", help="no window: render --sweep through EGL")
     ap.add_argument("--sweep", help="headless output: .mp4 video or .png contact sheet of the gaze grid")
-    ap.add_argument("--pitch", default="20:-20:3", help="pitch grid in degrees, MIN:MAX:N or a,b,c; the first is the top row (default 20:-20:3)")
-    ap.add_argument("--yaw", default="-30:30:5", help="yaw grid in degrees, MIN:MAX:N or a,b,c; write --yaw=-30:30:5 for a leading minus (default -30:30:5)")
-    ap.add_argument("--size", type=int, nargs=2, default=(512, 512), metavar=("W", "H"), help="image size")
+    ap.add_argument("--pitch", default="20:-20:3", help="pitch grid in degrees, MIN:MAX:N or a,b,c; the first is the "
+                    f"top row (default 20:-20:3; at most {MAX_GAZES} gazes, {MAX_FRAMES} pitches x yaws)")
+    ap.add_argument("--yaw", default="-30:30:5", help="yaw grid in degrees, MIN:MAX:N or a,b,c; write --yaw=-30:30:5 "
+                    f"for a leading minus (default -30:30:5; at most {MAX_GAZES} gazes)")
+    ap.add_argument("--size", type=int, nargs=2, default=(512, 512), metavar=("W", "H"),
+                    help=f"image size, 1..{MAX_SIDE} pixels per side (an .mp4 sweep: 2..8191)")
     ap.add_argument("--background", default="1,1,1", help="background colour R,G,B in [0, 1]")
     ap.add_argument("--fps", type=float, default=8.0, help="video frame rate")
-    ap.add_argument("--max-frames", type=int, default=None, help="window: quit after this many frames")
+    ap.add_argument("--max-frames", type=int, default=None,
+                    help=f"window: quit after this many frames (1..{MAX_WINDOW_FRAMES})")
     ap.add_argument("--screenshot-dir", default="out/preview", help="window: where S saves screenshots")
     args = ap.parse_args(argv)
     w, h = args.size

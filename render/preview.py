@@ -169,12 +169,14 @@ class PreviewSplatter:
         """The cull rule (``render.cull``) for this camera -> keep [N] bool; under the same camera only the
         ``changed`` rows are decided again."""
         means, quats, scales = self._gaussians.inputs[:3]
+        ok = self._gaussians.ok
         args = (K, self.width, self.height, self.near, self.far, self.eps2d)
         if self._keep_camera == cam and changed is not None and self._keep is not None:
             if changed.size:
-                self._keep[changed] = drawable(means[changed], quats[changed], scales[changed], viewmat, *args)
+                self._keep[changed] = drawable(means[changed], quats[changed], scales[changed], viewmat, *args,
+                                               ok=ok[changed])
         else:
-            self._keep = drawable(means, quats, scales, viewmat, *args)
+            self._keep = drawable(means, quats, scales, viewmat, *args, ok=ok)
             self._keep_camera = cam
         return self._keep
 

@@ -93,13 +93,13 @@ def float32_tensor(a: np.ndarray):
     return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
 
 
-def pack_gaussians(means, quats, scales, opacities, colors) -> np.ndarray:
+def pack_gaussians(means, quats, scales, opacities, colors, ok=None) -> np.ndarray:
     """Activated Gaussians -> [N, 16] float32 rows in the data-texture layout of ``render.preview_shaders``.
-    Rows that fail the camera-free tests of the cull rule get a zero covariance and r_cut 0 (the shader
-    skips them), so nothing overflows."""
+    Rows that fail the camera-free tests of the cull rule (``ok`` [N], computed when not given) get a zero
+    covariance and r_cut 0 (the shader skips them), so nothing overflows."""
     n = means.shape[0]
     out = np.zeros((n, 16), np.float32)
-    ok = camera_free_ok(means, quats, scales)
+    ok = camera_free_ok(means, quats, scales) if ok is None else ok
     out[:, 0:3] = means
     out[:, 3] = opacities
     out[ok, 4:10] = covariances(quats[ok], scales[ok])
@@ -111,9 +111,10 @@ def pack_gaussians(means, quats, scales, opacities, colors) -> np.ndarray:
 
 
 def drawable(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, viewmat: np.ndarray, K: np.ndarray,
-             width: int, height: int, near: float, far: float, eps2d: float) -> np.ndarray:
+             width: int, height: int, near: float, far: float, eps2d: float, ok: np.ndarray | None = None
+             ) -> np.ndarray:
     """The shared cull rule ``render.cull.cull_mask`` for one camera -> keep [M] bool, on float32 means [M, 3],
-    quats [M, 4], scales [M, 3], viewmat [4, 4], K [3, 3].
+    quats [M, 4], scales [M, 3], viewmat [4, 4], K [3, 3]; ``ok`` [M]: their :func:`camera_free_ok`, when known.
 
     Exactly the torch rule, but cheap: a float64 bound first proves most Gaussians kept (depth clear of
     near / far by more than float32's rounding, a footprint too small to be a needle or to overflow) and the
@@ -121,7 +122,7 @@ def drawable(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, viewmat: 
     """
     from render.cull import cull_mask
 
-    ok = camera_free_ok(means, quats, scales)
+    ok = camera_free_ok(means, quats, scales) if ok is None else ok
     sure = ok & _surely_kept(means, scales, viewmat, K, width, height, near, far, eps2d)
     keep = sure.copy()
     rest = np.flatnonzero(ok & ~sure)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from render import preview_shaders as sh
-from render.preview_footprints import pack_gaussians, tangent_limits
+from render.preview_footprints import camera_free_ok, pack_gaussians, tangent_limits
 from toolkit.errors import ToolkitError
 
 
@@ -62,6 +62,7 @@ class GaussianTexture:
         self.ctx = ctx
         self.texture = None
         self.rows = np.zeros((0, 16), np.float32)
+        self.ok = np.zeros(0, bool)  # [N] the camera-free tests of the cull rule (render.cull.param_tests)
         self.inputs: tuple | None = None
 
     @property
@@ -100,7 +101,8 @@ class GaussianTexture:
         ids = np.flatnonzero(diff) if cand is None else cand[diff]
         old_rows = self.rows[ids].copy()
         if ids.size:
-            self.rows[ids] = pack_gaussians(*(a[ids] for a in new))
+            self.ok[ids] = camera_free_ok(*(a[ids] for a in new[:3]))
+            self.rows[ids] = pack_gaussians(*(a[ids] for a in new), ok=self.ok[ids])
             for old, cur in zip(self.inputs, new, strict=True):
                 old[ids] = cur[ids]
             # Rewrite only the texture rows holding a changed Gaussian, one write per run of rows.
@@ -118,7 +120,8 @@ class GaussianTexture:
         if rows_tex > limit:  # a GL error (and a traceback) otherwise
             raise ToolkitError(f"render_preview: {n} Gaussians need a data texture of {rows_tex} rows, more than "
                                f"this OpenGL's limit of {limit} ({limit * sh.GAUSSIANS_PER_ROW} Gaussians)")
-        self.rows = pack_gaussians(*new)
+        self.ok = camera_free_ok(*new[:3])
+        self.rows = pack_gaussians(*new, ok=self.ok)
         self.inputs = tuple(a.copy() for a in new)
         if self.texture is not None:
             self.texture.release()
