@@ -325,3 +325,14 @@ def test_a_double_beyond_float32_is_refused(tmp_path):
     _ascii_ply(p, _GRAPHDECO, [[1e300] + [0.0] * (len(_GRAPHDECO) - 1)])
     with pytest.raises(ToolkitError, match=r"vertex property 'x': .*beyond float32"):
         GaussianScene.from_ply(p)
+
+
+def test_many_declared_elements_are_quick(tmp_path):
+    p = tmp_path / "many.ply"
+    _ascii_ply(p, _GRAPHDECO, [[0.0] * len(_GRAPHDECO)])
+    raw = p.read_bytes()
+    elements = b"".join(b"element e%d 0\n" % i for i in range(60000))  # about the most 1 MiB of header holds
+    p.write_bytes(raw.replace(b"end_header\n", elements + b"end_header\n", 1))
+    t0 = time.perf_counter()
+    assert len(GaussianScene.from_ply(p)) == 1
+    assert time.perf_counter() - t0 < 10
