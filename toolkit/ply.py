@@ -70,10 +70,10 @@ def write_gaussian_ply(path: str | os.PathLike, tensors: dict[str, torch.Tensor]
     meta = dict(metadata)
     meta["has_sh"] = tensors.get("sh") is not None
     meta["feature_dim"] = int(tensors["features"].shape[1])
-    header = ["ply", "format binary_little_endian 1.0", f"comment {_META_TAG} {_metadata_json(path, meta)}",
-              f"element vertex {tensors['means'].shape[0]}"]
-    header += [f"property float {name}" for name, _ in cols]
-    header = ("\n".join(header + ["end_header"]) + "\n").encode("ascii")
+    lines = ["ply", "format binary_little_endian 1.0", f"comment {_META_TAG} {_metadata_json(path, meta)}",
+             f"element vertex {tensors['means'].shape[0]}"]
+    lines += [f"property float {name}" for name, _ in cols]
+    header = ("\n".join(lines + ["end_header"]) + "\n").encode("ascii")
     if len(header) > _MAX_HEADER_BYTES:
         raise ToolkitError(f"{path}: the PLY header for {len(cols)} properties per Gaussian would be {len(header)} "
                            f"bytes, more than readers look through ({_MAX_HEADER_BYTES}); fewer features or a lower "
@@ -235,12 +235,13 @@ def read_ply_vertices(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], l
     least = "at least " if fmt == "ascii" else ""
     check_declared_size(path, offset + n * row - (fmt == "ascii" and n > 0),
                         f"element 'vertex' (the header declares {n} vertices of {least}{row} bytes)")
-    # The body's bytes, ASCII's parse, and a float64 copy per property.
-    check_allocation(Path(path).stat().st_size - offset + 2 * 8 * n * len(props), f"{path}: reading {n} vertices "
-                     f"of {len(props)} properties")
+    # The body's bytes (a binary vertex element's only: other elements may follow), ASCII's parse, and a
+    # float64 copy per property.
+    size = n * row if fmt != "ascii" else Path(path).stat().st_size - offset
+    check_allocation(size + 2 * 8 * n * len(props), f"{path}: reading {n} vertices of {len(props)} properties")
     with open(path, "rb") as f:
         f.seek(offset)
-        body = f.read()
+        body = f.read(size)
     cols = _ascii_rows(body, n, props, path) if fmt == "ascii" else _binary_rows(body, n, props, fmt, path)
     return cols, comments
 
@@ -279,7 +280,9 @@ def read_gaussian_ply(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor |
     """Read a 3DGS PLY (graphdeco layout, this toolkit's or another tool's) -> (tensors, metadata).
 
     The tensors are the pre-activation fields named as in ``GaussianScene`` (means, quats, log_scales,
-    opacity_logits, features, part, sh: None without SH coefficients), unchecked beyond the file's layout.
+    opacity_logits, features, part, sh: None without SH coefficients). Checked here: the file's layout, the
+    metadata comment, and finite values in every property used; the scene's own rules are
+    ``GaussianScene.validate``'s.
     """
     cols, comments = read_ply_vertices(path)
     required = ["x", "y", "z", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
