@@ -32,13 +32,18 @@ W, H = 16, 12
 NAN, INF = float("nan"), float("inf")
 
 
-def camera(near: float):
-    """viewmat [4, 4] (a small rotation and translation), K [3, 3] with skew, as float32 numpy."""
-    c, s = math.cos(0.1), math.sin(0.1)
+@st.composite
+def camera(draw):
+    """viewmat [4, 4] (a rotation about y and a translation that adds 0.2 to z), K [3, 3] with a focal length
+    of 2 to 2000 pixels and maybe skew, as float32 numpy."""
+    yaw = draw(st.sampled_from([0.0, 0.1, 2.0]))
+    c, s = math.cos(yaw), math.sin(yaw)
     V = np.eye(4, dtype=np.float32)
     V[:3, :3] = [[c, 0, -s], [0, 1, 0], [s, 0, c]]
     V[:3, 3] = [0.1, -0.05, 0.2]
-    K = np.array([[20.0, 0.3, W / 2 + 0.4], [0, 21.0, H / 2 - 0.3], [0, 0, 1]], np.float32)
+    f = draw(st.sampled_from([2.0, 20.0, 2000.0]))
+    skew = draw(st.sampled_from([0.0, 0.3]))
+    K = np.array([[f, skew, W / 2 + 0.4], [0, 1.05 * f, H / 2 - 0.3], [0, 0, 1]], np.float32)
     return V, K
 
 
@@ -72,18 +77,18 @@ def gaussian(draw, finite: bool):
 
 @st.composite
 def scene(draw, finite: bool = False):
-    """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) float32, N in 1..5, and the
-    (near, far) planes."""
+    """((means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours [N, 3]) float32, N in 1..5,
+    (near, far), (viewmat, K))."""
     gs = draw(st.lists(gaussian(finite), min_size=1, max_size=5))
     with np.errstate(over="ignore"):  # e^80 is inf in float32: an overflow, as a user's file could hold
         arrays = [np.array([g[i] for g in gs], np.float32) for i in range(4)]
     colors = np.random.default_rng(len(gs)).uniform(size=(len(gs), 3)).astype(np.float32)
-    return (*arrays, colors), (draw(st.sampled_from([0.01, 0.5])), draw(st.sampled_from([1e10, 10.0])))
+    planes = (draw(st.sampled_from([0.01, 0.5])), draw(st.sampled_from([1e10, 10.0])))
+    return (*arrays, colors), planes, draw(camera())
 
 
-def _mask(arrays, near, far):
+def _mask(arrays, near, far, V, K):
     means, quats, scales = (torch.from_numpy(a) for a in arrays[:3])
-    V, K = camera(near)
     return cull_mask(means, quats, scales, torch.from_numpy(V)[None], torch.from_numpy(K)[None], W, H,
                      near_plane=near, far_plane=far)[0].numpy()
 
@@ -115,9 +120,9 @@ def _float64_view(means, quats, scales, V, K):
 
 @given(scene())
 def test_the_rule_keeps_exactly_what_it_states(sc):
-    arrays, (near, far) = sc
+    arrays, (near, far), (V, K) = sc
     means, quats, scales = arrays[:3]
-    keep = _mask(arrays, near, far)
+    keep = _mask(arrays, near, far, V, K)
     finite = np.isfinite(means).all(1) & np.isfinite(quats).all(1) & np.isfinite(scales).all(1)
     qmax = np.abs(quats).max(1)
     params = finite & (np.abs(scales).max(1) <= SCALE_MAX) & ((qmax == 0) | ((qmax >= QUAT_RANGE[0]) &
@@ -126,7 +131,6 @@ def test_the_rule_keeps_exactly_what_it_states(sc):
     if not params.any():
         return
     i = np.flatnonzero(params)
-    V, K = camera(near)
     with np.errstate(all="ignore"):
         z, uv, fmax, kappa = _float64_view(means[i], quats[i], scales[i], V, K)
         tol = 1e-5 * (np.abs(means[i]) @ np.abs(V[2, :3]) + abs(V[2, 3])) + 1e-30  # float32 rounding of z
@@ -142,9 +146,9 @@ def test_the_rule_keeps_exactly_what_it_states(sc):
 @given(scene())
 def test_torch_splatter_is_finite_and_draws_what_the_rule_keeps(sc):
     """radii[n] > 0 exactly where the rule keeps n and its 3.33-sigma box around means2d overlaps the image."""
-    arrays, (near, far) = sc
+    arrays, (near, far), cam = sc
     leaves = [torch.from_numpy(a).requires_grad_(True) for a in arrays]
-    V, K = (torch.from_numpy(a)[None] for a in camera(near))
+    V, K = (torch.from_numpy(a)[None] for a in cam)
     bg = torch.tensor([[0.2, 0.4, 0.6]])
     img, alpha, meta = rasterize(*leaves, V, K, W, H, backgrounds=bg, near_plane=near, far_plane=far,
                                  check_finite=False)
@@ -154,7 +158,7 @@ def test_torch_splatter_is_finite_and_draws_what_the_rule_keeps(sc):
     grads = torch.autograd.grad((img * weights).sum() + alpha.sum(), leaves, allow_unused=True)
     for name, g in zip(("means", "quats", "scales", "opacities", "colors"), grads, strict=True):
         assert g is None or torch.isfinite(g).all(), f"non-finite gradient of {name}"
-    keep = torch.from_numpy(_mask(arrays, near, far))
+    keep = torch.from_numpy(_mask(arrays, near, far, *cam))
     with torch.no_grad():
         proj = project_gaussians(*leaves[:3], V, K, W, H, near_plane=near, far_plane=far)
     u, v = proj.means2d[0].unbind(-1)
@@ -172,9 +176,8 @@ def test_torch_splatter_is_finite_and_draws_what_the_rule_keeps(sc):
 def test_preview_drawable_is_the_rule(sc):
     from render.preview_footprints import drawable
 
-    arrays, (near, far) = sc
-    V, K = camera(near)
-    np.testing.assert_array_equal(drawable(*arrays[:3], V, K, W, H, near, far, 0.3), _mask(arrays, near, far))
+    arrays, (near, far), (V, K) = sc
+    np.testing.assert_array_equal(drawable(*arrays[:3], V, K, W, H, near, far, 0.3), _mask(arrays, near, far, V, K))
 
 
 @pytest.fixture(scope="module")
@@ -190,8 +193,7 @@ def splatter():
 
 @given(sc=scene(finite=True))
 def test_preview_draws_what_the_rule_keeps(splatter, sc):
-    arrays, (near, far) = sc
-    V, K = camera(near)
+    arrays, (near, far), (V, K) = sc
     s = splatter(near, far)
     try:
         bg = np.array([0.2, 0.4, 0.6], np.float32)
@@ -201,7 +203,7 @@ def test_preview_draws_what_the_rule_keeps(splatter, sc):
         s.release()
     assert np.isfinite(img).all() and np.isfinite(alpha).all()
     assert alpha.min() >= 0 and alpha.max() <= 1
-    want = np.flatnonzero(_mask(arrays, near, far) & (255.0 * arrays[3].astype(np.float64) > 1))
+    want = np.flatnonzero(_mask(arrays, near, far, V, K) & (255.0 * arrays[3].astype(np.float64) > 1))
     np.testing.assert_array_equal(np.sort(ids), want)
     if ids.size == 0:
         np.testing.assert_array_equal(img, np.broadcast_to(bg, img.shape))
