@@ -63,17 +63,19 @@ def _text_lines(data: bytes) -> list[tuple[int, list[str]]]:
     decode (a stray byte then fails as a number, on its line)."""
     out = []
     for no, line in enumerate(data.decode("latin-1").split("\n"), 1):
-        tok = line.split("#", 1)[0].split()
+        tok = (line[:line.index("#")] if "#" in line else line).split()
         if tok:
             out.append((no, tok))
     return out
 
 
 def _faces_from_polygons(path, polys, where, n_verts: int, base: int = 0) -> np.ndarray:
-    """Fan-triangulate polygons (a list of 0-based id sequences, or one [F, k] array) -> faces [T, 3] int64,
-    after checking every polygon has >= 3 vertices and every id is in [0, n_verts); ``where(i)`` names row i
+    """Fan-triangulate polygons (a list of 0-based id sequences, one [F, k] array, or (lengths, ids)) -> faces
+    [T, 3] int64, after checking every polygon has >= 3 vertices and every id is in [0, n_verts); ``where(i)`` names row i
     and ``base`` is the file's first index (messages quote the index as written)."""
-    if isinstance(polys, np.ndarray):
+    if isinstance(polys, tuple):  # (lengths [F], ids [sum of lengths])
+        lens, flat = polys
+    elif isinstance(polys, np.ndarray):
         lens, flat = np.full(polys.shape[0], polys.shape[1], np.int64), polys.reshape(-1).astype(np.int64)
     else:
         lens = np.fromiter(map(len, polys), np.int64, len(polys))
@@ -92,37 +94,69 @@ def _faces_from_polygons(path, polys, where, n_verts: int, base: int = 0) -> np.
     return np.stack([flat[starts], flat[starts + j], flat[starts + j + 1]], 1)
 
 
-def _read_obj(path: Path, data: bytes):
-    """Wavefront OBJ: ``v x y z`` and ``f i j k ...`` (1-based; negative counts back from the last vertex so far;
-    ``i/t/n`` uses the position only). Other statements (vt, vn, g, usemtl, l ...) are skipped."""
-    verts, polys, face_lines, vert_lines = [], [], [], []
-    limit = len(data)  # a vertex takes >= 7 bytes: a larger positive index cannot be valid
-    for no, tok in _text_lines(data):
+def _obj_statements(path: Path, data: bytes):
+    """The ``v`` and ``f`` statements of an OBJ -> (vertex coordinate strings [[x, y, z]], their line numbers,
+    face index strings [[i, ...]], their line numbers, the vertex count before each face)."""
+    verts, vert_lines, faces, face_lines, seen = [], [], [], [], []
+    for no, line in enumerate(data.decode("latin-1").split("\n"), 1):
+        tok = (line[:line.index("#")] if "#" in line else line).split()
+        if not tok:
+            continue
         if tok[0] == "v":
-            try:
-                verts.append([float(t) for t in tok[1:4]])
-            except ValueError:
-                verts.append([])
-            if len(verts[-1]) != 3:
+            if len(tok) < 4:
                 raise ToolkitError(f"{path}: line {no}: expected a vertex 'v x y z', got {' '.join(tok)[:60]!r}")
+            verts.append(tok[1:4])
             vert_lines.append(no)
         elif tok[0] == "f":
-            poly = []
-            for t in tok[1:]:
-                try:
-                    i = _int_token(t.split("/", 1)[0])
-                except ValueError:
-                    raise ToolkitError(f"{path}: line {no}: expected face indices 'f i j k' (or i/t/n), "
-                                       f"got {t[:30]!r}") from None
-                if i == 0 or -i > len(verts) or i > limit:
-                    raise ToolkitError(f"{path}: line {no}: face index {i} is out of range (OBJ indices start at 1; "
-                                       f"negative ones count back from the {len(verts)} vertices so far)")
-                poly.append(i - 1 if i > 0 else len(verts) + i)
-            polys.append(poly)
+            faces.append([t.split("/", 1)[0] for t in tok[1:]] if "/" in line else tok[1:])
             face_lines.append(no)
-    v = np.array(verts, np.float64).reshape(-1, 3)
-    f = _faces_from_polygons(path, polys, lambda r: f"line {face_lines[r]}", v.shape[0], base=1)
+            seen.append(len(verts))
+    return verts, vert_lines, faces, face_lines, seen
+
+
+def _read_obj(path: Path, data: bytes):
+    """Wavefront OBJ: ``v x y z`` and ``f i j k ...`` (1-based; negative counts back from the last vertex so far;
+    ``i/t/n`` uses the position only). Other statements (vt, vn, g, usemtl, l ...) are skipped. Numbers are
+    converted in bulk; a line is looked for only once a conversion failed."""
+    verts, vert_lines, faces, face_lines, seen = _obj_statements(path, data)
+    try:
+        v = np.array(verts, np.float64).reshape(-1, 3)
+    except ValueError:
+        r = next((r for r, xyz in enumerate(verts) if not all(_is_float(x) for x in xyz)), 0)
+        raise ToolkitError(f"{path}: line {vert_lines[r]}: expected a vertex 'v x y z', got "
+                           f"{' '.join(verts[r])[:60]!r}") from None
+    lens = np.fromiter(map(len, faces), np.int64, len(faces))
+    try:
+        flat = np.array([_int_token(t) for p in faces for t in p], np.int64)
+    except ValueError:
+        r = next((r for r, p in enumerate(faces) if not all(_is_int(t) for t in p)), 0)
+        raise ToolkitError(f"{path}: line {face_lines[r]}: expected face indices 'f i j k' (or i/t/n), "
+                           f"got {' '.join(faces[r])[:40]!r}") from None
+    before = np.repeat(np.array(seen, np.int64), lens)
+    bad = np.flatnonzero((flat == 0) | (-flat > before))
+    if bad.size:  # a positive index past the end is found with the other formats' checks, below
+        r = int(np.searchsorted(np.cumsum(lens), bad[0], side="right"))
+        raise ToolkitError(f"{path}: line {face_lines[r]}: face index {flat[bad[0]]} is out of range (OBJ indices "
+                           f"start at 1; negative ones count back from the {seen[r]} vertices so far)")
+    flat = np.where(flat > 0, flat - 1, before + flat)
+    f = _faces_from_polygons(path, (lens, flat), lambda r: f"line {face_lines[r]}", v.shape[0], base=1)
     return v, f, lambda r: f"line {vert_lines[r]}"
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+def _is_int(text: str) -> bool:
+    try:
+        _int_token(text)
+        return True
+    except ValueError:
+        return False
 
 
 def _off_counts(path: Path, lines) -> tuple[int, int, int]:
@@ -155,23 +189,35 @@ def _read_off(path: Path, data: bytes):
         have = len(lines) - at
         raise ToolkitError(f"{path}: the header declares {nv} vertices and {nf} faces ({nv + nf} lines) but "
                            f"{have} follow (truncated, or a count in its header is wrong)")
-    v = np.empty((nv, 3))
-    for r, (no, tok) in enumerate(lines[at:at + nv]):
-        try:
-            v[r] = [float(t) for t in tok[:3]]
-        except ValueError:
-            raise ToolkitError(f"{path}: line {no}: expected a vertex 'x y z', got {' '.join(tok)[:60]!r}") from None
-    polys = []
-    for no, tok in lines[at + nv:]:
-        try:
-            k = int(tok[0])
-            if not 0 <= k <= len(tok) - 1:
-                raise ValueError
-            polys.append([_int_token(t) for t in tok[1:k + 1]])
-        except ValueError:
-            raise ToolkitError(f"{path}: line {no}: expected a face 'n i1 ... in', got {' '.join(tok)[:60]!r}") from None
-    f = _faces_from_polygons(path, polys, lambda r: f"line {lines[at + nv + r][0]}", nv)
-    return v, f, lambda r: f"line {lines[at + r][0]}"
+    rows, polys = lines[at:at + nv], lines[at + nv:]
+    try:
+        v = np.array([tok[:3] for _, tok in rows], np.float64).reshape(nv, 3)
+    except ValueError:
+        no, tok = next(((no, tok) for no, tok in rows if len(tok) < 3 or not all(map(_is_float, tok[:3]))), rows[0])
+        raise ToolkitError(f"{path}: line {no}: expected a vertex 'x y z', got {' '.join(tok)[:60]!r}") from None
+    room = np.array([len(tok) - 1 for _, tok in polys], np.int64)  # colours may follow the ids
+    try:
+        lens = np.array([_int_token(tok[0]) for _, tok in polys], np.int64).reshape(-1)
+        if ((lens < 0) | (lens > room)).any():
+            raise ValueError
+        flat = np.array([_int_token(t) for (_, tok), k in zip(polys, lens) for t in tok[1:k + 1]], np.int64)
+        if len(flat) != lens.sum():
+            raise ValueError
+    except ValueError:
+        no, tok = next(((no, tok) for no, tok in polys if not _is_off_face(tok)), polys[0])
+        raise ToolkitError(f"{path}: line {no}: expected a face 'n i1 ... in', got {' '.join(tok)[:60]!r}") from None
+    f = _faces_from_polygons(path, (lens, flat), lambda r: f"line {polys[r][0]}", nv)
+    return v, f, lambda r: f"line {rows[r][0]}"
+
+
+def _is_off_face(tok: list[str]) -> bool:
+    """Whether an OFF face line reads: a count k >= 0, then k integer ids (then anything, colours)."""
+    try:
+        k = int(tok[0])
+        return 0 <= k <= len(tok) - 1 and all(_is_int(t) for t in tok[1:k + 1])
+    except ValueError:
+        return False
+
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
