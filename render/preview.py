@@ -148,12 +148,13 @@ class PreviewSplatter:
         depth = self._depth(viewmat)
         visible = self._keep & (self._rows[:, 10] > 0)
         if self._order is not None and not structure_changed:
-            if not moved and self._view_close(viewmat):  # the tolerance is for the view alone
-                return self._order, depth, False
-            # The old order is still exact when it is sorted and holds exactly the visible set.
-            if is_back_to_front(self._order, depth[self._order]) and self._order.size == int(visible.sum()) \
-                    and bool(visible[self._order].all()):
-                return self._order, depth, False
+            # An old order is reused only while it holds exactly the visible set: the shader does not cull
+            # what the rule drops (near / far, overflowing footprints), so a stale member would be drawn.
+            if self._order.size == int(visible.sum()) and bool(visible[self._order].all()):
+                if not moved and self._view_close(viewmat):  # the tolerance is for the view alone
+                    return self._order, depth, False
+                if is_back_to_front(self._order, depth[self._order]):  # still exact
+                    return self._order, depth, False
         order = sort_back_to_front(np.flatnonzero(visible), depth)
         self._order, self._order_view = order, viewmat.copy()
         self._lists["all"].set(order)

@@ -119,6 +119,23 @@ def test_resort_tolerance_never_keeps_an_order_the_gaussians_left(ctx):
     np.testing.assert_allclose(img, PreviewSplatter(64, 48, ctx=ctx).render(*gs, V, K), atol=1e-6)
 
 
+def test_resort_tolerance_never_keeps_a_gaussian_the_cull_rule_drops(ctx):
+    """A small move forward (within the tolerance) takes a Gaussian in front of the near plane: the order
+    is redone without it, as a fresh frame draws."""
+    from render.preview import PreviewSplatter
+
+    V, K = camera()
+    gs = _two_overlapping(red_z=0.6, blue_z=3.0)
+    s = PreviewSplatter(64, 48, ctx=ctx, near_plane=0.5, resort_tolerance=math.radians(5.0))
+    s.render(*gs, V, K)
+    assert sorted(s.drawn.tolist()) == [0, 1]
+    V2 = V.copy()
+    V2[2, 3] -= 0.15  # the red Gaussian's camera z: 0.45 < near
+    img = s.render(*gs, V2, K).copy()
+    assert s.drawn.tolist() == [1] and s.stats["culled"] == 1
+    np.testing.assert_allclose(img, PreviewSplatter(64, 48, ctx=ctx, near_plane=0.5).render(*gs, V2, K), atol=1e-6)
+
+
 def test_may_change_hint_limits_the_comparison(ctx):
     from render.preview import PreviewSplatter
 
