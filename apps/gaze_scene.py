@@ -73,8 +73,8 @@ class GazeScene:
         try:
             info = eyeball_info(scene)
         except ToolkitError as e:
-            # The eye Gaussians are there, but their eyeballs are not (malformed metadata["eyes"], too few
-            # Gaussians for a sphere): say that, not that there are no eyes.
+            # The eye Gaussians are there but give no eyeball (no metadata["eyes"] entry and too few or
+            # coplanar means for a sphere; malformed metadata already failed validate): say that, not "no eyes".
             info = {}
             no_scrub = no_scrub or f"the scene's eye Gaussians cannot be turned ({e}): gaze scrubbing is disabled"
         dynamic, spheres = eye_dynamics(scene) if info else (None, None)

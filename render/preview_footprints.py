@@ -1,7 +1,8 @@
-"""CPU side of the preview splatter: checking a frame's inputs, packing Gaussians into the data-texture layout
-and a numpy mirror of the vertex shader's projection (footprint boxes, depths, quad areas), used to find the
-screen rectangle a gaze change touches, to build the depth layers and to count fragment work. Conventions as
-``render.preview``."""
+"""CPU side of the preview splatter: checking a frame's inputs, the shared cull rule for one camera
+(:func:`drawable`, ``render.cull``'s rule with a cheap float64 pre-check), packing Gaussians into the
+data-texture layout and a numpy mirror of the vertex shader's projection (footprint boxes, depths, quad
+areas), used to find the screen rectangle a gaze change touches, to build the depth layers and to count
+fragment work. Conventions as ``render.preview``."""
 
 from __future__ import annotations
 
