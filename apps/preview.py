@@ -136,6 +136,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise ToolkitError("--headless needs --sweep OUT.mp4 or OUT.png")
     if args.sweep and not args.headless:
         raise ToolkitError("--sweep is the headless output: add --headless (without it the window opens)")
+    shots = Path(args.screenshot_dir)
+    up = next((q for q in (shots, *shots.parents) if q.exists()), None)
+    if not args.headless and up is not None and not up.is_dir():
+        raise ToolkitError(f"--screenshot-dir {shots}: {up} is a file, not a folder")
     if args.sweep:
         # Everything about the sweep is refused before the scene is loaded or built.
         pitches, yaws = parse_range(args.pitch, "pitch"), parse_range(args.yaw, "yaw")

@@ -66,6 +66,10 @@ CASES = [
     ("max frames zero", ["{scene}", "--max-frames", "0"], r"--max-frames: expected a number of window frames in", {}),
     ("max frames huge", ["{scene}", "--max-frames", "99999999999"], r"--max-frames: expected .* got 99999999999", {}),
     ("max frames not an int", ["{scene}", "--max-frames", "1e3"], r"argument --max-frames: invalid int value", {}),
+    ("screenshot folder is a file", ["{scene}", "--screenshot-dir", "{tmp}/file.txt"],
+     r"--screenshot-dir .*file\.txt: .*file\.txt is a file, not a folder", {}),
+    ("screenshot folder under a file", ["{scene}", "--screenshot-dir", "{tmp}/file.txt/shots"],
+     r"--screenshot-dir .*shots: .*file\.txt is a file, not a folder", {}),
     ("one size value", ["{scene}", *SWEEP, "--size", "64"], r"argument --size: expected 2 arguments", {}),
     ("unknown flag", ["{scene}", *SWEEP, "--frames", "3"], r"unrecognized arguments: --frames 3", {}),
 ]
