@@ -309,5 +309,5 @@ def load_foreign_torch_checkpoint(path: str | os.PathLike) -> Any:
         return torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as e:
         raise ToolkitError(
-            f"{path}: could not be read as a weights-only torch checkpoint ({type(e).__name__}: {str(e)[:160]})"
+            f"{path}: could not be read as a weights-only torch checkpoint ({type(e).__name__}: {_one_line(e, 160)})"
         ) from None
