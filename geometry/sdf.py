@@ -147,7 +147,7 @@ class SDFNet(nn.Module):
             net = cls(cfg)
             net.load_state_dict(state)
         except (TypeError, RuntimeError) as e:
-            raise ToolkitError(f"{path}: SDF checkpoint does not match the network ({str(e)[:160]})") from None
+            raise ToolkitError(f"{path}: SDF checkpoint does not match the network ({' '.join(str(e).split())[:160]})") from None
         return net
 
 
