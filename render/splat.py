@@ -26,6 +26,7 @@ import torch
 from render._raster import ALPHA_MAX, ALPHA_MIN, T_MIN, RasterConfig, RasterizeTiles
 from render._tiles import bin_gaussians
 from render.cull import finite_scales
+from render.gsplat_backend import rasterize_gsplat, use_gsplat
 from render.projection import project_gaussians
 from render.sh import sh_to_color
 from toolkit.errors import ToolkitError
@@ -120,6 +121,11 @@ def rasterize(
             named["backgrounds"] = backgrounds
         _check_finite(named)
 
+    if use_gsplat(means, features, sh_degree):  # CUDA tensors and gsplat installed: its kernels (gsplat_backend)
+        return rasterize_gsplat(means, quats, scales, opacities, features, viewmats, Ks, width, height,
+                                backgrounds=backgrounds, per_camera=per_camera, near_plane=near_plane,
+                                far_plane=far_plane, eps2d=eps2d, tile_size=tile_size, sh_degree=sh_degree,
+                                return_depth=return_depth)
     viewmats, Ks = viewmats.to(means.device, dtype), Ks.to(means.device, dtype)
     proj = project_gaussians(means, quats.to(dtype), scales.to(dtype), viewmats, Ks, width, height, eps2d=eps2d,
                              near_plane=near_plane, far_plane=far_plane)

@@ -345,7 +345,8 @@ def test_bad_inputs_raise_toolkit_error():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_cuda_matches_cpu():
+def test_cuda_matches_cpu(monkeypatch):
+    monkeypatch.setenv("DITGAZE_SPLAT", "torch")  # the torch path on both devices (gsplat: test_gsplat_backend.py)
     means, quats, scales, opac, feats = ref.random_cloud(300, 8, seed=13)
     V, K = ref.camera(64, 48)
     cpu = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, feats)]

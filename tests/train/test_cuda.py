@@ -16,6 +16,12 @@ from tests.train.helpers import model_inputs, small_model
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
 
 
+@pytest.fixture(autouse=True)
+def _torch_splatter(monkeypatch):
+    """The same code on both devices: the torch splatter on CUDA too (gsplat's agreement is tested on its own)."""
+    monkeypatch.setenv("DITGAZE_SPLAT", "torch")
+
+
 def _close(a: torch.Tensor, b: torch.Tensor, tol: float) -> float:
     """Max abs difference of two tensors (any devices), asserted below ``tol`` and finite."""
     a, b = a.detach().float().cpu(), b.detach().float().cpu()
