@@ -185,6 +185,8 @@ class _Cells:
 
     def path(self, col: str) -> Path | None:
         s = self.cells.get(col, "")
+        if not s.isprintable():  # a quoted cell can hold a line break or a NUL: no file is named so
+            raise ToolkitError(f"{self.where}, column '{col}': expected a file path, got {s!r}")
         return None if s == "" else Path(s) if Path(s).is_absolute() else self.csv_path.parent / s
 
 

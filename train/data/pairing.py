@@ -10,7 +10,6 @@ gaze, an exact gaze-redirection ground truth (:class:`SyntheticRedirectionPairs`
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -19,7 +18,10 @@ import torch
 
 from toolkit.cameras import Camera
 from toolkit.errors import ToolkitError
-from toolkit.io import atomic_write_json, check_readable_file
+from toolkit.io import atomic_write_json, check_readable_file, parse_json_object
+
+MAX_PAIRING_BYTES = 64 << 20
+"""Largest pairing file read: GazeNeRF's protocol lists 100 pairs a subject; 64 MiB holds millions."""
 
 
 def gazenerf_pairs(n: int = 100, seed: int = 0) -> np.ndarray:
@@ -38,14 +40,17 @@ def synthetic_pairs(n_rows: int, seed: int = 0) -> np.ndarray:
 def load_pairing(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Read a pairing file -> {subject stem: [P, 2] int64 (input row, target row)}."""
     path = check_readable_file(path, "pairing file")
-    text = path.read_text(encoding="utf-8")
+    if path.stat().st_size > MAX_PAIRING_BYTES:
+        raise ToolkitError(f"{path}: {path.stat().st_size} bytes; a pairing file is expected under "
+                           f"{MAX_PAIRING_BYTES} bytes")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ToolkitError(f"{path}: not a pairing file (not UTF-8 text: byte {e.start})") from None
     out: dict[str, list] = {}
     try:
         if path.suffix == ".json":
-            raw = json.loads(text)
-            if not isinstance(raw, dict):
-                raise ValueError("top level must be an object")
-            out = {str(k): v for k, v in raw.items()}
+            out = {str(k): v for k, v in parse_json_object(text, f"{path}: the pairing JSON").items()}
         else:
             for ln, line in enumerate(text.splitlines(), 1):
                 if not line.strip() or line.lstrip().startswith("#"):
@@ -59,12 +64,12 @@ def load_pairing(path: str | os.PathLike) -> dict[str, np.ndarray]:
             a = np.asarray(v)
             if a.size == 0:  # a subject without pairs, as save_pairing writes it
                 a = np.zeros((0, 2), np.int64)
-            if a.ndim != 2 or a.shape[1] != 2 or (a.size and a.dtype.kind not in "iu"):
-                raise ValueError(f"subject '{k}': expected a list of [input_row, target_row] integer pairs, "
+            if a.ndim != 2 or a.shape[1] != 2 or (a.size and (a.dtype.kind not in "iu" or a.max() >= 2**62)):
+                raise ValueError(f"subject '{k}': expected a list of [input_row, target_row] integer pairs below 2^62, "
                                  f"got an array of shape {list(a.shape)} and dtype {a.dtype}")
             pairs[k] = a.astype(np.int64)
-    except (ValueError, TypeError) as e:
-        raise ToolkitError(f"{path}: not a pairing file ({e})") from e
+    except (ValueError, TypeError, OverflowError) as e:  # a ragged list, a string row, an integer past int64
+        raise ToolkitError(f"{path}: not a pairing file ({' '.join(str(e).split())[:200]})") from None
     for k, v in pairs.items():
         if (v < 0).any():
             raise ToolkitError(f"{path}: subject '{k}' has negative row indices")
