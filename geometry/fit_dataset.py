@@ -30,9 +30,9 @@ DEFAULT_HOLDOUT = (2, 7, 10, 15)
 
 
 def _read(f, path, key, shape_tail=None, *, copies: int = 1):
-    from train.data.format import read_array
+    from train.data.format import has_key, read_array
 
-    if key not in f:
+    if not has_key(path, f, key):
         raise ToolkitError(f"{path}: missing dataset {key!r} (expected the keys of docs/data.md)")
     a = read_array(path, f, key, copies=copies)
     if a.dtype.kind not in "biuf":
@@ -47,7 +47,9 @@ def _read(f, path, key, shape_tail=None, *, copies: int = 1):
 def _read_rows(f, path, key, n: int, width: int = 1, default=None):
     """``key`` as [n] (width 1) or [n, width] rows -- [n, width] or [n, 1, width] in the file -- or ``default``
     when the file has no ``key`` (required when ``default`` is None)."""
-    if key not in f and default is not None:
+    from train.data.format import has_key
+
+    if default is not None and not has_key(path, f, key):
         return default
     a = _read(f, path, key)
     if a.ndim == 0 or a.size != n * width or a.shape[0] != n:

@@ -97,6 +97,13 @@ MAX_LINK_HOPS = 8
 MAX_ATTR_BYTES = 1 << 16
 """Bytes of one file attribute: attributes hold short text and numbers (the generator's are < 2 KiB)."""
 
+MAX_CHUNK_READS = 1 << 20
+"""HDF5 chunks one whole-dataset read may visit (~10 µs each, written or not: ~10 s). Chunked storage of a few
+KB can declare millions of one-row chunks, whose reading would take hours while the memory bound allows it."""
+
+MAX_ROW_CHUNKS = 1 << 12
+"""HDF5 chunks one row may span (the writer stores one chunk a row; h5py's automatic chunks span tens)."""
+
 NUMERIC_KINDS = "biufc"
 READ_ERRORS = (OSError, RuntimeError, ValueError, TypeError, KeyError)
 """What h5py raises on a damaged file: HDF5 errors come as OSError or RuntimeError, a few as the others."""
@@ -120,8 +127,18 @@ def open_h5(path: str | os.PathLike):
         raise ToolkitError(f"{path}: not a readable HDF5 file (truncated or corrupt?): {_one_line(e)}") from e
     try:
         yield f
+    except (OSError, RuntimeError) as e:  # HDF5's own errors from a damaged file, wherever the block met them
+        raise ToolkitError(f"{path}: cannot read (truncated or corrupt?): {_one_line(e)}") from e
     finally:
         f.close()
+
+
+def has_key(path, f, key: str) -> bool:
+    """Whether the file has a link named ``key`` (resolving or not: :func:`h5_dataset` says which)."""
+    try:
+        return f.get(key, getlink=True) is not None
+    except READ_ERRORS as e:
+        raise ToolkitError(f"{path}: cannot look up key '{key}' (truncated or corrupt?): {_one_line(e)}") from e
 
 
 class _Unresolved(Exception):
@@ -242,6 +259,20 @@ def row_nbytes(ds) -> int:
     return max(row, chunk)
 
 
+def chunk_count(ds, whole: bool = True) -> int:
+    """HDF5 chunks that reading all of ``ds`` (``whole``) or one of its rows visits; 0 when not chunked."""
+    if not ds.chunks:
+        return 0
+    dims = zip(ds.shape, ds.chunks, strict=True) if whole else zip(ds.shape[1:], ds.chunks[1:], strict=True)
+    return math.prod(-(-n // c) for n, c in dims)
+
+
+def check_chunk_reads(path, what: str, chunks: int) -> None:
+    if chunks > MAX_CHUNK_READS:
+        raise ToolkitError(f"{path}: {what} would visit {chunks} HDF5 chunks, more than {MAX_CHUNK_READS} (chunks "
+                           "too small for this many rows, or a forged row count; rewrite the file with larger chunks)")
+
+
 def read_selection(path, key: str, ds, sel=()) -> np.ndarray:
     """``ds[sel]`` as an array, a damaged file's error as one ToolkitError. The caller bounded its size."""
     try:
@@ -259,6 +290,7 @@ def read_array(path, f, key: str, *, copies: int = 1) -> np.ndarray:
     ds = h5_dataset(path, f, key)
     rows = f"{ds.shape[0]} rows" if ds.shape else "its value"
     check_allocation(math.prod(ds.shape) * ds.dtype.itemsize * copies, f"{path}: key '{key}': reading {rows}")
+    check_chunk_reads(path, f"key '{key}': reading {rows}", chunk_count(ds))
     return read_selection(path, key, ds)
 
 
@@ -269,6 +301,8 @@ def read_array(path, f, key: str, *, copies: int = 1) -> np.ndarray:
 SIZE_RANGES = {"H": (8, 16384, "an image height in pixels"), "W": (8, 16384, "an image width in pixels"),
                "V": (1, 2**31 - 1, "a vertex count")}
 """The shared sizes of :data:`REQUIRED`: what a row's memory is checked against comes after these."""
+
+INDEX_MAX = 2**31 - 1
 
 KIND_NAMES = {"u": "uint8", "f": "float", "iu": "integer"}
 
@@ -302,6 +336,9 @@ def _check_dataset(path, f, key: str, spec: tuple, kinds: str, sizes: dict, n: i
     if n is not None and shape[0] != n:
         raise ToolkitError(f"{path}: key '{key}' has {shape[0]} rows, face_patch has {n}")
     check_allocation(row_nbytes(ds), f"{path}: key '{key}': reading one row ({list(ds.shape)} {ds.dtype})")
+    if chunk_count(ds, whole=False) > MAX_ROW_CHUNKS:
+        raise ToolkitError(f"{path}: key '{key}': one row spans {chunk_count(ds, whole=False)} HDF5 chunks of "
+                           f"{list(ds.chunks)}, expected at most {MAX_ROW_CHUNKS} (rewrite the file with larger chunks)")
     return ds
 
 
@@ -318,6 +355,7 @@ def _read_labels(path, datasets: dict, n: int) -> dict[str, np.ndarray]:
     # + float64 temporaries of the rotation check, ~10 x 9 doubles a row
     check_allocation(n * (per_row + 720), f"{path}: reading the labels of {n} rows",
                      hint="the file declares more rows than this machine can check")
+    check_chunk_reads(path, f"reading the labels of {n} rows", sum(chunk_count(ds) for ds in datasets.values()))
     return {k: read_selection(path, k, ds) for k, ds in datasets.items()}
 
 
@@ -342,6 +380,8 @@ def _check_labels(path, lab: dict[str, np.ndarray], H: int, W: int) -> None:
         lab[k] = lab[k].reshape(-1)
         if (lab[k] < 0).any():
             _bad(path, k, "has negative values")
+        if (lab[k] > INDEX_MAX).any():  # samples carry them as int64 tensors; the schema stores int32
+            _bad(path, k, f"has values above {INDEX_MAX} (int32 indices expected)")
     lm = lab["facial_landmarks"]
     if (lm < -W).any() or (lm[..., 0] > 2 * W).any() or (lm[..., 1] > 2 * H).any():
         _bad(path, "facial_landmarks", f"lies far outside the {W}x{H} image (pixels expected)")
@@ -359,7 +399,7 @@ def check_subject_arrays(path, f) -> dict[str, np.ndarray]:
     dtypes, finite values, positive eyeball radii, face indices within the neutral mesh."""
     out = {}
     for key, (spec, kinds) in SUBJECT_SPECS.items():
-        if key not in f:
+        if not has_key(path, f, key):
             continue
         a = read_array(path, f, key)
         if a.dtype.kind not in kinds:
@@ -474,17 +514,14 @@ def validate_subject_file(path: str | os.PathLike) -> dict[str, Any]:
     """
     path = Path(path)
     with open_h5(path) as f:
-        try:
-            missing = [k for k in REQUIRED if k not in f]
-        except READ_ERRORS as e:
-            raise ToolkitError(f"{path}: cannot list the keys (truncated or corrupt?): {_one_line(e)}") from e
+        missing = [k for k in REQUIRED if not has_key(path, f, k)]
         if missing:
             raise ToolkitError(f"{path}: missing key '{missing[0]}'" + (f" (and {missing[1:]})" if missing[1:] else ""))
         sizes: dict[str, int] = {}
         n = _check_dataset(path, f, "face_patch", REQUIRED["face_patch"][0], "u", sizes, None).shape[0]
         if n == 0:
             raise ToolkitError(f"{path}: empty subject (0 rows in 'face_patch')")
-        optional = [k for k in OPTIONAL if k in f]
+        optional = [k for k in OPTIONAL if has_key(path, f, k)]
         specs = {**REQUIRED, **{k: OPTIONAL[k] for k in optional}}
         datasets = {k: _check_dataset(path, f, k, spec, kinds, sizes, n) for k, (spec, kinds) in specs.items()}
         lab = _read_labels(path, {k: ds for k, ds in datasets.items() if k not in IMAGE_KEYS and k != "vertice"}, n)

@@ -128,6 +128,18 @@ def test_millions_of_declared_rows_are_refused_before_reading_them(base, tmp_pat
     _assert_refused(p, r"20000000 rows.* would allocate .* more than the memory budget")
 
 
+def test_millions_of_tiny_chunks_are_refused_before_visiting_them(base, tmp_path, monkeypatch):
+    monkeypatch.setenv("DITGAZE_MEMORY_GB", "64")  # memory would allow it: the time would not
+    p = _mutated(base, tmp_path, huge_rows(100_000))
+    _assert_refused(p, r"reading the labels of 100000 rows would visit \d+ HDF5 chunks, more than 1048576",
+                    ("validate", "dataset"))
+
+
+def test_a_row_spread_over_many_chunks_is_refused(base, tmp_path):
+    p = _mutated(base, tmp_path, _replace("face_patch", shape=(4, 128, 128, 3), dtype=np.uint8, chunks=(1, 1, 1, 1)))
+    _assert_refused(p, r"key 'face_patch': one row spans 49152 HDF5 chunks", ("validate", "dataset"))
+
+
 def test_a_huge_row_is_refused_before_reading_one(base, tmp_path, monkeypatch):
     monkeypatch.setenv("DITGAZE_MEMORY_GB", "1")
     p = _mutated(base, tmp_path, _replace("vertice", shape=(4, 100_000_000, 3), dtype=np.float32,
@@ -149,6 +161,7 @@ def test_a_huge_row_is_refused_before_reading_one(base, tmp_path, monkeypatch):
     ("vertice", dict(data=np.zeros((4, 0, 3), np.float32)), r"key 'vertice' has V = 0, expected"),
     ("pitchyaw_cam", dict(data=np.full((4, 2), np.inf, np.float32)), r"key 'pitchyaw_cam' contains NaN or inf"),
     ("light_dir", dict(data=np.full((3, 3), 0.5, np.float32)), r"key 'light_dir' has 3 rows, face_patch has 4"),
+    ("cam_index", dict(data=np.full(4, 2**64 - 1, np.uint64)), r"key 'cam_index' has values above 2147483647"),
 ])
 def test_wrong_dtypes_ranks_and_values_are_named(base, tmp_path, key, kw, match):
     p = _mutated(base, tmp_path, _replace(key, **kw))
