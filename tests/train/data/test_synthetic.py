@@ -327,3 +327,27 @@ def test_held_out_subjects_get_their_own_frame_count(tmp_path):
     assert json.loads((tmp_path / "split.json").read_text()) == {"train": ["subject0000.h5"], "test": ["subject0001.h5"]}
     with pytest.raises(ToolkitError, match=r"test_frames: expected frames per subject in \[1, 100000\], got 0"):
         synth_dataset(tmp_path / "bad", n_subjects=2, n_frames=1, res=32, test_frames=0, log=lambda *a: None)
+
+
+def test_generator_counts_are_bounded_before_any_work(tmp_path, monkeypatch):
+    from train.data.generate import estimator_images, generate_subject, synth_dataset
+    from train.data.subject_params import SubjectParams
+    from train.data.synthetic import build_subject
+
+    monkeypatch.setenv("DITGAZE_MEMORY_GB", "2")
+    params = SubjectParams.sample(1)
+    with pytest.raises(ToolkitError, match=r"subdivisions: expected icosphere subdivisions in \[0, 7\], got 12"):
+        build_subject(params, subdivisions=12)
+    with pytest.raises(ToolkitError, match=r"n_frames: expected frames per subject in \[1, 100000\]"):
+        generate_subject(params, n_frames=10**12)
+    with pytest.raises(ToolkitError, match=r"seed: expected a seed"):
+        generate_subject(params, n_frames=1, seed=-1)
+    with pytest.raises(ToolkitError, match=r"generate_subject: 3000 frames x 18 cameras at 512 pixels would allocate"):
+        generate_subject(params, n_frames=3000, res=512)
+    with pytest.raises(ToolkitError, match=r"n_subjects: expected a number of subject files in \[1, 10000\]"):
+        synth_dataset(tmp_path / "s", n_subjects=10**12, n_frames=1, log=None)
+    with pytest.raises(ToolkitError, match=r"seed: expected a seed in \[0, 4294967295\], got -1"):
+        synth_dataset(tmp_path / "s", n_subjects=1, n_frames=1, seed=-1, log=None)
+    with pytest.raises(ToolkitError, match=r"estimator_images: 4000000 images at 256 pixels would allocate"):
+        estimator_images(range(1000), n_frames=2000, res=256)
+    assert not (tmp_path / "s").exists()
