@@ -4,6 +4,11 @@ One file per subject; N rows (images). Per-row datasets are listed in :data:`REQ
 preprocessed ETH-XGaze files) and :data:`OPTIONAL` (written by the synthetic generator, read when
 present). Subject-level datasets (:data:`SUBJECT_KEYS`) and attributes describe the generator's subject.
 docs/data.md documents every key and the frames.
+
+Reading is bounded here for every reader (validation, ``GazeDataset``, ``train.data inspect``, ``geometry
+fit``): :func:`open_h5`, :func:`h5_dataset` and :func:`read_array` refuse links that leave the file or do not
+resolve, external and virtual storage, non-numeric dtypes and sizes a file declares but does not hold, and
+bound what a read allocates (``toolkit.limits``) and how many HDF5 chunks it visits, before it reads.
 """
 
 from __future__ import annotations
