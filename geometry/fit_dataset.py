@@ -1,6 +1,6 @@
 """``geometry fit DATASET OUT``: the neutral head from a multi-view HDF5 subject file (docs/data.md).
 
-The keys are read through train.data.format's bounded reader (it imports only toolkit): links, external
+The keys are read through ``toolkit.h5``'s bounded reader: links, external
 storage and forged sizes are refused there, before any row is read. Every row's camera is
 moved into the **head** frame (camera-from-head = w2c o pose, with the pose's scale), so silhouettes from
 all frames and all rig cameras constrain one neutral head; the 3D landmarks are moved into the head frame
@@ -30,7 +30,7 @@ DEFAULT_HOLDOUT = (2, 7, 10, 15)
 
 
 def _read(f, path, key, shape_tail=None, *, copies: int = 1):
-    from train.data.format import has_key, read_array
+    from toolkit.h5 import has_key, read_array
 
     if not has_key(path, f, key):
         raise ToolkitError(f"{path}: missing dataset {key!r} (expected the keys of docs/data.md)")
@@ -47,7 +47,7 @@ def _read(f, path, key, shape_tail=None, *, copies: int = 1):
 def _read_rows(f, path, key, n: int, width: int = 1, default=None):
     """``key`` as [n] (width 1) or [n, width] rows -- [n, width] or [n, 1, width] in the file -- or ``default``
     when the file has no ``key`` (required when ``default`` is None)."""
-    from train.data.format import has_key
+    from toolkit.h5 import has_key
 
     if default is not None and not has_key(path, f, key):
         return default
@@ -58,6 +58,15 @@ def _read_rows(f, path, key, n: int, width: int = 1, default=None):
     return a.reshape(n) if width == 1 else a.reshape(n, width)
 
 
+def _ground_truth_mesh(f, path) -> dict[str, torch.Tensor]:
+    """The generator's neutral mesh of a synthetic subject file (``neutral_vertice`` [V, 3], ``mesh_faces``
+    [F, 3]), checked: finite vertices, integer faces indexing them."""
+    verts, faces = _read(f, path, "neutral_vertice", (3,)), _read(f, path, "mesh_faces", (3,))
+    if faces.dtype.kind not in "iu" or not len(verts) or (faces < 0).any() or (faces >= len(verts)).any():
+        raise ToolkitError(f"{path}: mesh_faces must be integer indices into neutral_vertice's {len(verts)} rows")
+    return {"gt_verts": torch.from_numpy(verts.astype(np.float32)), "gt_faces": torch.from_numpy(faces.astype(np.int64))}
+
+
 def read_subject(path: str | os.PathLike) -> dict:
     """Head-frame views and landmarks of one subject file.
 
@@ -65,7 +74,7 @@ def read_subject(path: str | os.PathLike) -> dict:
     in), landmarks [68, 3] (head frame, median over frames), cam_index [N], and when present the
     generator's ground truth: gt_verts [V, 3] (head frame), gt_faces [F, 3].
     """
-    from train.data.format import check_subject_arrays, open_h5
+    from toolkit.h5 import has_key, open_h5
 
     path = check_readable_file(path, "HDF5 subject file")
     with open_h5(path) as f:
@@ -85,11 +94,9 @@ def read_subject(path: str | os.PathLike) -> dict:
         for k, a in (("inmat", K), ("w2c_Rmat", Rc), ("pose", pose), ("facial_landmarks_3d", lmk_w)):
             if a.shape[0] != n:
                 raise ToolkitError(f"{path}: {k} has {a.shape[0]} rows, head_mask has {n}")
-        subject = check_subject_arrays(path, f)
         gt = {}
-        if "neutral_vertice" in subject and "mesh_faces" in subject:
-            gt = {"gt_verts": torch.from_numpy(subject["neutral_vertice"].astype(np.float32)),
-                  "gt_faces": torch.from_numpy(subject["mesh_faces"].astype(np.int64))}
+        if has_key(path, f, "neutral_vertice") and has_key(path, f, "mesh_faces"):
+            gt = _ground_truth_mesh(f, path)
     if not (scale > 0).all():
         raise ToolkitError(f"{path}: scale must be > 0")
     R = so3_exp(torch.from_numpy(pose[:, :3].astype(np.float64))).numpy()  # head -> world rotation

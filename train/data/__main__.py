@@ -29,7 +29,7 @@ def _table(rows: list[dict], columns: list[str]) -> str:
 
 
 def summarize(path: Path, info: dict) -> dict:
-    from train.data.format import h5_dataset, open_h5, read_array, read_selection
+    from toolkit.h5 import h5_dataset, open_h5, read_array, read_selection
 
     with open_h5(path) as f:  # validated by GazeDataset: the labels fit memory, one mask row does
         g = np.degrees(read_array(path, f, "pitchyaw_head"))

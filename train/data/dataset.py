@@ -17,7 +17,8 @@ import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError
-from train.data.format import OPTIONAL, READ_ERRORS, read_array, read_selection, validate_subject_file
+from toolkit.h5 import READ_ERRORS, read_array, read_selection
+from train.data.format import OPTIONAL, validate_subject_file
 
 SPLITS = ("all", "train", "test")
 

@@ -195,8 +195,8 @@ def test_a_row_with_nan_vertices_is_named_when_read(base, tmp_path):
 def test_subject_level_arrays_are_checked(base, tmp_path, key, value, match):
     p = _mutated(base, tmp_path, _replace(key, data=value))
     _assert_refused(p, match, ("validate", "dataset"))
-    if key in ("neutral_vertice", "mesh_faces"):  # the ground truth geometry fit compares with
-        _assert_refused(p, match, ("geometry",))
+    if key in ("neutral_vertice", "mesh_faces"):  # the ground truth geometry fit compares with (its own words)
+        _assert_refused(p, rf"bad\.h5: .*{key}", ("geometry",))
 
 
 @pytest.mark.parametrize("name,value,match", [
