@@ -100,3 +100,14 @@ def test_preview_refuses_bad_input(files: Path, tmp_path, monkeypatch, case, arg
     inputs = [files / n for n in ("scene.safetensors", "bad.safetensors", "bad.ply", "file.txt")]
     assert_refused("apps.preview", args, match, inputs=inputs, out_dir=out, seconds=20)
     assert not any((files / "folder.png").iterdir())
+
+
+@pytest.mark.parametrize("key", ["1", "~", "yes"])
+def test_a_run_directory_whose_config_has_a_non_string_key(tmp_path, key):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text(f"{key}: x\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    assert_refused("apps.preview", [run, "--headless", "--sweep", out / "s.png"],
+                   r"config.yaml: a mapping key must be a string", inputs=[run], out_dir=out, seconds=20)
