@@ -200,7 +200,7 @@ def check_args(args: argparse.Namespace) -> None:
     if args.natural_eyes and not args.fit_weights:
         raise ToolkitError("--natural-eyes sets how --fit-weights fits each row; give --fit-weights too")
     check_count(args.batch, "--batch", 1, MAX_BATCH, "input rows per chunk")
-    check_count(args.rows, "--rows", 0, 2**62, "a row count (0 = all rows)")
+    check_count(args.rows, "--rows", 0, 10**9, "a row count (0 = all rows)")
     check_count(args.steps, "--steps", 0, 100_000, "DDIM steps (0 = the run's setting)")
     if args.fit_steps != -1:
         check_count(args.fit_steps, "--fit-steps", 0, MAX_FIT_STEPS, "test-time fitting steps per row")

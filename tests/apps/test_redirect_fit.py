@@ -249,8 +249,8 @@ def test_output_that_is_a_folder_fails_before_any_rendering(tiny_trained_run, tm
 
 @pytest.mark.parametrize("extra, expect", [
     (["--gazes", "grid:0x5:30"], "a grid needs at least 1 row and 1 column, got 0x5"),
-    (["--rows", "-1"], "--rows must be >= 0"),
-    (["--steps", "-5"], "--steps must be >= 0"),
+    (["--rows", "-1"], "--rows: expected a row count (0 = all rows) in [0, 1000000000], got -1"),
+    (["--steps", "-5"], "--steps: expected DDIM steps (0 = the run's setting) in [0, 100000], got -5"),
     (["--steps", "5000"], "--steps must be 0 (the run's setting) or 1..1000 DDIM steps, got 5000"),
     (["--out-name", "x.png"], "x.png: expected an HDF5 file name ending in .h5 or .hdf5"),
     (["--gazes", "random:5:nan"], "expected a range in [0, 90) degrees, got nan"),
