@@ -185,7 +185,7 @@ def test_xgaze_gaze_in_camera_and_head_frames(files, truth):
     assert "pitchyaw_head" not in unlabelled and unlabelled["facial_landmarks"].shape == (6, 68, 2)
 
 
-def test_gazegaussian_round_trip(truth):
+def test_gazegaussian_export_reads_back(truth):
     exported = L.from_native("gazegaussian", truth.rows)
     assert exported["cam_index"].shape == (6, 1) and "pitchyaw_cam" not in exported
     keys = set(exported)
