@@ -127,8 +127,9 @@ GAZENERF = Layout(
     name="gazenerf",
     description="GazeNeRF's preprocessed ETH-XGaze: NL3DMM codes and cameras, no pose, scale or 3D keys",
     file_pattern="xgaze_<subject>.h5",  # dataset_pre_processing.py L123; datasets/eth_xgaze.py L245
-    required=MappingProxyType({**_GAZENERF_KEYS, "latent_codes": "N,306", "pitchyaw_3d": "N,3"}),
-    optional=MappingProxyType({"frame_index": "N,1", "pitchyaw": "N,2", "face_center": "N,3"}),
+    required=MappingProxyType({**_GAZENERF_KEYS, "latent_codes": "N,306", "pitchyaw_3d": "N,3", "frame_index": "N,1"}),
+    # pitchyaw: L355-361 (ETH-XGaze and MPII branches); face_center: L704-710 (MPII branch only)
+    optional=MappingProxyType({"pitchyaw": "N,2", "face_center": "N,3"}),
     # utils/gaze_estimation_utils.py L45-51: pitch = arcsin(v[0, 1]), yaw = arctan2(-v[0, 0], -v[0, 2])
     gaze_key="pitchyaw_head", gaze_frame="head", pitch_sign=-1, frame_3d=None,
     codes=(("identity", 100), ("expression", 79), ("texture", 100), ("illumination", 27)),  # gazenerf_options.py L11-14
