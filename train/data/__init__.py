@@ -5,6 +5,8 @@
   pieces in ``train.data.head_mesh``.
 - ``train.data.generate``: the synthetic dataset (subjects, frames, cameras) written as HDF5 files.
 - ``train.data.format``: the HDF5 schema (GazeGaussian-preprocessed ETH-XGaze keys), writing and validation.
+- ``train.data.layouts``: the peers' layouts (GazeGaussian, GazeNeRF, the ETH-XGaze release) as data: detection,
+  conversion to and from the native conventions, their split files.
 - ``train.data.dataset``: ``GazeDataset`` (lazy per-sample reads, resize, white compositing, splits).
 - ``train.data.pairing``: evaluation pairs (GazeNeRF protocol; generated targets for synthetic data).
 - ``python -m train.data synth|inspect``.
