@@ -16,6 +16,7 @@ import os
 import re
 import socket
 import tempfile
+import warnings
 from pathlib import Path
 from typing import IO, Any, Iterator
 
@@ -306,7 +307,9 @@ def load_foreign_torch_checkpoint(path: str | os.PathLike) -> Any:
     """Read a third-party ``.pt``/``.pth`` file safely (``weights_only=True``: no arbitrary pickles)."""
     path = check_readable_file(path, "torch checkpoint")
     try:
-        return torch.load(str(path), map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns of an unusual pickle protocol; the refusal below says it
+            warnings.simplefilter("ignore", UserWarning)
+            return torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as e:
         raise ToolkitError(
             f"{path}: could not be read as a weights-only torch checkpoint ({type(e).__name__}: {_one_line(e, 160)})"
