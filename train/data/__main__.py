@@ -28,19 +28,21 @@ def _table(rows: list[dict], columns: list[str]) -> str:
     return "\n".join([line(columns), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + [line(x) for x in cells])
 
 
-def summarize(path: Path, info: dict) -> dict:
-    from toolkit.h5 import h5_dataset, open_h5, read_array, read_selection
+def summarize(path: Path, info: dict, layout: str = "ditgaze") -> dict:
+    """One row of the inspect table; the gaze in native conventions whatever the file's ``layout``."""
+    from toolkit.h5 import h5_dataset, has_key, open_h5, read_array, read_selection
+    from train.data.layouts import to_native
 
     with open_h5(path) as f:  # validated by GazeDataset: the labels fit memory, one mask row does
-        g = np.degrees(read_array(path, f, "pitchyaw_head"))
+        g = np.degrees(to_native(layout, {"pitchyaw_head": read_array(path, f, "pitchyaw_head")})["pitchyaw_head"])
         hp = np.degrees(read_array(path, f, "face_head_pose"))
         cams = len(np.unique(read_array(path, f, "cam_index")))
-        frames = len(np.unique(read_array(path, f, "frame_index")))
+        frames = len(np.unique(read_array(path, f, "frame_index"))) if has_key(path, f, "frame_index") else "-"
         mask = h5_dataset(path, f, "head_mask")
         rows = np.linspace(0, info["n"] - 1, 8).astype(int)
         cov = float(np.mean([read_selection(path, "head_mask", mask, int(i)).mean() / 255 for i in rows]))
     return {
-        "file": path.name, "images": info["n"], "res": f"{info['width']}x{info['height']}", "cameras": cams,
+        "file": path.name, "layout": layout, "images": info["n"], "res": f"{info['width']}x{info['height']}", "cameras": cams,
         "frames": frames, "vertices": info["n_vertices"],
         "gaze pitch (deg)": f"{g[:, 0].min():.0f}..{g[:, 0].max():.0f}",
         "gaze yaw (deg)": f"{g[:, 1].min():.0f}..{g[:, 1].max():.0f}",
@@ -120,11 +122,17 @@ def cmd_synth(a) -> int:
 
 def cmd_inspect(a) -> int:
     from train.data.dataset import GazeDataset
+    from train.data.layouts import get_layout
 
-    ds = GazeDataset(a.path, res=None)
-    print(_table([summarize(Path(i["path"]), i) for i in ds.info],
-                 ["file", "images", "res", "cameras", "frames", "vertices", "gaze pitch (deg)", "gaze yaw (deg)",
-                  "head pitch/yaw (deg)", "head mask", "extra keys"]))
+    ds = GazeDataset(a.path, res=None, layout=a.layout)
+    print(_table([summarize(Path(i["path"]), i, lay) for i, lay in zip(ds.info, ds.layouts)],
+                 ["file", "layout", "images", "res", "cameras", "frames", "vertices", "gaze pitch (deg)",
+                  "gaze yaw (deg)", "head pitch/yaw (deg)", "head mask", "extra keys"]))
+    for name in sorted(set(ds.layouts)):
+        lay = get_layout(name)
+        print(f"layout {name}: {lay.description}; gaze {lay.gaze_sign} ({lay.gaze_frame} frame, read as native "
+              f"pitch = asin(-g_y)); 3D keys: {lay.frame_3d or 'none'}; codes: "
+              f"{' + '.join(f'{n} {w}' for n, w in lay.codes) or 'none'}")
     p = Path(a.path)
     sheet = Path(a.sheet) if a.sheet else (p / "contact_sheet.png" if p.is_dir() else p.with_name(p.stem + "_sheet.png"))
     if sheet.suffix.lower() != ".png":
@@ -157,6 +165,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     i.add_argument("--sheet", default=None, help="contact sheet PNG path (default beside PATH)")
     i.add_argument("--n", type=int, default=18, help="images on the contact sheet")
     i.add_argument("--tile", type=int, default=160)
+    i.add_argument("--layout", default="auto", choices=["auto", "ditgaze", "gazegaussian", "gazenerf", "xgaze"],
+                   help="the files' layout (docs/data.md, Layouts); auto: detected from their keys")
     a = ap.parse_args(argv)
     _check_flags(a)
     return cmd_synth(a) if a.cmd == "synth" else cmd_inspect(a)

@@ -17,8 +17,9 @@ import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.h5 import READ_ERRORS, read_array, read_selection
-from train.data.format import OPTIONAL, validate_subject_file
+from toolkit.h5 import READ_ERRORS, has_key, read_array, read_selection
+from train.data.format import OPTIONAL, REQUIRED, validate_subject_file
+from train.data.layouts import get_layout, native_row, row_layout
 
 SPLITS = ("all", "train", "test")
 
@@ -109,13 +110,16 @@ class GazeDataset(torch.utils.data.Dataset):
     """
 
     def __init__(self, paths, split: str = "all", res: int | None = None, *, composite: bool = True,
-                 with_mesh: bool = False, split_file=None, test_fraction: float = 0.25):
+                 with_mesh: bool = False, split_file=None, test_fraction: float = 0.25, layout: str = "auto"):
         self.files = split_files(find_subject_files(paths), split, split_file, test_fraction)
         if res is not None and not 8 <= int(res) <= 4096:
             raise ToolkitError(f"res: expected an integer in [8, 4096], got {res}")
         self.res = None if res is None else int(res)
         self.composite, self.with_mesh = composite, with_mesh
-        self.info = [validate_subject_file(f) for f in self.files]
+        # Layout names, not Layout objects: a dataset is pickled into DataLoader workers.
+        self.layouts = [row_layout(f, layout).name for f in self.files]
+        self.info = [validate_subject_file(f, tuple(sorted(set(REQUIRED) - set(get_layout(name).required))))
+                     for f, name in zip(self.files, self.layouts)]
         from toolkit.limits import check_allocation
 
         check_allocation(16 * sum(i["n"] for i in self.info), f"the row index of {len(self.files)} subject files")
@@ -166,6 +170,8 @@ class GazeDataset(torch.utils.data.Dataset):
                 "facial_landmarks_3d", "latent_codes", "pose", "scale", "w2c_Rmat", "w2c_Tvec", "inmat",
                 "pitchyaw_head", "face_head_pose", "cam_index", "frame_index"]
         keys += [o for o in self.info[k]["optional"] if o in OPTIONAL]
+        if self.layouts[k] != "ditgaze":  # a peer layout may lack frame_index (native_row fills it)
+            keys = [key for key in keys if key != "frame_index" or has_key(self.files[k], f, key)]
         if self.with_mesh:
             keys.append("vertice")
         out = {}
@@ -179,7 +185,7 @@ class GazeDataset(torch.utils.data.Dataset):
             out[key] = read_selection(self.files[k], key, ds, row)
         if "vertice" in out and not np.isfinite(out["vertice"]).all():  # too large to check whole up front
             raise ToolkitError(f"{self.files[k]}: key 'vertice' row {row} contains NaN or inf")
-        return out
+        return native_row(self.layouts[k], out, row)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         if not -len(self) <= i < len(self):

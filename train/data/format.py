@@ -186,6 +186,8 @@ def _check_labels(path, lab: dict[str, np.ndarray], H: int, W: int) -> None:
     if (lab["scale"] <= 0).any():
         _bad(path, "scale", "has non-positive values")
     for k in ("cam_index", "frame_index"):
+        if k not in lab:  # a peer layout without it (validate_subject_file's optional_keys)
+            continue
         lab[k] = lab[k].reshape(-1)
         if (lab[k] < 0).any():
             _bad(path, k, "has negative values")
@@ -310,7 +312,7 @@ def read_attrs(path, f) -> dict[str, Any]:
     return attrs
 
 
-def validate_subject_file(path: str | os.PathLike) -> dict[str, Any]:
+def validate_subject_file(path: str | os.PathLike, optional_keys: tuple[str, ...] = ()) -> dict[str, Any]:
     """Check a subject file's schema and label ranges up front; return its summary.
 
     Raises ToolkitError naming the file and key for: unreadable/truncated files, missing keys, links that do
@@ -319,11 +321,12 @@ def validate_subject_file(path: str | os.PathLike) -> dict[str, Any]:
     |pitch| > 90°, |yaw| > 180°, non-rotation ``w2c_Rmat``, non-positive focal lengths or scale, negative
     indices, landmarks far outside the image), bad subject-level arrays and attributes of the wrong type.
     Image and mesh rows are checked by shape and dtype (``vertice`` rows for finite values when read).
+    ``optional_keys``: keys of :data:`REQUIRED` a file may lack (a peer layout that does not write them).
     Returns ``{"path", "n", "height", "width", "n_vertices", "optional": [...], "attrs": {...}}``.
     """
     path = Path(path)
     with open_h5(path) as f:
-        missing = [k for k in REQUIRED if not has_key(path, f, k)]
+        missing = [k for k in REQUIRED if k not in optional_keys and not has_key(path, f, k)]
         if missing:
             raise ToolkitError(f"{path}: missing key '{missing[0]}'" + (f" (and {missing[1:]})" if missing[1:] else ""))
         sizes: dict[str, int] = {}
@@ -331,7 +334,8 @@ def validate_subject_file(path: str | os.PathLike) -> dict[str, Any]:
         if n == 0:
             raise ToolkitError(f"{path}: empty subject (0 rows in 'face_patch')")
         optional = [k for k in OPTIONAL if has_key(path, f, k)]
-        specs = {**REQUIRED, **{k: OPTIONAL[k] for k in optional}}
+        present = {k: v for k, v in REQUIRED.items() if k not in optional_keys or has_key(path, f, k)}
+        specs = {**present, **{k: OPTIONAL[k] for k in optional}}
         datasets = {k: _check_dataset(path, f, k, spec, kinds, sizes, n) for k, (spec, kinds) in specs.items()}
         lab = _read_labels(path, {k: ds for k, ds in datasets.items() if k not in IMAGE_KEYS and k != "vertice"}, n)
         _check_labels(path, lab, sizes["H"], sizes["W"])

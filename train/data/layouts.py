@@ -251,7 +251,13 @@ def describe_file(path: str | os.PathLike) -> tuple[set[str], dict[str, tuple]]:
             keys = set(f.keys())
         except READ_ERRORS as e:
             raise ToolkitError(f"{path}: cannot list keys (truncated or corrupt?): {_one_line(e)}") from e
-        return keys, {k: tuple(h5_dataset(path, f, k).shape) for k in sorted(keys & KNOWN_KEYS)}
+        shapes = {}
+        for k in sorted(keys & KNOWN_KEYS):
+            try:
+                shapes[k] = tuple(h5_dataset(path, f, k).shape)
+            except ToolkitError:  # a bad dataset: left to the validator, whose message names what is wrong
+                continue
+        return keys, shapes
 
 
 # --- Conversion ----------------------------------------------------------------------------------------------
@@ -432,3 +438,56 @@ def read_split_file(path: str | os.PathLike, layout: str | Layout) -> tuple[list
     if not train and not held:
         raise ToolkitError(f"{path}: '{form.train_key}' and '{form.held_out_key}' are both empty")
     return train, held
+
+
+# --- Reading rows ---------------------------------------------------------------------------------------------
+
+def row_layout(path: str | os.PathLike, requested: str = "auto") -> Layout:
+    """The layout of a subject file that the training and redirection stages read row by row: detected from
+    its keys (``requested`` "auto") or the named one, checked against the keys. Layouts that cannot give every
+    native row key (GazeNeRF: no pose, scale or 3D keys; the ETH-XGaze release: no masks, cameras or codes)
+    are one line naming what is missing."""
+    keys, shapes = describe_file(path)
+    if requested != "auto":
+        layout = check_layout(requested, keys, shapes, str(path))
+    elif _written_here(path):  # this project's writer marks its files: the validator names what is wrong with one
+        layout = DITGAZE
+    else:
+        try:
+            layout = detect_layout(keys, shapes, str(path))
+        except ToolkitError:
+            # A file no layout fits: the closest one (most of its required keys present) says what is wrong,
+            # through the native validator for native-looking files, else through check_layout.
+            closest = max(LAYOUTS.values(), key=lambda lay: len(set(lay.required) & keys) / len(lay.required))
+            if closest is not DITGAZE:
+                check_layout(closest, keys, shapes, str(path))
+                raise
+            layout = DITGAZE
+    lacking = sorted(set(REQUIRED) - {layout.renames.get(k, k) for k in layout.keys})
+    if lacking:
+        raise ToolkitError(f"{path}: a {layout.name} file ({layout.description}) has no {', '.join(lacking)}, which "
+                           f"the stages that render or pose heads need")
+    return layout
+
+
+def _written_here(path: str | os.PathLike) -> bool:
+    """Whether the file carries the ``format_version`` attribute this project's writer (train.data.format)
+    puts on every subject file; the peers' pipelines write none."""
+    from toolkit.h5 import READ_ERRORS, open_h5
+
+    with open_h5(path) as f:
+        try:
+            return "format_version" in f.attrs
+        except READ_ERRORS:
+            return False
+
+
+def native_row(layout: str | Layout, row: Mapping[str, np.ndarray], index: int) -> dict[str, np.ndarray]:
+    """One row (arrays without the row axis) of a ``layout`` file in native conventions (:func:`to_native`);
+    ``frame_index``, when the layout does not store it, is the row ``index`` (each row its own frame)."""
+    layout = get_layout(layout)
+    if layout is DITGAZE:
+        return dict(row)
+    out = {k: v[0] for k, v in to_native(layout, {k: np.asarray(v)[None] for k, v in row.items()}).items()}
+    out.setdefault("frame_index", np.int32(index))
+    return out
