@@ -1,8 +1,10 @@
-"""CLI: ``python -m train.data synth ...`` writes synthetic subjects; ``inspect PATH`` summarizes files.
+"""CLI: ``python -m train.data synth ...`` writes synthetic subjects; ``inspect PATH`` summarizes files;
+``export`` writes them in a peer's layout.
 
     python -m train.data synth --subjects 8 --frames 10 --res 128 --out data/synth
     python -m train.data inspect data/synth            # table + data/synth/contact_sheet.png
     python -m train.data inspect data/synth/subject0000.h5 --sheet out/sheet.png --n 18
+    python -m train.data export data/synth out/gg     # xgaze_subjectNNNN.h5 + train_test_split.json
 """
 
 from __future__ import annotations
@@ -167,9 +169,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     i.add_argument("--tile", type=int, default=160)
     i.add_argument("--layout", default="auto", choices=["auto", "ditgaze", "gazegaussian", "gazenerf", "xgaze"],
                    help="the files' layout (docs/data.md, Layouts); auto: detected from their keys")
+    e = sub.add_parser("export", help="native subject files in a peer's layout (docs/data.md, Layouts)")
+    e.add_argument("src", help="a folder of this project's subject files (its split.json decides the held-out ones)")
+    e.add_argument("out", help="the folder to write (xgaze_<subject>.h5 and train_test_split.json)")
+    e.add_argument("--layout", default="gazegaussian", choices=["gazegaussian", "ditgaze"])
     a = ap.parse_args(argv)
+    if a.cmd == "export":
+        return cmd_export(a)
     _check_flags(a)
     return cmd_synth(a) if a.cmd == "synth" else cmd_inspect(a)
+
+
+def cmd_export(a) -> int:
+    from train.data.export import export
+
+    if Path(a.out).exists() and not Path(a.out).is_dir():
+        raise ToolkitError(f"out {a.out}: is a file, expected a folder to write the exported files into")
+    written = export(a.src, a.out, a.layout)
+    print(f"wrote {len(written)} {a.layout} files and their split file to {a.out}")
+    return 0
 
 
 MAX_SHEET_IMAGES = 10_000
