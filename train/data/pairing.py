@@ -144,7 +144,7 @@ def check_pairing_rows(files: list[Path], pairing: dict[str, np.ndarray] | None,
             k = int(bad[0])
             raise ToolkitError(f"{f}: pair {k} of {source} (input row {rows[k][0]}, target row {rows[k][1]}) is out "
                                f"of range: the file has {n} rows (0-{n - 1})"
-                               + (f"; {len(bad)} pairs are" if len(bad) > 1 else ""))
+                               + (f"; {len(bad)} of its {len(rows)} pairs are" if len(bad) > 1 else ""))
 
 
 def _rows_or_none(pairing: dict[str, np.ndarray], stem: str) -> np.ndarray:

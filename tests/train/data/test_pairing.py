@@ -160,7 +160,7 @@ def test_pairing_rows_are_checked_against_every_subject_before_any_work(tmp_path
     with pytest.raises(ToolkitError) as err:  # the file, the pair, its rows and the file's row count
         check_pairing_rows([six], {"*": np.array([[0, 5], [1, 3], [2, 6], [3, 9]])}, "the pairing file p.txt")
     assert str(err.value) == (f"{six}: pair 2 of the pairing file p.txt (input row 2, target row 6) is out of range: "
-                              f"the file has 6 rows (0-5); 2 pairs are")
+                              f"the file has 6 rows (0-5); 2 of its 4 pairs are")
     with pytest.raises(ToolkitError, match=r"subject0002.h5: 1 row; the generated pairing .* needs at least 2 rows: "
                                            r"give eval.pairing_file"):
         check_pairing_rows([six, one], None)
