@@ -37,18 +37,22 @@ EYE_VIEW_HW = (48, 80)
 
 
 def worst_eye_views(subject: str, indices: list[int], gaze_err: torch.Tensor, inp: torch.Tensor, tgt: torch.Tensor,
-                    out: torch.Tensor, landmarks: torch.Tensor) -> list[dict[str, Any]]:
+                    out: torch.Tensor, landmarks: torch.Tensor, *,
+                    input_landmarks: torch.Tensor | None = None) -> list[dict[str, Any]]:
     """The eye views of a subject's :data:`WORST_EYE_PAIRS` worst pairs (by ``gaze_err`` [B]): for each, its
     subject, pair index, gaze error and ``views``, uint8 [3 (input, target, render), 3, h, 2 w], both eyes side
     by side as the estimator reads them (:func:`train.estimator.crops.eye_patches` at the target's
-    ``landmarks`` [B, 68, 2], which the input and render share). Kept per subject, so the overall worst are
-    among what a whole evaluation keeps, at a few kB a pair."""
+    ``landmarks`` [B, 68, 2], which the render shares; the input's own ``input_landmarks`` where its view
+    differs, as a stored target's does, else the same). Kept per subject, so the overall worst are among what a
+    whole evaluation keeps, at a few kB a pair."""
     keep = torch.argsort(gaze_err.cpu(), descending=True)[:WORST_EYE_PAIRS].tolist()
     if not keep:
         return []
     B = inp.shape[0]
     with torch.no_grad():
-        p = eye_patches(torch.cat([inp, tgt, out]).float(), landmarks.float().repeat(3, 1, 1), EYE_VIEW_HW)
+        lm_in = landmarks if input_landmarks is None else input_landmarks
+        lm = torch.cat([lm_in.float(), landmarks.float(), landmarks.float()])
+        p = eye_patches(torch.cat([inp, tgt, out]).float(), lm, EYE_VIEW_HW)
     views = torch.cat([p[:, :3], p[:, 3:]], -1).view(3, B, 3, EYE_VIEW_HW[0], 2 * EYE_VIEW_HW[1]).transpose(0, 1)
     views = (views.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
     # Clones: a view would keep the whole subject's buffer alive.

@@ -111,7 +111,8 @@ def test_time_fit(model, renderer, batch: dict[str, torch.Tensor], input_image: 
     codec decoder at ``renderer_lr`` (the decoder unfrozen for the fit, frozen again after) -- so the caller
     restores them (:func:`restored_weights`); with no ``weights`` the model and renderer are untouched (the
     gradient is taken for the code alone). ``gaze`` (:class:`FitGaze`) adds a gaze term read by the frozen loss
-    estimator (it needs ``batch["gaze_head"]`` and ``batch["landmarks"]``). Returns the fitted code.
+    estimator (it needs ``batch["gaze_head"]`` and ``batch["landmarks"]``). The input's view is ``batch``'s
+    ``in_pose``, ``in_gaze_head``, ``in_viewmat`` and ``in_K`` (else ``K``). Returns the fitted code.
     """
     if not lr > 0:
         raise ToolkitError(f"test-time fitting: expected a learning rate > 0 (code, features), got {lr}")
@@ -163,11 +164,12 @@ def _fit_steps(model, renderer, batch, input_image, mask, target, res, steps, co
         reach = [i for i, p in enumerate(fitted) if (i == 0 and "code" in gaze.reach) or (i > 0 and id(p) in mine)]
     if gaze is not None and "target_gazes" in batch:  # the entries: the last step, then every `every`-th before it
         order = term_gaze_order(batch["target_gazes"].shape[1], (steps - 1) // gaze.every + 1 if steps > 0 else 0)
+    in_K = batch.get("in_K", batch["K"])  # the input's intrinsics, where they differ from the target's
     for step in range(steps):
         # A fresh face stream every step: an unchanged code (a zero gradient) would otherwise hit the cache and
         # reuse the previous step's freed graph.
         model.clear_cache()
-        maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], res, res,
+        maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], in_K, res, res,
                      renders=("head",))
         img = renderer.training_forward(maps["head"], code, input_image, gaze=batch["in_gaze_head"],
                                         pose=batch["in_pose"], t=t).image
@@ -255,7 +257,8 @@ class FitGaze:
             total = total + self.loss(composite_on_white(img, mask), target_image=composite_on_white(input_image, mask),
                                       landmarks=batch["landmarks"])
         if "target" in self.terms:
-            maps = model(code, batch["in_pose"], batch["gaze_head"], batch["in_viewmat"], batch["K"], res, res,
+            in_K = batch.get("in_K", batch["K"])  # the input's view, with its own intrinsics where given
+            maps = model(code, batch["in_pose"], batch["gaze_head"], batch["in_viewmat"], in_K, res, res,
                          renders=("head",))
             img_t = renderer.training_forward(maps["head"], code, input_image, gaze=batch["gaze_head"],
                                               pose=batch["in_pose"], t=t).image

@@ -2,7 +2,9 @@
 
 A pair is an input row and a target row of one held-out subject (``train.data.pairing``). The model renders
 with the **target's** camera, head pose and head-frame gaze and the input's shape code; the target is the
-ground truth.
+ground truth. Under the synthetic protocol the target is the input's view re-rendered by the generator at the
+target row's gaze (so the target's camera and head pose are the input's); under the stored protocol (real
+files) it is the target row as stored, with its own camera and head pose.
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ class SubjectPairs:
 
     ``input`` and ``target`` are the images [P, 3, H, W], ``input_mask`` and ``target_mask`` their head masks
     [P, 1, H, W]; ``indices`` each pair's index in the subject's pairing and ``items`` the pairs as
-    :class:`train.data.pairing.SyntheticRedirectionPairs` gives them."""
+    :func:`train.data.pairing.redirection_pairs` gives them; ``protocol`` its ``"synthetic"`` (generator
+    targets at the input's view) or ``"stored"`` (the stored target rows, each at its own view)."""
 
     name: str
     indices: list[int]
@@ -45,31 +48,41 @@ class SubjectPairs:
     target: torch.Tensor
     input_mask: torch.Tensor
     target_mask: torch.Tensor
+    protocol: str = "synthetic"
 
     def inputs(self, key: str) -> torch.Tensor:
         """The input rows' ``key`` stacked [P, ...], float, on the device."""
         return torch.stack([torch.as_tensor(it["input"][key]) for it in self.items]).float().to(self.device)
 
+    def at_target_view(self, key: str) -> torch.Tensor:
+        """``key`` [P, ...] of the view the pairs are rendered and scored at (camera ``viewmat``/``K``, head
+        ``pose``/``face_head_pose``, ``landmarks``): the stored target rows', else the inputs' (a synthetic
+        target is the input's view)."""
+        if self.protocol != "stored":
+            return self.inputs(key)
+        return torch.stack([torch.as_tensor(it["target"][key]) for it in self.items]).float().to(self.device)
+
     def render_batch(self) -> dict[str, torch.Tensor]:
         """What :func:`render_pairs` and test-time fitting read: the input's code, the target's view and
-        head-frame gaze, and (``in_*``) the input's own view, gaze and head mask, with the input's landmarks."""
-        st = self.inputs
+        head-frame gaze, and (``in_*``) the input's own view (``in_K`` its intrinsics: a real subject's cameras
+        differ), gaze and head mask, with the input's landmarks."""
+        st, tv = self.inputs, self.at_target_view
         target_gaze = torch.stack([torch.as_tensor(it["target"]["pitchyaw_head"]) for it in self.items])
-        return {"code": st("latent_code"), "pose": st("pose"), "viewmat": st("viewmat"), "K": st("K"),
+        return {"code": st("latent_code"), "pose": tv("pose"), "viewmat": tv("viewmat"), "K": tv("K"),
                 "gaze_head": target_gaze.float().to(self.device),
                 "in_gaze_head": st("pitchyaw_head"), "in_pose": st("pose"), "in_viewmat": st("viewmat"),
-                "landmarks": st("landmarks"), "in_head_mask": self.input_mask}
+                "in_K": st("K"), "landmarks": st("landmarks"), "in_head_mask": self.input_mask}
 
     def target_labels(self) -> torch.Tensor | None:
         """[P, 4] the targets' camera-frame labels (gaze pitch/yaw, head pitch/yaw) as the estimators are
         trained on them, or None when a target has no ``pitchyaw_cam`` (``GazeDataset`` rows always carry one:
         the file's, or derived from the head-frame gaze when the file has none; other target sources may not).
-        The head-pose label is the input's: a pair's target shares its input's view and head pose."""
+        The head-pose label is that of the target's view (:meth:`at_target_view`: a synthetic target shares its
+        input's view and head pose)."""
         if not all("pitchyaw_cam" in it["target"] for it in self.items):
             return None
-        return torch.stack([torch.cat([torch.as_tensor(it["target"]["pitchyaw_cam"]).float(),
-                                       torch.as_tensor(it["input"]["face_head_pose"]).float()])
-                            for it in self.items]).to(self.device)
+        gaze = torch.stack([torch.as_tensor(it["target"]["pitchyaw_cam"]).float() for it in self.items])
+        return torch.cat([gaze.to(self.device), self.at_target_view("face_head_pose")], 1)
 
 
 def load_subject_pairs(subject_file: Path, pairing_rows: np.ndarray | None, *, res: int, seed: int,
@@ -77,22 +90,26 @@ def load_subject_pairs(subject_file: Path, pairing_rows: np.ndarray | None, *, r
     """``pairs_per_subject`` pairs of one subject file, spread over its pairing (:func:`spread_indices`).
 
     ``pairing_rows`` [P, 2] (input row, target row) from a pairing file, or None: pairs generated with
-    ``seed`` (``train.data.pairing.synthetic_pairs``)."""
-    from train.data.pairing import SyntheticRedirectionPairs
+    ``seed`` (``train.data.pairing.synthetic_pairs``). The file's protocol (generator or stored targets)
+    follows from the file (``train.data.pairing.redirection_pairs``)."""
+    from train.data.pairing import redirection_pairs
 
-    pairs = SyntheticRedirectionPairs(subject_file, pairing_rows, res=res, seed=seed)
+    pairs = redirection_pairs(subject_file, pairing_rows, res=res, seed=seed)
     indices = spread_indices(len(pairs), min(pairs_per_subject, len(pairs)))
     items = [pairs[i] for i in indices]
     stack = lambda row, key: torch.stack([it[row][key] for it in items]).to(device)  # noqa: E731
     return SubjectPairs(name=Path(subject_file).name, indices=indices, items=items, device=device,
                         target=stack("target", "image"), input=stack("input", "image"),
-                        target_mask=stack("target", "head_mask"), input_mask=stack("input", "head_mask"))
+                        target_mask=stack("target", "head_mask"), input_mask=stack("input", "head_mask"),
+                        protocol=pairs.protocol)
 
 
 def own_gaze_batch(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The pairs' render batch turned back on their inputs: the input's head pose, camera and head-frame gaze
-    (same code and intrinsics). Rendering it asks the model to reproduce the input, with no redirection."""
-    return {**batch, "pose": batch["in_pose"], "viewmat": batch["in_viewmat"], "gaze_head": batch["in_gaze_head"]}
+    """The pairs' render batch turned back on their inputs: the input's head pose, camera (``in_K`` where the
+    batch has it) and head-frame gaze, the same code. Rendering it asks the model to reproduce the input, with
+    no redirection."""
+    return {**batch, "pose": batch["in_pose"], "viewmat": batch["in_viewmat"], "gaze_head": batch["in_gaze_head"],
+            "K": batch.get("in_K", batch["K"])}
 
 
 @torch.no_grad()

@@ -1,8 +1,10 @@
 """Stage ``eval``: the GazeNeRF redirection protocol on held-out subjects.
 
-Per test subject, input rows are paired with target rows (a fixed permutation; a pairing file for real
-data). The model renders with the **target's** camera, head pose and codes and the target's head-frame gaze
-(synthetic targets are exact: the generator re-renders the input's view with the target gaze). Optional
+Per test subject, input rows are paired with target rows (a fixed permutation, or a pairing file:
+``train.data.pairing``). The model renders with the **target's** camera, head pose and head-frame gaze and the
+input's code. Two protocols, chosen per file (``train.data.pairing.redirection_pairs``): on a synthetic file the
+target is exact, the generator re-rendering the input's view at the target row's gaze; on a real file it is
+the stored target row, its image, camera, head pose and gaze (GazeNeRF's protocol). Optional
 test-time fitting (:mod:`train.evaluation.fitting`) tunes the shape code -- and optionally the Gaussians'
 features and the renderer -- on the input image's head (or, with ``tta_region="face"``, its face without the
 eyes) for ``tta_steps`` steps, restarting from the restored weights for every pair. Metrics on a white
@@ -24,6 +26,7 @@ import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from toolkit.rotations import angular_error_deg
+from train.data.pairing import check_pairing_rows, subject_pairing
 from train.evaluation.figures import worst_eye_views
 from train.evaluation.fitting import TTA_REGIONS, FitGaze, face_only_mask, restored_weights, test_time_fit
 from train.evaluation.pairs import SubjectPairs, load_subject_pairs, own_gaze_batch, render_pairs
@@ -75,8 +78,9 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     LPIPS is None (n/a). ``identity`` (:class:`train.losses.identity.IdentitySimilarity` with the user's ArcFace
     weights) scores the cosine similarity of the render's and the target's face embeddings, both aligned with
     the pair's landmarks; without it identity similarity is None (n/a).
-    ``pairing`` ({subject file stem: [P, 2] (input row, target row)}, ``train.data.pairing.load_pairing``) gives
-    each subject's pairs (every test subject must have some); else they are generated
+    ``pairing`` ({subject file stem, or ``"*"`` for every subject: [P, 2] (input row, target row)},
+    ``train.data.pairing.load_pairing``) gives each subject's pairs (every test subject must have some, inside
+    its rows: checked for all subjects before the first is fitted); else they are generated
     (``train.data.pairing.synthetic_pairs``). ``pairs_per_subject`` of them are taken, spread over the list."""
     return summarize_evaluation(evaluate_raw(
         model, renderer, estimator, test_files, res=res, pairs_per_subject=pairs_per_subject,
@@ -107,7 +111,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             # Each subject's own random stream (a diffusion renderer's noise while fitting): its scores then do
             # not depend on what ran before it, in this process or another (the eval stage splits subjects).
             torch.manual_seed(seed * 1_000_003 + zlib.crc32(Path(f).name.encode()))
-            sp = load_subject_pairs(f, None if pairing is None else pairing[Path(f).stem], res=res, seed=seed,
+            sp = load_subject_pairs(f, subject_pairing(pairing, Path(f).stem), res=res, seed=seed,
                                     pairs_per_subject=pairs_per_subject, device=device)
             fit_mask = _fitting_mask(sp, tta_region)
             pair_seeds = [zlib.crc32(f"{seed}:{sp.name}:{i}".encode()) for i in sp.indices]
@@ -148,11 +152,10 @@ def reference_transforms(renderer) -> dict[str, Callable[[torch.Tensor], torch.T
 def _check_protocol_inputs(test_files: list[Path], tta_region: str, pairing: dict[str, np.ndarray] | None) -> None:
     if tta_region not in TTA_REGIONS:
         raise ToolkitError(f"evaluate: tta_region must be one of {list(TTA_REGIONS)}, got {tta_region!r}")
-    if pairing is not None:
-        missing = [Path(f).stem for f in test_files if len(pairing.get(Path(f).stem, ())) == 0]
-        if missing:
-            raise ToolkitError(f"evaluate: the pairing file has no pairs for test subject(s) {missing} "
-                               f"(it names {sorted(pairing)[:5]}...)")
+    try:  # every subject's pairs inside its rows, before the first subject is fitted
+        check_pairing_rows(test_files, pairing)
+    except ToolkitError as err:
+        raise ToolkitError(f"evaluate: {err}") from None
 
 
 def _empty_raw(references: dict[str, Callable] | None) -> dict[str, Any]:
@@ -220,7 +223,7 @@ def _score_subject(raw: dict[str, Any], sp: SubjectPairs, out: torch.Tensor, own
     """Add one subject's scores to ``raw``: its renders ``out`` [P, 3, H, W] against the targets, the
     ``references`` beside them, and ``own`` (the renders at the inputs' own gaze, or None) against the inputs."""
     out_w, tgt_w = composite_on_white(out, sp.target_mask), composite_on_white(sp.target, sp.target_mask)
-    lm = sp.inputs("landmarks")  # the target is the input's view: same landmarks
+    lm, lm_in = sp.at_target_view("landmarks"), sp.inputs("landmarks")  # one view under the synthetic protocol
     with torch.no_grad():  # eye-patch estimators read the landmarks (render and target share the view)
         e_out, e_tgt = estimator(out_w, lm), estimator(tgt_w, lm)
     _check_readings(sp.name, sp.indices, e_out, e_tgt)
@@ -228,7 +231,7 @@ def _score_subject(raw: dict[str, Any], sp: SubjectPairs, out: torch.Tensor, own
     ge, he, p, s = scores.values()
     against_labels = _label_errors(raw["label_scores"], sp, e_tgt=e_tgt, e_out=e_out)
     inp_w = composite_on_white(sp.input, sp.input_mask)  # the input on white in its own mask (figures, own-gaze row)
-    raw["worst_eyes"] += worst_eye_views(sp.name, sp.indices, ge, inp_w, tgt_w, out_w, lm)
+    raw["worst_eyes"] += worst_eye_views(sp.name, sp.indices, ge, inp_w, tgt_w, out_w, lm, input_landmarks=lm_in)
     for name, fn in (references or {}).items():
         with torch.no_grad():
             ref_w = composite_on_white(fn(sp.target).clamp(0, 1), sp.target_mask)
@@ -237,7 +240,7 @@ def _score_subject(raw: dict[str, Any], sp: SubjectPairs, out: torch.Tensor, own
     if own is not None:  # scored against the input itself, in the input's mask
         own_w = composite_on_white(own, sp.input_mask)
         with torch.no_grad():
-            e_own, e_inp = estimator(own_w, lm), estimator(inp_w, lm)
+            e_own, e_inp = estimator(own_w, lm_in), estimator(inp_w, lm_in)
         _extend(raw["own_scores"], _pair_scores(own_w, e_own, inp_w, e_inp))
     with torch.no_grad():  # the optional metrics live in the records alone (the summary reads them there)
         optional = {"lpips": lpips(out_w, tgt_w) if lpips is not None else None,
@@ -248,7 +251,7 @@ def _score_subject(raw: dict[str, Any], sp: SubjectPairs, out: torch.Tensor, own
     raw["reals"].append(tgt_w.cpu())
     raw["fakes"].append(out_w.cpu())
     n = len(sp.indices)
-    raw["per_subject"].append({"subject": sp.name, "pairs": n, "gaze_error_deg": float(ge.mean()),
+    raw["per_subject"].append({"subject": sp.name, "protocol": sp.protocol, "pairs": n, "gaze_error_deg": float(ge.mean()),
                                "psnr": float(p.mean()), "ssim": float(s.mean()),
                                "ms_per_image": 1000 * render_time / max(1, n)})
     log(f"[eval] {sp.name}: gaze {float(ge.mean()):.2f} deg, PSNR {float(p.mean()):.2f} dB, "

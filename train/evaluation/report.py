@@ -26,6 +26,18 @@ ABLATIONS = (("renderer", "gaussian.renderer", lambda g: "unet" if g.renderer ==
 """The switches of the paper's Table 3: (what, config key, the other setting from a Gaussian stage config)."""
 
 
+def describe_protocol(per_subject: list[dict], pairing_file: str = "") -> str:
+    """The protocol(s) the evaluation scored its subjects under (each ``per_subject`` record's ``protocol``), as
+    ``metrics.json`` and the report name them: ``synthetic: generator targets`` and/or ``GazeNeRF: stored
+    targets`` with the pairing they read (with the subject counts when both occur)."""
+    counts = {k: sum(r.get("protocol", "synthetic") == k for r in per_subject) for k in ("synthetic", "stored")}
+    pairing = f"pairing file {pairing_file}" if pairing_file else "generated pairing (first half -> permuted second half)"
+    names = {"synthetic": "synthetic: generator targets" + (f", pairing file {pairing_file}" if pairing_file else ""),
+             "stored": f"GazeNeRF: stored targets, {pairing}"}
+    both = all(counts.values())
+    return "; ".join(names[k] + (f" ({n} subject{'s' * (n != 1)})" if both else "") for k, n in counts.items() if n)
+
+
 def describe_fitting(e: EvalConfig) -> str:
     """How the eval fitted each input, for the report."""
     if e.tta_steps <= 0:
@@ -142,6 +154,7 @@ def report_markdown(res: dict, cfg: RunConfig, run_dir: Path, figures: dict[str,
     ablation = f"renderer={cfg.gaussian.renderer}, orthogonality={cfg.gaussian.orthogonality}, " \
                f"weak_supervision={cfg.gaussian.weak_supervision}"
     return (f"# DiT-Gaze evaluation ({cfg.preset} preset)\n\n"
+            f"Protocol: {describe_protocol(res['per_subject'], cfg.eval.pairing_file)}. "
             f"Held-out subjects: {len(res['per_subject'])}, pairs: {res['metrics']['pairs']}, "
             f"resolution {cfg.data.res}², DDIM steps {eval_sampling_steps(cfg)}, test-time fitting: "
             f"{describe_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{results_table(res, cfg)}\n\n"
