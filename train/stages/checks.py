@@ -144,6 +144,14 @@ def _check_files(cfg: RunConfig) -> None:
             load_pairing(cfg.eval.pairing_file)
         except ToolkitError as err:
             raise ToolkitError(f"config key 'eval.pairing_file': {err}") from None
+    if cfg.data.root and Path(cfg.data.root).exists():  # the held-out files are known before training
+        from train.data.dataset import find_subject_files, split_files
+
+        try:
+            test = split_files(find_subject_files([cfg.data.root]), "test", test_fraction=cfg.data.test_fraction)
+        except ToolkitError:
+            test = []  # a folder the stages cannot split: the stage that reads it names what is wrong
+        check_eval_pairing(cfg, test)
     e = cfg.eval
     lp = {"eval.lpips_vgg_path": e.lpips_vgg_path, "eval.lpips_lin_path": e.lpips_lin_path}
     if any(lp.values()) and not all(lp.values()):
@@ -158,3 +166,16 @@ def _check_files(cfg: RunConfig) -> None:
     c = cfg.codec
     _require(c.kind != "sd-vae" or (c.sd_vae_path and Path(c.sd_vae_path).is_dir()), "codec.sd_vae_path",
              f"{c.sd_vae_path!r}: no such directory (codec.kind=sd-vae reads a local diffusers AutoencoderKL folder)")
+
+
+def check_eval_pairing(cfg: RunConfig, test_files: list[Path]) -> None:
+    """Every held-out subject has pairs inside its rows (``train.data.pairing.check_pairing_rows``): one line
+    before any work, from the config check (``data.root`` names the files) or the eval stage's start."""
+    from train.data.pairing import check_pairing_rows, load_pairing
+
+    path = cfg.eval.pairing_file
+    try:
+        check_pairing_rows(test_files, load_pairing(path) if path else None,
+                           f"the pairing file {path}" if path else "the generated pairing")
+    except ToolkitError as err:
+        raise ToolkitError(f"config key 'eval.pairing_file': {err}" if path else str(err)) from None

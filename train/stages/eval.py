@@ -1,5 +1,6 @@
 """Stage ``eval``: the GazeNeRF redirection protocol (``train.evaluation.protocol``) on the held-out subjects
--> ``metrics.json``, ``report.md`` and the figures (``train.evaluation.report``)."""
+-> ``metrics.json``, ``report.md`` and the figures (``train.evaluation.report``). Synthetic subject files are
+scored against generator targets, real ones against their stored target rows (``train.data.pairing``)."""
 
 from __future__ import annotations
 
@@ -19,15 +20,20 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     """The evaluation protocol on the test split, the report and the figures. Test subjects may be evaluated in
     two processes at once (:func:`eval_groups`); each subject's scores depend only on the threads its process
     has, and the merged result is what one process with that many threads gives (tested)."""
-    from train.evaluation.report import report_markdown, write_figures
+    from train.evaluation.report import describe_protocol, report_markdown, write_figures
     from train.evaluation.summary import summarize_evaluation
+    from train.stages.checks import check_eval_pairing
 
     run = RunArtifacts(ctx)
     device = run.device
     _check_the_fit_reads_another_estimator(run)
+    check_eval_pairing(ctx.config, run.split("test"))  # one line before the models load
     raw = _evaluate_test_split(ctx, run, device)
     res = summarize_evaluation(raw, own_gaze_row=True, log=ctx.log)
-    atomic_write_json(ctx.run_dir / "metrics.json", {"metrics": res["metrics"], "per_subject": res["per_subject"],
+    protocol = describe_protocol(res["per_subject"], ctx.config.eval.pairing_file)
+    ctx.log(f"[eval] protocol: {protocol}")
+    atomic_write_json(ctx.run_dir / "metrics.json", {"protocol": protocol, "metrics": res["metrics"],
+                                                     "per_subject": res["per_subject"],
                                                      "per_pair": res["per_pair"], "own_gaze": res["own_gaze"],
                                                      "references": res["references"], "labels": res["labels"]})
     figures = write_figures(ctx.run_dir, res, _eval_sweep(run, device))
@@ -129,12 +135,15 @@ def _optional_scorers(cfg: RunConfig, device) -> tuple:
 def _eval_sweep(run: RunArtifacts, device) -> torch.Tensor:
     """The qualitative figure's last row [G, 3, H, W]: the first held-out pair's input, fitted as the evaluation
     fits it, rendered at ``eval.sweep_frames`` gazes (``train.evaluation.figures.sweep_gazes``)."""
-    from train.data.pairing import SyntheticRedirectionPairs
+    from train.data.pairing import load_pairing, redirection_pairs, subject_pairing
     from train.evaluation.figures import model_gaze_sweep, sweep_gazes
     from train.evaluation.fitting import restored_weights
 
     cfg = run.config
-    item = SyntheticRedirectionPairs(run.split("test")[0], res=cfg.data.res, seed=cfg.seed)[0]["input"]
+    first = run.split("test")[0]
+    pairing = load_pairing(cfg.eval.pairing_file) if cfg.eval.pairing_file else None
+    pairs = redirection_pairs(first, subject_pairing(pairing, first.stem), res=cfg.data.res, seed=cfg.seed)
+    item = pairs.data[int(pairs.pairs[0][0])]  # the first pair's input (its target is not needed here)
     model, renderer = run.load_model(device)
     gazes = sweep_gazes(cfg.eval.sweep_frames)
     with restored_weights(model, renderer):
