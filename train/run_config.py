@@ -261,10 +261,11 @@ class EvalConfig:
     With colours or the renderer in reach it paints specks that read as the target gaze; ``[code, eye_field]``
     only turns the eyes (:data:`NATURAL_EYES_FIT`; docs/results.md, 2026-11-23)."""
     pairing_file: str = ""
-    """a pairing file (``train.data.pairing.load_pairing``: JSON ``{"subject0008": [[input_row, target_row], ...]}``
-    or lines ``subject0008 input_row target_row``) giving each test subject's pairs, GazeNeRF's way; empty:
-    generated pairs (the first half of a subject's rows with a fixed permutation of the second half).
-    GazeNeRF's two lists convert line by line to ``SUBJECT input_row target_row``."""
+    """a pairing file (``train.data.pairing.load_pairing``): GazeNeRF's target list read verbatim (one integer a
+    line: input row i -> target row list[i] for every subject), JSON ``{"subject0008": [[input_row, target_row],
+    ...]}`` (``"*"``: every subject not named) or lines ``subject0008 input_row target_row``; empty: generated
+    pairs (the first half of a subject's rows with a fixed permutation of the second half). Files without
+    ``subject_params`` (real data) are scored against their stored target rows (docs/evaluation.md)."""
     sweep_frames: int = field(default=9, metadata=COUNT)
     """gazes in the qualitative figure's sweep row."""
     sampling_steps: int = field(default=0, metadata=NEUTRAL | rule(
