@@ -93,8 +93,8 @@ def _append_row(out: dict[str, list], it: dict, r: int, img: torch.Tensor, code:
     out["inmat"].append(K.cpu().numpy())
     out["latent_codes"].append(code.cpu().numpy())
     out["face_head_pose"].append(np.repeat(np.asarray(it["face_head_pose"], np.float32)[None], G, 0))
-    out["cam_index"].append(np.full(G, int(it["cam_index"]), np.int32))  # the schema's int32 (docs/data.md)
-    out["frame_index"].append(np.full(G, int(it["frame_index"]), np.int32))  # the schema's int32 (docs/data.md)
+    out["cam_index"].append(np.full((G, 1), int(it["cam_index"]), np.int32))  # the schema's [N, 1] int32 (docs/data.md)
+    out["frame_index"].append(np.full((G, 1), int(it["frame_index"]), np.int32))
     out["source_row"].append(np.full(G, r, np.int64))
     # Gaze does not move the lids, landmarks or mesh of the synthetic subjects: the input's stay valid.
     for key, src in (("left_eye_mask", "left_eye_mask"), ("right_eye_mask", "right_eye_mask")):

@@ -146,8 +146,9 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
         "inmat": out["K"],
         "pitchyaw_head": out["pitchyaw_head"],
         "face_head_pose": out["face_head_pose"],
-        "cam_index": out["cam_index"],
-        "frame_index": out["frame_index"],
+        # [N, 1], as the peers' files store and index them (cam_index[idx, :]: docs/data.md, Layouts)
+        "cam_index": out["cam_index"].reshape(-1, 1),
+        "frame_index": out["frame_index"].reshape(-1, 1),
         "vertice": out["vertice"],
         "pitchyaw_cam": out["pitchyaw_cam"],
         "expression_params": out["expression"],

@@ -104,11 +104,20 @@ def test_splits(tmp_path, subject_file):
         GazeDataset(tmp_path, split="train")
 
 
+def test_files_with_one_dimensional_indices_still_read(tmp_path, subject_file):
+    rows, _ = _copy_rows(subject_file)  # the generator writes (N, 1); files written before it wrote (N,)
+    assert rows["cam_index"].shape == (36, 1)
+    rows["cam_index"], rows["frame_index"] = rows["cam_index"].reshape(-1), rows["frame_index"].reshape(-1)
+    old = GazeDataset(_write(tmp_path, "old.h5", rows))
+    new = GazeDataset(subject_file)
+    assert [int(old[i]["cam_index"]) for i in (0, 20)] == [int(new[i]["cam_index"]) for i in (0, 20)] == [0, 2]
+
+
 def test_optional_keys_are_optional(tmp_path, subject_file):
     rows, attrs = _copy_rows(subject_file)
     for k in ("pitchyaw_cam", "expression_params", "light_dir", "neutral_vertice"):
         rows.pop(k)
-    rows["cam_index"] = rows["cam_index"][:, None].astype(np.uint8)  # GazeNeRF-style (N, 1) uint8
+    rows["cam_index"] = rows["cam_index"].reshape(-1, 1).astype(np.uint8)  # GazeNeRF-style (N, 1) uint8
     rows["scale"] = rows["scale"][:, 0]  # (N,) is accepted too
     p = _write(tmp_path, "real_like.h5", rows)
     s = GazeDataset(p)[0]

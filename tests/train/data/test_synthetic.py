@@ -82,7 +82,8 @@ def test_latent_code_is_a_fixed_invertible_embedding(subject_params):
 def test_file_labels_are_consistent(subject_file, subject):
     r = _rows(subject_file)
     n = len(r["face_patch"])
-    assert n == 36 and set(r["cam_index"]) == set(range(18)) and set(r["frame_index"]) == {0, 1}
+    assert r["cam_index"].shape == r["frame_index"].shape == (n, 1)  # [N, 1], as the peers index them
+    assert n == 36 and set(r["cam_index"][:, 0]) == set(range(18)) and set(r["frame_index"][:, 0]) == {0, 1}
     # 3D landmarks projected with K and the extrinsics land on the 2D landmarks.
     pc = np.einsum("nij,nkj->nki", r["w2c_Rmat"], r["facial_landmarks_3d"]) + r["w2c_Tvec"][:, None]
     uv = np.einsum("nij,nkj->nki", r["inmat"], pc)
