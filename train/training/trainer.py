@@ -41,7 +41,9 @@ from train.training.gaze_sampler import GazeSampler, GazeSamplerConfig
 
 @dataclass
 class TrainBatchData:
-    """The training split held in memory (small enough at demo scale); images in [0, 1], white background."""
+    """Training rows held in memory: the paper configuration's benchmark builds a few upsampled ones, the codec
+    stage still loads its split this way (:func:`load_split`). The Gaussian and estimator stages read their
+    split with :func:`open_split`. Images in [0, 1], white background."""
 
     image: torch.Tensor  # [N, 3, R, R]
     head: torch.Tensor  # [N, 1, R, R] masks in {0, 1}
@@ -71,6 +73,8 @@ class TrainBatchData:
 
 
 def load_split(files: list[Path], split: str, res: int) -> TrainBatchData:
+    """The whole split in memory (~5 MB a row at 512²): for small splits only; the training stages stream
+    theirs with :func:`open_split`, which gives the same tensors."""
     from train.data.dataset import GazeDataset
 
     ds = GazeDataset(files, split=split, res=res)
@@ -84,13 +88,73 @@ def load_split(files: list[Path], split: str, res: int) -> TrainBatchData:
                           landmarks=st("landmarks"))
 
 
-def init_rgb(model: GaussianModel, data: TrainBatchData) -> float:
-    """Start the model's RGB channels from the training images (:mod:`train.model.rgb_init`; the images used move
-    to the model's device); returns the fraction of Gaussians some image saw."""
+ROW_KEYS = {"image": "image", "head": "head_mask", "eyes": None, "code": "latent_code", "pose": "pose",
+            "gaze_head": "pitchyaw_head", "gaze_cam": "pitchyaw_cam", "head_pose_cam": "face_head_pose",
+            "viewmat": "viewmat", "K": "K", "landmarks": "landmarks"}
+"""A training row's tensors (:class:`TrainBatchData`'s fields) and the dataset keys they come from; ``eyes`` is
+the union of the two eye masks."""
+
+
+def train_row(item: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """One ``GazeDataset`` item as a training row: :func:`load_split`'s conversions, on one row."""
+    f = lambda k: torch.as_tensor(item[k]).float()  # noqa: E731
+    return {name: (f(key) if key else (f("left_eye_mask") + f("right_eye_mask")).clamp(0, 1))
+            for name, key in ROW_KEYS.items()}
+
+
+class TrainRows:
+    """The training split read from its subject files a batch at a time (:class:`train.data.rows.RowSource`):
+    :class:`TrainBatchData`'s interface and tensors, with only a bounded cache of rows in memory."""
+
+    def __init__(self, source, res: int):
+        self.source, self.res = source, int(res)
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def take(self, idx: torch.Tensor, device: torch.device | str) -> dict[str, torch.Tensor]:
+        """{field: [B, ...]} the rows ``idx`` [B] on ``device``."""
+        return {k: v.to(device) for k, v in self.source.stack(idx.tolist()).items()}
+
+    def prefetch(self, idx: torch.Tensor) -> None:
+        """Start reading the rows ``idx`` (a later batch's) in the background."""
+        self.source.prefetch(idx.tolist())
+
+    head_to_camera = TrainBatchData.head_to_camera
+
+    def close(self) -> None:
+        self.source.close()
+
+
+def open_split(files: list[Path], split: str, res: int, *, cache_bytes: int | None = None,
+               workers: int | None = None) -> TrainRows:
+    """The split ``split`` of ``files`` at ``res`` as :class:`TrainRows` (the same rows as :func:`load_split`);
+    ``cache_bytes`` / ``workers``: :class:`train.data.rows.RowSource`'s (default: its defaults for this machine)."""
+    from train.data.dataset import GazeDataset
+    from train.data.rows import DEFAULT_CACHE_BYTES, RowSource, default_workers
+
+    ds = GazeDataset(files, split=split, res=res)
+    ds.check_unit_scale("the Gaussian model (its head is posed rigidly)")
+    source = RowSource(ds, train_row, cache_bytes=DEFAULT_CACHE_BYTES if cache_bytes is None else cache_bytes,
+                       workers=default_workers() if workers is None else workers)
+    return TrainRows(source, res)
+
+
+INIT_RGB_IMAGES = 64
+"""Training images :func:`init_rgb` reads (``init_rgb_from_images``'s default)."""
+
+
+def init_rgb(model: GaussianModel, data: TrainBatchData | TrainRows) -> float:
+    """Start the model's RGB channels from (up to 64, evenly spaced) training images (:mod:`train.model.rgb_init`;
+    only they are read and moved to the model's device); returns the fraction of Gaussians some image saw."""
     from train.model.rgb_init import init_rgb_from_images
 
-    return init_rgb_from_images(model, data.image, data.head, data.code, data.pose, data.gaze_head, data.viewmat,
-                                data.K)
+    # rgb_init's own choice of rows, made here so that only they are read; it then takes all of them.
+    n = len(data)
+    idx = torch.linspace(0, n - 1, min(n, INIT_RGB_IMAGES)).round().long().unique()
+    b = data.take(idx, model.face_features.device)
+    return init_rgb_from_images(model, b["image"], b["head"], b["code"], b["pose"], b["gaze_head"], b["viewmat"],
+                                b["K"], max_images=INIT_RGB_IMAGES)
 
 
 def region_masks(b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -102,14 +166,16 @@ class GaussianTrainer:
     """Holds the model, renderer and losses of the stage; ``step(step, generator)`` is the loop's step_fn."""
 
     def __init__(self, cfg: GaussianStageConfig, model: GaussianModel, renderer: torch.nn.Module,
-                 estimator: torch.nn.Module, data: TrainBatchData, device: torch.device, total_steps: int,
+                 estimator: torch.nn.Module, data: TrainBatchData | TrainRows, device: torch.device, total_steps: int,
                  shard: slice | None = None, seed: int = 0):
-        """``seed`` seeds the intermediate-gaze sampler (the run's seed: each seed draws its own gazes).
+        """``seed`` seeds the intermediate-gaze sampler (the run's seed: each seed draws its own gazes); the loop
+        is expected to train with it too (the rows read ahead are guessed from it: :meth:`_prefetch`).
         ``shard`` (torchrun, :func:`train.training.distributed.shard`): this rank's slice of the global batch of
         ``cfg.batch``. Every random draw is made for the whole global batch and sliced (the samples, the
         timesteps, the diffusion noise, the sampled gazes), so with the gradients averaged over the ranks a
         step equals one process's step on the global batch up to float sums (tested)."""
         self.cfg, self.model, self.renderer, self.data, self.device = cfg, model, renderer, data, device
+        self.seed = seed
         self.total_steps = total_steps
         self.shard = shard
         self.image_loss = ImageLoss(component(ImageLossConfig, cfg, lambda_perceptual=0.0))
@@ -143,6 +209,19 @@ class GaussianTrainer:
                                              t=t, **extra)
         return maps, out
 
+    def _prefetch(self, step: int) -> None:
+        """Start reading the rows step ``step`` will draw, while this step computes. They are guessed: the loop
+        seeds each step's generator from (seed, step) (:func:`train.training.loop.step_generator`) and the rows
+        are its first draw. A wrong guess (a loop seeded otherwise) costs one batch of reads, never other data:
+        :meth:`step` takes the rows it draws."""
+        prefetch = getattr(self.data, "prefetch", None)
+        if prefetch is None:
+            return
+        from train.training.loop import step_generator
+
+        idx = torch.randint(0, len(self.data), (self.cfg.batch,), generator=step_generator(self.seed, step))
+        prefetch(self._rows(idx))
+
     def _rows(self, x):
         """This rank's rows of a global-batch tensor (all of them in one process)."""
         return x if self.shard is None or x is None else x[self.shard]
@@ -151,6 +230,7 @@ class GaussianTrainer:
         cfg = self.cfg
         idx = torch.randint(0, len(self.data), (cfg.batch,), generator=g)
         b = self.data.take(self._rows(idx), self.device)
+        self._prefetch(step + 1)
         B = b["image"].shape[0]
         masks = region_masks(b)
         target = b["image"]
