@@ -47,8 +47,11 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
                                for (k, name, seed), n in zip(todo, split)])
     else:
         data = _estimator_data(ctx.config, job["train_files"], job["test_files"]) if todo else None
-        results = [_train_estimator(**job, index=k, role=name, seed=seed, threads=threads, log=ctx.log, data=data)
-                   for k, name, seed in todo]
+        try:
+            results = [_train_estimator(**job, index=k, role=name, seed=seed, threads=threads, log=ctx.log,
+                                        data=data) for k, name, seed in todo]
+        finally:
+            _close_data(data)
     summary = _log_results(ctx, [name for _, name, _ in todo], results)
     atomic_write_json(ctx.run_dir / "estimators.json", summary)
     return {**{name: file for (_, name, _), (file, _) in zip(todo, results)}, "summary": "estimators.json"}
@@ -80,15 +83,45 @@ def _log_results(ctx: RunContext, roles: list[str], results: list[tuple[str, dic
     return summary
 
 
-def _estimator_data(config: RunConfig, train_files: list[Path], test_files: list[Path]) -> tuple:
-    """The estimator stage's images of the run's splits: (train images u8, labels [N, 4], landmarks, val)."""
-    from train.training.trainer import load_split
-
+def _estimator_data(config: RunConfig, train_files: list[Path], test_files: list[Path], *,
+                    workers: int | None = None) -> tuple:
+    """The estimator stage's data of the run's splits: (train images, labels [N, 4], landmarks [N, 68, 2], val:
+    the same three of the held-out split). The images are :class:`train.data.rows.RowImages` of uint8 [N, 3, R, R],
+    read from the subject files when a batch indexes them (the paper's split is ~11 GB as uint8); the labels
+    and landmarks, a few hundred bytes a row, are read up front."""
     res = config.data.res
-    to_u8 = lambda x: (x * 255).round().clamp(0, 255).to(torch.uint8)  # noqa: E731
-    labels = lambda d: torch.cat([d.gaze_cam, d.head_pose_cam], 1)  # noqa: E731
-    tr, te = load_split(train_files, "all", res), load_split(test_files, "all", res)
-    return to_u8(tr.image), labels(tr), tr.landmarks, (to_u8(te.image), labels(te), te.landmarks)
+    tr = _estimator_rows(train_files, res, workers)
+    te = _estimator_rows(test_files, res, workers, cache_bytes=0)  # read once, at the end of the training
+    return (*tr, tuple(te))
+
+
+def _estimator_row(item: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A dataset item as the estimator reads it: the image as uint8 (4x fewer bytes than float), its labels
+    (camera-frame gaze, head pose) and landmarks -- the whole-split loader's conversions, on one row."""
+    from train.training.trainer import train_row
+
+    row = train_row(item)
+    return {"image": (row["image"] * 255).round().clamp(0, 255).to(torch.uint8),
+            "label": torch.cat([row["gaze_cam"], row["head_pose_cam"]]), "landmarks": row["landmarks"]}
+
+
+def _estimator_rows(files: list[Path], res: int, workers: int | None, cache_bytes: int | None = None) -> tuple:
+    """(RowImages uint8 [N, 3, res, res], labels [N, 4], landmarks [N, 68, 2]) of ``files``; the labels are read
+    in one pass over the rows, which also fills the cache with the first images."""
+    from train.data.dataset import GazeDataset
+    from train.data.rows import DEFAULT_CACHE_BYTES, RowImages, RowSource, default_workers
+
+    ds = GazeDataset(files, split="all", res=res)
+    ds.check_unit_scale("the Gaussian model (its head is posed rigidly)")
+    source = RowSource(ds, _estimator_row, cache_bytes=DEFAULT_CACHE_BYTES if cache_bytes is None else cache_bytes,
+                       workers=default_workers() if workers is None else workers)
+    labels, landmarks = [], []
+    for start in range(0, len(source), 64):
+        for row in source.rows(range(start, min(len(source), start + 64))):
+            labels.append(row["label"])
+            landmarks.append(row["landmarks"])
+    images = RowImages(source, "image", (3, res, res), torch.uint8)
+    return images, torch.stack(labels), torch.stack(landmarks)
 
 
 def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: list[Path], run_dir: Path,
@@ -98,12 +131,36 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
     ``threads`` torch threads): its training split plus its own extra procedural subjects, validated on the
     held-out split (``data``: :func:`_estimator_data`, loaded here when None). Returns (file name in
     ``run_dir``, its last history record with ``train_images``)."""
+    torch.set_num_threads(threads)
+    job = dict(config=config, run_dir=run_dir, device=device, index=index, role=role, seed=seed, threads=threads,
+               log=log)
+    if data is not None:
+        return _fit_estimator(**job, data=data)
+    from train.data.rows import default_workers
+
+    # Reading threads within this process's share of the cores (two estimators may train at once).
+    data = _estimator_data(config, train_files, test_files, workers=min(threads, default_workers()))
+    try:
+        return _fit_estimator(**job, data=data)
+    finally:
+        _close_data(data)
+
+
+def _close_data(data: tuple | None) -> None:
+    """Stop the reading threads of :func:`_estimator_data`'s images."""
+    if data is not None:
+        data[0].source.close()
+        data[3][0].source.close()
+
+
+def _fit_estimator(*, config: RunConfig, run_dir: Path, device: torch.device, index: int, role: str, seed: int,
+                   threads: int, log, data: tuple) -> tuple[str, dict]:
+    """:func:`_train_estimator` on its data (:func:`_estimator_data`)."""
     from train.estimator.config import GazeEstimatorTrainConfig
     from train.estimator.training import train_gaze_estimator
 
-    torch.set_num_threads(threads)
     e, res = config.estimator, config.data.res
-    images, targets, lms, val = data if data is not None else _estimator_data(config, train_files, test_files)
+    images, targets, lms, val = data
     if e.synthetic_subjects > 0 and not config.data.root:
         from train.data.generate import estimator_images
 
@@ -113,7 +170,7 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
         extra, extra_labels, extra_lms = estimator_images(
             range(base, base + e.synthetic_subjects), n_frames=e.synthetic_frames,
             cameras_per_frame=e.cameras_per_frame, res=res, seed=seed, log=log, workers=threads)
-        images, targets = torch.cat([images, extra]), torch.cat([targets, extra_labels])
+        images, targets = images.cat(extra), torch.cat([targets, extra_labels])
         lms = torch.cat([lms, extra_lms])
     from tqdm import tqdm
 

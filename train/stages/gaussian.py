@@ -26,19 +26,33 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     """Train the model and the renderer for ``gaussian.steps`` steps (checkpoints in ``gaussian/checkpoints``;
     ``--resume`` continues from the newest) -> ``gaussian/final.safetensors``, the weight average when
     ``gaussian.ema_decay`` > 0."""
-    from train.training.checkpoint import CheckpointManager, save_training_checkpoint
-    from train.training.distributed import cleanup, init_distributed, shard
-    from train.training.loop import MetricsLogger, train_loop
-    from train.training.trainer import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
+    from train.training.distributed import cleanup, init_distributed
+    from train.training.trainer import open_split
 
     cfg = ctx.config
-    g = cfg.gaussian
     run = RunArtifacts(ctx)
     info = init_distributed(cfg.device if cfg.device != "auto" else "auto")
     device = torch.device(info.device) if info.enabled else resolve_device(cfg)
     torch.manual_seed(cfg.seed)
     model, renderer = run.build_model(device)
-    data = load_split(run.split("train"), "all", cfg.data.res)
+    # Read a batch at a time: the paper's split is ~75 GB as float32 tensors (docs/pipeline.md, Data in memory).
+    data = open_split(run.split("train"), "all", cfg.data.res)
+    try:
+        return _train(ctx, run, info, device, model, renderer, data)
+    finally:
+        data.close()
+        cleanup(info)
+
+
+def _train(ctx: RunContext, run: RunArtifacts, info, device, model, renderer, data) -> dict[str, str]:
+    """The stage's training on ``data`` (:class:`train.training.trainer.TrainRows`) from the built modules."""
+    from train.training.checkpoint import CheckpointManager, save_training_checkpoint
+    from train.training.distributed import shard
+    from train.training.loop import MetricsLogger, train_loop
+    from train.training.trainer import GaussianTrainer, init_rgb, lr_factor, optimizer_groups
+
+    cfg = ctx.config
+    g = cfg.gaussian
     if g.rgb_init:
         seen = init_rgb(model, data)
         ctx.log(f"[gaussian] RGB channels initialized from the training images ({100 * seen:.0f}% of the Gaussians seen)")
@@ -66,7 +80,6 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
                                      extra={"renderer": g.renderer, "ema_decay": g.ema_decay})
     finally:
         metrics.close()
-        cleanup(info)
     return {"checkpoint": "gaussian/final.safetensors"}
 
 

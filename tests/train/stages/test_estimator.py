@@ -69,3 +69,28 @@ def test_estimators_at_once_with_render_workers_of_their_own(tiny_run, tmp_path)
     assert any("2 processes, 2 + 2 threads" in s for s in lines)
     est = json.loads((d / outs["summary"]).read_text())
     assert est["loss"]["train_images"] == est["eval"]["train_images"] == 18 + 2 * 2 * 2
+
+
+def test_estimator_data_read_by_rows_equals_the_splits_in_memory(tiny_run):
+    """The stage's images are read from the subject files when a batch indexes them: every index gives the
+    tensors the whole splits in memory gave (uint8 images, labels, landmarks), the extra subjects after them."""
+    from train.data.rows import RowImages
+    from train.training.trainer import load_split
+
+    run = TrainedRun.open(tiny_run)
+    files = run.split("train"), run.split("test")
+    res = run.config.data.res
+    images, labels, lms, val = estimator_stage._estimator_data(run.config, *files, workers=2)
+    try:
+        to_u8 = lambda x: (x * 255).round().clamp(0, 255).to(torch.uint8)  # noqa: E731
+        for (im, lab, lm), f in zip(((images, labels, lms), val), files):
+            d = load_split(f, "all", res)
+            assert isinstance(im, RowImages) and im.shape == d.image.shape and im.dtype == torch.uint8
+            assert torch.equal(lab, torch.cat([d.gaze_cam, d.head_pose_cam], 1)) and torch.equal(lm, d.landmarks)
+            idx = torch.randint(0, len(d), (2 * len(d),), generator=torch.Generator().manual_seed(0))
+            assert torch.equal(im[idx], to_u8(d.image)[idx]) and torch.equal(im[0:len(d)], to_u8(d.image))
+        extra = torch.randint(0, 256, (2, 3, res, res), dtype=torch.uint8)
+        both = images.cat(extra)
+        assert len(both) == len(images) + 2 and torch.equal(both[torch.tensor([len(images) + 1, 0])][0], extra[1])
+    finally:
+        estimator_stage._close_data((images, labels, lms, val))
