@@ -260,6 +260,10 @@ class EvalConfig:
     """what the gaze term's gradient may change: ``code`` and some of ``tta_weights``; (): all that is fitted.
     With colours or the renderer in reach it paints specks that read as the target gaze; ``[code, eye_field]``
     only turns the eyes (:data:`NATURAL_EYES_FIT`; docs/results.md, 2026-11-23)."""
+    estimator_path: str = field(default="", metadata=NEUTRAL)
+    """GazeNeRF's published ETH-XGaze ResNet-50 gaze estimator checkpoint (``epoch_7_resnet_correct_ckpt.pth.tar``,
+    read with ``weights_only=True``), scoring the gaze and head-pose errors instead of the run's evaluation
+    estimator so that they compare with the peers' (``train.estimator.peer``, docs/model.md); empty: the run's."""
     pairing_file: str = ""
     """a pairing file (``train.data.pairing.load_pairing``): GazeNeRF's target list read verbatim (one integer a
     line: input row i -> target row list[i] for every subject), JSON ``{"subject0008": [[input_row, target_row],

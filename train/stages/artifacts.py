@@ -73,9 +73,15 @@ class RunArtifacts:
         return Path(given) if given else self.context.path("estimator", role)
 
     def estimator(self, role: str, device):
-        """The gaze estimator of ``role``, loaded onto ``device``."""
+        """The gaze estimator of ``role``, loaded onto ``device``: for "eval" with ``eval.estimator_path`` set,
+        GazeNeRF's checkpoint in the project's ResNet-50, reading [B, 4] (gaze, head pose) as the run's do."""
         from train.estimator.network import GazeEstimator
 
+        peer = self.config.eval.estimator_path
+        if role == "eval" and peer:
+            from train.estimator.peer import PeerGazeEstimator, load_gazenerf_estimator
+
+            return PeerGazeEstimator(load_gazenerf_estimator(peer, device), head=True).to(device)
         return GazeEstimator.load(self.estimator_file(role), device)
 
     # -------------------------------------------------------------------------------- model, renderer

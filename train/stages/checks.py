@@ -160,7 +160,8 @@ def _check_files(cfg: RunConfig) -> None:
     estimator_hint = " (a trained gaze estimator, .safetensors; empty: train one)"
     files = {"estimator.loss_path": (cfg.estimator.loss_path, estimator_hint),
              "estimator.eval_path": (cfg.estimator.eval_path, estimator_hint),
-             **{key: (path, "") for key, path in lp.items()}, "eval.identity_model_path": (e.identity_model_path, "")}
+             **{key: (path, "") for key, path in lp.items()}, "eval.identity_model_path": (e.identity_model_path, ""),
+             "eval.estimator_path": (e.estimator_path, " (GazeNeRF's gaze estimator checkpoint, .pth.tar)")}
     for key, (path, hint) in files.items():
         _require(not path or Path(path).is_file(), key, f"{path}: no such file{hint}")
     c = cfg.codec

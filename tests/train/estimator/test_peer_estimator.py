@@ -281,3 +281,23 @@ def test_preprocess_matches_the_peer_warp(size, focal, distance_m):
     reference = _peer_warp_reference(image[0].permute(1, 2, 0).double().numpy() * 255, focal, distance_m)
     # float32 grid arithmetic: ~0.004 grey levels; a half-pixel shift of this noise image would miss by tens.
     np.testing.assert_allclose(pixels[0].permute(1, 2, 0).numpy(), reference, atol=1e-2)
+
+
+def test_the_eval_stage_reads_with_the_peer_estimator_when_configured(peer_file, tmp_path):
+    from train.config import apply_overrides
+    from train.evaluation.report import ruler_note
+    from train.run_config import preset
+    from train.stages.artifacts import RunArtifacts
+    from train.stages.checks import check_config
+    from train.stages.pipeline import RunContext
+
+    path = peer_file[0]
+    cfg = apply_overrides(preset("tiny"), [f"eval.estimator_path={path}"])
+    check_config(cfg)
+    est = RunArtifacts(RunContext(tmp_path, cfg)).estimator("eval", "cpu")
+    with torch.no_grad():
+        out = est(torch.rand(2, 3, 64, 64), None)
+    assert out.shape == (2, 4) and torch.isfinite(out).all()  # gaze and head pose, as the protocol reads
+    assert "GazeNeRF's ETH-XGaze ResNet-50" in ruler_note(cfg, tmp_path)
+    with pytest.raises(ToolkitError, match=r"config key 'eval.estimator_path': .*missing.pth.tar: no such file"):
+        check_config(apply_overrides(preset("tiny"), [f"eval.estimator_path={tmp_path / 'missing.pth.tar'}"]))
