@@ -153,12 +153,14 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
 def test_the_options_added_to_the_eval_stage_are_neutral_at_their_defaults():
     from train.run_config import EvalConfig
 
-    added = ("sampling_steps", "lpips_vgg_path", "lpips_lin_path", "identity_model_path", "identity_arch")
+    added = ("sampling_steps", "lpips_vgg_path", "lpips_lin_path", "identity_model_path", "identity_arch",
+             "estimator_path")
     older = {k: v for k, v in to_dict(EvalConfig()).items() if k not in added}
     assert config_hash(EvalConfig()) == config_hash(older)
     assert config_hash(EvalConfig(sampling_steps=4)) != config_hash(older)
     assert config_hash(EvalConfig(lpips_vgg_path="a", lpips_lin_path="b")) != config_hash(older)
     assert config_hash(EvalConfig(identity_model_path="c")) != config_hash(older)
+    assert config_hash(EvalConfig(estimator_path="d")) != config_hash(older)
 
 
 def test_a_section_given_as_a_mapping_keeps_its_other_values():
