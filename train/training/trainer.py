@@ -157,6 +157,14 @@ def init_rgb(model: GaussianModel, data: TrainBatchData | TrainRows) -> float:
                                 b["K"], max_images=INIT_RGB_IMAGES)
 
 
+def drawn_rows(n: int, batch: int, seed: int, step: int) -> torch.Tensor:
+    """[batch] the rows of ``n`` that :meth:`GaussianTrainer.step` draws at ``step`` of a loop seeded with
+    ``seed``: the first draw of the step's generator (:func:`train.training.loop.step_generator`)."""
+    from train.training.loop import step_generator
+
+    return torch.randint(0, n, (batch,), generator=step_generator(seed, step))
+
+
 def region_masks(b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     eyes = b["eyes"] * b["head"]
     return {"head": b["head"], "eyes": eyes, "face": (b["head"] - eyes).clamp(0, 1)}
@@ -215,12 +223,8 @@ class GaussianTrainer:
         are its first draw. A wrong guess (a loop seeded otherwise) costs one batch of reads, never other data:
         :meth:`step` takes the rows it draws."""
         prefetch = getattr(self.data, "prefetch", None)
-        if prefetch is None:
-            return
-        from train.training.loop import step_generator
-
-        idx = torch.randint(0, len(self.data), (self.cfg.batch,), generator=step_generator(self.seed, step))
-        prefetch(self._rows(idx))
+        if prefetch is not None:
+            prefetch(self._rows(drawn_rows(len(self.data), self.cfg.batch, self.seed, step)))
 
     def _rows(self, x):
         """This rank's rows of a global-batch tensor (all of them in one process)."""

@@ -135,13 +135,14 @@ def test_the_trainer_reads_ahead_the_rows_its_next_step_draws():
     """``GaussianTrainer._prefetch`` guesses a step's rows as the loop will draw them: the first draw of the
     step's generator, this rank's shard of them."""
     from train.training.loop import step_generator
-    from train.training.trainer import GaussianTrainer
+    from train.training.trainer import GaussianTrainer, drawn_rows
 
     asked = []
     data = type("D", (), {"prefetch": lambda self, idx: asked.append(idx), "__len__": lambda self: 50})()
     trainer = SimpleNamespace(data=data, cfg=SimpleNamespace(batch=4), seed=3, _rows=lambda x: x[1:3])
     GaussianTrainer._prefetch(trainer, 7)
-    want = torch.randint(0, 50, (4,), generator=step_generator(3, 7))
+    want = torch.randint(0, 50, (4,), generator=step_generator(3, 7))  # the first draw of GaussianTrainer.step
+    assert torch.equal(drawn_rows(50, 4, 3, 7), want)
     assert len(asked) == 1 and torch.equal(asked[0], want[1:3])
     GaussianTrainer._prefetch(SimpleNamespace(data=SimpleNamespace()), 7)  # in-memory data: nothing to read ahead
 
