@@ -181,12 +181,12 @@ def time_steps(trainer, params, device, *, warmup: int, repeats: int, seed: int 
 
 
 def demo_trainer(trained, device):
-    from train.training.trainer import GaussianTrainer, load_split
+    from train.training.trainer import GaussianTrainer, open_split
 
     cfg = trained.config
     torch.manual_seed(cfg.seed)
     model, renderer = trained.build_model(device)
-    data = load_split(trained.split("train"), "all", cfg.data.res)
+    data = open_split(trained.split("train"), "all", cfg.data.res)  # the stage's reader
     trainer = GaussianTrainer(cfg.gaussian, model, renderer, trained.estimator("loss", device), data, device,
                               cfg.gaussian.steps, seed=cfg.seed)
     return trainer, model.num_face + model.num_eye
@@ -204,7 +204,7 @@ def paper_trainer(trained, device, n_gaussians: int, batch: int):
     from train.model.gaussian_model import GaussianModel
     from train.model.renderer import make_renderer
     from train.run_config import paper_preset
-    from train.training.trainer import GaussianTrainer, TrainBatchData, load_split, model_config
+    from train.training.trainer import GaussianTrainer, TrainBatchData, model_config, open_split
 
     p = paper_preset()
     g = replace(p.gaussian, batch=batch)
@@ -214,14 +214,15 @@ def paper_trainer(trained, device, n_gaussians: int, batch: int):
     codec = KLAutoencoder(AutoencoderConfig(downsample=p.codec.downsample, base_channels=p.codec.base_channels)).to(device)
     renderer = make_renderer("dit", codec, model=g.dit_model, output_size=res, upscale=g.feature_upscale).to(device)
     est = GazeEstimator(GazeEstimatorConfig(input_size=p.estimator.input_size)).to(device)
-    d = load_split(trained.split("train"), "all", trained.config.data.res)
-    n = min(len(d), 4 * batch)
-    up = lambda x, mode: F.interpolate(x[:n], size=(res, res), mode=mode)  # noqa: E731
-    r0 = d.res
-    data = TrainBatchData(image=up(d.image, "bilinear"), head=up(d.head, "nearest"), eyes=up(d.eyes, "nearest"),
-                          code=d.code[:n], pose=d.pose[:n], gaze_head=d.gaze_head[:n], gaze_cam=d.gaze_cam[:n],
-                          head_pose_cam=d.head_pose_cam[:n], viewmat=d.viewmat[:n],
-                          K=resize_intrinsics(d.K[:n], r0, r0, res, res), landmarks=d.landmarks[:n] * (res / r0))
+    split = open_split(trained.split("train"), "all", trained.config.data.res, workers=0)
+    n = min(len(split), 4 * batch)
+    d, r0 = split.take(torch.arange(n), "cpu"), split.res  # its first n rows: all the paper's batches read
+    split.close()
+    up = lambda x, mode: F.interpolate(x, size=(res, res), mode=mode)  # noqa: E731
+    data = TrainBatchData(image=up(d["image"], "bilinear"), head=up(d["head"], "nearest"),
+                          eyes=up(d["eyes"], "nearest"), code=d["code"], pose=d["pose"], gaze_head=d["gaze_head"],
+                          gaze_cam=d["gaze_cam"], head_pose_cam=d["head_pose_cam"], viewmat=d["viewmat"],
+                          K=resize_intrinsics(d["K"], r0, r0, res, res), landmarks=d["landmarks"] * (res / r0))
     # The procedural head sits at the origin of its own frame like the geometry scene: the demo poses fit it.
     return GaussianTrainer(g, model, renderer, est, data, device, g.steps), n_gaussians
 
@@ -281,14 +282,14 @@ def time_to_quality(trained, device, overrides: list[str], args, test_files) -> 
     from train.evaluation.protocol import evaluate
     from train.run_config import eval_sampling_steps
     from train.training.loop import train_loop
-    from train.training.trainer import GaussianTrainer, init_rgb, load_split, lr_factor, optimizer_groups
+    from train.training.trainer import GaussianTrainer, init_rgb, lr_factor, open_split, optimizer_groups
 
     sub = with_overrides(trained, overrides)
     cfg = sub.config
     g = cfg.gaussian
     torch.manual_seed(cfg.seed)
     model, renderer = sub.build_model(device)
-    data = load_split(sub.split("train"), "all", cfg.data.res)
+    data = open_split(sub.split("train"), "all", cfg.data.res)  # the stage's reader
     if g.rgb_init:
         init_rgb(model, data)
     trainer = GaussianTrainer(g, model, renderer, sub.estimator("loss", device), data, device, g.steps,
@@ -326,6 +327,7 @@ def time_to_quality(trained, device, overrides: list[str], args, test_files) -> 
                        lr_factor=lr_factor(g))  # as the stage (and the sampler): over gaussian.steps, then its last rate
         except _BudgetReached:
             pass
+    data.close()
     return points
 
 
