@@ -167,16 +167,26 @@ class RowImages:
         more = extra if self.extra is None else torch.cat([self.extra, extra])
         return RowImages(self.source, self.key, self.row_shape, self.dtype, more)
 
-    def __getitem__(self, idx) -> torch.Tensor:
+    def _indices(self, idx) -> list[int]:
         n = len(self)
         if isinstance(idx, int):
-            return self[[idx]][0]
-        if isinstance(idx, slice):
+            idx = [idx]
+        elif isinstance(idx, slice):
             idx = range(*idx.indices(n))
         idx = [int(i) for i in (idx.reshape(-1).tolist() if isinstance(idx, torch.Tensor) else idx)]
         idx = [i + n if i < 0 else i for i in idx]
         if any(not 0 <= i < n for i in idx):
             raise IndexError(f"RowImages: an index is outside the {n} rows")
+        return idx
+
+    def prefetch(self, idx) -> None:
+        """Start reading the split's rows among ``idx`` (a later batch's) in the source's threads."""
+        self.source.prefetch([i for i in self._indices(idx) if i < len(self.source)])
+
+    def __getitem__(self, idx) -> torch.Tensor:
+        if not isinstance(idx, (slice, torch.Tensor, list, tuple, range)) and hasattr(idx, "__index__"):
+            return self[[int(idx)]][0]  # an int: one image [C, H, W]
+        idx = self._indices(idx)
         out = torch.empty((len(idx), *self.row_shape), dtype=self.dtype)
         split = len(self.source)
         mine = [(k, i) for k, i in enumerate(idx) if i < split]

@@ -159,7 +159,9 @@ def test_row_images_index_like_the_stacked_tensor(split):
     full = torch.cat([stacked, extra])
     try:
         assert images.shape == full.shape and images.dim() == 4 and len(images) == len(full)
-        for idx in (torch.tensor([0, 13, 5, 14, 5]), slice(2, 9), slice(None, None, 4), [-1, 0], 12, -2):
+        images.prefetch(torch.tensor([1, 2, len(full) - 1]))  # the extra rows are in memory: not read
+        assert sorted(src._pending) == [1, 2]
+        for idx in (torch.tensor([0, 13, 5, 14, 5]), slice(2, 9), slice(None, None, 4), [-1, 0], 12, -2, np.int64(3)):
             assert torch.equal(images[idx], full[idx])
         with pytest.raises(IndexError):
             images[torch.tensor([len(full)])]
