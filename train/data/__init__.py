@@ -8,6 +8,9 @@
 - ``train.data.layouts``: the peers' layouts (GazeGaussian, GazeNeRF, the ETH-XGaze release) as data: detection,
   conversion to and from the native conventions, their split files.
 - ``train.data.dataset``: ``GazeDataset`` (lazy per-sample reads, resize, white compositing, splits).
+- ``train.data.rows``: ``RowSource`` / ``RowImages``, a split's rows read a batch at a time (bounded cache,
+  reading threads) for the stages that train on it.
+- ``train.data.export``: native files written in a peer's layout (``python -m train.data export``).
 - ``train.data.pairing``: evaluation pairs (GazeNeRF protocol; generated targets for synthetic data).
-- ``python -m train.data synth|inspect``.
+- ``python -m train.data synth|inspect|export``.
 """
