@@ -144,7 +144,6 @@ def open_source(run, args):
         from train.data.dataset import GazeDataset
 
         ds = GazeDataset([args.dataset], res=cfg.data.res, with_mesh=True)
-        ds.check_unit_scale("redirection with the Gaussian model (its head is posed rigidly)")
         return ds
     from apps.labels_csv import LabelsCsvSource
     from geometry.mesh_stats import load_mesh

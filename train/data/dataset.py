@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.h5 import READ_ERRORS, has_key, read_array, read_selection
+from toolkit.h5 import READ_ERRORS, has_key, read_selection
 from train.data.format import OPTIONAL, REQUIRED, validate_subject_file
 from train.data.layouts import get_layout, native_row, row_layout
 
@@ -90,6 +90,26 @@ def resize_image(img: np.ndarray, res: int, *, nearest: bool = False) -> np.ndar
     return cv2.resize(img, (res, res), interpolation=interp)
 
 
+def fold_head_scale(r: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A row whose head ``scale`` s is not 1, rewritten with s folded into the world frame: every world length
+    divided by s (``w2c_Tvec``, the pose's translation, ``facial_landmarks_3d``, ``vertice``) and ``scale`` 1.
+    x_world = s R x_head + t becomes x_world / s = R x_head + t / s, and the camera, its translation divided by
+    s too, sees the same scene scaled by 1 / s: the same image, the same gaze, the same landmarks (a perspective
+    projection does not change under a uniform scaling of the camera frame). So every stage that poses the head
+    rigidly reads scaled heads as unit-scale ones. A row of scale 1 is returned as it is."""
+    s = np.float32(np.reshape(r["scale"], -1)[0])
+    if s == 1:
+        return r
+    r = dict(r)
+    r["w2c_Tvec"] = r["w2c_Tvec"] / s
+    r["pose"] = np.concatenate([r["pose"][:3], r["pose"][3:] / s]).astype(r["pose"].dtype)
+    for key in ("facial_landmarks_3d", "vertice"):
+        if key in r:
+            r[key] = r[key] / s
+    r["scale"] = np.ones_like(r["scale"])
+    return r
+
+
 class GazeDataset(torch.utils.data.Dataset):
     """Samples of subject files as dicts of torch tensors.
 
@@ -104,7 +124,8 @@ class GazeDataset(torch.utils.data.Dataset):
     ``right_eye_mask`` [1, R, R] float32 in {0, 1} (soft at resized edges); ``landmarks`` [68, 2] pixels of
     the R × R image; ``landmarks_3d`` [68, 3]; ``K`` [3, 3] (for R × R); ``w2c_R`` [3, 3]; ``w2c_T`` [3];
     ``viewmat`` [4, 4]; ``pitchyaw_head`` [2]; ``face_head_pose`` [2]; ``pose`` [6]; ``scale`` [1];
-    ``latent_code`` [144]; ``cam_index``, ``frame_index``, ``subject``, ``row`` int64 scalars;
+    ``latent_code`` [144]; ``cam_index``, ``frame_index``, ``subject``, ``row`` int64 scalars (a scaled head's
+    scale folded into the world frame: :func:`fold_head_scale`, ``scale`` then 1);
     ``pitchyaw_cam`` [2] (the file's, else the head-frame gaze turned by w2c ∘ pose); and, where the file has
     them, ``expression_params`` [4], ``light_dir`` [3].
     """
@@ -129,16 +150,6 @@ class GazeDataset(torch.utils.data.Dataset):
 
     def __len__(self) -> int:
         return len(self.index)
-
-    def check_unit_scale(self, what: str) -> None:
-        """Raise a ToolkitError when a row's head ``scale`` is not 1: ``what`` (a consumer that poses the head
-        rigidly, as the Gaussian model does) does not support scaled heads yet. The geometry stage does."""
-        for k in range(len(self.files)):
-            scale = read_array(self.files[k], self._file(k), "scale").astype(np.float64).reshape(-1)
-            bad = np.flatnonzero(np.abs(scale - 1) > 1e-6)
-            if bad.size:
-                raise ToolkitError(f"{self.files[k]}: key 'scale' is {scale[bad[0]]:g} at row {int(bad[0])} "
-                                   f"({bad.size} rows != 1): {what} supports unscaled heads only (scale 1)")
 
     def _file(self, k: int):
         import h5py
@@ -191,7 +202,7 @@ class GazeDataset(torch.utils.data.Dataset):
         if not -len(self) <= i < len(self):
             raise IndexError(i)
         k, row = (int(x) for x in self.index[i])
-        r = self.read_row(k, row)
+        r = fold_head_scale(self.read_row(k, row))
         H, W = r["face_patch"].shape[:2]
         img = r["face_patch"][..., ::-1].astype(np.float32) / 255.0  # stored BGR
         masks = {m: r[m].astype(np.float32) / 255.0 for m in ("head_mask", "left_eye_mask", "right_eye_mask")}

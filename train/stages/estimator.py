@@ -112,7 +112,6 @@ def _estimator_rows(files: list[Path], res: int, workers: int | None, cache_byte
     from train.data.rows import DEFAULT_CACHE_BYTES, RowImages, RowSource, default_workers
 
     ds = GazeDataset(files, split="all", res=res)
-    ds.check_unit_scale("the Gaussian model (its head is posed rigidly)")
     source = RowSource(ds, _estimator_row, cache_bytes=DEFAULT_CACHE_BYTES if cache_bytes is None else cache_bytes,
                        workers=default_workers() if workers is None else workers)
     labels, landmarks = [], []

@@ -78,7 +78,6 @@ def load_split(files: list[Path], split: str, res: int) -> TrainBatchData:
     from train.data.dataset import GazeDataset
 
     ds = GazeDataset(files, split=split, res=res)
-    ds.check_unit_scale("the Gaussian model (its head is posed rigidly)")
     items = [ds[i] for i in range(len(ds))]
     st = lambda k: torch.stack([torch.as_tensor(it[k]) for it in items]).float()  # noqa: E731
     eyes = (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)
@@ -134,7 +133,6 @@ def open_split(files: list[Path], split: str, res: int, *, cache_bytes: int | No
     from train.data.rows import DEFAULT_CACHE_BYTES, RowSource, default_workers
 
     ds = GazeDataset(files, split=split, res=res)
-    ds.check_unit_scale("the Gaussian model (its head is posed rigidly)")
     source = RowSource(ds, train_row, cache_bytes=DEFAULT_CACHE_BYTES if cache_bytes is None else cache_bytes,
                        workers=default_workers() if workers is None else workers)
     return TrainRows(source, res)

@@ -129,15 +129,27 @@ def test_optional_keys_are_optional(tmp_path, subject_file):
         assert torch.allclose(GazeDataset(p)[i]["pitchyaw_cam"], full[i]["pitchyaw_cam"], atol=1e-5)
 
 
-def test_scaled_heads_are_refused_by_what_poses_them_rigidly(tmp_path, subject_file):
+@pytest.mark.parametrize("scale", [0.9, 1.1])
+def test_a_scaled_head_reads_as_the_unit_scale_head_it_images(tmp_path, subject_file, scale):
+    """The same scene scaled by s about the world origin (cameras, head translation, 3D landmarks and vertices
+    times s, head scale s) makes the same images; GazeDataset folds s back into the world frame, so every stage
+    that poses the head rigidly receives the unit-scale sample."""
     rows, _ = _copy_rows(subject_file)
-    rows["scale"] = rows["scale"].copy()
-    rows["scale"][3] = 1.2
-    p = _write(tmp_path, "scaled.h5", rows)
-    ds = GazeDataset(p)  # readable: the geometry stage supports scaled heads
-    GazeDataset(subject_file).check_unit_scale("x")
-    with pytest.raises(ToolkitError, match=r"scaled\.h5: key 'scale' is 1\.2 at row 3 \(1 rows != 1\): the model"):
-        ds.check_unit_scale("the model")
+    rows["w2c_Tvec"] = rows["w2c_Tvec"] * scale
+    rows["pose"] = rows["pose"].copy()
+    rows["pose"][:, 3:] *= scale
+    rows["facial_landmarks_3d"] = rows["facial_landmarks_3d"] * scale
+    rows["vertice"] = rows["vertice"] * scale
+    rows["scale"] = np.full_like(rows["scale"], scale)
+    scaled, unit = GazeDataset(_write(tmp_path, "scaled.h5", rows), with_mesh=True), GazeDataset(subject_file,
+                                                                                               with_mesh=True)
+    for i in (0, 7, 20):
+        a, b = scaled[i], unit[i]
+        assert float(a["scale"]) == 1.0
+        for key in ("image", "viewmat", "pose", "landmarks_3d", "vertice", "pitchyaw_cam", "K"):
+            torch.testing.assert_close(a[key], b[key], atol=2e-6, rtol=1e-5, msg=key)
+    # A row of scale 1 is read as it is stored.
+    assert torch.equal(unit[3]["viewmat"][:3, 3], torch.as_tensor(unit.read_row(0, 3)["w2c_Tvec"]))
 
 
 @pytest.mark.parametrize(
