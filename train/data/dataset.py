@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.h5 import READ_ERRORS, has_key, read_selection
+from toolkit.h5 import READ_ERRORS, has_key, read_array, read_selection
 from train.data.format import OPTIONAL, REQUIRED, validate_subject_file
 from train.data.layouts import get_layout, native_row, row_layout
 
@@ -90,6 +90,10 @@ def resize_image(img: np.ndarray, res: int, *, nearest: bool = False) -> np.ndar
     return cv2.resize(img, (res, res), interpolation=interp)
 
 
+ROW_READ_KEYS = ("face_patch", "head_mask", "left_eye_mask", "right_eye_mask", "vertice")
+"""Keys read one row at a time (images and meshes); the others are read whole per file and kept."""
+
+
 def fold_head_scale(r: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """A row whose head ``scale`` s is not 1, rewritten with s folded into the world frame: every world length
     divided by s (``w2c_Tvec``, the pose's translation, ``facial_landmarks_3d``, ``vertice``) and ``scale`` 1.
@@ -146,6 +150,7 @@ class GazeDataset(torch.utils.data.Dataset):
         check_allocation(16 * sum(i["n"] for i in self.info), f"the row index of {len(self.files)} subject files")
         self.index = np.concatenate([np.stack([np.full(i["n"], k), np.arange(i["n"])], 1) for k, i in enumerate(self.info)])
         self._handles: dict[int, Any] = {}
+        self._label_cache: dict[int, dict[str, np.ndarray]] = {}
         self._pid = os.getpid()
 
     def __len__(self) -> int:
@@ -171,8 +176,16 @@ class GazeDataset(torch.utils.data.Dataset):
 
     def __getstate__(self):
         state = self.__dict__.copy()
-        state["_handles"] = {}
+        state["_handles"], state["_label_cache"] = {}, {}
         return state
+
+    def _labels(self, k: int, f, keys: list[str]) -> dict[str, np.ndarray]:
+        """File ``k``'s small per-row keys, read whole once (validation bounded them; a few KB a row): a row then
+        reads only its images, as h5py's per-call cost dominates reading ~20 small keys one row at a time."""
+        cached = self._label_cache.get(k)
+        if cached is None or any(key not in cached for key in keys):
+            cached = self._label_cache[k] = {key: read_array(self.files[k], f, key) for key in keys}
+        return {key: cached[key] for key in keys}
 
     def read_row(self, k: int, row: int) -> dict[str, np.ndarray]:
         """Raw arrays of one row of file ``k`` (no resizing), for tools that need the stored data."""
@@ -185,8 +198,9 @@ class GazeDataset(torch.utils.data.Dataset):
             keys = [key for key in keys if key != "frame_index" or has_key(self.files[k], f, key)]
         if self.with_mesh:
             keys.append("vertice")
-        out = {}
-        for key in keys:
+        labels = self._labels(k, f, [key for key in keys if key not in ROW_READ_KEYS])
+        out = {key: labels[key][row].copy() for key in labels}  # copies: callers may edit a row in place
+        for key in (key for key in keys if key in ROW_READ_KEYS):
             # The file was validated when the dataset was built: its keys resolve inside it, one row fits memory.
             try:
                 ds = f[key]
