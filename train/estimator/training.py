@@ -58,6 +58,8 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
             perm, pos = torch.randperm(n, generator=g), 0
         idx = perm[pos:pos + tc.batch_size]
         pos += tc.batch_size
+        if pos + tc.batch_size <= n and hasattr(images, "prefetch"):  # streamed rows: read the next batch meanwhile
+            images.prefetch(perm[pos:pos + tc.batch_size])
         x, y, lm = _training_batch(model, images, labels, landmarks, idx, tc, g, device)
         loss = _estimator_loss(model, x, y, lm, tc, g)
         if not torch.isfinite(loss):  # never a silent NaN estimator: every later reading would be NaN
