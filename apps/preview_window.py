@@ -167,7 +167,7 @@ def _scrub(win, gs: GazeScene, splatter, controls: WindowControls, base, bg: tup
 
     scene, state = gs.scene, controls.state
     target = scene.means.detach().cpu().double().quantile(0.5, 0)
-    # Frame times: the last 30 for the title, running totals for the mean (a long session keeps no list).
+    # Frame times: the last 30 for the title, running totals for the mean (a window left open for hours keeps no list).
     frames, paths, shots, last_title, eye_rect = 0, {}, [], 0.0, None
     recent, total_s, timed = collections.deque(maxlen=30), 0.0, 0
     idle, idle_waits = False, 0
