@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, one_line
 from toolkit.io import atomic_write_bytes, check_readable_file
 from toolkit.limits import check_allocation, check_count, check_declared_size
 
@@ -417,7 +417,7 @@ def _read_with_trimesh(path: Path, data: bytes):
     try:
         m = trimesh.load(str(path), force="mesh", process=False)
     except Exception as e:  # trimesh raises many types for garbled files
-        raise ToolkitError(f"{path}: not a readable mesh ({type(e).__name__}: {' '.join(str(e).split())[:120]})") from None
+        raise ToolkitError(f"{path}: not a readable mesh ({type(e).__name__}: {one_line(e, 120)})") from None
     if not isinstance(m, trimesh.Trimesh):
         raise ToolkitError(f"{path}: not a triangle mesh (got {type(m).__name__})")
     v, f = np.asarray(m.vertices, np.float64).reshape(-1, 3), np.asarray(m.faces, np.int64).reshape(-1, 3)

@@ -24,7 +24,7 @@ from torch import nn
 
 from geometry.dmtet import marching_tets
 from geometry.tets import tet_grid
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, one_line
 
 CHECKPOINT_KIND = "ditgaze.sdf_net"
 
@@ -147,7 +147,7 @@ class SDFNet(nn.Module):
             net = cls(cfg)
             net.load_state_dict(state)
         except (TypeError, RuntimeError) as e:
-            raise ToolkitError(f"{path}: SDF checkpoint does not match the network ({' '.join(str(e).split())[:160]})") from None
+            raise ToolkitError(f"{path}: SDF checkpoint does not match the network ({one_line(e, 160)})") from None
         return net
 
 

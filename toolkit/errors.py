@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import sys
 from typing import Callable, Sequence
 
@@ -14,6 +15,15 @@ class ToolkitError(Exception):
     The message names the file or field and what was expected; CLIs print it as one line
     (``error: ...``) and exit with status 2.
     """
+
+
+def one_line(e: BaseException | str, limit: int | None = 200) -> str:
+    """A library's message as one plain line, to quote in a ``ToolkitError``: terminal colour codes dropped, line
+    breaks and runs of blanks made single spaces, cut at ``limit`` characters (None: whole). torch's state-dict
+    and unpickling errors span lines and colour their text; HDF5's carry a time stamp line."""
+    text = re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", str(e))
+    text = " ".join("".join(c if c.isprintable() else " " for c in text).split())
+    return text if limit is None or len(text) <= limit else text[:limit] + "..."
 
 
 OUR_PACKAGES = ("toolkit", "render", "geometry", "train", "apps", "benchmarks")

@@ -18,7 +18,7 @@ import posixpath
 
 import numpy as np
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, one_line
 
 MAX_LINK_HOPS = 8
 """Soft links followed from one key (HDF5's own limit is 16; a longer chain is a loop or a forgery)."""
@@ -38,10 +38,6 @@ READ_ERRORS = (OSError, RuntimeError, ValueError, TypeError, KeyError)
 """What h5py raises on a damaged file: HDF5 errors come as OSError or RuntimeError, a few as the others."""
 
 
-def _one_line(e: BaseException) -> str:
-    return " ".join(str(e).split())[:300]
-
-
 @contextlib.contextmanager
 def open_h5(path: str | os.PathLike):
     """Open an HDF5 file read-only, turning unreadable / truncated files into a ToolkitError."""
@@ -53,11 +49,11 @@ def open_h5(path: str | os.PathLike):
     try:
         f = h5py.File(path, "r")
     except READ_ERRORS as e:
-        raise ToolkitError(f"{path}: not a readable HDF5 file (truncated or corrupt?): {_one_line(e)}") from e
+        raise ToolkitError(f"{path}: not a readable HDF5 file (truncated or corrupt?): {one_line(e, 300)}") from e
     try:
         yield f
     except (OSError, RuntimeError) as e:  # HDF5's own errors from a damaged file, wherever the block met them
-        raise ToolkitError(f"{path}: cannot read (truncated or corrupt?): {_one_line(e)}") from e
+        raise ToolkitError(f"{path}: cannot read (truncated or corrupt?): {one_line(e, 300)}") from e
     finally:
         f.close()
 
@@ -67,7 +63,7 @@ def has_key(path, f, key: str) -> bool:
     try:
         return f.get(key, getlink=True) is not None
     except READ_ERRORS as e:
-        raise ToolkitError(f"{path}: cannot look up key '{key}' (truncated or corrupt?): {_one_line(e)}") from e
+        raise ToolkitError(f"{path}: cannot look up key '{key}' (truncated or corrupt?): {one_line(e, 300)}") from e
 
 
 class _Unresolved(Exception):
@@ -143,13 +139,13 @@ def h5_dataset(path, f, key: str, kinds: str = NUMERIC_KINDS, expected: str = "n
         raise ToolkitError(f"{path}: key '{key}' is a soft link to '{link.path}', which does not resolve "
                            f"({e})") from None
     except READ_ERRORS as e:
-        raise ToolkitError(f"{path}: key '{key}' cannot be opened (truncated or corrupt?): {_one_line(e)}") from e
+        raise ToolkitError(f"{path}: key '{key}' cannot be opened (truncated or corrupt?): {one_line(e, 300)}") from e
     if not isinstance(obj, h5py.Dataset):
         raise ToolkitError(f"{path}: key '{key}' is a {type(obj).__name__}, expected a dataset of rows")
     try:
         _check_storage(path, key, obj, kinds, expected)
     except READ_ERRORS as e:
-        raise ToolkitError(f"{path}: key '{key}' cannot be opened (truncated or corrupt?): {_one_line(e)}") from e
+        raise ToolkitError(f"{path}: key '{key}' cannot be opened (truncated or corrupt?): {one_line(e, 300)}") from e
     return obj
 
 
@@ -208,7 +204,7 @@ def read_selection(path, key: str, ds, sel=()) -> np.ndarray:
         return np.asarray(ds[sel])
     except READ_ERRORS as e:
         where = f" row {sel}" if isinstance(sel, (int, np.integer)) else ""
-        raise ToolkitError(f"{path}: key '{key}'{where} cannot be read (truncated or corrupt?): {_one_line(e)}") from e
+        raise ToolkitError(f"{path}: key '{key}'{where} cannot be read (truncated or corrupt?): {one_line(e, 300)}") from e
 
 
 def read_array(path, f, key: str, *, copies: int = 1) -> np.ndarray:

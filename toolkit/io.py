@@ -13,7 +13,6 @@ import contextlib
 import errno
 import json
 import os
-import re
 import socket
 import tempfile
 import warnings
@@ -22,7 +21,7 @@ from typing import IO, Any, Iterator
 
 import torch
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, one_line
 from toolkit.limits import check_allocation
 
 
@@ -205,14 +204,6 @@ forged file nested thousands deep would be a RecursionError far from the reader 
 _JSON_NAMES = {list: "array", str: "string", int: "number", float: "number", bool: "boolean", type(None): "null"}
 
 
-def _one_line(e: BaseException | str, limit: int = 200) -> str:
-    """A library's message as one plain line: terminal colour codes dropped, line breaks and runs of blanks
-    made single spaces, cut at ``limit`` characters (torch's unpickling errors span lines and colour text)."""
-    text = re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", str(e))
-    text = " ".join("".join(c if c.isprintable() else " " for c in text).split())
-    return text if len(text) <= limit else text[:limit] + "..."
-
-
 def json_depth(obj: Any) -> int:
     """Nesting depth of a parsed JSON value (a scalar is 0), counted without recursion."""
     deepest, todo = 0, [(obj, 0)]
@@ -234,7 +225,7 @@ def parse_json_object(text: str | bytes, where: str) -> dict[str, Any]:
     except RecursionError:  # json's C scanner recurses once per level and refuses past the recursion limit
         raise ToolkitError(f"{where} is JSON nested deeper than {MAX_JSON_DEPTH} levels") from None
     except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, and integers over Python's digit limit
-        raise ToolkitError(f"{where} is not valid JSON ({_one_line(e)})") from None
+        raise ToolkitError(f"{where} is not valid JSON ({one_line(e)})") from None
     if not isinstance(obj, dict):
         raise ToolkitError(f"{where} is not a JSON object (got a JSON {_JSON_NAMES.get(type(obj), type(obj).__name__)})")
     if json_depth(obj) > MAX_JSON_DEPTH:
@@ -263,7 +254,7 @@ def _read(path, device, tensors: bool) -> tuple[dict[str, torch.Tensor], dict[st
                 out[name] = f.get_tensor(name)
     except Exception as e:  # SafetensorError, or torch refusing a dtype it lacks or a device it has not
         what = f": tensor {name!r}" if name is not None else ""
-        raise ToolkitError(f"{path}: not a valid safetensors file{what} ({type(e).__name__}: {_one_line(e)})") \
+        raise ToolkitError(f"{path}: not a valid safetensors file{what} ({type(e).__name__}: {one_line(e)})") \
             from None
     meta = parse_json_object(raw_meta.get("json", "{}"), f"{path}: metadata 'json'")
     return out, meta
@@ -297,7 +288,7 @@ def load_state_dict_file(path: str | os.PathLike) -> dict:
     try:
         state = load_tensors(path)[0] if path.suffix.lower() == ".safetensors" else load_foreign_torch_checkpoint(path)
     except ToolkitError as e:  # torch's unpickling errors span several lines: the promise is one
-        raise ToolkitError(_one_line(e, limit=400)) from None
+        raise ToolkitError(one_line(e, limit=400)) from None
     if not isinstance(state, dict):
         raise ToolkitError(f"{path}: expected a state dict (name -> tensor), got {type(state).__name__}")
     return state
@@ -312,5 +303,5 @@ def load_foreign_torch_checkpoint(path: str | os.PathLike) -> Any:
             return torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as e:
         raise ToolkitError(
-            f"{path}: could not be read as a weights-only torch checkpoint ({type(e).__name__}: {_one_line(e, 160)})"
+            f"{path}: could not be read as a weights-only torch checkpoint ({type(e).__name__}: {one_line(e, 160)})"
         ) from None

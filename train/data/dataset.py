@@ -16,7 +16,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, one_line
 from toolkit.h5 import READ_ERRORS, has_key, read_array, read_selection
 from train.data.format import OPTIONAL, REQUIRED, validate_subject_file
 from train.data.layouts import get_layout, native_row, row_layout
@@ -91,7 +91,11 @@ def resize_image(img: np.ndarray, res: int, *, nearest: bool = False) -> np.ndar
 
 
 ROW_READ_KEYS = ("face_patch", "head_mask", "left_eye_mask", "right_eye_mask", "vertice")
-"""Keys read one row at a time (images and meshes); the others are read whole per file and kept."""
+"""Keys read one row at a time (images, then the mesh, read only ``with_mesh``); the others are read whole per
+file and kept."""
+LABEL_KEYS = ("facial_landmarks", "facial_landmarks_3d", "latent_codes", "pose", "scale", "w2c_Rmat", "w2c_Tvec",
+              "inmat", "pitchyaw_head", "face_head_pose", "cam_index", "frame_index")
+"""The small per-row keys every sample carries."""
 
 
 def fold_head_scale(r: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -166,7 +170,7 @@ class GazeDataset(torch.utils.data.Dataset):
             try:
                 h = self._handles[k] = h5py.File(self.files[k], "r")
             except READ_ERRORS as e:
-                raise ToolkitError(f"{self.files[k]}: cannot open ({' '.join(str(e).split())})") from e
+                raise ToolkitError(f"{self.files[k]}: cannot open ({one_line(e, None)})") from e
         return h
 
     def close(self) -> None:
@@ -179,34 +183,30 @@ class GazeDataset(torch.utils.data.Dataset):
         state["_handles"], state["_label_cache"] = {}, {}
         return state
 
-    def _labels(self, k: int, f, keys: list[str]) -> dict[str, np.ndarray]:
-        """File ``k``'s small per-row keys, read whole once (validation bounded them; a few KB a row): a row then
-        reads only its images, as h5py's per-call cost dominates reading ~20 small keys one row at a time."""
+    def _labels(self, k: int, f) -> dict[str, np.ndarray]:
+        """File ``k``'s small per-row keys (:data:`LABEL_KEYS` and the optional ones it has), read whole once
+        (validation bounded them; a few KB a row): a row then reads only its images, as h5py's per-call cost
+        dominates reading ~20 small keys one row at a time."""
         cached = self._label_cache.get(k)
-        if cached is None or any(key not in cached for key in keys):
+        if cached is None:
+            keys = [*LABEL_KEYS, *(o for o in self.info[k]["optional"] if o in OPTIONAL)]
+            if self.layouts[k] != "ditgaze":  # a peer layout may lack frame_index (native_row fills it)
+                keys = [key for key in keys if key != "frame_index" or has_key(self.files[k], f, key)]
             cached = self._label_cache[k] = {key: read_array(self.files[k], f, key) for key in keys}
-        return {key: cached[key] for key in keys}
+        return cached
 
     def read_row(self, k: int, row: int) -> dict[str, np.ndarray]:
         """Raw arrays of one row of file ``k`` (no resizing), for tools that need the stored data."""
         f = self._file(k)
-        keys = ["face_patch", "head_mask", "left_eye_mask", "right_eye_mask", "facial_landmarks",
-                "facial_landmarks_3d", "latent_codes", "pose", "scale", "w2c_Rmat", "w2c_Tvec", "inmat",
-                "pitchyaw_head", "face_head_pose", "cam_index", "frame_index"]
-        keys += [o for o in self.info[k]["optional"] if o in OPTIONAL]
-        if self.layouts[k] != "ditgaze":  # a peer layout may lack frame_index (native_row fills it)
-            keys = [key for key in keys if key != "frame_index" or has_key(self.files[k], f, key)]
-        if self.with_mesh:
-            keys.append("vertice")
-        labels = self._labels(k, f, [key for key in keys if key not in ROW_READ_KEYS])
-        out = {key: labels[key][row].copy() for key in labels}  # copies: callers may edit a row in place
-        for key in (key for key in keys if key in ROW_READ_KEYS):
+        # copies: callers may edit a row in place
+        out = {key: labels[row].copy() for key, labels in self._labels(k, f).items()}
+        for key in ROW_READ_KEYS if self.with_mesh else ROW_READ_KEYS[:-1]:
             # The file was validated when the dataset was built: its keys resolve inside it, one row fits memory.
             try:
                 ds = f[key]
             except READ_ERRORS as e:
                 raise ToolkitError(f"{self.files[k]}: key '{key}' cannot be opened (changed since it was checked?): "
-                                   f"{' '.join(str(e).split())}") from e
+                                   f"{one_line(e, None)}") from e
             out[key] = read_selection(self.files[k], key, ds, row)
         if "vertice" in out and not np.isfinite(out["vertice"]).all():  # too large to check whole up front
             raise ToolkitError(f"{self.files[k]}: key 'vertice' row {row} contains NaN or inf")

@@ -20,13 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, one_line
 from toolkit.h5 import (
     MAX_ATTR_BYTES,
     MAX_ROW_CHUNKS,
     NUMERIC_KINDS,
     READ_ERRORS,
-    _one_line,
     check_chunk_reads,
     chunk_count,
     dtype_name,
@@ -239,7 +238,7 @@ def _attr(path, f, name: str):
         aid = h5py.h5a.open(f.id, name.encode())
         shape, dt = aid.shape, aid.dtype
     except READ_ERRORS as e:
-        raise ToolkitError(f"{path}: attribute '{name}' cannot be read (corrupt?): {_one_line(e)}") from e
+        raise ToolkitError(f"{path}: attribute '{name}' cannot be read (corrupt?): {one_line(e, 300)}") from e
     text = h5py.check_string_dtype(dt) is not None
     if not text and (dt.kind not in NUMERIC_KINDS or dt.subdtype is not None):
         raise ToolkitError(f"{path}: attribute '{name}' has type {dtype_name(dt)}, expected text or numbers")
@@ -252,7 +251,7 @@ def _attr(path, f, name: str):
     try:
         v = f.attrs[name]
     except READ_ERRORS as e:
-        raise ToolkitError(f"{path}: attribute '{name}' cannot be read (corrupt?): {_one_line(e)}") from e
+        raise ToolkitError(f"{path}: attribute '{name}' cannot be read (corrupt?): {one_line(e, 300)}") from e
     if isinstance(v, np.ndarray) and v.ndim == 0:
         v = v[()]
     if isinstance(v, np.ndarray) and v.dtype.kind in "OS":  # an array of strings
@@ -306,7 +305,7 @@ def read_attrs(path, f) -> dict[str, Any]:
     try:
         names = list(f.attrs)
     except READ_ERRORS as e:
-        raise ToolkitError(f"{path}: attributes cannot be read (corrupt?): {_one_line(e)}") from e
+        raise ToolkitError(f"{path}: attributes cannot be read (corrupt?): {one_line(e, 300)}") from e
     attrs = {name: _attr(path, f, name) for name in names}
     _check_known_attrs(path, attrs)
     return attrs

@@ -244,13 +244,14 @@ def check_layout(layout: str | Layout, keys: set[str], shapes: Mapping[str, tupl
 
 def describe_file(path: str | os.PathLike) -> tuple[set[str], dict[str, tuple]]:
     """A subject file's top-level keys and the shapes of those any layout knows, read through toolkit.h5."""
-    from toolkit.h5 import READ_ERRORS, _one_line, h5_dataset, open_h5
+    from toolkit.errors import one_line
+    from toolkit.h5 import READ_ERRORS, h5_dataset, open_h5
 
     with open_h5(path) as f:
         try:
             keys = set(f.keys())
         except READ_ERRORS as e:
-            raise ToolkitError(f"{path}: cannot list keys (truncated or corrupt?): {_one_line(e)}") from e
+            raise ToolkitError(f"{path}: cannot list keys (truncated or corrupt?): {one_line(e, 300)}") from e
         shapes = {}
         for k in sorted(keys & KNOWN_KEYS):
             try:

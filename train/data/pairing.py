@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from toolkit.cameras import Camera
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, one_line
 from toolkit.io import atomic_write_json, check_readable_file, parse_json_object
 
 MAX_PAIRING_BYTES = 64 << 20
@@ -79,7 +79,7 @@ def load_pairing(path: str | os.PathLike) -> dict[str, np.ndarray]:
                                  f"got an array of shape {list(a.shape)} and dtype {a.dtype}")
             pairs[k] = a.astype(np.int64)
     except (ValueError, TypeError, OverflowError) as e:  # a ragged list, a string row, an integer past int64
-        raise ToolkitError(f"{path}: not a pairing file ({' '.join(str(e).split())[:200]})") from None
+        raise ToolkitError(f"{path}: not a pairing file ({one_line(e)})") from None
     for k, v in pairs.items():
         if (v < 0).any():
             raise ToolkitError(f"{path}: subject '{k}' has negative row indices")

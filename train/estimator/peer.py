@@ -126,10 +126,7 @@ def load_gazenerf_estimator(path: str | os.PathLike, device: str | torch.device 
     naming the file. ``model(x [B, 3, 224, 224])`` -> [B, 4] (or [B, 2]); feed it :func:`gazenerf_preprocess`
     output, or wrap it in :class:`PeerGazeEstimator`.
     """
-    try:
-        obj = load_foreign_torch_checkpoint(path)
-    except ToolkitError as e:  # torch's unpickling messages span lines: the promise is one
-        raise ToolkitError(" ".join(str(e).split())) from None
+    obj = load_foreign_torch_checkpoint(path)  # its refusal is one line already (toolkit.errors.one_line)
     state = _state_dict(obj, path)
     net = XGazeGazeNetwork(_outputs(state))
     _check_state(net, state, path)
