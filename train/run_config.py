@@ -53,6 +53,13 @@ class DataConfig:
     light_jitter: float = field(default=0.0, metadata=within(0, 2))
     """spread of the synthetic per-frame light direction, in [0, 2]; 0: one frontal light, like ETH-XGaze's
     full-lighting frames. The model has no light input: only test-time fitting recovers a held-out light."""
+    layout: Literal["auto", "ditgaze", "gazegaussian", "gazenerf", "xgaze"] = field(default="auto", metadata=NEUTRAL)
+    """how ``root``'s files are laid out (``train.data.layouts``, docs/data.md): ``auto`` decides from each file's
+    keys and asks for this key where they fit several layouts; a named layout is checked against the keys."""
+    split_file: str = field(default="", metadata=NEUTRAL)
+    """the split of ``root``'s subjects: a JSON file in the layout's form (``split.json`` {"train", "test"};
+    the peers' ``train_test_split.json`` {"train", "val"}); empty: the one beside the files, else the last
+    ``test_fraction`` of them held out."""
 
 
 @dataclass

@@ -429,8 +429,10 @@ def test_a_config_yaml_written_before_loads_and_round_trips(tmp_path):
     save_yaml_config(cfg, tmp_path / "new.yaml")
     # The same file, key for key, plus the keys added since (at their neutral defaults).
     added = "  estimator_path: ''\n"
-    assert (tmp_path / "new.yaml").read_text() == OLD_TINY_CONFIG.replace("  pairing_file: ''\n",
-                                                                          added + "  pairing_file: ''\n")
+    data_added = "  layout: auto\n  split_file: ''\n"
+    expected = OLD_TINY_CONFIG.replace("  pairing_file: ''\n", added + "  pairing_file: ''\n")
+    expected = expected.replace("  light_jitter: 0.0\n", "  light_jitter: 0.0\n" + data_added)
+    assert (tmp_path / "new.yaml").read_text() == expected
     assert load_yaml_config(RunConfig, tmp_path / "new.yaml") == cfg
 
 

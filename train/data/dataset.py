@@ -8,7 +8,6 @@ outside the head mask.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any, Sequence
@@ -50,28 +49,38 @@ def held_out_count(n_subjects: int, test_fraction: float) -> int:
     return max(1, round(test_fraction * n_subjects)) if n_subjects > 1 else 0
 
 
+SPLIT_FILE_NAMES = ("split.json", "train_test_split.json")
+"""The split files looked for beside the subject files, in this order: the native one, then the peers'."""
+
+
 def split_files(files: list[Path], split: str, split_file: str | os.PathLike | None = None,
-                test_fraction: float = 0.25) -> list[Path]:
-    """Select a split. ``split.json`` ({"train": [names], "test": [names]}) beside the files (or
-    ``split_file``) decides; without one, the last ``test_fraction`` of the sorted files (at least one
-    when there are two or more) are the test subjects."""
+                test_fraction: float = 0.25, layout: str = "auto") -> list[Path]:
+    """Select a split. A split file decides: ``split_file``, else ``split.json`` or ``train_test_split.json``
+    beside the files, read in the form of ``layout`` (``train.data.layouts.read_split_file``; ``split.json``
+    is always the native form, another file takes the form of the files' layout, ``auto``: detected from the
+    first file). Every subject it names for ``split`` must be among ``files``. Without a split file, the last
+    ``test_fraction`` of the sorted files (at least one when there are two or more) are the test subjects."""
+    from train.data.layouts import DITGAZE, read_split_file, row_layout
+
     if split not in SPLITS:
         raise ToolkitError(f"split: expected one of {SPLITS}, got {split!r}")
     if split == "all":
         return files
-    sf = Path(split_file) if split_file else files[0].parent / "split.json"
-    if sf.exists():
-        try:
-            spec = json.loads(sf.read_text(encoding="utf-8"))
-            names = set(spec[split])
-        except (ValueError, KeyError, TypeError) as e:
-            raise ToolkitError(f"{sf}: expected JSON {{\"train\": [...], \"test\": [...]}} ({e})") from e
-        chosen = [f for f in files if f.name in names or f.stem in names]
-        if not chosen:
+    beside = [files[0].parent / name for name in SPLIT_FILE_NAMES if (files[0].parent / name).exists()]
+    sf = Path(split_file) if split_file else (beside[0] if beside else None)
+    if sf is not None:
+        form = DITGAZE if sf.name == SPLIT_FILE_NAMES[0] and layout == "auto" else row_layout(files[0], layout)
+        train, held = read_split_file(sf, form)
+        names = train if split == "train" else held
+        by_stem = {f.stem: f for f in files}
+        missing = [n for n in names if n not in by_stem]
+        if missing:
+            key = form.split.train_key if split == "train" else form.split.held_out_key
+            raise ToolkitError(f"{sf}: '{key}' names subject {missing[0]}, which is not among the {len(files)} "
+                               f"subject files given (file {missing[0]}.h5 expected)")
+        if not names:
             raise ToolkitError(f"{sf}: split '{split}' selects none of the {len(files)} given files")
-        return chosen
-    if split_file:
-        raise ToolkitError(f"{sf}: no such split file")
+        return [f for f in files if f.stem in set(names)]
     files = sorted(files)
     n_test = held_out_count(len(files), test_fraction)
     chosen = files[len(files) - n_test:] if split == "test" else files[: len(files) - n_test]

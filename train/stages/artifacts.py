@@ -56,10 +56,12 @@ class RunArtifacts:
         return find_subject_files([root])
 
     def split(self, which: str) -> list[Path]:
-        """The subject files of the ``"train"`` or ``"test"`` split (``data.test_fraction`` held out)."""
+        """The subject files of the ``"train"`` or ``"test"`` split (``data.split_file``, a split file beside the
+        files, else ``data.test_fraction`` held out)."""
         from train.data.dataset import split_files
 
-        return split_files(self.subject_files(), which, test_fraction=self.config.data.test_fraction)
+        d = self.config.data
+        return split_files(self.subject_files(), which, d.split_file or None, d.test_fraction, d.layout)
 
     # ------------------------------------------------------------------------------------ estimators
     def configured_estimator(self, role: str) -> str:

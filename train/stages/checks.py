@@ -144,11 +144,15 @@ def _check_files(cfg: RunConfig) -> None:
             load_pairing(cfg.eval.pairing_file)
         except ToolkitError as err:
             raise ToolkitError(f"config key 'eval.pairing_file': {err}") from None
+    _require(not cfg.data.split_file or Path(cfg.data.split_file).is_file(), "data.split_file",
+             f"{cfg.data.split_file}: no such file (a split file: JSON {{\"train\": [...], \"test\": [...]}})")
     if cfg.data.root and Path(cfg.data.root).exists():  # the held-out files are known before training
+        _check_layout(cfg)
         from train.data.dataset import find_subject_files, split_files
 
         try:
-            test = split_files(find_subject_files([cfg.data.root]), "test", test_fraction=cfg.data.test_fraction)
+            test = split_files(find_subject_files([cfg.data.root]), "test", cfg.data.split_file or None,
+                               cfg.data.test_fraction, cfg.data.layout)
         except ToolkitError:
             test = []  # a folder the stages cannot split: the stage that reads it names what is wrong
         check_eval_pairing(cfg, test)
@@ -167,6 +171,19 @@ def _check_files(cfg: RunConfig) -> None:
     c = cfg.codec
     _require(c.kind != "sd-vae" or (c.sd_vae_path and Path(c.sd_vae_path).is_dir()), "codec.sd_vae_path",
              f"{c.sd_vae_path!r}: no such directory (codec.kind=sd-vae reads a local diffusers AutoencoderKL folder)")
+
+
+def _check_layout(cfg: RunConfig) -> None:
+    """A named ``data.layout`` fits the keys of every file under ``data.root`` (keys only: the stages check the
+    rest); ``auto`` is decided file by file when a stage opens them."""
+    if cfg.data.layout == "auto":
+        return
+    from train.data.dataset import find_subject_files
+    from train.data.layouts import check_layout, describe_file
+
+    for f in find_subject_files([cfg.data.root]):
+        keys, shapes = describe_file(f)
+        check_layout(cfg.data.layout, keys, shapes, str(f))
 
 
 def check_eval_pairing(cfg: RunConfig, test_files: list[Path]) -> None:
