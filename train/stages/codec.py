@@ -24,7 +24,7 @@ def stage_codec(ctx: RunContext) -> dict[str, str]:
     from train.training.trainer import load_split
 
     run = RunArtifacts(ctx)
-    data = load_split(run.split("train"), "all", ctx.config.data.res)
+    data = load_split(run.split("train"), "all", ctx.config.data.res, ctx.config.data.layout)
     weights = eye_weights(data.eyes * data.head, c.eye_weight) if c.eye_weight > 0 else None
     metrics = MetricsLogger(ctx.run_dir, tensorboard=True)
     metrics.start("codec", 0)  # no checkpoints: a re-run trains from the start

@@ -36,7 +36,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     torch.manual_seed(cfg.seed)
     model, renderer = run.build_model(device)
     # Read a batch at a time: the paper's split is ~75 GB as float32 tensors (docs/pipeline.md, Data in memory).
-    data = open_split(run.split("train"), "all", cfg.data.res)
+    data = open_split(run.split("train"), "all", cfg.data.res, layout=cfg.data.layout)
     try:
         return _train(ctx, run, info, device, model, renderer, data)
     finally:

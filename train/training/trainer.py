@@ -72,12 +72,12 @@ class TrainBatchData:
         return head_to_camera_rotation(b["viewmat"], b["pose"])
 
 
-def load_split(files: list[Path], split: str, res: int) -> TrainBatchData:
+def load_split(files: list[Path], split: str, res: int, layout: str = "auto") -> TrainBatchData:
     """The whole split in memory (~5 MB a row at 512²): for small splits only; the training stages stream
     theirs with :func:`open_split`, which gives the same tensors."""
     from train.data.dataset import GazeDataset
 
-    ds = GazeDataset(files, split=split, res=res)
+    ds = GazeDataset(files, split=split, res=res, layout=layout)
     items = [ds[i] for i in range(len(ds))]
     st = lambda k: torch.stack([torch.as_tensor(it[k]) for it in items]).float()  # noqa: E731
     eyes = (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)
@@ -126,13 +126,14 @@ class TrainRows:
 
 
 def open_split(files: list[Path], split: str, res: int, *, cache_bytes: int | None = None,
-               workers: int | None = None) -> TrainRows:
+               workers: int | None = None, layout: str = "auto") -> TrainRows:
     """The split ``split`` of ``files`` at ``res`` as :class:`TrainRows` (the same rows as :func:`load_split`);
-    ``cache_bytes`` / ``workers``: :class:`train.data.rows.RowSource`'s (default: its defaults for this machine)."""
+    ``cache_bytes`` / ``workers``: :class:`train.data.rows.RowSource`'s (default: its defaults for this machine);
+    ``layout``: the files' layout (``train.data.layouts``; ``auto``: detected per file)."""
     from train.data.dataset import GazeDataset
     from train.data.rows import DEFAULT_CACHE_BYTES, RowSource, default_workers
 
-    ds = GazeDataset(files, split=split, res=res)
+    ds = GazeDataset(files, split=split, res=res, layout=layout)
     source = RowSource(ds, train_row, cache_bytes=DEFAULT_CACHE_BYTES if cache_bytes is None else cache_bytes,
                        workers=default_workers() if workers is None else workers)
     return TrainRows(source, res)
