@@ -111,7 +111,7 @@ def cmd_synth(a) -> int:
 
     t0 = time.perf_counter()
     paths = synth_dataset(a.out, n_subjects=a.subjects, n_frames=a.frames, res=a.res, seed=a.seed,
-                          light_jitter=a.light_jitter, test_frames=a.test_frames)
+                          light_jitter=a.light_jitter, test_frames=a.test_frames, scale=a.scale)
     dt = time.perf_counter() - t0
     n = 0
     for p in paths:
@@ -161,6 +161,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--light-jitter", type=float, default=0.6,
                    help="spread of the per-frame light direction (0: one frontal light for every frame)")
+    s.add_argument("--scale", type=float, default=1.0,
+                   help="head scale of every subject, in [0.5, 2] (x_world = scale R x_head + t, as real fits store)")
     s.add_argument("--out", default="data/synth")
     i = sub.add_parser("inspect", help="summary table and a contact sheet of subject files")
     i.add_argument("path", help="a subject .h5 file or a folder of them")
@@ -200,7 +202,14 @@ TILE_RANGE = (16, 4096)
 def _check_flags(a) -> None:
     """Every count and size flag bounded before any file is read or written, named as the user typed it."""
     if a.cmd == "synth":
-        from train.data.generate import MAX_FRAMES, MAX_SUBJECTS, RES_RANGE, SEED_RANGE, check_subject_memory
+        from train.data.generate import (
+            MAX_FRAMES,
+            MAX_SUBJECTS,
+            RES_RANGE,
+            SCALE_RANGE,
+            SEED_RANGE,
+            check_subject_memory,
+        )
 
         check_count(a.subjects, "--subjects", 1, MAX_SUBJECTS, "a number of subject files")
         check_count(a.frames, "--frames", 1, MAX_FRAMES, "frames per subject")
@@ -210,6 +219,8 @@ def _check_flags(a) -> None:
         check_count(a.seed, "--seed", *SEED_RANGE, "a seed")
         if not 0 <= a.light_jitter <= 2:  # NaN too
             raise ToolkitError(f"--light-jitter: expected a spread in [0, 2], got {a.light_jitter}")
+        if not SCALE_RANGE[0] <= a.scale <= SCALE_RANGE[1]:  # NaN too
+            raise ToolkitError(f"--scale: expected a head scale in [{SCALE_RANGE[0]}, {SCALE_RANGE[1]}], got {a.scale}")
         # One subject's images are held in memory until its file is written.
         for flag, frames in (("--frames", a.frames), ("--test-frames", a.test_frames if a.subjects > 1 else None)):
             if frames is not None:

@@ -53,6 +53,10 @@ MAX_FRAMES = 100_000
 SEED_RANGE = (0, 2**32 - 1)
 """Dataset seeds, as the run configuration's."""
 
+SCALE_RANGE = (0.5, 2.0)
+"""Head scales the generator renders (inclusive; x_world = scale · R x_head + t, docs/data.md): real fits lie near 1,
+and at 2 a head (~0.15 m wide) overflows the normalized crop's 0.26 m."""
+
 
 def subject_bytes(n_frames: int, res: int, n_cameras: int = 18) -> int:
     """Bytes generating one subject holds before its file is written: ~290 KB + 64 res² per image were measured
@@ -68,6 +72,14 @@ def check_subject_memory(n_frames: int, res: int, what: str, hint: str = "lower 
 def _check_res(res: int) -> None:
     if not RES_RANGE[0] <= res <= RES_RANGE[1]:
         raise ToolkitError(f"res must be in [{RES_RANGE[0]}, {RES_RANGE[1]}], got {res}")
+
+
+def check_scale(scale) -> float:
+    """``scale`` as a float in :data:`SCALE_RANGE` (a real number; NaN and bools are refused)."""
+    ok = isinstance(scale, (int, float, np.integer, np.floating)) and not isinstance(scale, (bool, np.bool_))
+    if not ok or not SCALE_RANGE[0] <= float(scale) <= SCALE_RANGE[1]:
+        raise ToolkitError(f"scale must be a number in [{SCALE_RANGE[0]}, {SCALE_RANGE[1]}], got {scale!r}")
+    return float(scale)
 
 
 @contextlib.contextmanager
@@ -107,10 +119,15 @@ def frame_cameras(subject: Subject, pose, rig: list[Camera], res: int, scale: fl
 
 def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, seed: int | None = None,
                      rig: list[Camera] | None = None, subject: Subject | None = None,
-                     light_jitter: float = LIGHT_JITTER):
-    """Render one subject: returns (rows, subject_arrays, attrs) ready for ``write_subject_h5``."""
+                     light_jitter: float = LIGHT_JITTER, scale: float = 1.0):
+    """Render one subject: returns (rows, subject_arrays, attrs) ready for ``write_subject_h5``.
+
+    ``scale`` (:data:`SCALE_RANGE`): the head scale of every row (x_world = scale · R x_head + t), stored in the
+    rows' ``scale`` [N, 1]; each camera is aimed at the scaled face. The head frame (``neutral_vertice``,
+    ``eyeball_centers``) and the gaze labels do not depend on it."""
     check_count(n_frames, "n_frames", 1, MAX_FRAMES, "frames per subject")
     _check_res(res)
+    scale = check_scale(scale)
     seed = params.seed if seed is None else check_count(seed, "seed", 0, 2**64 - 1, "a seed")
     rig = rig or eth_xgaze_rig(radius=RIG_RADIUS)
     check_subject_memory(n_frames, res, f"generate_subject: {n_frames} frames x {len(rig)} cameras at {res} pixels",
@@ -120,8 +137,8 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
         fr = sample_frames(seed, n_frames, light_jitter)
         chunks = []
         for i in range(n_frames):
-            cams = frame_cameras(subject, fr["pose"][i], rig, res)
-            out = render_views(subject, fr["gaze"][i], fr["pose"][i], fr["expression"][i], cams,
+            cams = frame_cameras(subject, fr["pose"][i], rig, res, scale=scale)
+            out = render_views(subject, fr["gaze"][i], fr["pose"][i], fr["expression"][i], cams, scale=scale,
                                light_dirs=fr["light"][i])
             out["light_dir"] = np.tile(fr["light"][i], (len(cams), 1))
             out["cam_index"] = np.arange(len(cams), dtype=np.int32)
@@ -177,8 +194,10 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
 
 def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int, res: int = 128, seed: int = 0,
                   test_fraction: float = 0.25, light_jitter: float = LIGHT_JITTER, log=print,
-                  test_frames: int | None = None) -> list[Path]:
+                  test_frames: int | None = None, scale: float = 1.0) -> list[Path]:
     """Write ``subject0000.h5`` ... plus ``split.json`` into ``out_dir``; returns the subject files.
+
+    Every subject is rendered at head scale ``scale`` (:func:`generate_subject`).
 
     The held-out subjects (the last ``test_fraction``) get ``test_frames`` frames each (default ``n_frames``).
     Evaluation pairs take their input from the first half of a subject's rows and their target from the second
@@ -186,6 +205,7 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
     gaze error averages over."""
     check_count(n_subjects, "n_subjects", 1, MAX_SUBJECTS, "a number of subject files")
     check_count(seed, "seed", *SEED_RANGE, "a seed")
+    scale = check_scale(scale)
     for name, frames in (("n_frames", n_frames), ("test_frames", test_frames)):
         if frames is not None:
             check_count(frames, name, 1, MAX_FRAMES, "frames per subject")
@@ -200,7 +220,8 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
     for s in range(n_subjects):
         params = SubjectParams.sample(seed * 100003 + s)
         frames = test_frames if test_frames is not None and s >= n_subjects - n_test else n_frames
-        rows, subj, attrs = generate_subject(params, n_frames=frames, res=res, rig=rig, light_jitter=light_jitter)
+        rows, subj, attrs = generate_subject(params, n_frames=frames, res=res, rig=rig, light_jitter=light_jitter,
+                                             scale=scale)
         p = write_subject_h5(out_dir / f"subject{s:04d}.h5", rows, subject=subj, attrs=attrs)
         paths.append(p)
         n_images += len(rows["face_patch"])
