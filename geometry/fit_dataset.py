@@ -25,7 +25,6 @@ from toolkit.errors import ToolkitError
 from toolkit.io import atomic_write_json, check_readable_file
 from toolkit.rotations import so3_exp
 
-ROW_KEYS = ("head_mask", "inmat", "w2c_Rmat", "w2c_Tvec", "pose", "facial_landmarks_3d")
 DEFAULT_HOLDOUT = (2, 7, 10, 15)
 
 
@@ -67,13 +66,14 @@ def _ground_truth_mesh(f, path) -> dict[str, torch.Tensor]:
     return {"gt_verts": torch.from_numpy(verts.astype(np.float32)), "gt_faces": torch.from_numpy(faces.astype(np.int64))}
 
 
-def read_subject(path: str | os.PathLike) -> dict:
-    """Head-frame views and landmarks of one subject file.
+SUBJECT_KEYS = ("head_mask", "inmat", "w2c_Rmat", "w2c_Tvec", "pose", "scale", "facial_landmarks_3d", "cam_index",
+                "frame_index")
+"""The per-row keys :func:`subject_views` reads (``scale``, ``cam_index``, ``frame_index`` optional)."""
 
-    Returns dict: masks [N, H, W] bool, Ks [N, 3, 3], viewmats [N, 4, 4] (head -> camera, scale folded
-    in), landmarks [68, 3] (head frame, median over frames), cam_index [N], and when present the
-    generator's ground truth: gt_verts [V, 3] (head frame), gt_faces [F, 3].
-    """
+
+def read_subject(path: str | os.PathLike) -> dict:
+    """Head-frame views and landmarks of one subject file in the native layout (docs/data.md):
+    :func:`subject_views` of its keys, read through ``toolkit.h5``."""
     from toolkit.h5 import has_key, open_h5
 
     path = check_readable_file(path, "HDF5 subject file")
@@ -83,22 +83,37 @@ def read_subject(path: str | os.PathLike) -> dict:
             raise ToolkitError(f"{path}: head_mask must be [N, H, W] with N >= 1 and H, W >= 8 pixels, "
                                f"got {list(masks.shape)}")
         n = masks.shape[0]
-        K = _read(f, path, "inmat", (3, 3))
-        Rc = _read(f, path, "w2c_Rmat", (3, 3))
-        tc = _read_rows(f, path, "w2c_Tvec", n, 3)
-        pose = _read(f, path, "pose", (6,))
-        scale = _read_rows(f, path, "scale", n, default=np.ones(n))
-        lmk_w = _read(f, path, "facial_landmarks_3d", (68, 3))
-        cam = _read_rows(f, path, "cam_index", n, default=np.arange(n))
-        frame = _read_rows(f, path, "frame_index", n, default=np.arange(n))
-        for k, a in (("inmat", K), ("w2c_Rmat", Rc), ("pose", pose), ("facial_landmarks_3d", lmk_w)):
-            if a.shape[0] != n:
-                raise ToolkitError(f"{path}: {k} has {a.shape[0]} rows, head_mask has {n}")
-        gt = {}
+        rows = {"head_mask": masks, "inmat": _read(f, path, "inmat", (3, 3)),
+                "w2c_Rmat": _read(f, path, "w2c_Rmat", (3, 3)), "w2c_Tvec": _read_rows(f, path, "w2c_Tvec", n, 3),
+                "pose": _read(f, path, "pose", (6,)), "scale": _read_rows(f, path, "scale", n, default=np.ones(n)),
+                "facial_landmarks_3d": _read(f, path, "facial_landmarks_3d", (68, 3)),
+                "cam_index": _read_rows(f, path, "cam_index", n, default=np.arange(n)),
+                "frame_index": _read_rows(f, path, "frame_index", n, default=np.arange(n))}
         if has_key(path, f, "neutral_vertice") and has_key(path, f, "mesh_faces"):
-            gt = _ground_truth_mesh(f, path)
+            rows.update(_ground_truth_mesh(f, path))
+    return subject_views(rows, path)
+
+
+def subject_views(rows: dict, where: str | os.PathLike = "") -> dict:
+    """Head-frame views and landmarks from a subject's native arrays (:data:`SUBJECT_KEYS`: ``head_mask``
+    [N, H, W] uint8, ``inmat``, ``w2c_Rmat`` [N, 3, 3], ``w2c_Tvec`` [N, 3], ``pose`` [N, 6], ``scale`` [N],
+    ``facial_landmarks_3d`` [N, 68, 3] world; optional ``cam_index``, ``frame_index`` [N], ``gt_verts``,
+    ``gt_faces``). Every row's camera is moved into the head frame, so all frames constrain one neutral head.
+
+    Returns dict: masks [N, H, W] bool, Ks [N, 3, 3], viewmats [N, 4, 4] (head -> camera, scale folded
+    in), landmarks [68, 3] (head frame, median over frames), cam_index [N], and when given gt_verts [V, 3]
+    (head frame), gt_faces [F, 3].
+    """
+    masks, n = rows["head_mask"], len(rows["head_mask"])
+    K, Rc, tc, pose, lmk_w = (rows[k] for k in ("inmat", "w2c_Rmat", "w2c_Tvec", "pose", "facial_landmarks_3d"))
+    scale = np.reshape(rows.get("scale", np.ones(n)), n)
+    cam = np.reshape(rows.get("cam_index", np.arange(n)), n)
+    frame = np.reshape(rows.get("frame_index", np.arange(n)), n)
+    for k, a in (("inmat", K), ("w2c_Rmat", Rc), ("w2c_Tvec", tc), ("pose", pose), ("facial_landmarks_3d", lmk_w)):
+        if a.shape[0] != n:
+            raise ToolkitError(f"{where}: {k} has {a.shape[0]} rows, head_mask has {n}")
     if not (scale > 0).all():
-        raise ToolkitError(f"{path}: scale must be > 0")
+        raise ToolkitError(f"{where}: scale must be > 0")
     R = so3_exp(torch.from_numpy(pose[:, :3].astype(np.float64))).numpy()  # head -> world rotation
     t = pose[:, 3:6].astype(np.float64)
     view = np.zeros((n, 4, 4))
@@ -109,6 +124,7 @@ def read_subject(path: str | os.PathLike) -> dict:
     # Landmarks are the same for all cameras of a frame: one per frame, then the median over frames.
     _, first = np.unique(frame, return_index=True)
     landmarks = np.median(lmk_h[first], axis=0)
+    gt = {k: rows[k] for k in ("gt_verts", "gt_faces") if k in rows}
     return {"masks": torch.from_numpy(masks > 127), "Ks": torch.from_numpy(K.astype(np.float32)),
             "viewmats": torch.from_numpy(view.astype(np.float32)),
             "landmarks": torch.from_numpy(landmarks.astype(np.float32)), "cam_index": torch.from_numpy(cam.astype(np.int64)),
@@ -128,10 +144,13 @@ def split_views(data: dict, holdout_cams=DEFAULT_HOLDOUT) -> tuple[Views, Views 
 
 
 def fit_dataset(dataset: str | os.PathLike, out_dir: str | os.PathLike, cfg: FitConfig | None = None, *,
-                holdout_cams=DEFAULT_HOLDOUT, max_eval_views: int = 24, init_scene: bool = True, log=None) -> dict:
+                holdout_cams=DEFAULT_HOLDOUT, max_eval_views: int = 24, init_scene: bool = True, log=None,
+                views: dict | None = None) -> dict:
     """Fit, then write ``neutral_mesh.ply``, ``sdf.safetensors``, ``gaussians.safetensors`` and ``fit.json``.
 
-    Returns the summary written to fit.json (timing, held-out IoU, Chamfer to the ground truth if present).
+    ``views``: the subject's :func:`subject_views`, when the caller read them (a file in another layout);
+    otherwise ``dataset`` is read as a native file. Returns the summary written to fit.json (timing, held-out
+    IoU, Chamfer to the ground truth if present).
     """
     from geometry.mesh_stats import compare_meshes, save_mesh
 
@@ -140,7 +159,7 @@ def fit_dataset(dataset: str | os.PathLike, out_dir: str | os.PathLike, cfg: Fit
     if out.exists() and not out.is_dir():
         raise ToolkitError(f"{out}: exists and is not a folder")
     t0 = time.perf_counter()
-    data = read_subject(dataset)
+    data = views if views is not None else read_subject(dataset)
     train, test = split_views(data, holdout_cams)
     res = fit_silhouettes(train, cfg, landmarks=data["landmarks"], log=log)
     summary: dict = {"dataset": str(dataset), "train_views": len(train), "fit_seconds": res.seconds,

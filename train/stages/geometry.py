@@ -3,6 +3,10 @@ Gaussians on it (the two-stream model's initialization)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
+
 from train.config import component
 from train.stages.artifacts import RunArtifacts
 from train.stages.pipeline import RunContext
@@ -12,7 +16,7 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     """The training subject ``geometry.subject`` -> ``geometry/`` (the SDF, the neutral mesh, the fit's summary
     and the Gaussian scene, with the subject's 3D landmarks in its metadata)."""
     from geometry.fit import FitConfig
-    from geometry.fit_dataset import fit_dataset, read_subject
+    from geometry.fit_dataset import fit_dataset
     from geometry.init_gaussians import InitConfig, init_gaussians
     from geometry.mesh_stats import load_mesh
     from geometry.sdf import SDFNet
@@ -21,13 +25,31 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     train_files = RunArtifacts(ctx).split("train")
     src = train_files[min(g.subject, len(train_files) - 1)]
     out = ctx.run_dir / "geometry"
-    summary = fit_dataset(src, out, component(FitConfig, g, seed=ctx.config.seed), init_scene=False, log=None)
+    data = subject_views_in_layout(src, ctx.config.data.layout)
+    summary = fit_dataset(src, out, component(FitConfig, g, seed=ctx.config.seed), init_scene=False, log=None,
+                          views=data)
     ctx.log(f"[geometry] held-out silhouette IoU {summary.get('heldout_iou_mean', float('nan')):.3f}, "
             f"Chamfer/diag {summary.get('chamfer_rel_diag', float('nan')):.4f}, {summary['fit_seconds']:.0f} s")
-    data = read_subject(src)
     verts, faces = load_mesh(out / "neutral_mesh.ply")
     net = SDFNet.load(out / "sdf.safetensors")
     scene = init_gaussians(verts, faces, data["landmarks"], net, component(InitConfig, g, seed=ctx.config.seed))
     scene.metadata["landmarks"] = data["landmarks"].tolist()
     scene.save(out / "gaussians.safetensors")
     return {"scene": "geometry/gaussians.safetensors", "mesh": "geometry/neutral_mesh.ply", "fit": "geometry/fit.json"}
+
+
+def subject_views_in_layout(path: Path, layout: str = "auto") -> dict:
+    """``geometry.fit_dataset.subject_views`` of a subject file in any layout the rows can be read from: a
+    native file read directly (with the generator's ground-truth mesh), another converted row by row to the
+    native conventions by ``GazeDataset`` (``train.data.layouts``)."""
+    from geometry.fit_dataset import SUBJECT_KEYS, read_subject, subject_views
+    from train.data.dataset import GazeDataset
+    from train.data.layouts import DITGAZE, row_layout
+
+    if row_layout(path, layout) is DITGAZE:
+        return read_subject(path)
+    ds = GazeDataset([path], layout=layout)
+    rows = [ds.read_row(0, i) for i in range(len(ds))]
+    ds.close()
+    arrays = {k: np.stack([np.asarray(r[k]) for r in rows]) for k in SUBJECT_KEYS if k in rows[0]}
+    return subject_views(arrays, path)

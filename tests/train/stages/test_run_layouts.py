@@ -1,0 +1,85 @@
+"""A run reads its subjects in their layout: the peers' split file decides the split, the geometry stage sees
+a GazeGaussian file's views as the native file's, and a named ``data.layout`` that the keys contradict is one
+line before any work."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tests.fuzz.cli import assert_refused
+from tests.train.data.peer_fixtures import native_truth, write_ditgaze
+from train.data.__main__ import main as data_main
+from train.data.dataset import find_subject_files, split_files
+
+
+@pytest.fixture(scope="module")
+def native(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("native")
+    for i in range(3):
+        write_ditgaze(folder / f"subject{i:04d}.h5", native_truth(n_frames=2, n_cams=3, seed=20 + i))
+    (folder / "split.json").write_text(json.dumps({"train": ["subject0000", "subject0001"], "test": ["subject0002"]}))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def gazegaussian(native, tmp_path_factory):
+    out = tmp_path_factory.mktemp("gg") / "gg"
+    assert data_main(["export", str(native), str(out)]) == 0
+    return out
+
+
+def test_the_peers_split_file_decides_the_split(gazegaussian):
+    # GazeGaussian dataloader/eth_xgaze.py L103-118, L163: held-out names under "val", "subjectNNNN.h5" for the
+    # file xgaze_subjectNNNN.h5; the exported folder has only that split file.
+    assert not (gazegaussian / "split.json").exists()
+    files = find_subject_files([gazegaussian])
+    assert [f.name for f in split_files(files, "test")] == ["xgaze_subject0002.h5"]
+    assert [f.name for f in split_files(files, "train", layout="gazegaussian")] == \
+        ["xgaze_subject0000.h5", "xgaze_subject0001.h5"]
+
+
+def test_a_split_naming_a_missing_subject_is_one_line(gazegaussian, tmp_path):
+    sf = tmp_path / "train_test_split.json"
+    sf.write_text(json.dumps({"train": ["subject0000.h5"], "val": ["subject0042.h5"]}))
+    files = find_subject_files([gazegaussian])
+    with pytest.raises(Exception, match=r"'val' names subject xgaze_subject0042, which is not among the 3"):
+        split_files(files, "test", sf)
+    # a native split file given for peer files: its form is the layout's, so its keys are named
+    sf.write_text(json.dumps({"train": ["subject0000.h5"], "test": ["subject0002.h5"]}))
+    with pytest.raises(Exception, match=r"no key 'val', expected the gazegaussian form"):
+        split_files(files, "test", sf)
+
+
+def test_the_geometry_stage_reads_a_gazegaussian_file_as_the_native_one(native, gazegaussian):
+    from geometry.fit_dataset import read_subject
+    from train.stages.geometry import subject_views_in_layout
+
+    want = read_subject(native / "subject0001.h5")
+    got = subject_views_in_layout(gazegaussian / "xgaze_subject0001.h5")
+    assert bool((got["masks"] == want["masks"]).all())
+    np.testing.assert_allclose(got["viewmats"].numpy(), want["viewmats"].numpy(), atol=2e-5)
+    np.testing.assert_allclose(got["landmarks"].numpy(), want["landmarks"].numpy(), atol=2e-6)
+    # read as if native, the same file's landmarks land in the wrong frame (GazeGaussian stores (p - t) R^T's inverse)
+    naive = read_subject(gazegaussian / "xgaze_subject0001.h5")
+    assert float((naive["landmarks"] - want["landmarks"]).abs().max()) > 0.05
+
+
+def test_a_named_layout_the_keys_contradict_is_refused_before_any_work(native, tmp_path):
+    run = tmp_path / "run"
+    # GazeNeRF dataset_pre_processing.py L258-381 writes c2w_* and inv_inmat, which native files lack
+    assert_refused("train.run", ["--preset", "tiny", "--run-dir", run, f"data.root={native}", "data.layout=gazenerf"],
+                   r"subject0000\.h5: data\.layout=gazenerf requires keys \['c2w_Rmat', 'c2w_Tvec', 'inv_inmat'",
+                   inputs=[native])
+    assert not run.exists()
+    # GazeGaussian indexes cam_index[idx, :] (dataloader/eth_xgaze.py L442): a 1-D index contradicts it
+    assert_refused("train.run", ["--preset", "tiny", "--run-dir", run, f"data.root={native}",
+                                 "data.layout=gazegaussian"],
+                   r"data\.layout=gazegaussian: key 'cam_index' \[6\] \(expected N,1\)", inputs=[native])
+    assert not run.exists()
+    assert_refused("train.run", ["--preset", "tiny", "--run-dir", run, f"data.root={native}",
+                                 f"data.split_file={tmp_path / 'none.json'}"],
+                   r"data\.split_file.*no such file", inputs=[native])
+    assert not run.exists()
