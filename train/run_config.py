@@ -277,6 +277,15 @@ class EvalConfig:
     ...]}`` (``"*"``: every subject not named) or lines ``subject0008 input_row target_row``; empty: generated
     pairs (the first half of a subject's rows with a fixed permutation of the second half). Files without
     ``subject_params`` (real data) are scored against their stored target rows (docs/evaluation.md)."""
+    data_root: str = field(default="", metadata=NEUTRAL)
+    """a folder of another dataset's subject files to evaluate on (cross-dataset evaluation, the paper's
+    Table 2): its held-out subjects (``data_split_file``, or a split file beside them), else all of them;
+    empty: the run's own held-out subjects."""
+    data_layout: Literal["auto", "ditgaze", "gazegaussian", "gazenerf", "xgaze"] = field(default="auto",
+                                                                                        metadata=NEUTRAL)
+    """the layout of ``data_root``'s files, as ``data.layout``."""
+    data_split_file: str = field(default="", metadata=NEUTRAL)
+    """the split of ``data_root``'s subjects, as ``data.split_file``; empty: the one beside them, else all."""
     sweep_frames: int = field(default=9, metadata=COUNT)
     """gazes in the qualitative figure's sweep row."""
     sampling_steps: int = field(default=0, metadata=NEUTRAL | rule(

@@ -154,13 +154,23 @@ def test_the_options_added_to_the_eval_stage_are_neutral_at_their_defaults():
     from train.run_config import EvalConfig
 
     added = ("sampling_steps", "lpips_vgg_path", "lpips_lin_path", "identity_model_path", "identity_arch",
-             "estimator_path")
+             "estimator_path", "data_root", "data_layout", "data_split_file")
     older = {k: v for k, v in to_dict(EvalConfig()).items() if k not in added}
     assert config_hash(EvalConfig()) == config_hash(older)
     assert config_hash(EvalConfig(sampling_steps=4)) != config_hash(older)
     assert config_hash(EvalConfig(lpips_vgg_path="a", lpips_lin_path="b")) != config_hash(older)
     assert config_hash(EvalConfig(identity_model_path="c")) != config_hash(older)
     assert config_hash(EvalConfig(estimator_path="d")) != config_hash(older)
+    assert config_hash(EvalConfig(data_root="e")) != config_hash(older)
+
+
+def test_the_data_layout_and_split_file_are_neutral_at_their_defaults():
+    from train.run_config import DataConfig
+
+    older = {k: v for k, v in to_dict(DataConfig()).items() if k not in ("layout", "split_file")}
+    assert config_hash(DataConfig()) == config_hash(older)
+    assert config_hash(DataConfig(layout="gazegaussian")) != config_hash(older)
+    assert config_hash(DataConfig(split_file="s.json")) != config_hash(older)
 
 
 def test_a_section_given_as_a_mapping_keeps_its_other_values():
@@ -432,6 +442,8 @@ def test_a_config_yaml_written_before_loads_and_round_trips(tmp_path):
     data_added = "  layout: auto\n  split_file: ''\n"
     expected = OLD_TINY_CONFIG.replace("  pairing_file: ''\n", added + "  pairing_file: ''\n")
     expected = expected.replace("  light_jitter: 0.0\n", "  light_jitter: 0.0\n" + data_added)
+    expected = expected.replace("  sweep_frames: 3\n",
+                                "  data_root: ''\n  data_layout: auto\n  data_split_file: ''\n  sweep_frames: 3\n")
     assert (tmp_path / "new.yaml").read_text() == expected
     assert load_yaml_config(RunConfig, tmp_path / "new.yaml") == cfg
 

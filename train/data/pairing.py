@@ -178,11 +178,11 @@ class SyntheticRedirectionPairs(torch.utils.data.Dataset):
     """what :func:`redirection_pairs` and the evaluation's report call this protocol."""
 
     def __init__(self, path: str | os.PathLike, pairs: np.ndarray | None = None, *, res: int | None = None,
-                 seed: int = 0):
+                 seed: int = 0, layout: str = "auto"):
         from train.data.dataset import GazeDataset
         from train.data.subject_params import SubjectParams
 
-        self.data = GazeDataset([path], res=res)
+        self.data = GazeDataset([path], res=res, layout=layout)
         info = self.data.info[0]
         if "subject_params" not in info["attrs"]:
             raise ToolkitError(f"{path}: not a synthetic subject file (no 'subject_params' attribute); "
@@ -259,10 +259,10 @@ class StoredRedirectionPairs(torch.utils.data.Dataset):
     """what :func:`redirection_pairs` and the evaluation's report call this protocol."""
 
     def __init__(self, path: str | os.PathLike, pairs: np.ndarray | None = None, *, res: int | None = None,
-                 seed: int = 0):
+                 seed: int = 0, layout: str = "auto"):
         from train.data.dataset import GazeDataset
 
-        self.data = GazeDataset([path], res=res)
+        self.data = GazeDataset([path], res=res, layout=layout)
         n = self.data.info[0]["n"]
         self.pairs = check_pairs(synthetic_pairs(n, seed) if pairs is None else pairs, n, str(path))
         self.path = Path(path)
@@ -285,8 +285,9 @@ def is_synthetic_file(path: str | os.PathLike) -> bool:
 
 
 def redirection_pairs(path: str | os.PathLike, pairs: np.ndarray | None = None, *, res: int | None = None,
-                      seed: int = 0) -> "SyntheticRedirectionPairs | StoredRedirectionPairs":
+                      seed: int = 0, layout: str = "auto") -> "SyntheticRedirectionPairs | StoredRedirectionPairs":
     """One held-out subject's pairs under its protocol: generator targets for a synthetic file, the stored
-    target rows for any other (``pairs`` [P, 2] (input row, target row), or None: :func:`synthetic_pairs`)."""
+    target rows for any other (``pairs`` [P, 2] (input row, target row), or None: :func:`synthetic_pairs`;
+    ``layout``: the file's, ``train.data.layouts``)."""
     cls = SyntheticRedirectionPairs if is_synthetic_file(path) else StoredRedirectionPairs
-    return cls(path, pairs, res=res, seed=seed)
+    return cls(path, pairs, res=res, seed=seed, layout=layout)

@@ -86,15 +86,15 @@ class SubjectPairs:
 
 
 def load_subject_pairs(subject_file: Path, pairing_rows: np.ndarray | None, *, res: int, seed: int,
-                       pairs_per_subject: int, device) -> SubjectPairs:
+                       pairs_per_subject: int, device, layout: str = "auto") -> SubjectPairs:
     """``pairs_per_subject`` pairs of one subject file, spread over its pairing (:func:`spread_indices`).
 
     ``pairing_rows`` [P, 2] (input row, target row) from a pairing file, or None: pairs generated with
     ``seed`` (``train.data.pairing.synthetic_pairs``). The file's protocol (generator or stored targets)
-    follows from the file (``train.data.pairing.redirection_pairs``)."""
+    follows from the file (``train.data.pairing.redirection_pairs``), read in ``layout``."""
     from train.data.pairing import redirection_pairs
 
-    pairs = redirection_pairs(subject_file, pairing_rows, res=res, seed=seed)
+    pairs = redirection_pairs(subject_file, pairing_rows, res=res, seed=seed, layout=layout)
     indices = spread_indices(len(pairs), min(pairs_per_subject, len(pairs)))
     items = [pairs[i] for i in indices]
     stack = lambda row, key: torch.stack([it[row][key] for it in items]).to(device)  # noqa: E731

@@ -95,8 +95,8 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                  references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
                  own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None,
                  lpips: torch.nn.Module | None = None, identity: torch.nn.Module | None = None,
-                 pairing: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
-    """:func:`evaluate`'s protocol on ``test_files``, unsummarized: every pair's scores and images, in subject
+                 pairing: dict[str, np.ndarray] | None = None, layout: str = "auto") -> dict[str, Any]:
+    """:func:`evaluate`'s protocol on ``test_files`` (read in ``layout``), unsummarized: every pair's scores and images, in subject
     order. The raw results of disjoint groups of subjects (evaluated in separate processes, say) join with
     :func:`train.evaluation.summary.merge_raw_evaluations` into what one call on all of them gives;
     :func:`train.evaluation.summary.summarize_evaluation` then makes :func:`evaluate`'s result."""
@@ -112,7 +112,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             # not depend on what ran before it, in this process or another (the eval stage splits subjects).
             torch.manual_seed(seed * 1_000_003 + zlib.crc32(Path(f).name.encode()))
             sp = load_subject_pairs(f, subject_pairing(pairing, Path(f).stem), res=res, seed=seed,
-                                    pairs_per_subject=pairs_per_subject, device=device)
+                                    pairs_per_subject=pairs_per_subject, device=device, layout=layout)
             fit_mask = _fitting_mask(sp, tta_region)
             pair_seeds = [zlib.crc32(f"{seed}:{sp.name}:{i}".encode()) for i in sp.indices]
             out, render_time, own = _fit_and_render(model, renderer, sp.render_batch(), sp.input, fit_mask, res,

@@ -163,7 +163,9 @@ def report_markdown(res: dict, cfg: RunConfig, run_dir: Path, figures: dict[str,
                f"weak_supervision={cfg.gaussian.weak_supervision}"
     return (f"# DiT-Gaze evaluation ({cfg.preset} preset)\n\n"
             f"Protocol: {describe_protocol(res['per_subject'], cfg.eval.pairing_file)}. "
-            f"Held-out subjects: {len(res['per_subject'])}, pairs: {res['metrics']['pairs']}, "
+            + (f"Trained on {res['datasets']['train']}, evaluated on {res['datasets']['eval']}. "
+               if "datasets" in res else "")
+            + f"Held-out subjects: {len(res['per_subject'])}, pairs: {res['metrics']['pairs']}, "
             f"resolution {cfg.data.res}², DDIM steps {eval_sampling_steps(cfg)}, test-time fitting: "
             f"{describe_fitting(cfg.eval)}. Ablation switches: {ablation}.\n\n{results_table(res, cfg)}\n\n"
             f"{spread_note(res['metrics'])}\n\n{REFERENCES_NOTE}{labels_note(res['labels'], cfg)}"

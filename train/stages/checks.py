@@ -146,17 +146,24 @@ def _check_files(cfg: RunConfig) -> None:
             raise ToolkitError(f"config key 'eval.pairing_file': {err}") from None
     _require(not cfg.data.split_file or Path(cfg.data.split_file).is_file(), "data.split_file",
              f"{cfg.data.split_file}: no such file (a split file: JSON {{\"train\": [...], \"test\": [...]}})")
-    if cfg.data.root and Path(cfg.data.root).exists():  # the held-out files are known before training
-        _check_layout(cfg)
-        from train.data.dataset import find_subject_files, split_files
+    e = cfg.eval
+    _require(not e.data_root or Path(e.data_root).is_dir(), "eval.data_root",
+             f"{e.data_root}: no such folder (a folder of subject files to evaluate on)")
+    _require(not e.data_split_file or Path(e.data_split_file).is_file(), "eval.data_split_file",
+             f"{e.data_split_file}: no such file (a split file of eval.data_root's subjects)")
+    if cfg.data.root and Path(cfg.data.root).exists():
+        _check_layout(cfg.data.root, cfg.data.layout, "data.layout")
+    if e.data_root:
+        _check_layout(e.data_root, e.data_layout, "eval.data_layout")
+    if e.data_root or (cfg.data.root and Path(cfg.data.root).exists()):  # the held-out files are known before training
+        from train.stages.artifacts import RunArtifacts
+        from train.stages.pipeline import RunContext
 
         try:
-            test = split_files(find_subject_files([cfg.data.root]), "test", cfg.data.split_file or None,
-                               cfg.data.test_fraction, cfg.data.layout)
+            test = RunArtifacts(RunContext(Path("."), cfg)).eval_files()
         except ToolkitError:
             test = []  # a folder the stages cannot split: the stage that reads it names what is wrong
         check_eval_pairing(cfg, test)
-    e = cfg.eval
     lp = {"eval.lpips_vgg_path": e.lpips_vgg_path, "eval.lpips_lin_path": e.lpips_lin_path}
     if any(lp.values()) and not all(lp.values()):
         raise ToolkitError(f"config keys {list(lp)}: LPIPS needs both files (the VGG16 weights and the linear "
@@ -173,17 +180,17 @@ def _check_files(cfg: RunConfig) -> None:
              f"{c.sd_vae_path!r}: no such directory (codec.kind=sd-vae reads a local diffusers AutoencoderKL folder)")
 
 
-def _check_layout(cfg: RunConfig) -> None:
-    """A named ``data.layout`` fits the keys of every file under ``data.root`` (keys only: the stages check the
-    rest); ``auto`` is decided file by file when a stage opens them."""
-    if cfg.data.layout == "auto":
+def _check_layout(root: str, layout: str, key: str) -> None:
+    """A named ``layout`` (config key ``key``) fits the keys of every file under ``root`` (keys only: the stages
+    check the rest); ``auto`` is decided file by file when a stage opens them."""
+    if layout == "auto":
         return
     from train.data.dataset import find_subject_files
     from train.data.layouts import check_layout, describe_file
 
-    for f in find_subject_files([cfg.data.root]):
+    for f in find_subject_files([root]):
         keys, shapes = describe_file(f)
-        check_layout(cfg.data.layout, keys, shapes, str(f))
+        check_layout(layout, keys, shapes, str(f))
 
 
 def check_eval_pairing(cfg: RunConfig, test_files: list[Path]) -> None:

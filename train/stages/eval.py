@@ -27,12 +27,15 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     run = RunArtifacts(ctx)
     device = run.device
     _check_the_fit_reads_another_estimator(run)
-    check_eval_pairing(ctx.config, run.split("test"))  # one line before the models load
+    check_eval_pairing(ctx.config, run.eval_files())  # one line before the models load
     raw = _evaluate_test_split(ctx, run, device)
     res = summarize_evaluation(raw, own_gaze_row=True, log=ctx.log)
     protocol = describe_protocol(res["per_subject"], ctx.config.eval.pairing_file)
-    ctx.log(f"[eval] protocol: {protocol}")
-    atomic_write_json(ctx.run_dir / "metrics.json", {"protocol": protocol, "metrics": res["metrics"],
+    datasets = run.dataset_names()
+    ctx.log(f"[eval] protocol: {protocol}; trained on {datasets['train']}, evaluated on {datasets['eval']}")
+    res["datasets"] = datasets
+    atomic_write_json(ctx.run_dir / "metrics.json", {"protocol": protocol, "datasets": datasets,
+                                                     "metrics": res["metrics"],
                                                      "per_subject": res["per_subject"],
                                                      "per_pair": res["per_pair"], "own_gaze": res["own_gaze"],
                                                      "references": res["references"], "labels": res["labels"]})
@@ -62,7 +65,7 @@ def _evaluate_test_split(ctx: RunContext, run: RunArtifacts, device: torch.devic
     from train.evaluation.summary import in_subject_order, merge_raw_evaluations
 
     cfg = ctx.config
-    files = run.split("test")
+    files = run.eval_files()
     threads = torch.get_num_threads()
     groups = eval_groups(files, threads, cfg.eval.tta_steps > 0 and bool(cfg.eval.tta_weights), device.type == "cpu")
     job = dict(config=cfg, run_dir=ctx.run_dir, outputs=dict(ctx.outputs))
@@ -110,7 +113,7 @@ def _eval_subjects(*, config: RunConfig, run_dir: Path, outputs: dict, files: li
                        tta_weights=tuple(cfg.eval.tta_weights), tta_renderer_lr=cfg.eval.tta_renderer_lr, seed=cfg.seed,
                        device=device, log=run.context.log, references=reference_transforms(renderer),
                        own_gaze_row=True, tta_region=cfg.eval.tta_region, tta_gaze=fit_gaze, lpips=lpips,
-                       identity=identity, pairing=pairing)
+                       identity=identity, pairing=pairing, layout=run.eval_layout)
     return tensors_to_numpy(raw) if portable else raw
 
 
@@ -140,9 +143,10 @@ def _eval_sweep(run: RunArtifacts, device) -> torch.Tensor:
     from train.evaluation.fitting import restored_weights
 
     cfg = run.config
-    first = run.split("test")[0]
+    first = run.eval_files()[0]
     pairing = load_pairing(cfg.eval.pairing_file) if cfg.eval.pairing_file else None
-    pairs = redirection_pairs(first, subject_pairing(pairing, first.stem), res=cfg.data.res, seed=cfg.seed)
+    pairs = redirection_pairs(first, subject_pairing(pairing, first.stem), res=cfg.data.res, seed=cfg.seed,
+                              layout=run.eval_layout)
     item = pairs.data[int(pairs.pairs[0][0])]  # the first pair's input (its target is not needed here)
     model, renderer = run.load_model(device)
     gazes = sweep_gazes(cfg.eval.sweep_frames)
