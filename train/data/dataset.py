@@ -51,6 +51,15 @@ def held_out_count(n_subjects: int, test_fraction: float) -> int:
 
 SPLIT_FILE_NAMES = ("split.json", "train_test_split.json")
 """The split files looked for beside the subject files, in this order: the native one, then the peers'."""
+DATASET_PREFIXES = ("xgaze_", "mpii_", "columbia_", "gaze_capture_")
+"""The prefixes GazeNeRF's preprocessing puts before a subject's name, one per dataset (dataset_pre_processing.py
+L123, L496, L844; datasets/gaze_capture.py L246), while its split files name the subject alone
+(data/*/train_test_split.json): a split entry names the file with or without one."""
+
+
+def subject_key(stem: str) -> str:
+    """A subject file's stem without its dataset prefix (:data:`DATASET_PREFIXES`): what split files name."""
+    return next((stem[len(p):] for p in DATASET_PREFIXES if stem.startswith(p)), stem)
 
 
 def split_files(files: list[Path], split: str, split_file: str | os.PathLike | None = None,
@@ -71,16 +80,21 @@ def split_files(files: list[Path], split: str, split_file: str | os.PathLike | N
     if sf is not None:
         form = DITGAZE if sf.name == SPLIT_FILE_NAMES[0] and layout == "auto" else row_layout(files[0], layout)
         train, held = read_split_file(sf, form)
-        names = train if split == "train" else held
-        by_stem = {f.stem: f for f in files}
-        missing = [n for n in names if n not in by_stem]
+        names = {subject_key(n) for n in (train if split == "train" else held)}
+        by_key: dict[str, Path] = {}
+        for f in files:
+            if by_key.setdefault(subject_key(f.stem), f) != f:
+                raise ToolkitError(f"{sf}: the files {by_key[subject_key(f.stem)].name} and {f.name} are both "
+                                   f"subject {subject_key(f.stem)}; keep one dataset's files in a folder")
+        missing = sorted(names - set(by_key))
         if missing:
             key = form.split.train_key if split == "train" else form.split.held_out_key
             raise ToolkitError(f"{sf}: '{key}' names subject {missing[0]}, which is not among the {len(files)} "
-                               f"subject files given (file {missing[0]}.h5 expected)")
+                               f"subject files given (file {missing[0]}.h5 expected, or with a dataset prefix "
+                               f"such as {DATASET_PREFIXES[0]})")
         if not names:
             raise ToolkitError(f"{sf}: split '{split}' selects none of the {len(files)} given files")
-        return [f for f in files if f.stem in set(names)]
+        return [f for f in files if subject_key(f.stem) in names]
     files = sorted(files)
     n_test = held_out_count(len(files), test_fraction)
     chosen = files[len(files) - n_test:] if split == "test" else files[: len(files) - n_test]

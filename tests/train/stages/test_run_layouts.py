@@ -45,7 +45,7 @@ def test_a_split_naming_a_missing_subject_is_one_line(gazegaussian, tmp_path):
     sf = tmp_path / "train_test_split.json"
     sf.write_text(json.dumps({"train": ["subject0000.h5"], "val": ["subject0042.h5"]}))
     files = find_subject_files([gazegaussian])
-    with pytest.raises(Exception, match=r"'val' names subject xgaze_subject0042, which is not among the 3"):
+    with pytest.raises(Exception, match=r"'val' names subject subject0042, which is not among the 3"):
         split_files(files, "test", sf)
     # a native split file given for peer files: its form is the layout's, so its keys are named
     sf.write_text(json.dumps({"train": ["subject0000.h5"], "test": ["subject0002.h5"]}))
@@ -111,3 +111,22 @@ def test_cross_dataset_evaluation_scores_another_datasets_held_out_subjects(tiny
     assert "evaluated on gg (gazegaussian layout)" in (d / "report.md").read_text()
     assert_refused("train.run", ["--run-dir", d, "--stages", "eval", f"eval.data_root={tmp_path / 'none'}"],
                    r"eval\.data_root.*no such folder")
+
+
+def test_split_files_name_the_subject_without_the_datasets_prefix(gazegaussian, tmp_path):
+    """GazeNeRF names an MPIIFaceGaze file mpii_subject0000.h5 (dataset_pre_processing.py L496) and a
+    ColumbiaGaze one columbia_subject0001.h5 (L844), and lists the subject alone, every one under 'val'
+    (data/mpii_face_gaze/train_test_split.json, data/columbia/train_test_split.json)."""
+    import shutil
+
+    folder = tmp_path / "mpii"
+    folder.mkdir()
+    for i in range(3):
+        shutil.copy(gazegaussian / f"xgaze_subject000{i}.h5", folder / f"mpii_subject000{i}.h5")
+    (folder / "train_test_split.json").write_text(json.dumps(
+        {"train": [], "val": ["subject0000.h5", "subject0001.h5", "subject0002.h5"]}))
+    files = find_subject_files([folder])
+    assert [f.name for f in split_files(files, "test")] == [f"mpii_subject000{i}.h5" for i in range(3)]
+    shutil.copy(gazegaussian / "xgaze_subject0000.h5", folder / "subject0000.h5")
+    with pytest.raises(Exception, match=r"the files mpii_subject0000\.h5 and subject0000\.h5 are both subject subject0000"):
+        split_files(find_subject_files([folder]), "test")
