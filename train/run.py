@@ -19,7 +19,8 @@ refused because an unselected upstream stage is missing or was made under anothe
 Launch with ``torchrun --nproc_per_node N -m train.run ...`` for DDP in stage gaussian: each process takes 1/N
 of ``gaussian.batch`` (the same rows of every random draw) and the gradients are averaged, so the weights equal
 one process's on the whole batch up to float sums (tested); rank 0 logs and writes the checkpoints.
-A finished run is opened for use with ``train.trained_run.TrainedRun``.
+A finished run is opened for use with ``train.trained_run.TrainedRun``; ``python -m train.run augment --run-dir
+RUN --out OUT`` measures whether its redirected data makes a gaze estimator better (``train.augment``).
 """
 
 from __future__ import annotations
@@ -99,6 +100,11 @@ def select_stages(args: argparse.Namespace) -> tuple[list[str], list[str]]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["augment"]:  # the augmentation benchmark on a finished run (train.augment)
+        from train.augment.cli import main as augment
+
+        return augment(argv[1:])
     args = build_parser().parse_args(argv)
     cfg = resolve_config(args)
     stages, force = select_stages(args)
