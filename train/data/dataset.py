@@ -18,7 +18,17 @@ import torch
 from toolkit.errors import ToolkitError, one_line
 from toolkit.h5 import READ_ERRORS, has_key, read_array, read_selection
 from train.data.format import OPTIONAL, REQUIRED, validate_subject_file
-from train.data.layouts import get_layout, native_row, row_layout
+from train.data.layouts import (
+    DITGAZE,
+    agreed_code_widths,
+    check_frames,
+    get_layout,
+    mesh_to_native,
+    native_keys,
+    row_layout,
+    stored_widths,
+    to_native,
+)
 
 SPLITS = ("all", "train", "test")
 
@@ -155,10 +165,16 @@ class GazeDataset(torch.utils.data.Dataset):
     ``right_eye_mask`` [1, R, R] float32 in {0, 1} (soft at resized edges); ``landmarks`` [68, 2] pixels of
     the R × R image; ``landmarks_3d`` [68, 3]; ``K`` [3, 3] (for R × R); ``w2c_R`` [3, 3]; ``w2c_T`` [3];
     ``viewmat`` [4, 4]; ``pitchyaw_head`` [2]; ``face_head_pose`` [2]; ``pose`` [6]; ``scale`` [1];
-    ``latent_code`` [144]; ``cam_index``, ``frame_index``, ``subject``, ``row`` int64 scalars (a scaled head's
-    scale folded into the world frame: :func:`fold_head_scale`, ``scale`` then 1);
+    ``latent_code`` [I + E] (identity then expression: 80 + 64 for native files, the layout's widths for the
+    peers', :meth:`code_widths`); ``cam_index``, ``frame_index``, ``subject``, ``row`` int64 scalars (a scaled
+    head's scale folded into the world frame: :func:`fold_head_scale`, ``scale`` then 1);
     ``pitchyaw_cam`` [2] (the file's, else the head-frame gaze turned by w2c ∘ pose); and, where the file has
-    them, ``expression_params`` [4], ``light_dir`` [3].
+    them, ``expression_params`` [4], ``light_dir`` [3], ``latent_texture``, ``latent_illumination`` (GazeNeRF's
+    other code slices, never fed to the model).
+
+    A peer layout's label keys are converted to the native conventions once per file, whole
+    (``train.data.layouts.to_native``: GazeNeRF's 3D landmarks are triangulated across a frame's cameras);
+    native files are read as stored.
     """
 
     def __init__(self, paths, split: str = "all", res: int | None = None, *, composite: bool = True,
@@ -170,8 +186,15 @@ class GazeDataset(torch.utils.data.Dataset):
         self.composite, self.with_mesh = composite, with_mesh
         # Layout names, not Layout objects: a dataset is pickled into DataLoader workers.
         self.layouts = [row_layout(f, layout).name for f in self.files]
-        self.info = [validate_subject_file(f, tuple(sorted(set(REQUIRED) - set(get_layout(name).required))))
+        if with_mesh:  # nothing makes up a mesh a layout does not store (GazeNeRF's files)
+            for f, name in zip(self.files, self.layouts):
+                if "vertice" not in native_keys(name):
+                    raise ToolkitError(f"{f}: with_mesh: a {name} file has no key 'vertice' (the per-row head mesh)")
+        self.info = [validate_subject_file(f, tuple(sorted(set(REQUIRED) - set(get_layout(name).required))),
+                                           stored_widths(name))
                      for f, name in zip(self.files, self.layouts)]
+        for f, name in zip(self.files, self.layouts):  # GazeNeRF's: every frame seen by two cameras, before any work
+            check_frames(f, name)
         from toolkit.limits import check_allocation
 
         check_allocation(16 * sum(i["n"] for i in self.info), f"the row index of {len(self.files)} subject files")
@@ -206,16 +229,27 @@ class GazeDataset(torch.utils.data.Dataset):
         state["_handles"], state["_label_cache"] = {}, {}
         return state
 
+    def code_widths(self) -> tuple[int, int]:
+        """(identity, expression) widths of every sample's ``latent_code``: its files' layouts', which must agree
+        (else one line naming two files and their widths)."""
+        return agreed_code_widths(list(zip(self.files, self.layouts)))
+
     def _labels(self, k: int, f) -> dict[str, np.ndarray]:
         """File ``k``'s small per-row keys (:data:`LABEL_KEYS` and the optional ones it has), read whole once
-        (validation bounded them; a few KB a row): a row then reads only its images, as h5py's per-call cost
-        dominates reading ~20 small keys one row at a time."""
+        (validation bounded them; a few KB a row) and, for a peer layout, converted to native conventions whole
+        (``to_native``): a row then reads only its images, as h5py's per-call cost dominates reading ~20 small
+        keys one row at a time, and GazeNeRF's 3D landmarks need every camera of a frame."""
         cached = self._label_cache.get(k)
         if cached is None:
             keys = [*LABEL_KEYS, *(o for o in self.info[k]["optional"] if o in OPTIONAL)]
-            if self.layouts[k] != "ditgaze":  # a peer layout may lack frame_index (native_row fills it)
-                keys = [key for key in keys if key != "frame_index" or has_key(self.files[k], f, key)]
-            cached = self._label_cache[k] = {key: read_array(self.files[k], f, key) for key in keys}
+            if self.layouts[k] == DITGAZE.name:
+                cached = {key: read_array(self.files[k], f, key) for key in keys}
+            else:  # a peer layout stores some keys under other conventions, and may lack some (to_native makes them)
+                stored = {key: read_array(self.files[k], f, key) for key in keys if has_key(self.files[k], f, key)}
+                cached = to_native(self.layouts[k], stored, where=str(self.files[k]))
+                # a GazeGaussian file may lack frame_index: each row its own frame
+                cached.setdefault("frame_index", np.arange(self.info[k]["n"], dtype=np.int32))
+            self._label_cache[k] = cached
         return cached
 
     def read_row(self, k: int, row: int) -> dict[str, np.ndarray]:
@@ -233,7 +267,9 @@ class GazeDataset(torch.utils.data.Dataset):
             out[key] = read_selection(self.files[k], key, ds, row)
         if "vertice" in out and not np.isfinite(out["vertice"]).all():  # too large to check whole up front
             raise ToolkitError(f"{self.files[k]}: key 'vertice' row {row} contains NaN or inf")
-        return native_row(self.layouts[k], out, row)
+        if "vertice" in out and self.layouts[k] != DITGAZE.name:
+            out["vertice"] = mesh_to_native(self.layouts[k], out["vertice"], out["w2c_Rmat"], out["w2c_Tvec"])
+        return out
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         if not -len(self) <= i < len(self):
@@ -276,7 +312,7 @@ class GazeDataset(torch.utils.data.Dataset):
             "subject": torch.tensor(k),
             "row": torch.tensor(row),
         }
-        for o in ("pitchyaw_cam", "expression_params", "light_dir"):
+        for o in ("pitchyaw_cam", "expression_params", "light_dir", "latent_texture", "latent_illumination"):
             if o in r:
                 out[o] = t(r[o])
         if "pitchyaw_cam" not in out:  # optional in the format: the head-frame gaze seen from this camera

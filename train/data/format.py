@@ -182,7 +182,7 @@ def _check_labels(path, lab: dict[str, np.ndarray], H: int, W: int) -> None:
     K = lab["inmat"]
     if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any():
         _bad(path, "inmat", "has non-positive focal lengths")
-    if (lab["scale"] <= 0).any():
+    if "scale" in lab and (lab["scale"] <= 0).any():  # a peer layout may store none (GazeNeRF: scale 1)
         _bad(path, "scale", "has non-positive values")
     for k in ("cam_index", "frame_index"):
         if k not in lab:  # a peer layout without it (validate_subject_file's optional_keys)
@@ -311,7 +311,8 @@ def read_attrs(path, f) -> dict[str, Any]:
     return attrs
 
 
-def validate_subject_file(path: str | os.PathLike, optional_keys: tuple[str, ...] = ()) -> dict[str, Any]:
+def validate_subject_file(path: str | os.PathLike, optional_keys: tuple[str, ...] = (),
+                          widths: dict[str, tuple] | None = None) -> dict[str, Any]:
     """Check a subject file's schema and label ranges up front; return its summary.
 
     Raises ToolkitError naming the file and key for: unreadable/truncated files, missing keys, links that do
@@ -321,6 +322,8 @@ def validate_subject_file(path: str | os.PathLike, optional_keys: tuple[str, ...
     indices, landmarks far outside the image), bad subject-level arrays and attributes of the wrong type.
     Image and mesh rows are checked by shape and dtype (``vertice`` rows for finite values when read).
     ``optional_keys``: keys of :data:`REQUIRED` a file may lack (a peer layout that does not write them).
+    ``widths``: key -> trailing shape, for keys of :data:`REQUIRED` a peer layout stores at another width
+    (GazeNeRF's 306-d ``latent_codes``).
     Returns ``{"path", "n", "height", "width", "n_vertices", "optional": [...], "attrs": {...}}``.
     """
     path = Path(path)
@@ -333,7 +336,8 @@ def validate_subject_file(path: str | os.PathLike, optional_keys: tuple[str, ...
         if n == 0:
             raise ToolkitError(f"{path}: empty subject (0 rows in 'face_patch')")
         optional = [k for k in OPTIONAL if has_key(path, f, k)]
-        present = {k: v for k, v in REQUIRED.items() if k not in optional_keys or has_key(path, f, k)}
+        present = {k: ((widths or {}).get(k, v[0]), v[1]) for k, v in REQUIRED.items()
+                   if k not in optional_keys or has_key(path, f, k)}
         specs = {**present, **{k: OPTIONAL[k] for k in optional}}
         datasets = {k: _check_dataset(path, f, k, spec, kinds, sizes, n) for k, (spec, kinds) in specs.items()}
         lab = _read_labels(path, {k: ds for k, ds in datasets.items() if k not in IMAGE_KEYS and k != "vertice"}, n)

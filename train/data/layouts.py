@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -23,6 +23,11 @@ from toolkit.errors import ToolkitError
 from train.data.format import OPTIONAL, REQUIRED, SUBJECT_KEYS
 
 NATIVE_CODES = (("identity", 80), ("expression", 64))
+MODEL_CODES = ("identity", "expression")
+"""The code slices the Gaussian model reads: a native ``latent_codes`` row is their concatenation, in this order,
+their widths those of the file's layout (:func:`code_widths`)."""
+CODE_KEYS = MappingProxyType({"texture": "latent_texture", "illumination": "latent_illumination"})
+"""The native keys of a layout's other code slices: carried by the rows and samples, never fed to the model."""
 INDEX_KEYS = ("cam_index", "frame_index")
 LANDMARK_3D_KEYS = ("facial_landmarks_3d", "vertice")
 MAX_SPLIT_BYTES = 1 << 20
@@ -52,7 +57,10 @@ class Layout:
     pitch_sign: int
     """+1: pitch = asin(-g_y) (native, ETH-XGaze); -1: pitch = asin(+g_y). Yaw is atan2(-g_x, -g_z) in all."""
     frame_3d: str | None
-    """``world`` (native), ``w2c-transposed`` (stored p, world q = (p - w2c_Tvec) @ w2c_Rmat^T), None: no 3D keys."""
+    """``world`` (native), ``w2c-transposed`` (stored p, world q = (p - w2c_Tvec) @ w2c_Rmat^T), ``triangulated``
+    (no 3D keys: w2c maps each row's head frame to its camera, so the world is that head frame, and the 3D
+    landmarks are triangulated from the 2D ones of a frame's cameras: :func:`triangulate_frames`), None: no 3D keys
+    and no cameras to make them with."""
     codes: tuple[tuple[str, int], ...]
     split: SplitForm
     renames: Mapping[str, str] = field(default_factory=dict)
@@ -131,14 +139,27 @@ GAZENERF = Layout(
     # pitchyaw: L355-361 (ETH-XGaze and MPII branches); face_center: L704-710 (MPII branch only)
     optional=MappingProxyType({"pitchyaw": "N,2", "face_center": "N,3"}),
     # utils/gaze_estimation_utils.py L45-51: pitch = arcsin(v[0, 1]), yaw = arctan2(-v[0, 0], -v[0, 2])
-    gaze_key="pitchyaw_head", gaze_frame="head", pitch_sign=-1, frame_3d=None,
+    # fitting_nl3dmm.py L276-279: w2c maps the NL3DMM head frame (the pose folded in, unit scale: L170)
+    gaze_key="pitchyaw_head", gaze_frame="head", pitch_sign=-1, frame_3d="triangulated",
     codes=(("identity", 100), ("expression", 79), ("texture", 100), ("illumination", 27)),  # gazenerf_options.py L11-14
     split=SplitForm("train_test_split.json", "train", "val", prefix="xgaze_"),  # datasets/eth_xgaze.py L88, L144
     notes=(
         "w2c_Rmat/w2c_Tvec map the NL3DMM head frame to the camera: the head pose is folded in "
-        "(surface_fitting/nl3dmm/fitting_nl3dmm.py L276-279), so there is no pose to convert",
+        "(surface_fitting/nl3dmm/fitting_nl3dmm.py L276-279), so there is no pose to convert: native rows get pose "
+        "0 and scale 1 (the world is the row's head frame) and 3D landmarks triangulated per frame",
+        "each image's head pose is fitted on its own in one virtual camera (fitting_nl3dmm.py L164-170, "
+        "dataset_fitting_3dmm.py L43-54): a frame's rows share a head frame only as far as their fits agree, "
+        "which the triangulation's reprojection error measures",
+        "the 2D landmarks are face_alignment's get_landmarks (pre_processing/gen_landmark.py L27-29, L56), which "
+        "states no pixel-centre convention; GazeNeRF fits its cameras to them with K-projected points "
+        "(nl3dmm_renderer.py L129-134) and its principal point W/2 is the image centre (dataset_fitting_3dmm.py "
+        "L44-47, nl3dmm_renderer.py L141-151), i.e. u = 0 is the left edge, as native: they are not shifted",
+        "pitchyaw_head is in the annotation's head frame (dataset_pre_processing.py L404-430, "
+        "gaze_estimation_utils.py L20-42), the cameras in the NL3DMM fit's: a camera-frame gaze derived from both "
+        "carries whatever rotation lies between the two frames",
         "its loader takes identity, expression and texture codes from row 0 of a subject (datasets/eth_xgaze.py L346-347)",
-        "frame_index is stored as uint8 (dataset_pre_processing.py L260-265): frames past 255 wrap",
+        "frame_index is stored as uint8 (dataset_pre_processing.py L260-265): frames past 255 wrap, so a frame is "
+        "a run of consecutive rows (L383-445 write a frame's cameras in turn), not an index value",
         "the gaze origin of pitchyaw_head is the mean of rows 0-5 of the full 50-point face model "
         "(dataset_pre_processing.py L425-430, gaze_estimation_utils.py L24-33), not the normalization's face centre",
     ),
@@ -301,13 +322,151 @@ def split_codes(layout: str | Layout, codes: np.ndarray) -> dict[str, np.ndarray
     return {name: codes[:, s:s + w] for (name, w), s in zip(layout.codes, starts)}
 
 
+def code_widths(layout: str | Layout) -> tuple[int, int]:
+    """(identity, expression): the widths of the native ``latent_codes`` a ``layout``'s files give (80, 64 for
+    native and GazeGaussian files, 100, 79 for GazeNeRF's); a ToolkitError for a layout without codes."""
+    layout = get_layout(layout)
+    widths = dict(layout.codes)
+    if not all(name in widths for name in MODEL_CODES):
+        raise ToolkitError(f"data.layout={layout.name}: its files carry no identity and expression codes "
+                           f"({layout.description})")
+    return widths["identity"], widths["expression"]
+
+
+def agreed_code_widths(files: Sequence[tuple[str | os.PathLike, str | Layout]]) -> tuple[int, int]:
+    """The code widths (:func:`code_widths`) of every ``(path, layout)`` of a run's files, which must agree: one
+    model reads them all. Else one line naming two files and their widths."""
+    first, widths = None, None
+    for path, layout in files:
+        w = code_widths(layout)
+        if widths is None:
+            first, widths = path, w
+        elif w != widths:
+            raise ToolkitError(f"{path}: codes of {w[0]} identity + {w[1]} expression dims, but {first} has "
+                               f"{widths[0]} + {widths[1]}; one model reads every file of a run, so their layouts' "
+                               "codes must agree")
+    if widths is None:
+        raise ToolkitError("no subject files to take the code widths from")
+    return widths
+
+
 def _codes_to_native(layout: Layout, codes: np.ndarray, out: dict) -> None:
+    """``latent_codes`` = the layout's identity then expression slice (the model's code, at the layout's
+    widths); its other slices under :data:`CODE_KEYS` (GazeNeRF's texture and illumination)."""
     parts = split_codes(layout, codes)
-    if layout.codes == NATIVE_CODES:
-        out["latent_codes"] = np.concatenate(list(parts.values()), 1)
-    else:  # another model's codes (GazeNeRF's NL3DMM): kept by name, never poured into the native slots
-        del out["latent_codes"]
-        out.update({f"latent_codes_{name}": a for name, a in parts.items()})
+    out["latent_codes"] = np.concatenate([parts[name] for name in MODEL_CODES], 1)
+    out.update({CODE_KEYS[name]: a for name, a in parts.items() if name not in MODEL_CODES})
+
+
+def frame_rows(frame_index: np.ndarray, cam_index: np.ndarray | None = None, where: str = "") -> list[np.ndarray]:
+    """The rows of each frame, to triangulate across: a run of consecutive rows with one ``frame_index`` in which
+    no camera repeats. GazeNeRF writes a frame's cameras in turn (dataset_pre_processing.py L383-445) and the
+    index as uint8 (L260-265): frames 256 apart share an index value but never a run. A frame seen by fewer than
+    two cameras is one ToolkitError naming ``where``, the frame and the key."""
+    runs = _frame_runs(frame_index, cam_index)
+    for rows in runs:
+        if len(rows) < 2:
+            raise ToolkitError(f"{_frame_what(where, frame_index, rows)} is seen by {len(rows)} camera; triangulating "
+                               "its 3D landmarks from 'facial_landmarks' needs at least 2")
+    return runs
+
+
+def _frame_what(where: str, frame_index: np.ndarray, rows: np.ndarray) -> str:
+    return (f"{_where(where)}key 'facial_landmarks_3d': frame_index {int(np.reshape(frame_index, -1)[rows[0]])} "
+            f"(rows {rows[0]}-{rows[-1]})")
+
+
+def _frame_runs(frame_index: np.ndarray, cam_index: np.ndarray | None) -> list[np.ndarray]:
+    frame_index = np.asarray(frame_index).reshape(-1)
+    cams = None if cam_index is None else np.asarray(cam_index).reshape(-1)
+    runs, start, seen = [], 0, set()
+    for i in range(len(frame_index)):
+        if i > start and (frame_index[i] != frame_index[start] or (cams is not None and cams[i] in seen)):
+            runs.append(np.arange(start, i))
+            start, seen = i, set()
+        if cams is not None:
+            seen.add(cams[i])
+    if len(frame_index):
+        runs.append(np.arange(start, len(frame_index)))
+    return runs
+
+
+MIN_RAY_ANGLE = 1e-3
+"""Radians: a landmark whose rays from a frame's cameras all lie closer than this to parallel has no depth to
+triangulate (the cameras share a centre, or look at it along one line)."""
+GAUSS_NEWTON_STEPS = 3
+
+
+def _triangulate(uv: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, str]:
+    """Points [L, 3] seen at pixels ``uv`` [C, L, 2] by C cameras x = K (R X + t) (float64): the linear
+    (DLT) solution on normalized image coordinates, then Gauss-Newton steps on the pixel reprojection error.
+    Returns (points, "") or (anything, why the triangulation is degenerate)."""
+    xn = np.einsum("cij,clj->cli", np.linalg.inv(K), np.concatenate([uv, np.ones(uv.shape[:2] + (1,))], -1))
+    P = np.concatenate([R, t[:, :, None]], -1)  # [C, 3, 4]
+    A = np.concatenate([xn[..., :1] * P[:, None, 2] - P[:, None, 0],
+                        xn[..., 1:2] * P[:, None, 2] - P[:, None, 1]], 0)  # [2C, L, 4]
+    A = A.transpose(1, 0, 2)
+    A = A / np.linalg.norm(A, axis=-1, keepdims=True).clip(1e-300)
+    _, _, vt = np.linalg.svd(A)
+    Xh = vt[:, -1]
+    if not np.isfinite(Xh).all() or (np.abs(Xh[:, 3]) < 1e-12 * np.abs(Xh[:, :3]).max(1)).any():
+        return Xh[:, :3], "a landmark at infinity (parallel rays)"
+    X = Xh[:, :3] / Xh[:, 3:]
+    centres = -np.einsum("cji,cj->ci", R, t)  # [C, 3]
+    rays = X[None] - centres[:, None]  # [C, L, 3]
+    rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True).clip(1e-300)
+    cos = np.einsum("ali,bli->lab", rays, rays).clip(-1, 1)
+    if (np.arccos(cos.min((1, 2))) < MIN_RAY_ANGLE).any():
+        return X, f"rays closer than {MIN_RAY_ANGLE} rad to parallel (cameras without a baseline)"
+    for _ in range(GAUSS_NEWTON_STEPS):
+        p = np.einsum("cij,lj->cli", R, X) + t[:, None]  # camera coordinates [C, L, 3]
+        q = np.einsum("cij,clj->cli", K, p)
+        r = q[..., :2] / q[..., 2:] - uv  # [C, L, 2] pixels
+        # d(q_xy / q_z)/dX = (K[:2] - (q_xy / q_z) K[2]) R / q_z
+        J = np.einsum("clab,cbj->claj", K[:, None, :2] - (q[..., :2] / q[..., 2:])[..., None] * K[:, None, None, 2],
+                      R) / q[..., 2:, None]  # [C, L, 2, 3]
+        JtJ = np.einsum("claj,clak->ljk", J, J)
+        Jtr = np.einsum("claj,cla->lj", J, r)
+        X = X - np.linalg.solve(JtJ, Jtr[..., None])[..., 0]
+    depth = np.einsum("cij,lj->cli", R, X)[..., 2] + t[:, 2:3]
+    if not np.isfinite(X).all() or (depth <= 0).any():
+        return X, "a landmark behind a camera"
+    return X, ""
+
+
+def triangulate_frames(landmarks: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, frame_index: np.ndarray,
+                       cam_index: np.ndarray | None = None, where: str = "") -> np.ndarray:
+    """[N, L, 3] the 3D landmarks of every row, triangulated per frame from the 2D ``landmarks`` [N, L, 2] (pixels,
+    native u: 0 is the left edge) of the frame's rows (:func:`_frame_runs`), each seen by x = K (R X + t) (``K``
+    [N, 3, 3], ``R`` [N, 3, 3], ``t`` [N, 3]), in the frame those cameras map from; every row of a frame gets
+    its frame's points. Linear triangulation, refined by Gauss-Newton on the pixel error, in float64. A frame seen
+    by fewer than two cameras, or whose triangulation is degenerate, is one ToolkitError naming ``where``, the
+    frame and the key."""
+    lm, K, R, t = (np.asarray(a, np.float64) for a in (landmarks, K, R, t))
+    out = np.empty(lm.shape[:2] + (3,))
+    for rows in frame_rows(frame_index, cam_index, where):
+        X, degenerate = _triangulate(lm[rows], K[rows], R[rows], t[rows])
+        if degenerate:
+            raise ToolkitError(f"{_frame_what(where, frame_index, rows)}: the triangulation from its {len(rows)} "
+                               f"cameras' 'facial_landmarks' is degenerate: {degenerate}")
+        out[rows] = X
+    return out
+
+
+def _head_frame_world(layout: Layout, rows: Mapping[str, np.ndarray], out: dict, where: str) -> None:
+    """A layout whose cameras map each row's head frame (``frame_3d`` "triangulated"): the world is that head
+    frame, so ``pose`` 0 and ``scale`` 1; ``facial_landmarks_3d`` triangulated per frame. Made only from rows
+    with the cameras (a caller converting the gaze alone gets no pose)."""
+    if "w2c_Rmat" not in rows:
+        return
+    n = len(rows["w2c_Rmat"])
+    out["pose"] = np.zeros((n, 6), np.float32)
+    out["scale"] = np.ones((n, 1), np.float32)
+    if "facial_landmarks" in rows:
+        why = "triangulate the 3D landmarks"
+        out["facial_landmarks_3d"] = triangulate_frames(
+            rows["facial_landmarks"], _need(rows, "inmat", why), rows["w2c_Rmat"], _need(rows, "w2c_Tvec", why),
+            _need(rows, "frame_index", why), rows.get("cam_index"), where)
 
 
 def _head_gaze_from_camera(gaze_cam: np.ndarray, head_pose: np.ndarray) -> np.ndarray:
@@ -333,11 +492,13 @@ def _native_dtypes(out: dict) -> dict:
     return out
 
 
-def to_native(layout: str | Layout, rows: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The arrays a ``layout`` file stores, in native conventions and names: gaze sign, 3D landmarks and
-    vertices in world coordinates, 1-D indices, (N, 1) scale, float32 labels, codes by slice. Keys with no
-    native meaning (GazeNeRF's c2w_*, inv_inmat, pitchyaw, pitchyaw_3d; ETH-XGaze's face_mat_norm) are left out;
-    nothing the layout lacks is invented."""
+def to_native(layout: str | Layout, rows: Mapping[str, np.ndarray], where: str = "") -> dict[str, np.ndarray]:
+    """The arrays a ``layout`` file stores (whole keys: all of the file's rows), in native conventions and names:
+    gaze sign, 3D landmarks and vertices in world coordinates, 1-D indices, (N, 1) scale, float32 labels, codes
+    as the model's identity + expression (``latent_codes``) and the other slices by name (:data:`CODE_KEYS`).
+    Keys with no native meaning (GazeNeRF's c2w_*, inv_inmat, pitchyaw, pitchyaw_3d; ETH-XGaze's face_mat_norm)
+    are left out. What the layout's frames settle is made (GazeNeRF: pose 0, scale 1, 3D landmarks triangulated
+    per frame, so pass every row of a frame; errors name ``where``); nothing else is invented (no ``vertice``)."""
     layout = get_layout(layout)
     out = {layout.renames.get(k, k): np.asarray(v) for k, v in rows.items()}
     out = {k: v for k, v in out.items() if k in _NATIVE_KEYS}
@@ -355,6 +516,8 @@ def to_native(layout: str | Layout, rows: Mapping[str, np.ndarray]) -> dict[str,
         for k in LANDMARK_3D_KEYS:
             if k in out:
                 out[k] = _world_from_stored(out[k], R, t)
+    if layout.frame_3d == "triangulated":
+        _head_frame_world(layout, rows, out, where)
     if layout.codes and "latent_codes" in out:
         _codes_to_native(layout, out["latent_codes"], out)
     if layout.gaze_frame == "normalized camera" and "pitchyaw_cam" in out:
@@ -445,9 +608,9 @@ def read_split_file(path: str | os.PathLike, layout: str | Layout) -> tuple[list
 
 def row_layout(path: str | os.PathLike, requested: str = "auto") -> Layout:
     """The layout of a subject file that the training and redirection stages read row by row: detected from
-    its keys (``requested`` "auto") or the named one, checked against the keys. Layouts that cannot give every
-    native row key (GazeNeRF: no pose, scale or 3D keys; the ETH-XGaze release: no masks, cameras or codes)
-    are one line naming what is missing."""
+    its keys (``requested`` "auto") or the named one, checked against the keys. A layout that cannot give every
+    native row key but the mesh (the ETH-XGaze release: no masks, cameras or codes) is one line naming what is
+    missing; GazeNeRF's gets its pose, scale and 3D landmarks from :func:`to_native`."""
     keys, shapes = describe_file(path)
     if requested != "auto":
         layout = check_layout(requested, keys, shapes, str(path))
@@ -464,11 +627,24 @@ def row_layout(path: str | os.PathLike, requested: str = "auto") -> Layout:
                 check_layout(closest, keys, shapes, str(path))
                 raise
             layout = DITGAZE
-    lacking = sorted(set(REQUIRED) - {layout.renames.get(k, k) for k in layout.keys})
+    lacking = sorted(set(REQUIRED) - native_keys(layout) - {"vertice"})  # the mesh: only with_mesh readers
     if lacking:
         raise ToolkitError(f"{path}: a {layout.name} file ({layout.description}) has no {', '.join(lacking)}, which "
                            f"the stages that render or pose heads need")
     return layout
+
+
+def check_frames(path: str | os.PathLike, layout: str | Layout) -> None:
+    """Up front, for a layout whose 3D landmarks are triangulated per frame (GazeNeRF's): every frame of the file
+    at ``path`` is seen by two cameras or more (:func:`frame_rows`; the triangulation itself runs when the labels
+    are read)."""
+    from toolkit.h5 import has_key, open_h5, read_array
+
+    if get_layout(layout).frame_3d != "triangulated":
+        return
+    with open_h5(path) as f:
+        cams = read_array(path, f, "cam_index") if has_key(path, f, "cam_index") else None
+        frame_rows(read_array(path, f, "frame_index"), cams, str(path))
 
 
 def _written_here(path: str | os.PathLike) -> bool:
@@ -483,12 +659,43 @@ def _written_here(path: str | os.PathLike) -> bool:
             return False
 
 
+def native_keys(layout: str | Layout) -> frozenset[str]:
+    """The native row keys a ``layout``'s files give once converted (:func:`to_native`): what they store, renamed,
+    and what their frames settle (GazeNeRF's pose, scale and 3D landmarks)."""
+    layout = get_layout(layout)
+    keys = {layout.renames.get(k, k) for k in layout.keys}
+    if layout.frame_3d == "triangulated":
+        keys |= {"pose", "scale", "facial_landmarks_3d"}
+    return frozenset(keys)
+
+
+def stored_widths(layout: str | Layout) -> dict[str, tuple[int, ...]]:
+    """Trailing shapes of keys a ``layout`` stores at another width than the native schema, for the validator
+    (``train.data.format.validate_subject_file``): GazeNeRF's 306-d ``latent_codes``."""
+    spec = get_layout(layout).spec("latent_codes") or ""
+    return {"latent_codes": (int(spec[2:]),)} if spec[2:].isdigit() else {}
+
+
+def mesh_to_native(layout: str | Layout, vertice: np.ndarray, w2c_R: np.ndarray, w2c_t: np.ndarray) -> np.ndarray:
+    """One row's ``vertice`` [V, 3] of a ``layout`` file in world coordinates (float32), with that row's camera:
+    the mesh is read a row at a time, the other keys whole (:func:`to_native`)."""
+    v = np.asarray(vertice)
+    if get_layout(layout).frame_3d == "w2c-transposed":
+        v = _world_from_stored(v[None], np.asarray(w2c_R)[None], np.asarray(w2c_t)[None])[0]
+    return v.astype(np.float32)
+
+
 def native_row(layout: str | Layout, row: Mapping[str, np.ndarray], index: int) -> dict[str, np.ndarray]:
     """One row (arrays without the row axis) of a ``layout`` file in native conventions (:func:`to_native`);
-    ``frame_index``, when the layout does not store it, is the row ``index`` (each row its own frame)."""
+    ``frame_index``, when the layout does not store it, is the row ``index`` (each row its own frame). A layout
+    whose rows need their frame's other rows (GazeNeRF: 3D landmarks triangulated across a frame's cameras) is
+    refused: convert the file's arrays whole with :func:`to_native`."""
     layout = get_layout(layout)
     if layout is DITGAZE:
         return dict(row)
+    if layout.frame_3d == "triangulated":
+        raise ToolkitError(f"data.layout={layout.name}: a row's 3D landmarks are triangulated from its frame's "
+                           "other rows; convert the file's arrays whole (train.data.layouts.to_native)")
     out = {k: v[0] for k, v in to_native(layout, {k: np.asarray(v)[None] for k, v in row.items()}).items()}
     out.setdefault("frame_index", np.int32(index))
     return out

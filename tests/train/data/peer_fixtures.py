@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 RES, N_VERTS, DISTANCE = 16, 12, 0.6
-FOCAL = RES * DISTANCE / 0.26  # 0.26 m at the face fills the image, as the native generator's cameras
+# focal length: res * DISTANCE / 0.26, so 0.26 m at the face fills the image, as the native generator's cameras
 FACE_CENTRE_LANDMARKS = [36, 39, 42, 45, 48, 54]  # docs/data.md: the normalized camera looks at their mean
 
 
@@ -61,10 +61,11 @@ def _normalized_camera(face_world: np.ndarray, head_x: np.ndarray, towards: np.n
     return R, -R @ centre
 
 
-def native_truth(n_frames: int = 2, n_cams: int = 3, seed: int = 0) -> Truth:
-    """``n_frames`` x ``n_cams`` rows, frame-major, with exact native labels (2D landmarks carry +-0.5 px of
-    detector-like noise, as real files' do)."""
+def native_truth(n_frames: int = 2, n_cams: int = 3, seed: int = 0, *, res: int = RES, noise_px: float = 0.5) -> Truth:
+    """``n_frames`` x ``n_cams`` rows at ``res``², frame-major, with exact native labels (2D landmarks carry
+    +-``noise_px`` of detector-like noise, as real files' do)."""
     rng = np.random.default_rng(seed)
+    focal = res * DISTANCE / 0.26
     n = n_frames * n_cams
     base = rng.normal(0, 0.035, (68, 3)) * [1.0, 1.0, 0.4]
     verts0 = rng.normal(0, 0.06, (N_VERTS, 3))
@@ -84,17 +85,17 @@ def native_truth(n_frames: int = 2, n_cams: int = 3, seed: int = 0) -> Truth:
                 out[k].append(val)
     a = {k: np.asarray(v, np.float64) for k, v in out.items()}
     cam = np.einsum("nij,nkj->nki", a["R"], a["q"]) + a["t"][:, None]
-    uv = FOCAL * cam[..., :2] / cam[..., 2:] + RES / 2 + rng.uniform(-0.5, 0.5, (n, 68, 2))
+    uv = focal * cam[..., :2] / cam[..., 2:] + res / 2 + rng.uniform(-noise_px, noise_px, (n, 68, 2))
     z = a["M"][:, :, 2]  # head +z (into the head) in the camera: the face looks along -z
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     rows = {
-        "face_patch": rng.integers(0, 256, (n, RES, RES, 3), dtype=np.uint8),
-        "head_mask": (rng.random((n, RES, RES)) < 0.6).astype(np.uint8) * 255,
-        "left_eye_mask": (rng.random((n, RES, RES)) < 0.1).astype(np.uint8) * 255,
-        "right_eye_mask": (rng.random((n, RES, RES)) < 0.1).astype(np.uint8) * 255,
+        "face_patch": rng.integers(0, 256, (n, res, res, 3), dtype=np.uint8),
+        "head_mask": (rng.random((n, res, res)) < 0.6).astype(np.uint8) * 255,
+        "left_eye_mask": (rng.random((n, res, res)) < 0.1).astype(np.uint8) * 255,
+        "right_eye_mask": (rng.random((n, res, res)) < 0.1).astype(np.uint8) * 255,
         "facial_landmarks": f32(uv), "facial_landmarks_3d": f32(a["q"]), "latent_codes": f32(a["code"]),
         "pose": f32(a["pose"]), "scale": f32(a["scale"]), "w2c_Rmat": f32(a["R"]), "w2c_Tvec": f32(a["t"]),
-        "inmat": f32(np.tile([[FOCAL, 0, RES / 2], [0, FOCAL, RES / 2], [0, 0, 1]], (n, 1, 1))),
+        "inmat": f32(np.tile([[focal, 0, res / 2], [0, focal, res / 2], [0, 0, 1]], (n, 1, 1))),
         "pitchyaw_head": f32(a["gaze"]),
         "face_head_pose": f32(np.stack([np.arcsin(z[:, 1]), np.arctan2(z[:, 0], z[:, 2])], -1)),
         "cam_index": np.tile(np.arange(n_cams, dtype=np.int32), n_frames),
@@ -184,8 +185,21 @@ def _gazenerf_common(f, truth: Truth, R: np.ndarray, t: np.ndarray) -> None:
     _create(f, "face_head_pose", normalized_head_pose(truth), np.float64)  # L438-441
 
 
-def write_gazenerf(path, truth: Truth, seed: int = 1) -> np.ndarray:
-    """A GazeNeRF file (dataset_pre_processing.py L80-466); returns the 306-d codes it wrote."""
+def gazenerf_codes_from_native(codes: np.ndarray, seed: int = 1) -> np.ndarray:
+    """[N, 306] GazeNeRF codes holding native ones [N, 144]: the 80 identity dims zero-padded to NL3DMM's 100, the 64
+    expression dims to its 79, random texture (100) and illumination (27) dims, the same for a row's frame-mates
+    when their native codes are (configs/gazenerf_options.py L11-14; dataset_pre_processing.py L391-395)."""
+    codes = np.asarray(codes, np.float64)
+    uniq, inverse = np.unique(codes, axis=0, return_inverse=True)
+    rest = np.random.default_rng(seed).normal(0, 1, (len(uniq), 127))[inverse.reshape(-1)]
+    z = lambda k: np.zeros((len(codes), k))  # noqa: E731
+    return np.concatenate([codes[:, :80], z(20), codes[:, 80:144], z(15), rest], 1)
+
+
+def write_gazenerf(path, truth: Truth, seed: int = 1, *, native_codes: bool = False, optional: bool = True) -> np.ndarray:
+    """A GazeNeRF file (dataset_pre_processing.py L80-466); returns the 306-d codes it wrote: random per frame, or
+    with ``native_codes`` the truth's (:func:`gazenerf_codes_from_native`). ``optional=False`` leaves out
+    ``pitchyaw`` (an annotation column with no native meaning), so the keys are exactly the layout's required."""
     r = truth.rows
     R64, t64 = r["w2c_Rmat"].astype(np.float64), r["w2c_Tvec"].astype(np.float64)
     Rp = rodrigues(r["pose"][:, :3].astype(np.float64))
@@ -195,10 +209,15 @@ def write_gazenerf(path, truth: Truth, seed: int = 1) -> np.ndarray:
     # L391-395: every row of a frame holds the same code (the mean of its first three views' fits);
     # 100 identity + 79 expression + 100 texture + 27 illumination (configs/gazenerf_options.py L11-14)
     frame = r["frame_index"].reshape(-1)
-    codes = np.random.default_rng(seed).normal(0, 1, (frame.max() + 1, 306))[frame]
+    if native_codes:
+        codes = gazenerf_codes_from_native(r["latent_codes"], seed)
+    else:
+        codes = np.random.default_rng(seed).normal(0, 1, (frame.max() + 1, 306))[frame]
     with h5py.File(path, "w") as f:
         _gazenerf_common(f, truth, R, t)
         _create(f, "latent_codes", codes, np.float64)  # L306-312
+        if not optional:
+            del f["pitchyaw"]
     return codes
 
 
@@ -238,6 +257,11 @@ def write_xgaze(path, truth: Truth, labels: bool = True, landmarks: bool = False
         if labels:
             _create(f, "face_gaze", xgaze_face_gaze(truth), np.float64, lzf=False)  # L307, L313-315
         _create(f, "face_head_pose", normalized_head_pose(truth), np.float64, lzf=False)  # L309, L327-331
+
+
+def subset(truth: Truth, rows) -> Truth:
+    """``truth`` with only ``rows`` (indices or a mask), as a file missing some of its views would hold it."""
+    return Truth({k: v[rows] for k, v in truth.rows.items()}, truth.landmarks_head[rows], truth.head_in_camera[rows])
 
 
 def write_ditgaze(path, truth: Truth) -> Path:

@@ -1,5 +1,5 @@
 """GazeDataset reads the peers' files in native conventions (train.data.layouts): a GazeGaussian file's gaze
-sign and 3D frame are converted at read time; layouts without what the stages need are one line."""
+sign and 3D frame are converted when its labels are read; layouts without what the stages need are one line."""
 
 from __future__ import annotations
 
@@ -46,15 +46,23 @@ def test_a_native_file_reads_unchanged(tmp_path, truth):
     np.testing.assert_array_equal(ds.read_row(0, 2)["pitchyaw_head"], truth.rows["pitchyaw_head"][2])
 
 
-def test_layouts_the_stages_cannot_use_are_one_line(tmp_path, truth):
-    nerf, xg = tmp_path / "xgaze_subject0001.h5", tmp_path / "subject0002.h5"
-    write_gazenerf(nerf, truth)
+def test_the_release_layout_the_stages_cannot_use_is_one_line(tmp_path, truth):
+    xg = tmp_path / "subject0002.h5"
     write_xgaze(xg, truth)
-    with pytest.raises(ToolkitError, match=r"xgaze_subject0001.h5: a gazenerf file .* has no facial_landmarks_3d, "
-                                           r"pose, scale, vertice"):
-        GazeDataset([nerf])
-    with pytest.raises(ToolkitError, match=r"subject0002.h5: a xgaze file .* has no .*head_mask"):
+    with pytest.raises(ToolkitError, match=r"subject0002.h5: a xgaze file .* has no .*head_mask") as err:
         GazeDataset([xg])
+    assert "\n" not in str(err.value) and "vertice" not in str(err.value)  # the mesh: with_mesh readers only
+
+
+def test_a_gazenerf_file_reads_but_has_no_mesh(tmp_path, truth):
+    """GazeNeRF's files (no pose, scale or 3D keys) are read, converted whole (tests/train/data/
+    test_gazenerf_files.py); a reader asking for the mesh, which nothing makes up, is one line."""
+    nerf = tmp_path / "xgaze_subject0001.h5"
+    write_gazenerf(nerf, truth)
+    ds = GazeDataset([nerf])
+    assert ds.layouts == ["gazenerf"] and ds[0]["latent_code"].shape == (179,)
+    with pytest.raises(ToolkitError, match=r"xgaze_subject0001.h5: with_mesh: a gazenerf file has no key 'vertice'"):
+        GazeDataset([nerf], with_mesh=True)
 
 
 def test_a_named_layout_that_contradicts_the_file_is_one_line(tmp_path, truth):

@@ -166,13 +166,40 @@ def test_gazenerf_gaze_sign_and_codes(files, truth):
     got = _native(files, "gazenerf")
     assert _angle_diff(got["pitchyaw_head"], truth.rows["pitchyaw_head"]) < 1e-6
     assert _angle_diff(got["face_head_pose"], truth.rows["face_head_pose"]) < 1e-6
-    assert "latent_codes" not in got  # NL3DMM codes are not the native 80 + 64
-    widths = {k: v.shape[1] for k, v in got.items() if k.startswith("latent_codes_")}
-    assert widths == {"latent_codes_identity": 100, "latent_codes_expression": 79,
-                      "latent_codes_texture": 100, "latent_codes_illumination": 27}
-    np.testing.assert_allclose(got["latent_codes_illumination"], files["gazenerf_codes"][:, 279:], atol=1e-6)
-    assert not {"pose", "scale", "facial_landmarks_3d", "c2w_Rmat", "pitchyaw_3d"} & set(got)
+    # the model's code: NL3DMM identity (100) then expression (79), configs/gazenerf_options.py L11-14
+    codes = files["gazenerf_codes"]
+    assert got["latent_codes"].shape == (6, 179) and got["latent_codes"].dtype == np.float32
+    np.testing.assert_allclose(got["latent_codes"], np.concatenate([codes[:, :100], codes[:, 100:179]], 1), atol=1e-6)
+    assert got["latent_texture"].shape == (6, 100) and got["latent_illumination"].shape == (6, 27)
+    np.testing.assert_allclose(got["latent_illumination"], codes[:, 279:], atol=1e-6)
+    assert not any(k.startswith("latent_codes_") for k in got)
+    assert not {"c2w_Rmat", "pitchyaw_3d", "pitchyaw", "vertice"} & set(got)
     assert got["frame_index"].dtype == np.int32 and got["cam_index"].shape == (6,)
+
+
+def test_gazenerf_rows_are_posed_in_their_head_frame(files):
+    """w2c maps the NL3DMM head frame (fitting_nl3dmm.py L276-279): the world is the row's head frame, so pose 0
+    and scale 1; the 3D landmarks are triangulated per frame (accuracy: tests/train/data/test_gazenerf_files.py)."""
+    got = _native(files, "gazenerf")
+    assert (got["pose"] == 0).all() and got["pose"].shape == (6, 6) and (got["scale"] == 1).all()
+    assert got["facial_landmarks_3d"].shape == (6, 68, 3) and got["facial_landmarks_3d"].dtype == np.float32
+    frame = got["frame_index"]
+    assert (got["facial_landmarks_3d"][frame == 0] == got["facial_landmarks_3d"][frame == 0][0]).all()
+    # the gaze alone (train.data inspect) converts without the cameras, and makes no pose
+    assert set(L.to_native("gazenerf", {"pitchyaw_head": np.zeros((6, 2))})) == {"pitchyaw_head"}
+    with pytest.raises(ToolkitError, match="convert the file's arrays whole"):
+        L.native_row("gazenerf", {"pitchyaw_head": np.zeros(2)}, 0)
+
+
+def test_code_widths_per_layout():
+    assert L.code_widths("ditgaze") == L.code_widths("gazegaussian") == (80, 64)
+    assert L.code_widths("gazenerf") == (100, 79)
+    with pytest.raises(ToolkitError, match="data.layout=xgaze: its files carry no identity and expression codes"):
+        L.code_widths("xgaze")
+    assert L.agreed_code_widths([("a.h5", "ditgaze"), ("b.h5", "gazegaussian")]) == (80, 64)
+    with pytest.raises(ToolkitError) as e:
+        L.agreed_code_widths([("a.h5", "ditgaze"), ("xgaze_b.h5", "gazenerf")])
+    assert _one_line(e).startswith("xgaze_b.h5: codes of 100 identity + 79 expression dims, but a.h5 has 80 + 64")
 
 
 def test_xgaze_gaze_in_camera_and_head_frames(files, truth):
