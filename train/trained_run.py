@@ -24,7 +24,8 @@ from train.stages.pipeline import RunContext, finished_stages
 class TrainedRun(RunArtifacts):
     """A run directory's config and the outputs of its finished stages (``.context`` for the stage runner),
     with what is built from them: ``.split(which)``, ``.estimator(role, device)``, ``.load_model(device)``,
-    ``.build_model(device)``, ``.row_fitter(...)`` (see :class:`RunArtifacts`)."""
+    ``.build_model(device)``, ``.row_fitter(...)`` (see :class:`RunArtifacts`); its model's code is as wide as the
+    data it was trained on (``.code_widths()``)."""
 
     @classmethod
     def open(cls, run_dir: str | Path) -> "TrainedRun":
@@ -45,3 +46,15 @@ class TrainedRun(RunArtifacts):
                 "%s: stage(s) %s ran under a different config than config.yaml now gives; using their outputs as "
                 "they are", run_dir, ", ".join(stale))
         return cls(ctx)
+
+    def code_widths(self) -> tuple[int, int]:
+        """(identity, expression) widths of the trained model's code, as its final checkpoint records them
+        (``train.stages.gaussian.checkpoint_code_widths``): the run's data's, 80 + 64 for native data."""
+        from train.stages.gaussian import checkpoint_code_widths
+
+        return checkpoint_code_widths(self.context.path("gaussian", "checkpoint"))
+
+    def build_model(self, device, code_widths: tuple[int, int] | None = None):
+        """(model, renderer) untrained, at the trained model's code widths (:meth:`code_widths`) unless given:
+        a finished run's training files need not be at hand."""
+        return super().build_model(device, code_widths or self.code_widths())

@@ -52,9 +52,14 @@ def latent_code(identity: np.ndarray, expression: np.ndarray) -> np.ndarray:
 
 
 def params_from_code(code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of :func:`latent_code`: [..., 144] -> ([..., 22] identity, [..., 4] expression)."""
+    """Inverse of :func:`latent_code`: [..., 144] -> ([..., 22] identity, [..., 4] expression). Only the
+    generator's codes (80 identity + 64 expression dims) hold these parameters: a code of another width (a peer
+    layout's, GazeNeRF's 100 + 79) is a ToolkitError."""
     code = np.asarray(code, np.float32)
-    return code[..., :ID_CODE_DIM] @ _W_ID, code[..., ID_CODE_DIM:] @ _W_EXPR
+    if code.shape[-1:] != (ID_CODE_DIM + EXPR_CODE_DIM,):
+        raise ToolkitError(f"params_from_code: expected a synthetic subject's code of {ID_CODE_DIM} identity + "
+                           f"{EXPR_CODE_DIM} expression dims, got shape {list(code.shape)}")
+    return code[..., :ID_CODE_DIM] @ _W_ID, code[..., ID_CODE_DIM:ID_CODE_DIM + EXPR_CODE_DIM] @ _W_EXPR
 
 
 def check_expression(expression, name: str = "expression") -> np.ndarray:

@@ -39,6 +39,7 @@ class BaselineConfig:
     min_channels: int = 32
     """Channels halve per block down to this floor (as in the reference)."""
     shape_dim: int = 144
+    """Identity + expression code size: the Gaussian model's ``code_dim``, the data's."""
 
     def validate(self) -> None:
         u = self.upscale

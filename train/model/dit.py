@@ -7,7 +7,7 @@ map (GazeGaussian renders it at 1/4 of the output image, i.e. 2x the 8x-down lat
 How the two conditioning signals enter:
 
 * **Vector conditioning through adaLN.** ``c = TimestepEmbedder(t) + CodeEmbedder([tau, phi?, gamma?])`` where
-  ``tau`` is the shape code (expression + identity, 144-d), ``phi`` the gaze (pitch, yaw; embedded as
+  ``tau`` is the shape code (identity + expression, ``shape_dim``: 144 for native data), ``phi`` the gaze (pitch, yaw; embedded as
   sin/cos) and ``gamma`` the head pose (6-d) -- the last two only when the configuration enables them. Codes
   pass through a soft saturation ``L * tanh(x / L)`` (``L = CODE_LIMIT``) before the MLP so that huge codes
   cannot blow up the modulations; ordinary codes (|x| << L) are passed unchanged. Every ``DiTBlock`` and the
@@ -72,7 +72,7 @@ class DiTConfig:
     num_heads: int = 8
     mlp_ratio: float = 4.0
     shape_dim: int = 144
-    """Expression + identity code size (GazeGaussian's tau)."""
+    """Identity + expression code size (GazeGaussian's tau): the Gaussian model's ``code_dim``, the data's."""
     gaze_dim: int = 0
     """2 to condition the adaLN vector on the gaze (pitch, yaw), 0 to leave it out."""
     pose_dim: int = 0
@@ -204,7 +204,7 @@ class FinalLayer(nn.Module):
 class DiT(nn.Module):
     """Latent DiT conditioned on a splatted feature map (channel concat) and codes (adaLN-Zero).
 
-    ``forward(x [B, C, H, W], t [B], feats [B, F, h, w], shape_code [B, 144], gaze [B, 2]?, pose [B, 6]?)``
+    ``forward(x [B, C, H, W], t [B], feats [B, F, h, w], shape_code [B, shape_dim], gaze [B, 2]?, pose [B, 6]?)``
     returns the network output ``[B, C, H, W]`` (epsilon or v, as the diffusion's ``prediction`` says).
     ``H`` and ``W`` must be multiples of the patch size; other grids than ``input_size`` work (the fixed
     position embedding is recomputed for them).

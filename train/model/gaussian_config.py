@@ -17,8 +17,11 @@ class GaussianModelConfig:
 
     feature_dim: int = 32
     """channels of the splatted feature maps; the first three are RGB."""
-    code_dim: int = 144
-    """expression + identity code τ."""
+    identity_dim: int = 80
+    expression_dim: int = 64
+    """the widths of the code τ's identity and expression parts (τ = identity ++ expression, :attr:`code_dim`
+    wide): the training data's (``train.data.layouts.code_widths``: 80 + 64 for native files, 100 + 79 for
+    GazeNeRF's), stored with the model so that a trained run reloads at them."""
     pose_dim: int = 6
     """head pose γ: axis-angle (3, radians) + translation (3, scene units)."""
     hidden: int = 128
@@ -57,8 +60,21 @@ class GaussianModelConfig:
     """> 0 adds per-training-image learnable codes and camera offsets (auto-decoder)."""
     cache_face: bool = True
 
+    @property
+    def code_dim(self) -> int:
+        """The width of the code τ: identity + expression."""
+        return self.identity_dim + self.expression_dim
+
+    def code_parts(self, code):
+        """(identity, expression) parts of codes [..., code_dim] (arrays or tensors), at the stored widths."""
+        return code[..., :self.identity_dim], code[..., self.identity_dim:self.code_dim]
+
     def validate(self) -> None:
         """ToolkitError on values no model can be built with (the cross-field rules included)."""
+        for name in ("identity_dim", "expression_dim"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ToolkitError(f"GaussianModelConfig.{name}: expected a code width >= 1, got {v!r}")
         if self.near_m < 0 or self.far_m <= self.near_m:
             raise ToolkitError(f"GaussianModelConfig: need 0 <= near_m < far_m, got near_m={self.near_m}, far_m={self.far_m}")
         if not 0 < self.render_scale <= 1:

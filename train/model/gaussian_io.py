@@ -86,6 +86,12 @@ def read_checkpoint(path) -> tuple[dict, Streams, Streams, dict[str, torch.Tenso
     if info.get("kind") != CHECKPOINT_KIND:
         raise ToolkitError(f"{path}: not a Gaussian model checkpoint (kind={info.get('kind')!r})")
     raw = info.get("config")
+    if isinstance(raw, dict) and "code_dim" in raw:  # written before the code's widths were stored: 80 + 64
+        raw = dict(raw)
+        old = raw.pop("code_dim")
+        base = GaussianModelConfig()
+        if old != raw.get("identity_dim", base.identity_dim) + raw.get("expression_dim", base.expression_dim):
+            raise ToolkitError(f"{path}: config code_dim={old!r} disagrees with its identity and expression widths")
     if not isinstance(raw, dict) or set(raw) - set(GaussianModelConfig.__dataclass_fields__):
         raise ToolkitError(f"{path}: missing or unknown Gaussian model config fields")
     need = [*FACE_TENSORS, *EYE_TENSORS, "eye_side", "eye_centers", "landmarks"]

@@ -1,7 +1,7 @@
 """The two-stream Gaussian model of DiT-Gaze (GazeGaussian's, with its eye-rotation bugs fixed).
 
 Face stream: canonical face Gaussians (part 0) deformed by :class:`train.model.fields.FaceDeformationField`
-(expression code τ [B, 144] and head pose γ [B, 6]), blended per Gaussian by
+(code τ [B, code_dim] = identity ++ expression, the data's widths, and head pose γ [B, 6]), blended per Gaussian by
 ``λτ = clamp((far − d) / (far − near), 0, 1)``, ``λγ = 1 − λτ`` where d is the distance from the canonical
 Gaussian to the nearest 3D landmark; ``near`` / ``far`` are given in **metres** and converted with the scene's
 ``metadata["units"]`` (m, cm or mm).
@@ -150,7 +150,8 @@ class GaussianModel(nn.Module):
     def _check_inputs(self, code, pose, gaze=None) -> None:
         cfg = self.config
         if code.dim() != 2 or code.shape[1] != cfg.code_dim:
-            raise ToolkitError(f"code: expected [B, {cfg.code_dim}], got {list(code.shape)}")
+            raise ToolkitError(f"code: expected [B, {cfg.code_dim}] ({cfg.identity_dim} identity + {cfg.expression_dim} "
+                               f"expression, the widths of the data the model was built for), got {list(code.shape)}")
         B = code.shape[0]
         if pose.shape != (B, cfg.pose_dim):
             raise ToolkitError(f"pose: expected [B={B}, {cfg.pose_dim}], got {list(pose.shape)}")
@@ -277,7 +278,7 @@ class GaussianModel(nn.Module):
         """Render feature maps.
 
         Args:
-            code [B, 144] τ; pose [B, 6] γ; gaze [B, 2] head-frame (pitch, yaw) radians;
+            code [B, code_dim] τ; pose [B, 6] γ; gaze [B, 2] head-frame (pitch, yaw) radians;
             viewmats [B, 4, 4] world-to-camera; Ks [B, 3, 3] for the **output** size ``width`` × ``height``;
             image_index [B] long (auto-decoder codes/offsets) or None; renders: subset of ("head", "face", "eyes").
         Returns:

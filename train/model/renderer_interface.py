@@ -2,7 +2,7 @@
 
 A renderer turns the splatted feature map of the two-stream Gaussian model into the output image:
 
-* ``render(feats [B, F, h, w], shape_code [B, 144], *, gaze=None, pose=None, steps=None, seed=0)``
+* ``render(feats [B, F, h, w], shape_code [B, C], *, gaze=None, pose=None, steps=None, seed=0)``
   -> image ``[B, 3, h * upscale, w * upscale]`` in [0, 1] (clamped) -- inference;
 * ``training_forward(feats, shape_code, target [B, 3, H, W], *, gaze=None, pose=None, generator=None, t=None)``
   -> :class:`RenderOutput` with the differentiable image the image/gaze losses compare (unclamped, [0, 1]

@@ -32,7 +32,7 @@ def rgb_from_images(model, images: torch.Tensor, masks: torch.Tensor, code: torc
 
     Args:
         model: :class:`train.model.gaussian_model.GaussianModel`.
-        images [B, 3, H, W] in [0, 1]; masks [B, 1, H, W] head masks; code [B, 144]; pose [B, 6];
+        images [B, 3, H, W] in [0, 1]; masks [B, 1, H, W] head masks; code [B, code_dim]; pose [B, 6];
         gaze [B, 2] head frame; viewmats [B, 4, 4]; Ks [B, 3, 3] for the H x W images.
         render_scale: the resolution to read the images at, as a fraction of H x W (default: the model's).
     Returns:

@@ -265,20 +265,23 @@ class GaussianTrainer:
         return terms
 
 
-def build_model(scene_path: Path, cfg: GaussianStageConfig, device) -> GaussianModel:
-    """The two-stream model from the geometry stage's scene; its ``metadata["landmarks"]`` drive λτ."""
+def build_model(scene_path: Path, cfg: GaussianStageConfig, device, code_widths: tuple[int, int] = (80, 64)
+                ) -> GaussianModel:
+    """The two-stream model from the geometry stage's scene; its ``metadata["landmarks"]`` drive λτ. ``code_widths``:
+    (identity, expression) of its code, the data's (``train.data.layouts.code_widths``)."""
     from toolkit.scene import GaussianScene
 
     scene = GaussianScene.load(scene_path)
     landmarks = scene.metadata.get("landmarks")
     landmarks = None if landmarks is None else torch.tensor(landmarks, dtype=torch.float32)
-    return GaussianModel.from_scene(scene, model_config(cfg), landmarks=landmarks).to(device)
+    return GaussianModel.from_scene(scene, model_config(cfg, code_widths), landmarks=landmarks).to(device)
 
 
-def model_config(cfg: GaussianStageConfig) -> GaussianModelConfig:
+def model_config(cfg: GaussianStageConfig, code_widths: tuple[int, int] = (80, 64)) -> GaussianModelConfig:
     """The two-stream model's configuration that the stage's options set (the fields that map to it, and the
-    splat's scale from ``feature_upscale``)."""
-    return component(GaussianModelConfig, cfg, render_scale=1.0 / cfg.feature_upscale)
+    splat's scale from ``feature_upscale``), for codes of ``code_widths`` (identity, expression)."""
+    return component(GaussianModelConfig, cfg, render_scale=1.0 / cfg.feature_upscale,
+                     identity_dim=int(code_widths[0]), expression_dim=int(code_widths[1]))
 
 
 CANONICAL_MEANS = ("face_means", "eye_means")
