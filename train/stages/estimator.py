@@ -1,5 +1,10 @@
 """Stage ``estimator``: train the loss and the evaluation gaze estimators, independently seeded, on the
-training split plus extra procedural subjects of their own, validated on the held-out split."""
+training split plus extra procedural subjects of their own, validated on the held-out split.
+
+A ``data.root`` of ETH-XGaze release files (``data.layout=xgaze``, or detected) is read by
+``train.data.patches`` instead: the estimators train on the release's normalized face patches with their
+``face_gaze`` and ``face_head_pose`` labels and are scored on the held-out subjects that have labels
+(:func:`release_split`; docs/model.md, "ETH-XGaze release files")."""
 
 from __future__ import annotations
 
@@ -7,6 +12,7 @@ from pathlib import Path
 
 import torch
 
+from toolkit.errors import ToolkitError
 from toolkit.io import atomic_write_json
 from train.config import component
 from train.run_config import RunConfig
@@ -37,8 +43,20 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
         ctx.log("[estimator] synthetic_subjects ignored: data.root is an external dataset")
     threads = torch.get_num_threads()
     device = run.device
-    job = dict(config=ctx.config, train_files=run.split("train"), test_files=run.split("test"),
-               run_dir=ctx.run_dir, device=device)
+    release = bool(ctx.config.data.root) and is_release(run)
+    if not release:
+        train_files, test_files = run.split("train"), run.split("test")
+    elif todo:
+        check_release_design(ctx.config)
+        train_files, test_files = release_split(run, ctx.log)
+        ctx.log(f"[estimator] ETH-XGaze release files: {len(train_files)} training and {len(test_files)} scored "
+                f"held-out subject(s); face patches read at {release_res(ctx.config)}², labels face_gaze and "
+                f"face_head_pose (normalized camera)")
+    else:  # both estimators given by path: nothing reads the files
+        train_files, test_files = [], []
+    job = dict(config=ctx.config, train_files=train_files, test_files=test_files, run_dir=ctx.run_dir, device=device)
+    if release:
+        job["release"] = True
     if len(todo) == 2 and device.type == "cpu" and threads >= 2:
         split = (threads // 2, threads - threads // 2)
         ctx.log(f"[estimator] training the loss and evaluation estimators at once: 2 processes, "
@@ -46,7 +64,7 @@ def stage_estimator(ctx: RunContext) -> dict[str, str]:
         results = run_at_once([(_train_estimator, dict(job, index=k, role=name, seed=seed, threads=n))
                                for (k, name, seed), n in zip(todo, split)])
     else:
-        data = _estimator_data(ctx.config, job["train_files"], job["test_files"]) if todo else None
+        data = _estimator_data(ctx.config, train_files, test_files, release=release) if todo else None
         try:
             results = [_train_estimator(**job, index=k, role=name, seed=seed, threads=threads, log=ctx.log,
                                         data=data) for k, name, seed in todo]
@@ -70,8 +88,12 @@ def _log_results(ctx: RunContext, roles: list[str], results: list[tuple[str, dic
         metrics.start(f"estimator_{name}", 0)
         metrics.log(f"estimator_{name}", ctx.config.estimator.steps,
                     {k: float(v) for k, v in record.items() if k != "step"})
-        ctx.log(f"[estimator] {name}: {record['train_images']} training images, held-out gaze error "
-                f"{record.get('val_gaze_deg', float('nan')):.2f} deg")
+        if "val_gaze_deg" in record:
+            ctx.log(f"[estimator] {name}: {record['train_images']} training images, held-out gaze error "
+                    f"{record['val_gaze_deg']:.2f} deg")
+        else:  # release files whose held-out subjects have no labels (release_split said so)
+            ctx.log(f"[estimator] {name}: {record['train_images']} training images, not scored (no held-out "
+                    f"images with gaze labels)")
         err = record.get("val_gaze_deg", float("nan"))
         if "val_gaze_deg" in record and not err <= ESTIMATOR_SUSPECT_DEG:  # NaN too
             # Not an error: tiny test runs train for a few steps. But a real run must not go on silently with it.
@@ -84,11 +106,14 @@ def _log_results(ctx: RunContext, roles: list[str], results: list[tuple[str, dic
 
 
 def _estimator_data(config: RunConfig, train_files: list[Path], test_files: list[Path], *,
-                    workers: int | None = None) -> tuple:
+                    workers: int | None = None, release: bool = False) -> tuple:
     """The estimator stage's data of the run's splits: (train images, labels [N, 4], landmarks [N, 68, 2], val:
     the same three of the held-out split). The images are :class:`train.data.rows.RowImages` of uint8 [N, 3, R, R],
     read from the subject files when a batch indexes them (the paper's split is ~11 GB as uint8); the labels
-    and landmarks, a few hundred bytes a row, are read up front."""
+    and landmarks, a few hundred bytes a row, are read up front. ``release``: ETH-XGaze release files
+    (:func:`_release_data`)."""
+    if release:
+        return _release_data(config, train_files, test_files, workers)
     res = config.data.res
     tr = _estimator_rows(train_files, res, workers)
     te = _estimator_rows(test_files, res, workers, cache_bytes=0)  # read once, at the end of the training
@@ -125,7 +150,7 @@ def _estimator_rows(files: list[Path], res: int, workers: int | None, cache_byte
 
 def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: list[Path], run_dir: Path,
                      device: torch.device, index: int, role: str, seed: int, threads: int, log=None,
-                     data: tuple | None = None) -> tuple[str, dict]:
+                     data: tuple | None = None, release: bool = False) -> tuple[str, dict]:
     """Train and save one estimator of the estimator stage (in this process, or a spawned one, with
     ``threads`` torch threads): its training split plus its own extra procedural subjects, validated on the
     held-out split (``data``: :func:`_estimator_data`, loaded here when None). Returns (file name in
@@ -133,12 +158,14 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
     torch.set_num_threads(threads)
     job = dict(config=config, run_dir=run_dir, device=device, index=index, role=role, seed=seed, threads=threads,
                log=log)
+    if release:
+        job["release"] = True
     if data is not None:
         return _fit_estimator(**job, data=data)
     from train.data.rows import default_workers
 
     # Reading threads within this process's share of the cores (two estimators may train at once).
-    data = _estimator_data(config, train_files, test_files, workers=min(threads, default_workers()))
+    data = _estimator_data(config, train_files, test_files, workers=min(threads, default_workers()), release=release)
     try:
         return _fit_estimator(**job, data=data)
     finally:
@@ -146,14 +173,20 @@ def _train_estimator(*, config: RunConfig, train_files: list[Path], test_files: 
 
 
 def _close_data(data: tuple | None) -> None:
-    """Stop the reading threads of :func:`_estimator_data`'s images."""
-    if data is not None:
-        data[0].source.close()
-        data[3][0].source.close()
+    """Stop the reading threads of :func:`_estimator_data`'s images (and close the release files' handles)."""
+    if data is None:
+        return
+    from train.data.patches import ReleasePatches
+
+    for images in (data[0], data[3][0] if data[3] is not None else None):
+        if images is not None:
+            images.source.close()
+            if isinstance(images.source.dataset, ReleasePatches):
+                images.source.dataset.close()
 
 
 def _fit_estimator(*, config: RunConfig, run_dir: Path, device: torch.device, index: int, role: str, seed: int,
-                   threads: int, log, data: tuple) -> tuple[str, dict]:
+                   threads: int, log, data: tuple, release: bool = False) -> tuple[str, dict]:
     """:func:`_train_estimator` on its data (:func:`_estimator_data`)."""
     from train.estimator.config import GazeEstimatorTrainConfig
     from train.estimator.training import train_gaze_estimator
@@ -185,7 +218,10 @@ def _fit_estimator(*, config: RunConfig, run_dir: Path, device: torch.device, in
             component(GazeEstimatorTrainConfig, e, seed=config.seed * 10 + seed, log_every=max(1, e.steps)),
             landmarks=lms, val=val, device=device, on_step=on_step)
     file = f"estimator_{role}.safetensors"
-    model.save(Path(run_dir) / file, {"role": role, "train_images": len(images)})
+    info = {"role": role, "train_images": len(images)}
+    if release:  # what it was trained on: the release's face patches, not this project's renders
+        info["data_layout"] = "xgaze"
+    model.save(Path(run_dir) / file, info)
     return file, dict(hist[-1] if hist else {}, train_images=len(images))
 
 
@@ -198,3 +234,114 @@ def estimator_design(config: RunConfig):
     if e.crop == "eyes":
         return eye_config(config.data.res)
     return GazeEstimatorConfig(input_size=e.input_size, crop=EYE_BAND if e.crop == "eye_band" else (0.0, 1.0, 0.0, 1.0))
+
+
+# ------------------------------------------------------------------------------------ ETH-XGaze release files
+
+def is_release(run: RunArtifacts) -> bool:
+    """Whether the run's ``data.root`` holds ETH-XGaze release files (``train.data.patches.release_layout``)."""
+    from train.data.patches import release_layout
+
+    return release_layout(run.subject_files(), run.config.data.layout)
+
+
+def check_release_design(config: RunConfig) -> None:
+    """One line when ``estimator.crop`` cannot read release patches: ``eye_band`` cuts rows measured on this
+    project's crops, 0.26 m across at the face (docs/data.md), while the release's show 0.14 m (448 px at a focal
+    length of 960 px and 300 mm, ETH-XGaze normalization_example.py L28-30), so its band would miss the eyes.
+    (``eyes`` needs the files' landmarks: :func:`release_split` checks them.)"""
+    if config.estimator.crop == "eye_band":
+        raise ToolkitError("estimator.crop=eye_band: the eye band's rows are those of this project's synthetic crops "
+                           "(0.26 m across at the face); the ETH-XGaze release's face patches show 0.14 m, so the "
+                           "band would miss the eyes: set estimator.crop=face (the whole patch, as ETH-XGaze's own "
+                           "baseline reads it)")
+
+
+def release_res(config: RunConfig) -> int:
+    """The square size release patches are read at: the image size the estimator's design reads without
+    resampling. ``face``: ``estimator.input_size`` (224: the xgaze_224 patches as they are); ``eyes``: ``data.res``,
+    the image size :func:`train.estimator.config.eye_config` sizes its eye patches for."""
+    return config.data.res if config.estimator.crop == "eyes" else config.estimator.input_size
+
+
+def release_split(run: RunArtifacts, log=print) -> tuple[list[Path], list[Path]]:
+    """The estimator stage's (training, scored held-out) files of a ``data.root`` of ETH-XGaze release files.
+
+    The subjects are split as the other stages split theirs (``data.split_file``, else a split file beside the
+    files, read in the release's form {"train", "test"}; else the last ``data.test_fraction`` of the sorted files
+    held out), with two differences the release needs: held-out subjects the split file names but ``data.root``
+    lacks (the release keeps its test subjects in a ``test/`` folder beside ``train/``) are not an error, and
+    held-out subjects without ``face_gaze`` (the release's test subjects: README.md L45-46) are not scored. Each
+    is said in one log line; when no held-out subject is left the estimators are trained and not scored (one line
+    says how to score them). Training subjects without ``face_gaze`` are left out (one line); none left is one
+    ToolkitError. For ``estimator.crop=eyes`` every file used must hold ``facial_landmarks`` (one ToolkitError
+    naming the first that does not, and ``estimator.crop=face``)."""
+    from train.data.dataset import SPLIT_FILE_NAMES, held_out_count
+    from train.data.layouts import read_split_file
+    from train.data.patches import has_labels, has_landmarks
+
+    d = run.config.data
+    files = run.subject_files()
+    beside = [files[0].parent / name for name in SPLIT_FILE_NAMES if (files[0].parent / name).exists()]
+    sf = Path(d.split_file) if d.split_file else (beside[0] if beside else None)
+    if sf is not None:
+        train_names, held_names = read_split_file(sf, "xgaze")
+        by_stem = {f.stem: f for f in files}
+        missing = [n for n in train_names if n not in by_stem]
+        if missing:
+            raise ToolkitError(f"{sf}: 'train' names subject {missing[0]}, which is not among the {len(files)} subject "
+                               f"files of data.root {d.root} (file {missing[0]}.h5 expected)")
+        train, held = [by_stem[n] for n in train_names], [by_stem[n] for n in held_names if n in by_stem]
+        absent = len(held_names) - len(held)
+        where = f"{sf.name}'s 'test' list"
+    else:
+        files = sorted(files)
+        n_test = held_out_count(len(files), d.test_fraction)
+        train, held, absent = files[:len(files) - n_test], files[len(files) - n_test:], 0
+        where = f"the last data.test_fraction={d.test_fraction} of the files"
+    unlabelled = [f for f in train if not has_labels(f)]
+    if unlabelled:
+        log(f"[estimator] {len(unlabelled)} training subject(s) without face_gaze left out (the release's test "
+            f"subjects, whose labels are withheld): {', '.join(f.stem for f in unlabelled[:3])}"
+            f"{' ...' if len(unlabelled) > 3 else ''}")
+        train = [f for f in train if f not in unlabelled]
+    if not train:
+        raise ToolkitError(f"data.root {d.root}: no training subject has gaze labels ('face_gaze'): the ETH-XGaze "
+                           f"release's labelled subjects are those of its train/ folder")
+    scored = [f for f in held if has_labels(f)]
+    if absent or len(scored) < len(held):
+        log(f"[estimator] held-out subjects not scored: {absent} of {where} not in data.root, "
+            f"{len(held) - len(scored)} without face_gaze (the release's test subjects: their labels are withheld)")
+    if not scored:
+        log(f"[estimator] no held-out subject with face_gaze: the estimators train on {len(train)} subjects and are "
+            f"not scored (leave data.split_file empty, with no split file beside the files, to hold out "
+            f"data.test_fraction of the labelled subjects)")
+    if run.config.estimator.crop == "eyes":
+        bare = next((f for f in train + scored if not has_landmarks(f)), None)
+        if bare is not None:
+            raise ToolkitError(f"{bare}: estimator.crop=eyes reads the eyes at each image's facial_landmarks, which "
+                               f"this release file lacks (the published xgaze_224 / xgaze_448 files hold none): set "
+                               f"estimator.crop=face to read the whole normalized face patch, as ETH-XGaze's "
+                               f"baseline does")
+    return train, scored
+
+
+def _release_data(config: RunConfig, train_files: list[Path], test_files: list[Path], workers: int | None) -> tuple:
+    """:func:`_estimator_data` of ETH-XGaze release files (``train.data.patches.release_rows``): patches at
+    :func:`release_res`, labels (``face_gaze``, ``face_head_pose``) in the normalized camera, landmarks for the
+    eye design; val None when no held-out subject is scored."""
+    from train.data.patches import release_rows
+    from train.data.rows import default_workers
+
+    workers = default_workers() if workers is None else workers
+    kw = dict(res=release_res(config), landmarks=config.estimator.crop == "eyes", workers=workers)
+    tr = release_rows(train_files, **kw)
+    if not test_files:
+        return (*tr, None)
+    try:
+        te = release_rows(test_files, **kw, cache_bytes=0)  # read once, at the end of the training
+    except BaseException:
+        tr[0].source.close()
+        tr[0].source.dataset.close()
+        raise
+    return (*tr, te if te[2] is not None else te[:2])
