@@ -17,17 +17,16 @@ import torch
 
 from toolkit.errors import ToolkitError, one_line
 from toolkit.h5 import READ_ERRORS, has_key, read_array, read_selection
-from train.data.format import OPTIONAL, REQUIRED, validate_subject_file
+from train.data.format import OPTIONAL
 from train.data.layouts import (
     DITGAZE,
     agreed_code_widths,
     check_frames,
-    get_layout,
     mesh_to_native,
     native_keys,
     row_layout,
-    stored_widths,
     to_native,
+    validate_file,
 )
 
 SPLITS = ("all", "train", "test")
@@ -190,9 +189,7 @@ class GazeDataset(torch.utils.data.Dataset):
             for f, name in zip(self.files, self.layouts):
                 if "vertice" not in native_keys(name):
                     raise ToolkitError(f"{f}: with_mesh: a {name} file has no key 'vertice' (the per-row head mesh)")
-        self.info = [validate_subject_file(f, tuple(sorted(set(REQUIRED) - set(get_layout(name).required))),
-                                           stored_widths(name))
-                     for f, name in zip(self.files, self.layouts)]
+        self.info = [validate_file(f, name) for f, name in zip(self.files, self.layouts)]
         for f, name in zip(self.files, self.layouts):  # GazeNeRF's: every frame seen by two cameras, before any work
             check_frames(f, name)
         from toolkit.limits import check_allocation

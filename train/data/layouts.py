@@ -676,6 +676,15 @@ def stored_widths(layout: str | Layout) -> dict[str, tuple[int, ...]]:
     return {"latent_codes": (int(spec[2:]),)} if spec[2:].isdigit() else {}
 
 
+def validate_file(path: str | os.PathLike, layout: str | Layout) -> dict:
+    """``train.data.format.validate_subject_file`` of a file in ``layout`` (one :func:`row_layout` accepts): the
+    native keys the layout does not store may be absent, its codes are as wide as it stores them."""
+    from train.data.format import validate_subject_file
+
+    layout = get_layout(layout)
+    return validate_subject_file(path, tuple(sorted(set(REQUIRED) - set(layout.required))), stored_widths(layout))
+
+
 def mesh_to_native(layout: str | Layout, vertice: np.ndarray, w2c_R: np.ndarray, w2c_t: np.ndarray) -> np.ndarray:
     """One row's ``vertice`` [V, 3] of a ``layout`` file in world coordinates (float32), with that row's camera:
     the mesh is read a row at a time, the other keys whole (:func:`to_native`)."""

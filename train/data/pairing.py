@@ -121,11 +121,12 @@ def subject_pairing(pairing: dict[str, np.ndarray] | None, stem: str) -> np.ndar
     return pairing[stem] if stem in pairing else pairing.get(ANY_SUBJECT)
 
 
-def check_pairing_rows(files: list[Path], pairing: dict[str, np.ndarray] | None, source: str = "the pairing") -> None:
+def check_pairing_rows(files: list[Path], pairing: dict[str, np.ndarray] | None, source: str = "the pairing",
+                       layout: str = "auto") -> None:
     """Before any work: every held-out subject file has pairs (``pairing``'s, or the generated ones) inside its
     rows. A ToolkitError naming the subject(s), or the file, the pair and the row count; ``source`` names the
-    pairing in the message."""
-    from train.data.format import validate_subject_file
+    pairing in the message. The files are validated in their ``layout`` (``train.data.layouts.row_layout``)."""
+    from train.data.layouts import row_layout, validate_file
 
     if pairing is not None:
         missing = [Path(f).stem for f in files if len(_rows_or_none(pairing, Path(f).stem)) == 0]
@@ -133,7 +134,7 @@ def check_pairing_rows(files: list[Path], pairing: dict[str, np.ndarray] | None,
             raise ToolkitError(f"the pairing file has no pairs for test subject(s) {missing} "
                                f"(it names {sorted(pairing)[:5]}...)")
     for f in files:
-        n = validate_subject_file(f)["n"]
+        n = validate_file(f, row_layout(f, layout))["n"]
         rows = subject_pairing(pairing, Path(f).stem)
         if rows is None and n < 2:
             raise ToolkitError(f"{f}: {n} row; the generated pairing (the first half of the rows with a permutation "

@@ -201,6 +201,7 @@ def check_eval_pairing(cfg: RunConfig, test_files: list[Path]) -> None:
     path = cfg.eval.pairing_file
     try:
         check_pairing_rows(test_files, load_pairing(path) if path else None,
-                           f"the pairing file {path}" if path else "the generated pairing")
+                           f"the pairing file {path}" if path else "the generated pairing",
+                           cfg.eval.data_layout if cfg.eval.data_root else cfg.data.layout)
     except ToolkitError as err:
         raise ToolkitError(f"config key 'eval.pairing_file': {err}" if path else str(err)) from None

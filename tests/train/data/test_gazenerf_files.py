@@ -82,6 +82,15 @@ def test_gazenerf_file_reads_as_native(nerf_file, truth, layout):
     assert s["latent_texture"].shape == (100,) and s["latent_illumination"].shape == (27,)
 
 
+def test_the_evaluations_pairing_check_reads_the_file_in_its_layout(nerf_file):
+    from train.data.pairing import check_pairing_rows
+
+    check_pairing_rows([nerf_file], None)  # validated as a GazeNeRF file, not as a native one missing 'pose'
+    check_pairing_rows([nerf_file], None, layout="gazenerf")
+    with pytest.raises(ToolkitError, match=r"pair 0 of the pairing \(input row 0, target row 12\) is out of range"):
+        check_pairing_rows([nerf_file], {"*": np.array([[0, 12]])})
+
+
 def test_a_model_of_the_datas_widths_renders_a_sample(nerf_file):
     from tests.train.helpers import rasterizer_for_tests
     from toolkit.procedural import demo_head_scene
