@@ -21,7 +21,8 @@ column                         required  meaning
                                          else NORM_DISTANCE = 0.6)
 ``mask``                       no        head mask image (non-zero = head), same size as the image; default:
                                          the trained model's splatted head silhouette
-``code``                       no        ``.npy`` file with the 144-d shape code (identity 80 + expression 64);
+``code``                       no        ``.npy`` file with the shape code (identity 80 + expression 64: 144 numbers
+                                         for a model trained on native data; the run's widths otherwise);
                                          default: fitted on the image (``train.evaluation.fitting.test_time_fit``)
 =============================  ========  =====================================================================
 
@@ -55,7 +56,6 @@ MAX_FOCAL = 1000
 MAX_DISTANCE = 100.0
 """Largest camera-to-face distance, metres."""
 OPTIONAL_COLUMNS = ("head_roll", "gaze_pitch", "gaze_yaw", "focal", "distance", "mask", "code")
-CODE_DIM = 144
 FACE_CENTER_LANDMARKS = [36, 39, 42, 45, 48, 54]
 
 
@@ -70,7 +70,7 @@ class LabelRow:
     focal: float  # pixels of the stored image
     distance: float  # metres
     mask: Path | None
-    code: np.ndarray | None  # [144]
+    code: np.ndarray | None  # [identity + expression], the model's widths
 
 
 def _read_image(path: Path, what: str, *, gray: bool = False) -> np.ndarray:
@@ -99,11 +99,13 @@ def is_labels_csv(path: str | os.PathLike) -> bool:
 
 
 def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, distance: float | None = None,
-                default_distance: float = 0.6, default_crop: float = 0.26) -> tuple[list[LabelRow], int]:
+                default_distance: float = 0.6, default_crop: float = 0.26,
+                code_widths: tuple[int, int] = (80, 64)) -> tuple[list[LabelRow], int]:
     """Validate a labels CSV and every file it names -> (rows, image size S).
 
     ``focal``/``distance`` are the defaults for rows that leave those cells empty; without them the
     project's normalized camera (``default_distance``, ``default_crop``) decides the focal length.
+    ``code_widths``: (identity, expression) of the model's code, which a row's ``code`` must match.
     """
     p = labels_csv_file(csv_path)
     if not p.is_file():
@@ -120,7 +122,7 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
             raise ToolkitError(f"{p} line {line}: {len(header) + len(r[None])} cells, the header has {len(header)}")
         cells = _Cells(p, line, {(k or "").strip(): (v or "").strip() if isinstance(v, str) else "" for k, v in r.items()})
         row, hw = _label_row(cells, size, focal=focal, distance=distance, default_distance=default_distance,
-                             default_crop=default_crop)
+                             default_crop=default_crop, code_widths=code_widths)
         size = size or hw
         rows.append(row)
     return rows, size[0]
@@ -191,7 +193,8 @@ class _Cells:
 
 
 def _label_row(c: _Cells, size: tuple[int, int] | None, *, focal: float | None, distance: float | None,
-               default_distance: float, default_crop: float) -> tuple[LabelRow, tuple[int, int]]:
+               default_distance: float, default_crop: float,
+               code_widths: tuple[int, int] = (80, 64)) -> tuple[LabelRow, tuple[int, int]]:
     """One data row, validated with every file it names -> (the row, its image's (height, width)); ``size`` is
     the first image's, which every image must match (None for the first row)."""
     where = c.where
@@ -230,15 +233,15 @@ def _label_row(c: _Cells, size: tuple[int, int] | None, *, focal: float | None, 
         if mhw != hw:
             raise ToolkitError(f"{where}, column 'mask': {mask_path} is {mhw[1]}x{mhw[0]}; expected the image's "
                                f"size {hw[1]}x{hw[0]}")
-    code = _read_code(c.path("code"), where)
+    code = _read_code(c.path("code"), where, code_widths)
     if code is None and gaze is None:
         raise ToolkitError(f"{where}: no 'code' given, so the code is fitted on the image, which needs the "
                            "image's own gaze: fill gaze_pitch and gaze_yaw (or give a code)")
     return LabelRow(c.line, img_path, head, gaze, float(f), float(d), mask_path, code), hw
 
 
-def _read_code(code_path: Path | None, where: str) -> np.ndarray | None:
-    """The row's ``code`` file -> [CODE_DIM] float32 (None when the cell is empty), checked."""
+def _read_code(code_path: Path | None, where: str, code_widths: tuple[int, int] = (80, 64)) -> np.ndarray | None:
+    """The row's ``code`` file -> [identity + expression] float32 (None when the cell is empty), checked."""
     if code_path is None:
         return None
     if not code_path.is_file():
@@ -247,9 +250,9 @@ def _read_code(code_path: Path | None, where: str) -> np.ndarray | None:
         code = np.load(code_path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as e:  # EOFError: an empty file
         raise ToolkitError(f"{where}, column 'code': {code_path}: not a .npy array ({e})") from None
-    if np.asarray(code).size != CODE_DIM:
-        raise ToolkitError(f"{where}, column 'code': {code_path}: expected {CODE_DIM} numbers (identity 80 + "
-                           "expression 64)")
+    if np.asarray(code).size != sum(code_widths):
+        raise ToolkitError(f"{where}, column 'code': {code_path}: expected {sum(code_widths)} numbers (identity "
+                           f"{code_widths[0]} + expression {code_widths[1]})")
     code = np.asarray(code, np.float32).reshape(-1)
     if not np.isfinite(code).all():
         raise ToolkitError(f"{where}, column 'code': {code_path}: contains NaN or inf")
@@ -280,9 +283,9 @@ class LabelsCsvSource:
 
     def __init__(self, csv_path, res: int, landmarks_head: torch.Tensor, mesh_head: torch.Tensor, *,
                  focal: float | None = None, distance: float | None = None, default_distance: float = 0.6,
-                 default_crop: float = 0.26):
-        self.rows, self.size = read_labels(csv_path, focal=focal, distance=distance,
-                                           default_distance=default_distance, default_crop=default_crop)
+                 default_crop: float = 0.26, code_widths: tuple[int, int] = (80, 64)):
+        self.rows, self.size = read_labels(csv_path, focal=focal, distance=distance, default_distance=default_distance,
+                                           default_crop=default_crop, code_widths=code_widths)
         self.path = labels_csv_file(csv_path)  # the folder and its labels.csv are the same input
         self.res = int(res)
         self.landmarks_head = landmarks_head.float()  # [68, 3], the run's geometry (head frame)
@@ -359,7 +362,7 @@ class LabelsCsvSource:
         geo = {k: v.to(device) for k, v in self.geometry(idx).items()}
         rows = [self.rows[i] for i in idx]
         res = self.res
-        code = torch.stack([torch.from_numpy(r.code) if r.code is not None else torch.zeros(CODE_DIM) for r in rows]).to(device)
+        code = torch.stack([torch.from_numpy(r.code) if r.code is not None else torch.zeros(model.config.code_dim) for r in rows]).to(device)
 
         def silhouettes(c):
             with torch.no_grad():

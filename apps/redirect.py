@@ -18,7 +18,7 @@ Inputs:
   (details and frames in ``apps/labels_csv.py`` and docs/redirect.md): ``image`` (path relative to the CSV),
   ``head_pitch``, ``head_yaw`` (degrees, the face direction in the normalized camera) are required;
   ``head_roll``, ``gaze_pitch``/``gaze_yaw`` (the image's own gaze, camera frame, degrees), ``focal``
-  (pixels), ``distance`` (metres), ``mask`` (head mask image) and ``code`` (``.npy`` of the 144-d shape code)
+  (pixels), ``distance`` (metres), ``mask`` (head mask image) and ``code`` (``.npy`` of the model's shape code)
   are optional. Rows without a code get one by test-time fitting on the image (``--fit-steps``; needs the
   gaze columns). The whole CSV and every file it names are checked before any rendering; each problem is
   one error naming the line and column. Output landmarks, mesh and eye masks of CSV rows come from the
@@ -157,7 +157,7 @@ def open_source(run, args):
     verts, _ = load_mesh(run.context.path("geometry", "mesh"))
     return LabelsCsvSource(args.dataset, cfg.data.res, torch.tensor(landmarks, dtype=torch.float32), verts,
                            focal=args.focal, distance=args.distance, default_distance=NORM_DISTANCE,
-                           default_crop=NORM_CROP)
+                           default_crop=NORM_CROP, code_widths=run.code_widths())
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -211,3 +211,18 @@ def test_training_files_of_other_widths_are_one_line(tmp_path):
     msg = str(e.value)
     assert "\n" not in msg and msg.startswith(f"{mixed / 'subject0001.h5'}: codes of 100 identity + 79 expression "
                                               f"dims, but {mixed / 'subject0000.h5'} has 80 + 64")
+
+
+def test_the_redirect_apps_codes_are_as_wide_as_the_runs(tmp_path):
+    """apps.redirect checks a labels CSV's codes against the trained run's widths (TrainedRun.code_widths)."""
+    import cv2
+
+    from apps.labels_csv import read_labels
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((64, 64, 3), np.uint8))
+    np.save(tmp_path / "code.npy", np.zeros(179, np.float32))
+    (tmp_path / "labels.csv").write_text("image,head_pitch,head_yaw,code\na.png,0,0,code.npy\n")
+    rows, _ = read_labels(tmp_path / "labels.csv", code_widths=(100, 79))
+    assert rows[0].code.shape == (179,)
+    with pytest.raises(ToolkitError, match=r"code.npy: expected 144 numbers \(identity 80 \+ expression 64\)"):
+        read_labels(tmp_path / "labels.csv")
