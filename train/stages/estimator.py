@@ -276,7 +276,7 @@ def release_split(run: RunArtifacts, log=print) -> tuple[list[Path], list[Path]]
     says how to score them). Training subjects without ``face_gaze`` are left out (one line); none left is one
     ToolkitError. For ``estimator.crop=eyes`` every file used must hold ``facial_landmarks`` (one ToolkitError
     naming the first that does not, and ``estimator.crop=face``)."""
-    from train.data.dataset import SPLIT_FILE_NAMES, held_out_count
+    from train.data.dataset import SPLIT_FILE_NAMES, held_out_count, subject_key
     from train.data.layouts import read_split_file
     from train.data.patches import has_labels, has_landmarks
 
@@ -286,12 +286,13 @@ def release_split(run: RunArtifacts, log=print) -> tuple[list[Path], list[Path]]
     sf = Path(d.split_file) if d.split_file else (beside[0] if beside else None)
     if sf is not None:
         train_names, held_names = read_split_file(sf, "xgaze")
-        by_stem = {f.stem: f for f in files}
-        missing = [n for n in train_names if n not in by_stem]
+        by_key = {subject_key(f.stem): f for f in files}  # as split_files: "subject0003" names xgaze_subject0003.h5
+        missing = [n for n in train_names if subject_key(n) not in by_key]
         if missing:
             raise ToolkitError(f"{sf}: 'train' names subject {missing[0]}, which is not among the {len(files)} subject "
                                f"files of data.root {d.root} (file {missing[0]}.h5 expected)")
-        train, held = [by_stem[n] for n in train_names], [by_stem[n] for n in held_names if n in by_stem]
+        train = [by_key[subject_key(n)] for n in train_names]
+        held = [by_key[subject_key(n)] for n in held_names if subject_key(n) in by_key]
         absent = len(held_names) - len(held)
         where = f"{sf.name}'s 'test' list"
     else:

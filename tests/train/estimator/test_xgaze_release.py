@@ -372,3 +372,16 @@ def test_the_estimators_trained_at_once_read_the_release_files_themselves(releas
     for role in ("loss", "eval"):
         a, b = weights[0][role], weights[1][role]
         assert set(a) == set(b) and all(torch.equal(a[k], b[k]) for k in a), role
+
+
+def test_a_split_file_naming_a_missing_training_subject_is_one_line(release, tmp_path):
+    from train.stages.estimator import stage_estimator
+
+    sf = tmp_path / "train_test_split.json"
+    sf.write_text(json.dumps({"train": ["subject0000.h5", "subject0042.h5"], "test": ["subject0002.h5"]}))
+    ctx, _ = _context(tmp_path, release["dir"])
+    ctx.config.data.split_file = str(sf)
+    with pytest.raises(ToolkitError, match=r"train_test_split.json: 'train' names subject subject0042, which is not "
+                                           r"among the 3 subject files") as err:
+        stage_estimator(ctx)
+    _one_line(err)
