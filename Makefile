@@ -2,11 +2,13 @@
 PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
+# apps.prepare's face mesh, installed with --no-deps (pyproject.toml's extra 'photos' lists what it needs)
+PHOTOS_SPEC ?= mediapipe==0.10.21
 # Tests marked slow (the geometry acceptance fit, ~5 CPU-minutes) run with `make test-all`.
 PYTEST_ARGS ?= -m "not slow"
 VPY := $(VENV)/bin/python
-# The install stamp changes with the dependency list and the torch spec, so a second run skips pip.
-STAMP := $(VENV)/.ditgaze-installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)-$(shell echo '$(TORCH_SPEC)' | cksum | cut -d' ' -f1)
+# The install stamp changes with the dependency list and the torch and mediapipe specs, so a second run skips pip.
+STAMP := $(VENV)/.ditgaze-installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)-$(shell echo '$(TORCH_SPEC) $(PHOTOS_SPEC)' | cksum | cut -d' ' -f1)
 
 .PHONY: test test-all fuzz demo setup sysdeps lint bench fid clean
 
@@ -38,7 +40,8 @@ $(STAMP):
 	$(VPY) -m pip install -q --upgrade pip setuptools wheel
 	# torch first, from the pinned spec, so nothing below can pull a CUDA build.
 	$(VPY) -m pip install -q "$(TORCH_SPEC)"
-	$(VPY) -m pip install -q -e ".[dev,sd-vae,bench]"
+	$(VPY) -m pip install -q -e ".[dev,sd-vae,bench,photos]"
+	$(VPY) -m pip install -q --no-deps "$(PHOTOS_SPEC)"
 	@rm -f $(VENV)/.ditgaze-installed-*
 	@touch $@
 

@@ -21,7 +21,8 @@ from typing import Sequence
 from toolkit.errors import run_cli
 
 CLIS = {"toolkit": "toolkit.__main__", "geometry": "geometry.__main__", "train.data": "train.data.__main__",
-        "train.run": "train.run", "apps.redirect": "apps.redirect", "apps.preview": "apps.preview"}
+        "train.run": "train.run", "apps.redirect": "apps.redirect", "apps.preview": "apps.preview",
+        "apps.prepare": "apps.prepare"}
 
 
 class Hang(Exception):

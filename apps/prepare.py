@@ -1,0 +1,206 @@
+"""A user's own photos as native subject files, fully offline (docs/photos.md).
+
+    python -m apps.prepare PHOTOS... --out OUT_DIR [--like RUN_DIR] [--size 512] [--largest-face]
+                           [--labels labels.csv] [--focal F] [--scale S]
+
+Every face of every photo (JPEG/PNG files, or folders of them) is found and fitted (mediapipe's face mesh as
+iBUG-68 landmarks and iris centres, apps.photo), its head pose solved by PnP against the project's head model,
+normalized as ETH-XGaze normalizes (the camera turned to the face centre, a crop of ``--size`` pixels covering
+``--crop`` metres from ``--distance``), masked and labelled, and written as one row: one file
+``OUT_DIR/<name>.h5`` per photo given as a file (its stem) and per folder (its name, one row per face of each of
+its photos), readable by ``GazeDataset`` and ``python -m apps.redirect``. The gaze is estimated from the irises
+(attribute ``gaze_source`` "iris-geometry") or read from ``--labels`` ("labels-csv"). ``OUT_DIR/contact_sheet.png``
+shows what was found.
+
+A photo that cannot be used (not an image, truncated, no face, a face under 64 pixels, a face the landmarker or
+the head model cannot fit) is one line naming it and the reason; the others go on. Exit status 2 only when no
+photo gave a face. Every file is written atomically. Needs the optional extra ``photos`` (mediapipe).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from toolkit.errors import ToolkitError, run_cli
+
+MIN_FACE_PX = 64
+"""Faces narrower than this in the photo (pixels) are skipped: too few pixels for the eyes."""
+MAX_SOURCE_NAMES_BYTES = 60_000
+"""The ``source_files`` attribute (the photos' names as JSON) must stay under the format's 64 KiB attributes."""
+SIZE_RANGE = (32, 2048)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m apps.prepare", description=__doc__.split("\n")[0])
+    ap.add_argument("photos", nargs="+", help="photo files (JPEG, PNG) and/or folders of them")
+    ap.add_argument("--out", required=True, help="output folder: one <name>.h5 per photo file or folder")
+    ap.add_argument("--like", default=None, help="a trained run directory: its head geometry, normalization "
+                                                 "distance and crop, and data.res (the frame the model was trained in)")
+    ap.add_argument("--size", type=int, default=None, help="crop size in pixels (default: the run's data.res, else 512)")
+    ap.add_argument("--distance", type=float, default=None, help="normalized camera distance, metres (default: the "
+                                                                 "run's, else 0.6)")
+    ap.add_argument("--crop", type=float, default=None, help="metres the crop covers at the face (default: the "
+                                                             "run's, else 0.26)")
+    ap.add_argument("--focal", type=float, default=None, help="focal length of every photo in pixels (default: "
+                                                              "EXIF 35 mm equivalent, else 1.2 x the longer side)")
+    ap.add_argument("--scale", type=float, default=None, help="head scale of every face (default: from the iris "
+                                                              "size, else 1)")
+    ap.add_argument("--largest-face", action="store_true", help="keep only the largest face of each photo")
+    ap.add_argument("--labels", default=None, help="CSV with columns image, gaze_pitch, gaze_yaw (degrees, photo "
+                                                   "camera frame): the photos' own gazes instead of the iris estimate")
+    ap.add_argument("--sheet", default=None, help="contact sheet PNG (default OUT/contact_sheet.png)")
+    return ap
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """The flags' own checks, before any photo is read (one-line ToolkitErrors)."""
+    if args.size is not None and not SIZE_RANGE[0] <= args.size <= SIZE_RANGE[1]:
+        raise ToolkitError(f"--size must be in [{SIZE_RANGE[0]}, {SIZE_RANGE[1]}] pixels, got {args.size}")
+    for flag, v, lo, hi in (("--distance", args.distance, 0.05, 10.0), ("--crop", args.crop, 0.05, 2.0),
+                            ("--focal", args.focal, 1.0, 1e6), ("--scale", args.scale, 0.5, 2.0)):
+        if v is not None and not (math.isfinite(v) and lo <= v <= hi):
+            raise ToolkitError(f"{flag} must be in [{lo:g}, {hi:g}], got {v}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ToolkitError(f"--out {out}: exists and is not a folder")
+    if args.sheet is not None and Path(args.sheet).suffix.lower() != ".png":
+        raise ToolkitError(f"--sheet {args.sheet}: expected a file name ending in .png")
+
+
+def make_target(args: argparse.Namespace):
+    """The head model and normalization: the run's (``--like``) or the project's defaults, flags overriding."""
+    from apps.photo.face_model import default_target, run_target
+
+    target = run_target(args.like, args.size) if args.like else default_target(args.size or 512)
+    if args.distance is not None:
+        target.distance = args.distance
+    if args.crop is not None:
+        target.crop = args.crop
+    return target
+
+
+def photo_rows(photo, frame_index: int, finder, target, args, gaze) -> tuple[list, list[str]]:
+    """The rows of one decoded photo (largest face first) and a problem line for each face left out."""
+    from apps.photo.images import photo_focal, photo_intrinsics
+    from apps.photo.rows import FaceObservation, prepare_face
+
+    rgb = np.ascontiguousarray(photo.bgr[..., ::-1])
+    faces, unfitted = finder.faces(rgb)
+    if args.largest_face or gaze is not None:  # one labelled gaze a photo: its largest face
+        faces = faces[:1]
+    small = [f for f in faces if f.width < MIN_FACE_PX]
+    faces = [f for f in faces if f.width >= MIN_FACE_PX]
+    if not faces:
+        if small:
+            raise ToolkitError(f"the face found is {small[0].width:.0f} px wide, under {MIN_FACE_PX} px")
+        if unfitted:
+            raise ToolkitError("a face was detected but the landmarker could not fit it (a profile or an occluded "
+                               "face?)")
+        raise ToolkitError("no face found")
+    focal, _ = photo_focal(photo, args.focal)
+    K = photo_intrinsics(*photo.size, focal)
+    rows, problems = [], []
+    for k, face in enumerate(faces):
+        try:
+            rows.append(prepare_face(photo.bgr, FaceObservation.from_mesh(face.points), K, target,
+                                     frame_index=frame_index, gaze_photo=gaze, scale=args.scale,
+                                     person=finder.person))
+        except ToolkitError as e:
+            problems.append(f"face {k + 1} of {len(faces)}: {e}")
+    if not rows:
+        raise ToolkitError("; ".join(problems))
+    return rows, problems
+
+
+def file_attrs(photos: list[Path], focals: list, target, gaze_source: str) -> dict:
+    names = json.dumps([str(p) for p in photos])
+    return {"source": "apps.prepare", "gaze_source": gaze_source, "source_files": names,
+            "photo_focal": json.dumps(focals), "n_cameras": 1, "face_model": target.model.source,
+            "normalization": json.dumps({"distance": target.distance, "crop": target.crop}),
+            "landmarks": "mediapipe FaceMesh (refined, 478 points) as iBUG-68: apps.photo.landmarks68"}
+
+
+def prepare_group(name: str, photos: list[Path], finder, target, args, labels, report) -> tuple[Path | None, list]:
+    """One output file from a group of photos; returns (its path or None, sheet strips) and reports each
+    problem through ``report(line)``."""
+    from apps.photo.images import load_photo, photo_focal
+    from apps.photo.rows import write_rows
+    from apps.photo.sheet import sheet_strip
+
+    rows, strips, focals = [], [], []
+    for i, path in enumerate(photos):
+        try:
+            photo = load_photo(path)
+            got, problems = photo_rows(photo, i, finder, target, args, None if labels is None else labels[path])
+        except ToolkitError as e:
+            report(f"{path}: {e}" if str(path) not in str(e) else str(e))
+            focals.append(None)
+            continue
+        focals.append(list(photo_focal(photo, args.focal)))
+        for p in problems:
+            report(f"{path}: {p}")
+        rows += got
+        strips += [sheet_strip(path.name, photo.bgr, r.source_landmarks, r.arrays) for r in got]
+    if not rows:
+        return None, strips
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    attrs = file_attrs(photos, focals, target, "iris-geometry" if labels is None else "labels-csv")
+    return write_rows(out / f"{name}.h5", rows, target, attrs), strips
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from apps.photo.faces import FaceFinder
+    from apps.photo.images import photo_groups
+    from toolkit.io import check_not_an_input
+
+    args = build_parser().parse_args(argv)
+    check_args(args)
+    groups = photo_groups(args.photos)
+    every = [p for _, files in groups for p in files]
+    for name, files in groups:
+        check_not_an_input(Path(args.out) / f"{name}.h5", every, "output", "photo")
+        if len(json.dumps([str(p) for p in files])) > MAX_SOURCE_NAMES_BYTES:
+            raise ToolkitError(f"{files[0].parent}: {len(files)} photos; their names exceed the {MAX_SOURCE_NAMES_BYTES}"
+                               " bytes a file's source_files attribute holds: split the folder")
+    labels = None
+    if args.labels:
+        from apps.photo.labels import labels_for, read_labels
+
+        labels = labels_for(read_labels(args.labels), every, f"--labels {args.labels}")
+    target = make_target(args)
+    problems: list[str] = []
+
+    def report(line: str) -> None:
+        problems.append(line)
+        if len(every) > 1:  # a single photo's problem is the error line itself
+            print(f"skipped {line}", file=sys.stderr)
+
+    written, strips = [], []
+    with FaceFinder() as finder:
+        for name, files in groups:
+            path, got = prepare_group(name, files, finder, target, args, labels, report)
+            strips += got
+            if path is not None:
+                written.append(path)
+    if not written:
+        raise ToolkitError(problems[0] if len(every) == 1 else
+                           f"none of the {len(every)} photos gave a usable face (each reason above)")
+    from apps.photo.sheet import write_contact_sheet
+
+    sheet = Path(args.sheet) if args.sheet else Path(args.out) / "contact_sheet.png"
+    write_contact_sheet(sheet, strips, len(strips))
+    print(f"wrote {len(written)} file(s) to {args.out}: {len(strips)} faces from {len(every) - len(problems)} of "
+          f"{len(every)} photos; contact sheet {sheet}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))
