@@ -453,7 +453,7 @@ def triangulate_frames(landmarks: np.ndarray, K: np.ndarray, R: np.ndarray, t: n
     return out
 
 
-def _head_frame_world(layout: Layout, rows: Mapping[str, np.ndarray], out: dict, where: str) -> None:
+def _head_frame_world(rows: Mapping[str, np.ndarray], out: dict, where: str) -> None:
     """A layout whose cameras map each row's head frame (``frame_3d`` "triangulated"): the world is that head
     frame, so ``pose`` 0 and ``scale`` 1; ``facial_landmarks_3d`` triangulated per frame. Made only from rows
     with the cameras (a caller converting the gaze alone gets no pose)."""
@@ -517,7 +517,7 @@ def to_native(layout: str | Layout, rows: Mapping[str, np.ndarray], where: str =
             if k in out:
                 out[k] = _world_from_stored(out[k], R, t)
     if layout.frame_3d == "triangulated":
-        _head_frame_world(layout, rows, out, where)
+        _head_frame_world(rows, out, where)
     if layout.codes and "latent_codes" in out:
         _codes_to_native(layout, out["latent_codes"], out)
     if layout.gaze_frame == "normalized camera" and "pitchyaw_cam" in out:
