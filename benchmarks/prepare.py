@@ -41,11 +41,12 @@ def synthetic_photo(seed: int, *, width: int = 640, height: int = 480, focal: fl
     ``R`` [3, 3], ``gaze`` [2], ``subject``, ``head_mask``/``left_eye_mask`` [H, W] bool, ``camera``."""
     import torch
 
+    from apps.photo.gaze import pitchyaw_vector
     from toolkit.cameras import Camera
     from toolkit.rotations import so3_exp, so3_log
     from train.data.poses import pose_matrix
     from train.data.subject_params import SubjectParams
-    from train.data.synthetic import _pitchyaw_vec, build_subject, render_views
+    from train.data.synthetic import build_subject, render_views
 
     subject = subject or build_subject(SubjectParams.sample(seed))
     f = focal or 1.2 * max(width, height)
@@ -56,7 +57,7 @@ def synthetic_photo(seed: int, *, width: int = 640, height: int = 480, focal: fl
     pose = np.r_[so3_log(R).numpy(), np.asarray(translation, np.float64)]
     out = render_views(subject, np.asarray(gaze), pose, np.zeros(4), [cam])
     Rm, t = pose_matrix(pose)
-    pupils = subject.eye_centers + subject.eye_radius * _pitchyaw_vec(np.asarray(gaze, np.float64))
+    pupils = subject.eye_centers + subject.eye_radius * pitchyaw_vector(np.asarray(gaze, np.float64))
     pc = pupils @ Rm.T + t
     iris = pc[:, :2] / pc[:, 2:] * f + K[:2, 2]
     rgb = np.clip(np.rint(out["rgb"][0] * 255), 0, 255).astype(np.uint8)
