@@ -11,8 +11,9 @@ segmenter, gaze; not the HDF5 writing), median of ``--repeats`` after a warm-up.
 Part 2, accuracy: ``--subjects`` procedural subjects rendered by a plain photo camera (640x480, focal 1.2 x 640,
 random head pose yaw ±25°, pitch ±15°, roll ±8°, gaze ±25°); mediapipe's iBUG-68 landmarks against the
 generator's exact ones (pixels, by region; the jaw is approximate by construction), the head rotation error (°)
-of PnP with the average head model, the normalized crop's eye-centre error against the generator's normalized
-view (pixels at 512²), the iris-geometry gaze error (°) and the head-mask IoU against the generator's mask.
+of PnP with the average head model, the head scale the iris sets (the renders' is 1, their irises vary ±10%),
+the normalized crop's eye-centre error against the generator's normalized view (pixels at 512², with the iris
+scale and with ``--scale 1``), the iris-geometry gaze error (°) and the head-mask IoU against the generator's.
 """
 
 from __future__ import annotations
@@ -138,17 +139,19 @@ def accuracy_rows(finder, n_subjects: int, size: int = 512) -> tuple[list[dict],
         err = np.linalg.norm(lm - ph["landmarks"], axis=1)
         row = prepare_face(ph["bgr"], FaceObservation.from_mesh(faces[0].points), ph["K"], target, person=finder.person)
         a, view = row.arrays, generator_view(ph, size)
+        unit = prepare_face(ph["bgr"], FaceObservation.from_mesh(faces[0].points), ph["K"], target, scale=1.0).arrays
         R_gen = view["w2c_R"].astype(np.float64) @ ph["R"]
         cos = (np.trace(a["w2c_Rmat"].astype(np.float64).T @ R_gen) - 1) / 2
-        eyes = [np.linalg.norm(a["facial_landmarks"][s].mean(0) - view["landmarks_2d"][s].mean(0))
-                for s in (slice(36, 42), slice(42, 48))]
+        eyes, eyes_unit = ([np.linalg.norm(r["facial_landmarks"][s].mean(0) - view["landmarks_2d"][s].mean(0))
+                            for s in (slice(36, 42), slice(42, 48))] for r in (a, unit))
         g = float(np.degrees(np.arccos(np.clip(pitchyaw_vector(a["pitchyaw_head"]) @ pitchyaw_vector(gaze), -1, 1))))
         head, truth = a["head_mask"] > 0, view["head_mask"]
         out.append({"subject": seed, "found": 1, "landmarks px": float(err.mean()), "jaw px": float(err[:17].mean()),
                     "eyes px": float(err[36:48].mean()), "mouth px": float(err[48:].mean()),
                     "face width px": float(np.ptp(ph["landmarks"][:, 0])),
                     "head pose deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
-                    "crop eye centres px": float(np.mean(eyes)), "gaze deg": g,
+                    "iris scale": float(a["scale"][0]), "crop eye centres px": float(np.mean(eyes)),
+                    "crop eye centres px, --scale 1": float(np.mean(eyes_unit)), "gaze deg": g,
                     "head mask IoU": float((head & truth).sum() / max((head | truth).sum(), 1))})
     return out
 

@@ -18,8 +18,8 @@ from toolkit.errors import ToolkitError
 PNP_LANDMARKS = np.arange(68)
 """iBUG points PnP fits: all 68. The jaw is approximate (apps.photo.landmarks68) and the model's a half ellipse,
 yet it is what pins pitch down: on 10 synthetic renders (mediapipe's landmarks, the average head model) the head
-rotation was off by 4.2° on average with all 68 points, 11.3° without the jaw (brows, nose, eyes, mouth), 14.0°
-with eyes, nose and mouth corners alone (benchmarks/prepare.py measures it)."""
+rotation was off by 4.2° on average with all 68 points, 11.3° without the jaw (brows, nose, eyes, mouth), 14.4°
+with the nose, eyes and mouth alone (benchmarks/prepare.py measures the first)."""
 
 IRIS_DIAMETER = 0.0117
 """m: the visible iris diameter of adults, 11.7 ± 0.5 mm (the metric cue of mediapipe's iris depth estimate:
