@@ -26,12 +26,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
-
 from toolkit.errors import ToolkitError, run_cli
 
-MIN_FACE_PX = 64
-"""Faces narrower than this in the photo (pixels) are skipped: too few pixels for the eyes."""
 MAX_SOURCE_NAMES_BYTES = 60_000
 """The ``source_files`` attribute (the photos' names as JSON) must stay under the format's 64 KiB attributes."""
 SIZE_RANGE = (32, 2048)
@@ -86,39 +82,6 @@ def make_target(args: argparse.Namespace):
     return target
 
 
-def photo_rows(photo, frame_index: int, finder, target, args, gaze) -> tuple[list, list[str]]:
-    """The rows of one decoded photo (largest face first) and a problem line for each face left out."""
-    from apps.photo.images import photo_focal, photo_intrinsics
-    from apps.photo.rows import FaceObservation, prepare_face
-
-    rgb = np.ascontiguousarray(photo.bgr[..., ::-1])
-    faces, unfitted = finder.faces(rgb)
-    if args.largest_face or gaze is not None:  # one labelled gaze a photo: its largest face
-        faces = faces[:1]
-    small = [f for f in faces if f.width < MIN_FACE_PX]
-    faces = [f for f in faces if f.width >= MIN_FACE_PX]
-    if not faces:
-        if small:
-            raise ToolkitError(f"the face found is {small[0].width:.0f} px wide, under {MIN_FACE_PX} px")
-        if unfitted:
-            raise ToolkitError("a face was detected but the landmarker could not fit it (a profile or an occluded "
-                               "face?)")
-        raise ToolkitError("no face found")
-    focal, _ = photo_focal(photo, args.focal)
-    K = photo_intrinsics(*photo.size, focal)
-    rows, problems = [], []
-    for k, face in enumerate(faces):
-        try:
-            rows.append(prepare_face(photo.bgr, FaceObservation.from_mesh(face.points), K, target,
-                                     frame_index=frame_index, gaze_photo=gaze, scale=args.scale,
-                                     person=finder.person))
-        except ToolkitError as e:
-            problems.append(f"face {k + 1} of {len(faces)}: {e}")
-    if not rows:
-        raise ToolkitError("; ".join(problems))
-    return rows, problems
-
-
 def file_attrs(photos: list[Path], focals: list, target, gaze_source: str) -> dict:
     names = json.dumps([str(p) for p in photos])
     return {"source": "apps.prepare", "gaze_source": gaze_source, "source_files": names,
@@ -131,14 +94,15 @@ def prepare_group(name: str, photos: list[Path], finder, target, args, labels, r
     """One output file from a group of photos; returns (its path or None, sheet strips) and reports each
     problem through ``report(line)``."""
     from apps.photo.images import load_photo, photo_focal
-    from apps.photo.rows import write_rows
+    from apps.photo.rows import photo_rows, write_rows
     from apps.photo.sheet import sheet_strip
 
     rows, strips, focals = [], [], []
     for i, path in enumerate(photos):
         try:
             photo = load_photo(path)
-            got, problems = photo_rows(photo, i, finder, target, args, None if labels is None else labels[path])
+            got, problems = photo_rows(photo, finder, target, frame_index=i, largest_face=args.largest_face,
+                                       focal=args.focal, scale=args.scale, gaze=None if labels is None else labels[path])
         except ToolkitError as e:
             report(f"{path}: {e}" if str(path) not in str(e) else str(e))
             focals.append(None)

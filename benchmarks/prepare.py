@@ -85,14 +85,12 @@ SIZES_MP = (0.3, 1.0, 12.0)
 
 def prepare_one(path: Path, finder, target, out: Path) -> int:
     """One photo as the app prepares it (decode, faces, rows, sheet strips, the HDF5 file); returns its faces."""
-    from apps import prepare
     from apps.photo.images import load_photo
-    from apps.photo.rows import write_rows
+    from apps.photo.rows import photo_rows, write_rows
     from apps.photo.sheet import sheet_strip
 
-    args = argparse.Namespace(largest_face=False, focal=None, scale=None)
     photo = load_photo(path)
-    rows, _ = prepare.photo_rows(photo, 0, finder, target, args, None)
+    rows, _ = photo_rows(photo, finder, target)
     for r in rows:
         sheet_strip(path.name, photo.bgr, r.source_landmarks, r.arrays)
     write_rows(out, rows, target, {"source": "benchmarks/prepare.py"})

@@ -19,6 +19,9 @@ MAX_TURN_DEG = 75.0
 """A face turned further from the camera (head −z against the direction to the camera) is refused: the mesh's
 fit of a near-profile is unreliable and most of the face is hidden."""
 
+MIN_FACE_PX = 64
+"""Faces narrower than this in the photo (pixels) are skipped: too few pixels for the eyes."""
+
 EXTRA_ROW_KEYS = ("warp", "face_box", "source_size", "iris_centers")
 """The rows' keys beyond the format's: what undoes the normalization (``warp`` [3, 3] photo → crop pixels,
 ``face_box`` [4] x0, y0, x1, y1 photo pixels, ``source_size`` [2] width, height) and the iris centres [2, 2]
@@ -138,6 +141,40 @@ def prepare_face(bgr: np.ndarray, obs: FaceObservation, K: np.ndarray, target, *
     }
     notes = {"rms_px": pose.rms_px, "scale_source": pose.scale_source, "turn_deg": turn, "distance_m": norm.distance}
     return FaceRow(arrays, np.asarray(obs.landmarks68, np.float64), notes)
+
+
+def photo_rows(photo, finder, target, *, frame_index: int = 0, largest_face: bool = False, focal: float | None = None,
+               scale: float | None = None, gaze: np.ndarray | None = None) -> tuple[list[FaceRow], list[str]]:
+    """The rows of one decoded photo (``apps.photo.images.Photo``), largest face first, and a problem line for
+    each face left out. ``finder`` an ``apps.photo.faces.FaceFinder``; ``target`` the head model and
+    normalization (``apps.photo.face_model``); ``focal`` pixels (default EXIF, else 1.2 × the longer side);
+    ``gaze`` [2] a labelled gaze (radians, photo camera frame), which keeps the largest face only. A photo with
+    no usable face is a ToolkitError saying why."""
+    from apps.photo.images import photo_focal, photo_intrinsics
+
+    faces, unfitted = finder.faces(np.ascontiguousarray(photo.bgr[..., ::-1]))
+    if largest_face or gaze is not None:  # one labelled gaze a photo: its largest face
+        faces = faces[:1]
+    small = [f for f in faces if f.width < MIN_FACE_PX]
+    faces = [f for f in faces if f.width >= MIN_FACE_PX]
+    if not faces:
+        if small:
+            raise ToolkitError(f"the face found is {small[0].width:.0f} px wide, under {MIN_FACE_PX} px")
+        if unfitted:
+            raise ToolkitError("a face was detected but the landmarker could not fit it (a profile or an occluded "
+                               "face?)")
+        raise ToolkitError("no face found")
+    K = photo_intrinsics(*photo.size, photo_focal(photo, focal)[0])
+    rows, problems = [], []
+    for k, face in enumerate(faces):
+        try:
+            rows.append(prepare_face(photo.bgr, FaceObservation.from_mesh(face.points), K, target,
+                                     frame_index=frame_index, gaze_photo=gaze, scale=scale, person=finder.person))
+        except ToolkitError as e:
+            problems.append(f"face {k + 1} of {len(faces)}: {e}")
+    if not rows:
+        raise ToolkitError("; ".join(problems))
+    return rows, problems
 
 
 def subject_arrays(model) -> dict[str, np.ndarray]:
