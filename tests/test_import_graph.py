@@ -17,11 +17,14 @@ TRAIN_LAYERS = (
     ("train.run_config",),
     ("train.training", "train.evaluation"),
     ("train.stages",),
-    ("train.trained_run", "train.run"),
+    ("train.trained_run",),
+    ("train.augment",),
+    ("train.ablate",),
+    ("train.run",),
 )
 """train/'s parts from the bottom up: a part imports only parts of lower layers (and itself). The configs sit
 above the components whose configs they nest; the stages above everything they run; the
-finished-run API and the CLI on top."""
+finished-run API, the benchmarks on finished runs, and the CLI on top."""
 
 
 def _module_name(path: Path) -> str:

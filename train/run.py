@@ -20,7 +20,8 @@ Launch with ``torchrun --nproc_per_node N -m train.run ...`` for DDP in stage ga
 of ``gaussian.batch`` (the same rows of every random draw) and the gradients are averaged, so the weights equal
 one process's on the whole batch up to float sums (tested); rank 0 logs and writes the checkpoints.
 A finished run is opened for use with ``train.trained_run.TrainedRun``; ``python -m train.run augment --run-dir
-RUN --out OUT`` measures whether its redirected data makes a gaze estimator better (``train.augment``).
+RUN --out OUT`` measures whether its redirected data makes a gaze estimator better (``train.augment``), and
+``python -m train.run ablate --preset demo --seeds 3`` trains and tables the paper's Table 3 (``train.ablate``).
 """
 
 from __future__ import annotations
@@ -105,6 +106,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from train.augment.cli import main as augment
 
         return augment(argv[1:])
+    if argv[:1] == ["ablate"]:  # the paper's Table 3 over seeds (train.ablate)
+        from train.ablate import main as ablate
+
+        return ablate(argv[1:])
     args = build_parser().parse_args(argv)
     cfg = resolve_config(args)
     stages, force = select_stages(args)

@@ -1,0 +1,163 @@
+"""The paper's Table 3 in one command: ``python -m train.run ablate --preset demo --seeds 3 --run-dir out/ablate``.
+
+For each seed, the full model is trained in ``RUN_DIR/seed<s>/full`` (``seed=s``: the stages' training
+randomness; the data are the same for every seed), and each row of Table 3 in a copy of it in which only the
+Gaussian and eval stages run again with the row's switch (the data, geometry, codec and estimators are the full
+run's, so the rows differ in that switch alone). Every row is evaluated by the same protocol; ``ablation.md``
+and ``ablation.png`` give each row's mean and its paired 95 % interval against the full model (units: seeds)
+and its wall time. Resumable: ``train.run`` skips every stage that finished under the same config, so a rerun
+trains only what is missing. ``--augment`` adds protocol A of ``train.run augment`` per row as a column.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+from pathlib import Path
+from typing import Sequence
+
+from toolkit.errors import ToolkitError
+
+ROWS = (("full", ()),
+        ("w/o DiT renderer", ("gaussian.renderer=unet", "gaussian.feature_upscale=4")),
+        ("w/o orthogonality loss", ("gaussian.orthogonality=false",)),
+        ("w/o weak supervision", ("gaussian.weak_supervision=false",)))
+"""Table 3's rows: (name, overrides of the full model). Without the DiT renderer is GazeGaussian's renderer at
+its own upscale (4: docs/renderer.md)."""
+METRICS = (("gaze", "gaze_error_deg", -1), ("head pose", "head_pose_error_deg", -1), ("PSNR", "psnr", 1),
+           ("SSIM", "ssim", 1), ("LPIPS", "lpips", -1), ("FID", "fid", -1))
+"""(column, metrics.json key, +1 when higher is better)."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m train.run ablate",
+                                description="Train and evaluate the paper's Table 3 rows over seeds (docs/evaluation.md). "
+                                            "The demo preset: ~12 min a row and seed on 2 cores.")
+    p.add_argument("--preset", default="demo", help="the preset of every row (default: demo)")
+    p.add_argument("--seeds", type=int, default=3, help="seeds (repetitions) per row, >= 1 (default: 3)")
+    p.add_argument("--run-dir", default="out/ablate", help="folder of the rows' run directories and the table")
+    p.add_argument("--augment", action="store_true", help="add protocol A of `train.run augment` per row")
+    p.add_argument("overrides", nargs="*", help="section.key=value overrides applied to every row")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from toolkit.io import atomic_write_json, atomic_write_text
+
+    args = build_parser().parse_args(argv)
+    if not 1 <= args.seeds <= 100:
+        raise ToolkitError(f"ablate --seeds: expected 1 to 100 seeds, got {args.seeds}")
+    root = Path(args.run_dir)
+    results = {name: [] for name, _ in ROWS}
+    for seed in range(args.seeds):
+        full = root / f"seed{seed}" / "full"
+        for k, (name, switch) in enumerate(ROWS):
+            row_dir = full if k == 0 else full.with_name(_slug(name))
+            results[name].append(_run_row(args, full, row_dir, seed, switch))
+    table = summarize_rows(results)
+    atomic_write_json(root / "ablation.json", {"rows": table, "raw": results, "seeds": args.seeds,
+                                               "preset": args.preset, "overrides": args.overrides})
+    atomic_write_text(root / "ablation.md", ablation_markdown(table, args))
+    ablation_figure(table, root / "ablation.png")
+    print(json.dumps({"table": str(root / "ablation.md")}))
+    return 0
+
+
+def _slug(name: str) -> str:
+    return name.replace("w/o ", "no_").replace(" ", "_").lower()
+
+
+def _run_row(args, full: Path, row_dir: Path, seed: int, switch: tuple[str, ...]) -> dict:
+    """Train (or resume) one row of one seed, in a process of its own, and read its metrics and wall time."""
+    import subprocess
+    import sys
+
+    if row_dir == full:
+        argv = ["--preset", args.preset, "--run-dir", str(full), f"seed={seed}", *args.overrides]
+    else:
+        if not (row_dir / "config.yaml").exists():  # a copy of the full run: its data, geometry, codec, estimators
+            shutil.copytree(full, row_dir, ignore=shutil.ignore_patterns("gaussian", "metrics.json", "report.md"))
+        argv = ["--preset", args.preset, "--run-dir", str(row_dir), f"seed={seed}", *args.overrides, *switch]
+    if subprocess.run([sys.executable, "-m", "train.run", *argv]).returncode != 0:
+        raise ToolkitError(f"{row_dir}: the row's run failed (its error is above)")
+    metrics = json.loads((row_dir / "metrics.json").read_text())["metrics"]
+    seconds = sum(json.loads((row_dir / "stages" / f"{s}.json").read_text()).get("seconds", 0.0)
+                  for s in ("gaussian", "eval"))
+    out = {key: metrics.get(key) for _, key, _ in METRICS} | {"seconds": seconds}
+    if args.augment:
+        out["augment_A"] = _augment_row(row_dir)
+    return out
+
+
+def _augment_row(row_dir: Path) -> dict:
+    """Protocol A of ``train.run augment`` on one row (written beside it): (iii) − (ii) at each k."""
+    from train.augment.cli import main as augment
+
+    out = row_dir / "augment"
+    if not (out / "augment.json").exists():
+        augment(["--run-dir", str(row_dir), "--out", str(out), "--protocols", "A", "--seeds", "1"])
+    res = json.loads((out / "augment.json").read_text())["A"]
+    return {k: c["diff"] for k, c in res["iii"].items()}
+
+
+def summarize_rows(results: dict[str, list[dict]]) -> dict:
+    """{row: {column: paired(row, full) or None}} over the seeds (``train.augment.report.paired``)."""
+    from train.augment.report import paired
+
+    full = results[ROWS[0][0]]
+    table = {}
+    for name, runs in results.items():
+        cells = {}
+        for column, key in [(c, k) for c, k, _ in METRICS] + [("wall time (s)", "seconds")]:
+            a, r = [x.get(key) for x in runs], [x.get(key) for x in full]
+            known = all(isinstance(v, (int, float)) and math.isfinite(v) for v in a + r)  # LPIPS, FID: n/a without weights
+            cells[column] = paired(a, r) if known else None
+        if all("augment_A" in x for x in runs):
+            for k in runs[0]["augment_A"]:
+                cells[f"augment A k={k}: (iii) − (ii)"] = paired([x["augment_A"][k] for x in runs],
+                                                                 [0.0] * len(runs))
+        table[name] = cells
+    return table
+
+
+def ablation_markdown(table: dict, args) -> str:
+    columns = [c for c in next(iter(table.values())) if any(row[c] is not None for row in table.values())]
+    lines = [f"# Table 3: ablations ({args.preset} preset, {args.seeds} seed{'s' * (args.seeds != 1)})", "",
+             "Mean over seeds; other rows: (row − full) and its paired 95 % t interval (units: seeds). Gaze and head "
+             "pose in degrees, wall time of the Gaussian and eval stages.", "",
+             "| row | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
+    for name, cells in table.items():
+        lines.append(f"| {name} | " + " | ".join(_cell(cells[c], name == ROWS[0][0]) for c in columns) + " |")
+    return "\n".join(lines + ["", "![ablation](ablation.png)", ""])
+
+
+def _cell(c: dict | None, full: bool) -> str:
+    if c is None:
+        return "n/a"
+    return f"{c['mean']:.3g}" if full else f"{c['mean']:.3g} ({c['diff']:+.2g} [{c['lo']:+.2g}, {c['hi']:+.2g}])"
+
+
+def ablation_figure(table: dict, path: Path) -> None:
+    """``ablation.png``: gaze error and PSNR per row, with the paired intervals as error bars."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from toolkit.io import atomic_path
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    names = list(table)
+    for ax, column in zip(axes, ("gaze", "PSNR")):
+        cells = [table[n][column] for n in names]
+        means = [c["mean"] if c else 0 for c in cells]
+        err = [(c["hi"] - c["diff"]) if c and c["hi"] != c["diff"] else 0 for c in cells]
+        ax.bar(range(len(names)), means, yerr=[min(e, 1e3) for e in err], capsize=4)
+        ax.set_xticks(range(len(names)), names, rotation=15, fontsize=8)
+        ax.set_ylabel("gaze error (deg)" if column == "gaze" else "PSNR (dB)")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
