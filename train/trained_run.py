@@ -49,8 +49,8 @@ class TrainedRun(RunArtifacts):
 
     def code_widths(self) -> tuple[int, int]:
         """(identity, expression) widths of the trained model's code, as its final checkpoint records them
-        (``train.stages.gaussian.checkpoint_code_widths``): the run's data's, 80 + 64 for native data."""
-        from train.stages.gaussian import checkpoint_code_widths
+        (``train.stages.artifacts.checkpoint_code_widths``): the run's data's, 80 + 64 for native data."""
+        from train.stages.artifacts import checkpoint_code_widths
 
         return checkpoint_code_widths(self.context.path("gaussian", "checkpoint"))
 

@@ -13,8 +13,12 @@ from typing import Callable
 import torch
 
 from toolkit.errors import ToolkitError
+from toolkit.io import load_metadata
 from train.run_config import RunConfig
 from train.stages.pipeline import RunContext
+
+CODE_WIDTHS_KEY = "code_widths"
+"""The final checkpoint's ``extra`` entry [identity, expression]: the widths of the code the model was trained at."""
 
 
 def resolve_device(cfg: RunConfig) -> torch.device:
@@ -137,18 +141,24 @@ class RunArtifacts:
 
     def build_model(self, device, code_widths: tuple[int, int] | None = None):
         """(model, renderer) before training: the two-stream model on the geometry stage's Gaussians, for codes of
-        ``code_widths`` (identity, expression; default: the training files', ``train.stages.gaussian``)."""
-        from train.stages.gaussian import training_code_widths
+        ``code_widths`` (identity, expression; default: the training files', :meth:`training_code_widths`)."""
         from train.training.trainer import build_model
 
-        widths = code_widths or training_code_widths(self)
+        widths = code_widths or self.training_code_widths()
         return (build_model(self.context.path("geometry", "scene"), self.config.gaussian, device, widths),
                 self.renderer(device, sum(widths)))
+
+    def training_code_widths(self) -> tuple[int, int]:
+        """(identity, expression) widths of the code the model reads: those of the run's training files, whose
+        layouts must agree (``train.data.layouts.agreed_code_widths``: else one line naming two files)."""
+        from train.data.layouts import agreed_code_widths, row_layout
+
+        layout = self.config.data.layout
+        return agreed_code_widths([(f, row_layout(f, layout)) for f in self.split("train")])
 
     def load_model(self, device):
         """(model, renderer) restored from the Gaussian stage's final checkpoint, in eval mode (a clear
         ToolkitError when the checkpoint does not fit the config)."""
-        from train.stages.gaussian import checkpoint_code_widths
         from train.training.checkpoint import load_training_checkpoint
 
         path = self.context.path("gaussian", "checkpoint")
@@ -217,3 +227,19 @@ def _dataset_name(root: str, layout: str) -> str:
         except ToolkitError:
             pass
     return f"{Path(root).name} ({layout} layout)"
+
+
+def checkpoint_code_widths(path) -> tuple[int, int]:
+    """(identity, expression) widths a Gaussian stage's checkpoint was trained at (its ``extra``
+    :data:`CODE_WIDTHS_KEY`; a checkpoint written before they were stored: the native 80 + 64)."""
+    from train.data.layouts import DITGAZE, code_widths
+
+    extra = load_metadata(path).get("extra")
+    widths = extra.get(CODE_WIDTHS_KEY) if isinstance(extra, dict) else None
+    if widths is None:
+        return code_widths(DITGAZE)
+    if not (isinstance(widths, list) and len(widths) == 2
+            and all(isinstance(w, int) and not isinstance(w, bool) and w >= 1 for w in widths)):
+        raise ToolkitError(f"{path}: extra '{CODE_WIDTHS_KEY}' is {widths!r}, expected [identity, expression] "
+                           "code widths")
+    return widths[0], widths[1]

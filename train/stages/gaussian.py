@@ -10,40 +10,11 @@ import torch
 from toolkit.errors import ToolkitError
 from toolkit.io import load_metadata
 from train.run_config import RunConfig
-from train.stages.artifacts import RunArtifacts, resolve_device
+from train.stages.artifacts import CODE_WIDTHS_KEY, RunArtifacts, resolve_device
 from train.stages.pipeline import RunContext, Stage, fingerprint
 
 GAUSSIAN_INPUTS = ("geometry", "codec", "estimator")
 """The stages whose outputs the Gaussian stage reads (its Gaussians, codec and loss estimator)."""
-CODE_WIDTHS_KEY = "code_widths"
-"""The final checkpoint's ``extra`` entry [identity, expression]: the widths of the code the model was trained at."""
-
-
-def training_code_widths(run: RunArtifacts) -> tuple[int, int]:
-    """(identity, expression) widths of the code the model reads: those of the run's training files, whose
-    layouts must agree (``train.data.layouts.agreed_code_widths``: else one line naming two files)."""
-    from train.data.layouts import agreed_code_widths, row_layout
-
-    layout = run.config.data.layout
-    return agreed_code_widths([(f, row_layout(f, layout)) for f in run.split("train")])
-
-
-def checkpoint_code_widths(path) -> tuple[int, int]:
-    """(identity, expression) widths a Gaussian stage's checkpoint was trained at (its ``extra``
-    :data:`CODE_WIDTHS_KEY`; a checkpoint written before they were stored: the native 80 + 64)."""
-    from train.data.layouts import DITGAZE, code_widths
-
-    extra = load_metadata(path).get("extra")
-    widths = extra.get(CODE_WIDTHS_KEY) if isinstance(extra, dict) else None
-    if widths is None:
-        return code_widths(DITGAZE)
-    if not (isinstance(widths, list) and len(widths) == 2
-            and all(isinstance(w, int) and not isinstance(w, bool) and w >= 1 for w in widths)):
-        raise ToolkitError(f"{path}: extra '{CODE_WIDTHS_KEY}' is {widths!r}, expected [identity, expression] "
-                           "code widths")
-    return widths[0], widths[1]
-
-
 def gaussian_section(cfg: RunConfig):
     """The part of the config the Gaussian stage's fingerprint hashes: the seed and the ``gaussian`` section."""
     return cfg.seed, cfg.gaussian
@@ -61,7 +32,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     info = init_distributed(cfg.device if cfg.device != "auto" else "auto")
     device = torch.device(info.device) if info.enabled else resolve_device(cfg)
     torch.manual_seed(cfg.seed)
-    model, renderer = run.build_model(device)  # at the training files' code widths (training_code_widths)
+    model, renderer = run.build_model(device)  # at the training files' code widths (RunArtifacts.training_code_widths)
     # Read a batch at a time: the paper's split is ~75 GB as float32 tensors (docs/pipeline.md, Data in memory).
     data = open_split(run.split("train"), "all", cfg.data.res, layout=cfg.data.layout)
     try:

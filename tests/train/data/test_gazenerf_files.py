@@ -166,7 +166,7 @@ def _artifacts(tmp_path, root, *overrides: str):
 
 
 def test_the_gaussian_stage_builds_its_model_at_the_training_files_widths(tmp_path, truth):
-    from train.stages.gaussian import checkpoint_code_widths
+    from train.stages.artifacts import checkpoint_code_widths
     from train.trained_run import TrainedRun
     from train.training.checkpoint import save_training_checkpoint
 
