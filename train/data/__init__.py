@@ -10,6 +10,7 @@
 - ``train.data.dataset``: ``GazeDataset`` (lazy per-sample reads, resize, white compositing, splits).
 - ``train.data.rows``: ``RowSource`` / ``RowImages``, a split's rows read a batch at a time (bounded cache,
   reading threads) for the stages that train on it.
+- ``train.data.patches``: the ETH-XGaze release's face patches and labels, read lazily for the estimator stage.
 - ``train.data.export``: native files written in a peer's layout (``python -m train.data export``).
 - ``train.data.pairing``: evaluation pairs (GazeNeRF protocol; generated targets for synthetic data).
 - ``python -m train.data synth|inspect|export``.

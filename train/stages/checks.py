@@ -156,6 +156,7 @@ def _check_files(cfg: RunConfig) -> None:
     if e.data_root:
         _check_layout(e.data_root, e.data_layout, "eval.data_layout")
     if e.data_root or (cfg.data.root and Path(cfg.data.root).exists()):  # the held-out files are known before training
+        from train.data.patches import release_layout
         from train.stages.artifacts import RunArtifacts
         from train.stages.pipeline import RunContext
 
@@ -163,7 +164,9 @@ def _check_files(cfg: RunConfig) -> None:
             test = RunArtifacts(RunContext(Path("."), cfg)).eval_files()
         except ToolkitError:
             test = []  # a folder the stages cannot split: the stage that reads it names what is wrong
-        check_eval_pairing(cfg, test)
+        # ETH-XGaze release files feed the estimator stage alone; the eval stage refuses them in one line
+        if not (test and release_layout(test, e.data_layout if e.data_root else cfg.data.layout)):
+            check_eval_pairing(cfg, test)
     lp = {"eval.lpips_vgg_path": e.lpips_vgg_path, "eval.lpips_lin_path": e.lpips_lin_path}
     if any(lp.values()) and not all(lp.values()):
         raise ToolkitError(f"config keys {list(lp)}: LPIPS needs both files (the VGG16 weights and the linear "

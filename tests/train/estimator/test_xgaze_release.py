@@ -238,19 +238,7 @@ def _cli(argv) -> tuple[int, str]:
     return code, err.getvalue()
 
 
-def _skip_release_pairing(monkeypatch):
-    """What train/stages/checks.py needs (reported): its eval-pairing check validates the held-out files in their
-    layout before any stage runs, which refuses release files (row_layout) even for ``--stages data,estimator``;
-    the eval stage refuses them anyway, in one line."""
-    import train.stages.checks as checks
-
-    check = checks.check_eval_pairing
-    monkeypatch.setattr(checks, "check_eval_pairing",
-                        lambda cfg, files: None if files and release_layout(files, cfg.data.layout) else check(cfg, files))
-
-
-def test_a_run_trains_its_estimators_on_release_files(release, tmp_path, monkeypatch):
-    _skip_release_pairing(monkeypatch)
+def test_a_run_trains_its_estimators_on_release_files(release, tmp_path):
     run_dir = tmp_path / "run"
     code, err = _cli(["--preset", "tiny", "--run-dir", run_dir, "--stages", "data,estimator",
                       f"data.root={release['dir']}", "data.layout=xgaze", "estimator.crop=face", "estimator.steps=2"])
@@ -259,9 +247,6 @@ def test_a_run_trains_its_estimators_on_release_files(release, tmp_path, monkeyp
     assert set(json.loads((run_dir / "estimators.json").read_text())) == {"loss", "eval"}
 
 
-@pytest.mark.xfail(strict=True, reason="train/stages/checks.py's eval-pairing check validates the held-out files "
-                                       "before any stage runs, and row_layout refuses release files (reported; drop "
-                                       "this marker when the check skips them)")
 def test_a_run_trains_its_estimators_on_release_files_without_help(release, tmp_path):
     code, err = _cli(["--preset", "tiny", "--run-dir", tmp_path / "run", "--stages", "data,estimator",
                       f"data.root={release['dir']}", "estimator.crop=face", "estimator.steps=2"])
