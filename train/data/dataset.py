@@ -162,7 +162,8 @@ class GazeDataset(torch.utils.data.Dataset):
 
     Each sample: ``image`` [3, R, R] float32 RGB in [0, 1]; ``head_mask``, ``left_eye_mask``,
     ``right_eye_mask`` [1, R, R] float32 in {0, 1} (soft at resized edges); ``landmarks`` [68, 2] pixels of
-    the R × R image; ``landmarks_3d`` [68, 3]; ``K`` [3, 3] (for R × R); ``w2c_R`` [3, 3]; ``w2c_T`` [3];
+    the R × R image; ``landmarks_3d`` [68, 3] (none for a one-camera GazeNeRF file); ``K`` [3, 3] (for R × R);
+    ``w2c_R`` [3, 3]; ``w2c_T`` [3];
     ``viewmat`` [4, 4]; ``pitchyaw_head`` [2]; ``face_head_pose`` [2]; ``pose`` [6]; ``scale`` [1];
     ``latent_code`` [I + E] (identity then expression: 80 + 64 for native files, the layout's widths for the
     peers', :meth:`code_widths`); ``cam_index``, ``frame_index``, ``subject``, ``row`` int64 scalars (a scaled
@@ -294,7 +295,8 @@ class GazeDataset(torch.utils.data.Dataset):
             "image": t(img.transpose(2, 0, 1)),
             **{m: t(v[None]) for m, v in masks.items()},
             "landmarks": t(lm),
-            "landmarks_3d": t(r["facial_landmarks_3d"]),
+            # absent where a file cannot give them (a one-camera GazeNeRF file: train.data.layouts.single_camera)
+            **({"landmarks_3d": t(r["facial_landmarks_3d"])} if "facial_landmarks_3d" in r else {}),
             "K": t(K),
             "w2c_R": t(r["w2c_Rmat"]),
             "w2c_T": t(r["w2c_Tvec"]),

@@ -453,16 +453,26 @@ def triangulate_frames(landmarks: np.ndarray, K: np.ndarray, R: np.ndarray, t: n
     return out
 
 
+def single_camera(rows: Mapping[str, np.ndarray]) -> bool:
+    """Whether every frame of a file is seen by one camera: GazeNeRF's MPIIFaceGaze and ColumbiaGaze files (one
+    webcam or one photo per frame: dataset_pre_processing.py L559-612, L844), whose 3D landmarks no triangulation
+    can give (a file mixing one-camera and multi-camera frames is refused frame by frame instead)."""
+    if "frame_index" not in rows:
+        return False
+    return all(len(r) == 1 for r in _frame_runs(rows["frame_index"], rows.get("cam_index")))
+
+
 def _head_frame_world(rows: Mapping[str, np.ndarray], out: dict, where: str) -> None:
     """A layout whose cameras map each row's head frame (``frame_3d`` "triangulated"): the world is that head
-    frame, so ``pose`` 0 and ``scale`` 1; ``facial_landmarks_3d`` triangulated per frame. Made only from rows
-    with the cameras (a caller converting the gaze alone gets no pose)."""
+    frame, so ``pose`` 0 and ``scale`` 1; ``facial_landmarks_3d`` triangulated per frame, except in a
+    :func:`single_camera` file, which has none (the stages that need them name the key). Made only from rows with
+    the cameras (a caller converting the gaze alone gets no pose)."""
     if "w2c_Rmat" not in rows:
         return
     n = len(rows["w2c_Rmat"])
     out["pose"] = np.zeros((n, 6), np.float32)
     out["scale"] = np.ones((n, 1), np.float32)
-    if "facial_landmarks" in rows:
+    if "facial_landmarks" in rows and not single_camera(rows):
         why = "triangulate the 3D landmarks"
         out["facial_landmarks_3d"] = triangulate_frames(
             rows["facial_landmarks"], _need(rows, "inmat", why), rows["w2c_Rmat"], _need(rows, "w2c_Tvec", why),
@@ -637,14 +647,15 @@ def row_layout(path: str | os.PathLike, requested: str = "auto") -> Layout:
 def check_frames(path: str | os.PathLike, layout: str | Layout) -> None:
     """Up front, for a layout whose 3D landmarks are triangulated per frame (GazeNeRF's): every frame of the file
     at ``path`` is seen by two cameras or more (:func:`frame_rows`; the triangulation itself runs when the labels
-    are read)."""
+    are read), or every frame by one (:func:`single_camera`: a file without 3D landmarks)."""
     from toolkit.h5 import has_key, open_h5, read_array
 
     if get_layout(layout).frame_3d != "triangulated":
         return
     with open_h5(path) as f:
-        cams = read_array(path, f, "cam_index") if has_key(path, f, "cam_index") else None
-        frame_rows(read_array(path, f, "frame_index"), cams, str(path))
+        index = {k: read_array(path, f, k) for k in ("frame_index", "cam_index") if has_key(path, f, k)}
+    if not single_camera(index):
+        frame_rows(index["frame_index"], index.get("cam_index"), str(path))
 
 
 def _written_here(path: str | os.PathLike) -> bool:

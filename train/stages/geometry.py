@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.errors import ToolkitError
 from train.config import component
 from train.stages.artifacts import RunArtifacts
 from train.stages.pipeline import RunContext
@@ -51,5 +52,9 @@ def subject_views_in_layout(path: Path, layout: str = "auto") -> dict:
     ds = GazeDataset([path], layout=layout)
     rows = [ds.read_row(0, i) for i in range(len(ds))]
     ds.close()
+    if "facial_landmarks_3d" not in rows[0]:
+        raise ToolkitError(f"{path}: no 3D landmarks (key 'facial_landmarks_3d'): every frame of this {layout} file "
+                           "is seen by one camera, so none can be triangulated; the geometry stage needs a "
+                           "multi-camera subject (geometry.subject)")
     arrays = {k: np.stack([np.asarray(r[k]) for r in rows]) for k in SUBJECT_KEYS if k in rows[0]}
     return subject_views(arrays, path)

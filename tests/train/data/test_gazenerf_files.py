@@ -125,6 +125,23 @@ def test_a_frame_seen_by_one_camera_is_one_line(tmp_path, truth):
                                               "by 1 camera")
 
 
+def test_a_one_camera_dataset_is_read_without_3d_landmarks(tmp_path, truth):
+    """GazeNeRF's MPIIFaceGaze files: one webcam image per frame (dataset_pre_processing.py L559-612, written as
+    mpii_subjectNNNN.h5, L496). Nothing can triangulate them: the samples carry no 3D landmarks, the evaluation
+    reads them, and the geometry stage names the key it lacks."""
+    from train.data.pairing import redirection_pairs
+    from train.stages.geometry import subject_views_in_layout
+
+    path = tmp_path / "mpii_subject0000.h5"
+    pf.write_gazenerf(path, pf.subset(truth, np.arange(12) % 4 == 0))  # camera 0 of each of the 3 frames
+    ds = GazeDataset([path], res=32)
+    assert len(ds) == 3 and "landmarks_3d" not in ds[0] and ds[0]["latent_code"].shape == (179,)
+    pairs = redirection_pairs(path, np.array([[0, 2], [1, 2]]), res=32)
+    assert pairs.protocol == "stored" and pairs[1]["target"]["image"].shape == (3, 32, 32)
+    with pytest.raises(ToolkitError, match=r"mpii_subject0000\.h5: no 3D landmarks \(key 'facial_landmarks_3d'\)"):
+        subject_views_in_layout(path)
+
+
 def test_a_degenerate_triangulation_is_one_line(tmp_path, truth):
     path = tmp_path / "xgaze_subject0009.h5"
     pf.write_gazenerf(path, truth)
