@@ -64,6 +64,7 @@ def protocol_a(run, cfg: AugmentConfig, device, log: Callable[[str], None] = pri
     gazes = gaze_grid(cfg.grid, cfg.grid_deg)
     out: dict = {arm: {} for arm in ARMS_A}
     for rep in range(cfg.seeds):
+        log(f"[augment] A rep {rep}: the base estimator on {len(train)} training rows ({est.base_steps} steps)")
         base = est.train(train, rep)
         for path in run.split("test"):
             person = read_rows(path, res, layout)
@@ -75,6 +76,8 @@ def protocol_a(run, cfg: AugmentConfig, device, log: Callable[[str], None] = pri
                 continue
             test = person.take(~person.in_frames(frames[:max(ks)]))
             made = _augmented(run, model, renderer, path, person, frames[:max(ks)], gazes, fit_steps, cfg, device)
+            log(f"[augment] A rep {rep} {path.name}: {len(made['iii'])} redirected and true images of "
+                f"{max(ks)} calibration frames; {len(test)} test rows")
             for k in ks:
                 real = person.take(person.in_frames(frames[:k]))
                 arms = {"i": base, "ii": est.train(real, rep, init=base),
