@@ -189,12 +189,20 @@ class GaussianStageConfig:
     position rate relative to the scene extent; ``train.training.trainer.optimizer_groups``)."""
     renderer_lr: float = field(default=5e-4, metadata=RATE)
     """Adam learning rate of the neural renderer."""
-    lr_schedule: Literal["constant", "cosine"] = field(default="constant", metadata=NEUTRAL)
-    """the rates over the stage: constant, or a half cosine from the configured rates down to ``lr_final``
-    times them at the last step (every group alike); a resumed run with more steps follows the longer curve."""
+    lr_schedule: Literal["constant", "cosine", "step"] = field(default="constant", metadata=NEUTRAL)
+    """the rates over the stage: constant; a half cosine from the configured rates down to ``lr_final`` times
+    them at the last step; or ``step``, the paper's step decay, tenfold every ``lr_decay_steps`` steps
+    (0.1^(step / lr_decay_steps), every group alike). A resumed run with more steps follows the longer curve."""
+    lr_decay_steps: int = field(default=1000, metadata=NEUTRAL | COUNT)
+    """step schedule: steps per tenfold fall of the rates, >= 1 (GazeGaussian's ``step_decay`` 1000; docs/model.md)."""
     lr_final: float = field(default=0.1, metadata=NEUTRAL | within(
         0, 1, "a factor {} of the rates at the last step"))
     """cosine schedule: the rates' factor at the last step, in [0, 1]."""
+    vgg_path: str = field(default="", metadata=NEUTRAL)
+    """a local VGG16 state dict (torchvision layout, ``train.losses.vgg``): turns on the perceptual term of the
+    image loss at ``lambda_perceptual``, as the paper trains; empty: off (docs/model.md)."""
+    lambda_perceptual: float = field(default=0.1, metadata=NEUTRAL | WEIGHT)
+    """weight of the perceptual term when ``vgg_path`` is given, >= 0 (GazeGaussian's ``vgg_importance`` 0.1)."""
     ema_decay: float = field(default=0.0, metadata=NEUTRAL | within(
         0, 1, "a decay {} (0: no average)", high_open=True))
     """decay of an exponential moving average of the model's and renderer's weights, in [0, 1), updated after
@@ -369,7 +377,9 @@ def demo_preset() -> RunConfig:
 def paper_preset() -> RunConfig:
     """The paper's setting, on a GPU: 512² renders, DiT depth 6 / 8 heads (``DiT-Gaze-paper``), 4x feature
     upscaling and GazeGaussian's schedule lengths; ``lambda_ssim`` 0.2, since 0.8 was measured at the demo's
-    scale only."""
+    scale only. Its optimizer: Adam at 1e-4 with GazeGaussian's step decay 0.1^(epoch / 1000) over its 100
+    epochs, here 100,000 steps (``lr_decay_steps`` 1,000,000: the rates end at 0.79 of their start). The
+    perceptual term needs the user's VGG16 weights (``gaussian.vgg_path``)."""
     return RunConfig(
         preset="paper",
         data=DataConfig(subjects=80, frames=20, test_frames=0, res=512),
@@ -378,7 +388,8 @@ def paper_preset() -> RunConfig:
         estimator=EstimatorStageConfig(steps=20_000, input_size=224, batch=64, synthetic_subjects=200,
                                        synthetic_frames=120),
         gaussian=GaussianStageConfig(dit_model="DiT-Gaze-paper", steps=100_000, batch=4, gaussians_hidden=256,
-                                     lambda_ssim=0.2, feature_upscale=4, ckpt_every=2000, log_every=50),
+                                     lambda_ssim=0.2, feature_upscale=4, ckpt_every=2000, log_every=50,
+                                     lr=1e-4, renderer_lr=1e-4, lr_schedule="step", lr_decay_steps=1_000_000),
         eval=EvalConfig(pairs_per_subject=100),
     )
 

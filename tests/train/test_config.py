@@ -142,8 +142,11 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
 
     base = to_dict(GaussianStageConfig())
     older = {k: v for k, v in base.items() if k not in ("lr_schedule", "lr_final", "dit_feature_hidden",
-                                                         "eyeball_colours", "ema_decay")}
+                                                         "eyeball_colours", "ema_decay", "lr_decay_steps",
+                                                         "vgg_path", "lambda_perceptual")}
     assert config_hash(GaussianStageConfig()) == config_hash(older)
+    assert config_hash(GaussianStageConfig(vgg_path="v.pth")) != config_hash(older)
+    assert config_hash(GaussianStageConfig(lr_schedule="step", lr_decay_steps=10)) != config_hash(older)
     assert config_hash(GaussianStageConfig(lr_schedule="cosine")) != config_hash(older)
     assert config_hash(GaussianStageConfig(dit_feature_hidden=16)) != config_hash(older)
     assert config_hash(GaussianStageConfig(eyeball_colours=True)) != config_hash(older)
@@ -442,6 +445,8 @@ def test_a_config_yaml_written_before_loads_and_round_trips(tmp_path):
     data_added = "  layout: auto\n  split_file: ''\n"
     expected = OLD_TINY_CONFIG.replace("  pairing_file: ''\n", added + "  pairing_file: ''\n")
     expected = expected.replace("  light_jitter: 0.0\n", "  light_jitter: 0.0\n" + data_added)
+    expected = expected.replace("  lr_final: 0.1\n", "  lr_decay_steps: 1000\n  lr_final: 0.1\n")
+    expected = expected.replace("  ema_decay: 0.0\n", "  vgg_path: ''\n  lambda_perceptual: 0.1\n  ema_decay: 0.0\n")
     expected = expected.replace("  sweep_frames: 3\n",
                                 "  data_root: ''\n  data_layout: auto\n  data_split_file: ''\n  sweep_frames: 3\n")
     assert (tmp_path / "new.yaml").read_text() == expected
@@ -482,9 +487,12 @@ def test_stage_fingerprints_are_those_of_runs_made_before():
     assert _stage_fingerprints(preset("demo")) == {
         "data": "1a5f68e91e56f7db", "geometry": "5cda16a313497540", "codec": "60547948bf352234",
         "estimator": "10736ce72ae20e23", "gaussian": "08a7a333e21d3520", "eval": "aeb8274f425f85e3"}
+    # the paper preset's optimizer is the paper's since 2026-11-27 (Adam 1e-4, step decay): its Gaussian stage is
+    # another training, so its fingerprint (and its eval's) differ from the runs made before; a run directory
+    # keeps its own config.yaml, so an old paper run stays up to date
     assert _stage_fingerprints(preset("paper")) == {
         "data": "af896099bae7e529", "geometry": "089d06ecc8d0ece7", "codec": "4dcd3c5e93298486",
-        "estimator": "a0cb85c142b48267", "gaussian": "05e5547c653adea7", "eval": "890a1d414b3b0d70"}
+        "estimator": "a0cb85c142b48267", "gaussian": "6c0fc37354bf3a8e", "eval": "f1b7cf111d5961de"}
     assert _stage_fingerprints(apply_overrides(preset("tiny"), MAPPED_OVERRIDES)) == {
         "data": "db21dac3ae9cd246", "geometry": "dc13af8ddc940534", "codec": "1acc1d10a8090196",
         "estimator": "4dd48a805590f945", "gaussian": "034c8f6fda0a7a88", "eval": "8add558ad7e302fb"}

@@ -175,7 +175,8 @@ def _check_files(cfg: RunConfig) -> None:
     files = {"estimator.loss_path": (cfg.estimator.loss_path, estimator_hint),
              "estimator.eval_path": (cfg.estimator.eval_path, estimator_hint),
              **{key: (path, "") for key, path in lp.items()}, "eval.identity_model_path": (e.identity_model_path, ""),
-             "eval.estimator_path": (e.estimator_path, " (GazeNeRF's gaze estimator checkpoint, .pth.tar)")}
+             "eval.estimator_path": (e.estimator_path, " (GazeNeRF's gaze estimator checkpoint, .pth.tar)"),
+             "gaussian.vgg_path": (cfg.gaussian.vgg_path, " (a VGG16 state dict for the perceptual term)")}
     for key, (path, hint) in files.items():
         _require(not path or Path(path).is_file(), key, f"{path}: no such file{hint}")
     c = cfg.codec

@@ -185,7 +185,9 @@ class GaussianTrainer:
         self.seed = seed
         self.total_steps = total_steps
         self.shard = shard
-        self.image_loss = ImageLoss(component(ImageLossConfig, cfg, lambda_perceptual=0.0))
+        # the perceptual term only with the user's VGG16 weights (gaussian.vgg_path)
+        self.image_loss = ImageLoss(component(ImageLossConfig, cfg, vgg_path=cfg.vgg_path or None,
+                                              lambda_perceptual=cfg.lambda_perceptual if cfg.vgg_path else 0.0)).to(device)
         self.gaze_loss = GazeLoss(estimator).to(device)
         self.ortho = OrthogonalityLoss(*model.orthogonality_layers()) if cfg.orthogonality else None
         self.sampler = GazeSampler(component(GazeSamplerConfig, cfg, progressive=True, seed=seed))
@@ -307,6 +309,8 @@ def lr_factor(cfg: GaussianStageConfig):
     """``step -> factor`` of the configured rates (``cfg.lr_schedule``), for :func:`train.training.loop.train_loop`."""
     if cfg.lr_schedule == "constant":
         return lambda step: 1.0
+    if cfg.lr_schedule == "step":
+        return lambda step: 0.1 ** (step / cfg.lr_decay_steps)
     total = max(1, cfg.steps - 1)
     return lambda step: cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * min(step, total) / total))
 

@@ -82,3 +82,31 @@ def test_the_intermediate_gaze_sampler_follows_the_trainer_seed():
 
     assert torch.equal(draws(1), draws(1))
     assert not torch.allclose(draws(0), draws(1))
+
+
+def test_the_papers_step_decay():
+    """GazeGaussian trainer/gazegaussian_trainer.py L141-143: lr_func = 0.1 ** (epoch / step_decay)."""
+    from train.training.trainer import lr_factor
+
+    f = lr_factor(GaussianStageConfig(steps=5000, lr_schedule="step", lr_decay_steps=1000))
+    assert f(0) == 1.0 and f(1000) == pytest.approx(0.1) and f(500) == pytest.approx(0.1 ** 0.5)
+    assert f(3000) == pytest.approx(1e-3)
+
+
+def test_the_perceptual_term_trains_with_the_users_vgg_weights(tmp_path):
+    """gaussian.vgg_path turns the image loss's VGG16 term on at lambda_perceptual; without it the term is off."""
+    from tests.train.losses.test_losses import _fake_torchvision_vgg16_state
+    from train.training.trainer import GaussianTrainer
+
+    path = tmp_path / "vgg16.pth"
+    torch.save(_fake_torchvision_vgg16_state(), path)
+    model, renderer = small_model(demo_head_scene(300)), BaselineRenderer()
+    make = lambda **kw: GaussianTrainer(GaussianStageConfig(**kw), model, renderer, torch.nn.Linear(2, 2), None,  # noqa: E731
+                                        torch.device("cpu"), 10)
+    on, off = make(vgg_path=str(path), lambda_perceptual=0.3).image_loss, make().image_loss
+    assert on.perceptual_enabled and on.config.lambda_perceptual == 0.3 and not off.perceptual_enabled
+    a, b = torch.rand(2, 3, 32, 32), torch.rand(2, 3, 32, 32)
+    masks = {r: torch.ones(2, 1, 32, 32) for r in ("head", "face", "eyes")}
+    total_on, logs = on(a, b, masks)
+    total_off, _ = off(a, b, masks)
+    assert float(total_on) > float(total_off) and any("perceptual" in k and v > 0 for k, v in logs.items())
