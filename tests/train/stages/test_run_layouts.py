@@ -130,3 +130,19 @@ def test_split_files_name_the_subject_without_the_datasets_prefix(gazegaussian, 
     shutil.copy(gazegaussian / "xgaze_subject0000.h5", folder / "subject0000.h5")
     with pytest.raises(Exception, match=r"the files mpii_subject0000\.h5 and subject0000\.h5 are both subject subject0000"):
         split_files(find_subject_files([folder]), "test")
+
+
+def test_the_other_datasets_pairing_lists_are_read_verbatim(tmp_path):
+    """GazeNeRF's cross-dataset lists differ in length: configs/config_files/columbia_evaluation_target_single_subject.txt
+    holds 52 targets in 52..103, mpii_... 50 in 50..99 (one integer a line, input row i -> target row list[i])."""
+    from train.data.pairing import check_pairing_rows, load_pairing, subject_pairing
+
+    targets = np.random.default_rng(0).permutation(np.arange(52, 104))
+    path = tmp_path / "columbia_evaluation_target_single_subject.txt"
+    path.write_text("".join(f"{t}\n" for t in targets))
+    pairs = subject_pairing(load_pairing(path), "columbia_subject0001")
+    assert pairs.shape == (52, 2) and (pairs[:, 0] == np.arange(52)).all() and (pairs[:, 1] == targets).all()
+    short = tmp_path / "columbia_subject0001.h5"
+    write_ditgaze(short, native_truth(n_frames=10, n_cams=10, seed=3))  # 100 rows: target 103 is past the end
+    with pytest.raises(Exception, match=r"columbia_subject0001"):
+        check_pairing_rows([short], load_pairing(path), "the pairing file")
