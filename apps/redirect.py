@@ -5,6 +5,7 @@
     python -m apps.redirect RUN_DIR crops/labels.csv OUT.h5 [--focal F] [--distance D] [--fit-steps N]
     python -m apps.redirect RUN_DIR DATASET OUT.h5 --fit-weights [--fit-steps N]   # new faces: fit each row first
     python -m apps.redirect RUN_DIR DATASET OUT.h5 --fit-weights --natural-eyes    # ... turning, not repainting, the eyes
+    python -m apps.redirect RUN_DIR photo.jpg [more.jpg photos/] OUT_DIR [--paste-back] [--largest-face]  # photos
 
 For every input row and every target gaze (head frame, degrees in the spec), the trained model renders the
 same person looking there. The output is one HDF5 file in the schema of docs/data.md, with the target gaze
@@ -22,7 +23,10 @@ Inputs:
   are optional. Rows without a code get one by test-time fitting on the image (``--fit-steps``; needs the
   gaze columns). The whole CSV and every file it names are checked before any rendering; each problem is
   one error naming the line and column. Output landmarks, mesh and eye masks of CSV rows come from the
-  run's geometry and the model's splatted silhouettes (approximate: the crops carry none).
+  run's geometry and the model's splatted silhouettes (approximate: the crops carry none);
+- photos (JPEG/PNG files and/or folders of them, several allowed): prepared on the fly as ``apps.prepare``
+  does, fitted as ``--fit-weights`` fits (always), and written to an output folder with a grid per face and,
+  with ``--paste-back``, each redirected face pasted back into its photo (``apps/redirect_photo.py``).
 
 ``--fit-weights`` fits every row as the evaluation fits a pair before rendering it
 (``train.trained_run.TrainedRun.row_fitter``): what a face the run never trained on needs (docs/redirect.md).
@@ -163,9 +167,10 @@ def open_source(run, args):
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m apps.redirect", description=__doc__.split("\n")[0])
     ap.add_argument("run_dir", help="a trained run directory (train/run.py)")
-    ap.add_argument("dataset", help="an HDF5 subject file (docs/data.md), or a labels CSV of face crops "
-                                    "(or the folder holding labels.csv; columns in docs/redirect.md)")
-    ap.add_argument("out", help="output HDF5 file")
+    ap.add_argument("dataset", nargs="+", metavar="INPUT",
+                    help="an HDF5 subject file (docs/data.md), a labels CSV of face crops (or the folder holding "
+                         "labels.csv; columns in docs/redirect.md), or photos: JPEG/PNG files and/or folders of them")
+    ap.add_argument("out", help="output HDF5 file; for photo input an output folder")
     ap.add_argument("--gazes", default="grid:3x3:25", help=f"target gazes: {GRID_EXAMPLE}")
     ap.add_argument("--rows", type=int, default=0, help="use only the first N input rows (0 = all)")
     ap.add_argument("--batch", type=int, default=4, help="input rows per chunk")
@@ -191,26 +196,35 @@ def build_parser() -> argparse.ArgumentParser:
                     help="with --fit-weights: fit the face features, eye rotation field and renderer, with a gaze "
                          "term that may only turn the eyes (train.run_config.NATURAL_EYES_FIT): no coloured specks "
                          "in the eyes (the demo preset's own fit; docs/redirect.md)")
+    ap.add_argument("--largest-face", action="store_true", help="photo input: only the largest face of each photo")
+    ap.add_argument("--paste-back", action="store_true",
+                    help="photo input: also write each face at each gaze pasted back into its photo, at the photo's "
+                         "resolution (OUT/<photo>_face<k>_<pitch>_<yaw>.png)")
     return ap
 
 
 def check_args(args: argparse.Namespace) -> None:
     """The flags' own checks, before the run or the input is opened (each a one-line ToolkitError)."""
-    if args.natural_eyes and not args.fit_weights:
+    if args.natural_eyes and not args.fit_weights:  # photo input is always fitted (resolve_inputs)
         raise ToolkitError("--natural-eyes sets how --fit-weights fits each row; give --fit-weights too")
     check_count(args.batch, "--batch", 1, MAX_BATCH, "input rows per chunk")
     check_count(args.rows, "--rows", 0, 10**9, "a row count (0 = all rows)")
     check_count(args.steps, "--steps", 0, 100_000, "DDIM steps (0 = the run's setting)")
     if args.fit_steps != -1:
         check_count(args.fit_steps, "--fit-steps", 0, MAX_FIT_STEPS, "test-time fitting steps per row")
-    if Path(args.out).suffix.lower() not in (".h5", ".hdf5"):
-        raise ToolkitError(f"out {args.out}: expected an HDF5 file name ending in .h5 or .hdf5")
-    if Path(args.out).is_dir():  # before any rendering: the file is only written once every chunk is done
-        raise ToolkitError(f"out {args.out}: is a directory, expected the path of the HDF5 file to write")
     if not (math.isfinite(args.fit_lr) and 0 < args.fit_lr <= 1):
         raise ToolkitError(f"--fit-lr must be in (0, 1], got {args.fit_lr}")
     if not 0 <= args.seed < 2**32:  # each chunk's stream is seeded from it (and numpy takes it for random: gazes)
         raise ToolkitError(f"--seed must be in [0, 2^32), got {args.seed}")
+    if args.photos:
+        from apps.redirect_photo import check_photo_out
+
+        check_photo_out(args)
+        return
+    if Path(args.out).suffix.lower() not in (".h5", ".hdf5"):
+        raise ToolkitError(f"out {args.out}: expected an HDF5 file name ending in .h5 or .hdf5")
+    if Path(args.out).is_dir():  # before any rendering: the file is only written once every chunk is done
+        raise ToolkitError(f"out {args.out}: is a directory, expected the path of the HDF5 file to write")
     data = Path(args.dataset)
     read = [data, *(sorted(data.glob("*.h5")) + sorted(data.glob("*.hdf5")) if data.is_dir() else [])]
     check_not_an_input(args.out, [*read, args.run_dir], "out", "dataset")
@@ -235,7 +249,8 @@ def fit_steps_for(args: argparse.Namespace, cfg, src) -> int:
     fit_steps = args.fit_steps if args.fit_steps >= 0 else (cfg.eval.tta_steps or 50)
     if args.fit_weights:
         if fit_steps < 1:
-            raise ToolkitError(f"--fit-weights needs --fit-steps >= 1, got {fit_steps}")
+            what = "photo input (fitted before it is rendered)" if getattr(args, "photos", None) else "--fit-weights"
+            raise ToolkitError(f"{what} needs --fit-steps >= 1, got {fit_steps}")
         missing = [r.line for r in getattr(src, "rows", []) if r.gaze is None]
         if missing:
             raise ToolkitError(f"{src.path} line {missing[0]}: --fit-weights fits the image at its own gaze; "
@@ -274,15 +289,17 @@ def render_chunks(todo: list[int], mine: list[int], chunks: list[list[int]], ite
                            f"{parts}: rerun the same command to resume")
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    keep_freed_memory()
-    check_args(args)
+def redirect_dataset(args: argparse.Namespace, gazes: np.ndarray, run=None, attrs: dict | None = None,
+                     photos: dict | None = None, extra_rows: dict | None = None) -> int:
+    """Render ``args.dataset``'s rows at ``gazes`` [G, 2] (radians, head frame) into ``args.out``; returns the
+    images written. ``run`` an open ``TrainedRun`` (default: ``args.run_dir``'s); ``attrs`` the output file's
+    attributes (default: the input's path as ``source_file``); ``photos`` what photo input's rows come from, in
+    place of the prepared file's path and stamp in the chunks' settings (``redirect_parts.redirect_settings``);
+    ``extra_rows`` per-input-row arrays [N, ...] copied to each output row (``redirect_parts.assemble``)."""
     from train.trained_run import TrainedRun
     from train.training.distributed import barrier, cleanup, init_distributed
 
-    gazes = parse_gazes(args.gazes, args.seed)
-    run = TrainedRun.open(args.run_dir)
+    run = run or TrainedRun.open(args.run_dir)
     cfg = run.config
     src = open_source(run, args)  # validates the whole input before any model is loaded
     fit_steps = fit_steps_for(args, cfg, src)
@@ -307,21 +324,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out)
     parts = out.with_suffix(out.suffix + ".parts")
     parts.mkdir(parents=True, exist_ok=True)
-    check_parts_settings(parts, redirect_settings(run, src, args, gazes, n_rows, fit_steps))
+    check_parts_settings(parts, redirect_settings(run, src, args, gazes, n_rows, fit_steps, photos))
     mine = [k for k in range(len(chunks)) if k % info.world_size == info.rank]
     todo = [k for k in mine if not chunk_path(parts, k).exists()]
     render_chunks(todo, mine, chunks, items, parts, args, info, lambda its, rows: render_chunk(
         model, renderer, its, rows, gazes, cfg.data.res, steps, device, fit))
     barrier(info)
+    n = 0
     if info.is_main:
         n = assemble(parts, len(chunks), out, {"source_file": str(args.dataset), "run_dir": str(Path(args.run_dir)),
-                                               "gazes_spec": args.gazes, "generator": "apps.redirect"})
+                                               "gazes_spec": args.gazes, "generator": "apps.redirect",
+                                               **(attrs or {})}, extra_rows)
         # The settings go last: chunks left by an interrupted clean-up stay tied to what made them.
         for p in sorted(parts.iterdir(), key=lambda p: p.name == "settings.json"):
             p.unlink()
         parts.rmdir()
         print(f"wrote {out}: {n} redirected images ({n_rows} rows × {len(gazes)} gazes)")
     cleanup(info)
+    return n
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    keep_freed_memory()
+    from apps.redirect_photo import redirect_photos, resolve_inputs
+
+    resolve_inputs(args)  # photo input (args.photos) or one dataset (args.dataset)
+    check_args(args)
+    gazes = parse_gazes(args.gazes, args.seed)
+    if args.photos:
+        redirect_photos(args, gazes)
+    else:
+        redirect_dataset(args, gazes)
     return 0
 
 

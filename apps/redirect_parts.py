@@ -43,11 +43,12 @@ def input_stamp(src, dataset: str | Path) -> str:
     return hashlib.sha1(";".join(map(file_stamp, files)).encode()).hexdigest()
 
 
-def redirect_settings(run, src, args, gazes: np.ndarray, n_rows: int, fit_steps: int) -> dict:
+def redirect_settings(run, src, args, gazes: np.ndarray, n_rows: int, fit_steps: int, photos: dict | None = None) -> dict:
     """What the chunks' contents depend on, resolved (the same input or setting spelt another way is the same):
     the run (``TrainedRun``: its trained checkpoint's size and time), the input file, the gazes themselves, the
     rows, the rendering and the fitting (with the run's eval section when rows are weight-fitted); CSV-only
-    settings for CSV input only."""
+    settings for CSV input only. ``photos`` (photo input: ``apps.redirect_photo.photo_settings``) replaces the
+    prepared file's path and stamp, which change every run, by the photos' and the preparation's settings."""
     import hashlib
 
     st = run.context.path("gaussian", "checkpoint").stat()
@@ -57,6 +58,8 @@ def redirect_settings(run, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
                 "gazes_sha1": hashlib.sha1(np.ascontiguousarray(gazes, np.float64).tobytes()).hexdigest(),
                 "rows": n_rows, "batch": args.batch, "steps": sampling_steps(args, run.config),
                 "fit_weights": args.fit_weights, "natural_eyes": args.natural_eyes}
+    if photos is not None:
+        settings.update(photos)
     csv = is_labels_csv(args.dataset)
     if csv:
         settings.update(focal=args.focal, distance=args.distance, fit_lr=args.fit_lr)
@@ -102,8 +105,9 @@ def check_parts_settings(parts: Path, settings: dict) -> None:
         atomic_write_json(path, settings)
 
 
-def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
-    """Concatenate the chunk files into one HDF5 file (atomic); returns the number of images."""
+def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict, extra_rows: dict | None = None) -> int:
+    """Concatenate the chunk files into one HDF5 file (atomic); returns the number of images. ``extra_rows``:
+    name -> [N_in, ...] arrays of the input rows, written per output row (``v[source_row]``)."""
     from toolkit.io import atomic_h5
     from toolkit.limits import check_allocation
 
@@ -128,6 +132,8 @@ def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict) -> int:
                     d.resize(d.shape[0] + v.shape[0], axis=0)
                     d[-v.shape[0]:] = v
                 n += int(z["face_patch"].shape[0])
+        for k, v in (extra_rows or {}).items():
+            h.create_dataset(k, data=np.asarray(v)[h["source_row"][:]])
         for k, v in attrs.items():
             h.attrs[k] = v
     return n
