@@ -23,7 +23,7 @@ import numpy as np
 
 from toolkit.errors import ToolkitError
 
-PHOTOS_EXTRA = ("apps.prepare needs the optional extra 'photos' (mediapipe 0.10.21): run `make setup`, or "
+PHOTOS_EXTRA = ("reading faces from photos needs the optional extra 'photos' (mediapipe 0.10.21): run `make setup`, or "
                 "`pip install -e '.[photos]' && pip install --no-deps mediapipe==0.10.21`")
 
 DETECT_SIDE = 1024

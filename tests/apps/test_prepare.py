@@ -211,7 +211,7 @@ def test_without_the_extra_the_error_names_it(photos, tmp_path, monkeypatch):
     for name in ("mediapipe", "mediapipe.python"):  # as if never installed, even after an import
         monkeypatch.setitem(sys.modules, name, None)
     assert_refused("apps.prepare", [photos / "astronaut.jpg", "--out", tmp_path],
-                   r"^error: apps\.prepare needs the optional extra 'photos'", out_dir=tmp_path)
+                   r"^error: reading faces from photos needs the optional extra 'photos'", out_dir=tmp_path)
 
 
 def test_labels_csv_sets_the_gaze(photos, tmp_path):
