@@ -33,7 +33,7 @@ def _table(rows: list[dict], columns: list[str]) -> str:
 def summarize(path: Path, info: dict, layout: str = "ditgaze") -> dict:
     """One row of the inspect table; the gaze in native conventions whatever the file's ``layout``."""
     from toolkit.h5 import h5_dataset, has_key, open_h5, read_array, read_selection
-    from train.data.layouts import to_native
+    from train.data.layout_conversion import to_native
 
     with open_h5(path) as f:  # validated by GazeDataset: the labels fit memory, one mask row does
         g = np.degrees(to_native(layout, {"pitchyaw_head": read_array(path, f, "pitchyaw_head")})["pitchyaw_head"])

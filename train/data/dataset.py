@@ -18,16 +18,9 @@ import torch
 from toolkit.errors import ToolkitError, one_line
 from toolkit.h5 import READ_ERRORS, has_key, read_array, read_selection
 from train.data.format import OPTIONAL
-from train.data.layouts import (
-    DITGAZE,
-    agreed_code_widths,
-    check_frames,
-    mesh_to_native,
-    native_keys,
-    row_layout,
-    to_native,
-    validate_file,
-)
+from train.data.layout_conversion import mesh_to_native, to_native
+from train.data.layout_files import check_frames, native_keys, row_layout, validate_file
+from train.data.layouts import DITGAZE, agreed_code_widths
 
 SPLITS = ("all", "train", "test")
 
@@ -74,11 +67,12 @@ def subject_key(stem: str) -> str:
 def split_files(files: list[Path], split: str, split_file: str | os.PathLike | None = None,
                 test_fraction: float = 0.25, layout: str = "auto") -> list[Path]:
     """Select a split. A split file decides: ``split_file``, else ``split.json`` or ``train_test_split.json``
-    beside the files, read in the form of ``layout`` (``train.data.layouts.read_split_file``; ``split.json``
+    beside the files, read in the form of ``layout`` (``train.data.layout_files.read_split_file``; ``split.json``
     is always the native form, another file takes the form of the files' layout, ``auto``: detected from the
     first file). Every subject it names for ``split`` must be among ``files``. Without a split file, the last
     ``test_fraction`` of the sorted files (at least one when there are two or more) are the test subjects."""
-    from train.data.layouts import DITGAZE, read_split_file, row_layout
+    from train.data.layout_files import read_split_file, row_layout
+    from train.data.layouts import DITGAZE
 
     if split not in SPLITS:
         raise ToolkitError(f"split: expected one of {SPLITS}, got {split!r}")
@@ -173,7 +167,7 @@ class GazeDataset(torch.utils.data.Dataset):
     other code slices, never fed to the model).
 
     A peer layout's label keys are converted to the native conventions once per file, whole
-    (``train.data.layouts.to_native``: GazeNeRF's 3D landmarks are triangulated across a frame's cameras);
+    (``train.data.layout_conversion.to_native``: GazeNeRF's 3D landmarks are triangulated across a frame's cameras);
     native files are read as stored.
     """
 
@@ -295,7 +289,7 @@ class GazeDataset(torch.utils.data.Dataset):
             "image": t(img.transpose(2, 0, 1)),
             **{m: t(v[None]) for m, v in masks.items()},
             "landmarks": t(lm),
-            # absent where a file cannot give them (a one-camera GazeNeRF file: train.data.layouts.single_camera)
+            # absent where a file cannot give them (a one-camera GazeNeRF file: train.data.triangulation.single_camera)
             **({"landmarks_3d": t(r["facial_landmarks_3d"])} if "facial_landmarks_3d" in r else {}),
             "K": t(K),
             "w2c_R": t(r["w2c_Rmat"]),

@@ -53,7 +53,9 @@ def export(src: str | os.PathLike, out: str | os.PathLike, layout: str = "gazega
     """Export the native subject files of ``src`` (a folder, its ``split.json`` deciding train / held out) to
     ``out`` in ``layout`` (gazegaussian; ditgaze copies); returns the files written."""
     from train.data.dataset import find_subject_files, split_files
-    from train.data.layouts import from_native, get_layout, row_layout
+    from train.data.layout_conversion import from_native
+    from train.data.layout_files import row_layout
+    from train.data.layouts import get_layout
 
     target = get_layout(layout)
     files = find_subject_files(src)

@@ -125,8 +125,8 @@ def check_pairing_rows(files: list[Path], pairing: dict[str, np.ndarray] | None,
                        layout: str = "auto") -> None:
     """Before any work: every held-out subject file has pairs (``pairing``'s, or the generated ones) inside its
     rows. A ToolkitError naming the subject(s), or the file, the pair and the row count; ``source`` names the
-    pairing in the message. The files are validated in their ``layout`` (``train.data.layouts.row_layout``)."""
-    from train.data.layouts import row_layout, validate_file
+    pairing in the message. The files are validated in their ``layout`` (``train.data.layout_files.row_layout``)."""
+    from train.data.layout_files import row_layout, validate_file
 
     if pairing is not None:
         missing = [Path(f).stem for f in files if len(_rows_or_none(pairing, Path(f).stem)) == 0]

@@ -2,7 +2,7 @@
 row for the gaze estimator: each row's normalized face patch as RGB uint8, resized, with its labels (``face_gaze``
 and ``face_head_pose``) in native conventions and, where the file has them, its landmarks.
 
-The release holds no masks, cameras or codes, so :func:`train.data.layouts.row_layout` refuses its files for every
+The release holds no masks, cameras or codes, so :func:`train.data.layout_files.row_layout` refuses its files for every
 stage that renders or poses heads; the estimator stage reads them here instead. What the release's files are
 (xucong-zhang/ETH-XGaze ef9bff0):
 
@@ -120,7 +120,8 @@ def _read_file(path: Path, res: int, landmarks: bool) -> tuple[int, np.ndarray, 
     """One release file checked and its per-row labels read: (rows, labels [N, 4] float32 (camera-frame gaze,
     head pose; native conventions), landmarks [N, 68, 2] float32 pixels of the res x res image or None). Every
     failure is one ToolkitError naming the file and key."""
-    from train.data.layouts import check_layout, describe_file, to_native
+    from train.data.layout_conversion import to_native
+    from train.data.layouts import check_layout, describe_file
 
     keys, shapes = describe_file(path)
     check_layout(XGAZE, keys, shapes, str(path))

@@ -151,7 +151,8 @@ class RunArtifacts:
     def training_code_widths(self) -> tuple[int, int]:
         """(identity, expression) widths of the code the model reads: those of the run's training files, whose
         layouts must agree (``train.data.layouts.agreed_code_widths``: else one line naming two files)."""
-        from train.data.layouts import agreed_code_widths, row_layout
+        from train.data.layout_files import row_layout
+        from train.data.layouts import agreed_code_widths
 
         layout = self.config.data.layout
         return agreed_code_widths([(f, row_layout(f, layout)) for f in self.split("train")])
@@ -219,7 +220,7 @@ def _dataset_name(root: str, layout: str) -> str:
     """A dataset folder as the report names it: its name and its files' layout (detected from the first file for
     ``auto``)."""
     from train.data.dataset import find_subject_files
-    from train.data.layouts import row_layout
+    from train.data.layout_files import row_layout
 
     if layout == "auto":
         try:

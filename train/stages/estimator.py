@@ -277,7 +277,7 @@ def release_split(run: RunArtifacts, log=print) -> tuple[list[Path], list[Path]]
     ToolkitError. For ``estimator.crop=eyes`` every file used must hold ``facial_landmarks`` (one ToolkitError
     naming the first that does not, and ``estimator.crop=face``)."""
     from train.data.dataset import SPLIT_FILE_NAMES, held_out_count, subject_key
-    from train.data.layouts import read_split_file
+    from train.data.layout_files import read_split_file
     from train.data.patches import has_labels, has_landmarks
 
     d = run.config.data

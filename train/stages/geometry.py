@@ -45,7 +45,8 @@ def subject_views_in_layout(path: Path, layout: str = "auto") -> dict:
     native conventions by ``GazeDataset`` (``train.data.layouts``)."""
     from geometry.fit_dataset import SUBJECT_KEYS, read_subject, subject_views
     from train.data.dataset import GazeDataset
-    from train.data.layouts import DITGAZE, row_layout
+    from train.data.layout_files import row_layout
+    from train.data.layouts import DITGAZE
 
     if row_layout(path, layout) is DITGAZE:
         return read_subject(path)

@@ -158,7 +158,7 @@ def test_a_degenerate_triangulation_is_one_line(tmp_path, truth):
 def test_frames_past_255_are_told_apart_by_their_rows():
     """GazeNeRF stores frame_index as uint8 (dataset_pre_processing.py L260-265): frames 256 apart share a value,
     but a frame is a run of consecutive rows (L383-445)."""
-    from train.data.layouts import frame_rows
+    from train.data.triangulation import frame_rows
 
     # frames 255, 256 and 512 (both stored as 0: a camera repeating starts the next), then 513 (stored as 1)
     frames = np.array([255, 255, 0, 0, 0, 0, 0, 1, 1], np.uint8)

@@ -12,6 +12,8 @@ from tests.train.data import peer_fixtures as pf
 from toolkit.errors import ToolkitError
 from train.data import layouts as L
 from train.data.format import REQUIRED, validate_subject_file, write_subject_h5
+from train.data.layout_conversion import from_native, native_row, to_native
+from train.data.layout_files import read_split_file
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +116,7 @@ def test_unknown_layout_name():
 
 def _native(files, which):
     keys, shapes, rows = pf.read_rows(files[which])
-    return L.to_native(L.detect_layout(keys, shapes), rows)
+    return to_native(L.detect_layout(keys, shapes), rows)
 
 
 @pytest.mark.parametrize("which", ["ditgaze", "gazegaussian", "gazegaussian_minimal"])
@@ -186,9 +188,9 @@ def test_gazenerf_rows_are_posed_in_their_head_frame(files):
     frame = got["frame_index"]
     assert (got["facial_landmarks_3d"][frame == 0] == got["facial_landmarks_3d"][frame == 0][0]).all()
     # the gaze alone (train.data inspect) converts without the cameras, and makes no pose
-    assert set(L.to_native("gazenerf", {"pitchyaw_head": np.zeros((6, 2))})) == {"pitchyaw_head"}
+    assert set(to_native("gazenerf", {"pitchyaw_head": np.zeros((6, 2))})) == {"pitchyaw_head"}
     with pytest.raises(ToolkitError, match="convert the file's arrays whole"):
-        L.native_row("gazenerf", {"pitchyaw_head": np.zeros(2)}, 0)
+        native_row("gazenerf", {"pitchyaw_head": np.zeros(2)}, 0)
 
 
 def test_code_widths_per_layout():
@@ -213,11 +215,11 @@ def test_xgaze_gaze_in_camera_and_head_frames(files, truth):
 
 
 def test_gazegaussian_export_reads_back(truth):
-    exported = L.from_native("gazegaussian", truth.rows)
+    exported = from_native("gazegaussian", truth.rows)
     assert exported["cam_index"].shape == (6, 1) and "pitchyaw_cam" not in exported
     keys = set(exported)
     assert L.detect_layout(keys, {k: v.shape for k, v in exported.items()}) is L.GAZEGAUSSIAN
-    back = L.to_native("gazegaussian", exported)
+    back = to_native("gazegaussian", exported)
     for k in REQUIRED:
         assert back[k].shape == truth.rows[k].shape and back[k].dtype == truth.rows[k].dtype, k
         tol = 1e-6 if k in ("pitchyaw_head", "face_head_pose") else 1e-5
@@ -226,13 +228,13 @@ def test_gazegaussian_export_reads_back(truth):
 
 def test_export_to_gazenerf_is_refused(truth):
     with pytest.raises(ToolkitError) as e:
-        L.from_native("gazenerf", truth.rows)
+        from_native("gazenerf", truth.rows)
     assert "gazenerf" in _one_line(e)
 
 
 def test_codes_of_the_wrong_width(truth):
     with pytest.raises(ToolkitError) as e:
-        L.to_native("gazenerf", {"latent_codes": np.zeros((6, 144), np.float32)})
+        to_native("gazenerf", {"latent_codes": np.zeros((6, 144), np.float32)})
     assert "[6, 144]" in _one_line(e) and "306" in str(e.value)
 
 
@@ -242,15 +244,15 @@ def test_codes_of_the_wrong_width(truth):
 
 def test_split_files_of_both_forms(tmp_path):
     peer = pf.write_peer_split(tmp_path / "train_test_split.json", ["subject0000", "subject0003"], ["subject0012"])
-    assert L.read_split_file(peer, "gazegaussian") == (["xgaze_subject0000", "xgaze_subject0003"],
+    assert read_split_file(peer, "gazegaussian") == (["xgaze_subject0000", "xgaze_subject0003"],
                                                        ["xgaze_subject0012"])
-    assert L.read_split_file(peer, "gazenerf")[1] == ["xgaze_subject0012"]
+    assert read_split_file(peer, "gazenerf")[1] == ["xgaze_subject0012"]
     native = tmp_path / "split.json"
     native.write_text(json.dumps({"train": ["subject0000.h5", "subject0001"], "test": ["subject0002"]}))
-    assert L.read_split_file(native, "ditgaze") == (["subject0000", "subject0001"], ["subject0002"])
+    assert read_split_file(native, "ditgaze") == (["subject0000", "subject0001"], ["subject0002"])
     xgaze = tmp_path / "xgaze_split.json"
     xgaze.write_text(json.dumps({"train": ["subject0000.h5"], "test": ["subject0001.h5"], "test_specific": []}))
-    assert L.read_split_file(xgaze, "xgaze") == (["subject0000"], ["subject0001"])
+    assert read_split_file(xgaze, "xgaze") == (["subject0000"], ["subject0001"])
 
 
 @pytest.mark.parametrize("text, layout, expected", [
@@ -267,7 +269,7 @@ def test_malformed_split_files(tmp_path, text, layout, expected):
     path = tmp_path / "split.json"
     path.write_text(text)
     with pytest.raises(ToolkitError) as e:
-        L.read_split_file(path, layout)
+        read_split_file(path, layout)
     msg = _one_line(e)
     assert str(path) in msg and expected in msg
 
@@ -276,5 +278,5 @@ def test_a_native_split_file_named_for_a_peer_layout_says_which_form_it_is(tmp_p
     path = tmp_path / "split.json"
     path.write_text(json.dumps({"train": ["a"], "test": ["b"]}))
     with pytest.raises(ToolkitError) as e:
-        L.read_split_file(path, "gazegaussian")
+        read_split_file(path, "gazegaussian")
     assert "pass data.layout=ditgaze" in _one_line(e)
