@@ -353,7 +353,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     check_args(args)
     gazes = parse_gazes(args.gazes, args.seed)
     if args.photos:
-        redirect_photos(args, gazes)
+        redirect_photos(args, gazes, redirect_dataset, fit_steps_for)
     else:
         redirect_dataset(args, gazes)
     return 0

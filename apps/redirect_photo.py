@@ -189,13 +189,13 @@ def prepare_faces(args: argparse.Namespace, target) -> tuple[list, list[tuple[in
     return rows, faces, focals
 
 
-def redirect_photos(args: argparse.Namespace, gazes: np.ndarray) -> None:
+def redirect_photos(args: argparse.Namespace, gazes: np.ndarray, redirect_dataset, fit_steps_for) -> None:
     """Photo input, end to end (module docstring): ``gazes`` [G, 2] radians, head frame; ``args.out`` the
-    output folder."""
+    output folder. ``redirect_dataset`` and ``fit_steps_for`` are ``apps.redirect``'s (passed in: that module
+    imports this one)."""
     from apps.photo.face_model import run_target
     from apps.photo.rows import write_rows
     from apps.prepare import file_attrs
-    from apps.redirect import fit_steps_for, redirect_dataset
     from train.trained_run import TrainedRun
 
     tags = [gaze_tag(g) for g in gazes]
