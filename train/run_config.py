@@ -53,6 +53,11 @@ class DataConfig:
     light_jitter: float = field(default=0.0, metadata=within(0, 2))
     """spread of the synthetic per-frame light direction, in [0, 2]; 0: one frontal light, like ETH-XGaze's
     full-lighting frames. The model has no light input: only test-time fitting recovers a held-out light."""
+    kappa_deg: float = field(default=0.0, metadata=NEUTRAL | within(0, 15, "degrees"))
+    """synthetic subjects' angle κ between each eye's optical axis and the gaze label, degrees in [0, 15]: each
+    subject draws its own around this (``SubjectParams.sample``), as real people differ (~5°); 0: none. Without
+    it no person differs from the others in how the eyes look at a gaze, so personal calibration cannot pay
+    (docs/results.md, 2026-11-27)."""
     layout: Literal["auto", "ditgaze", "gazegaussian", "gazenerf", "xgaze"] = field(default="auto", metadata=NEUTRAL)
     """how ``root``'s files are laid out (``train.data.layouts``, docs/data.md): ``auto`` decides from each file's
     keys and asks for this key where they fit several layouts; a named layout is checked against the keys."""

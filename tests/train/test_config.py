@@ -170,10 +170,11 @@ def test_the_options_added_to_the_eval_stage_are_neutral_at_their_defaults():
 def test_the_data_layout_and_split_file_are_neutral_at_their_defaults():
     from train.run_config import DataConfig
 
-    older = {k: v for k, v in to_dict(DataConfig()).items() if k not in ("layout", "split_file")}
+    older = {k: v for k, v in to_dict(DataConfig()).items() if k not in ("layout", "split_file", "kappa_deg")}
     assert config_hash(DataConfig()) == config_hash(older)
     assert config_hash(DataConfig(layout="gazegaussian")) != config_hash(older)
     assert config_hash(DataConfig(split_file="s.json")) != config_hash(older)
+    assert config_hash(DataConfig(kappa_deg=5.0)) != config_hash(older)
 
 
 def test_a_section_given_as_a_mapping_keeps_its_other_values():
@@ -442,7 +443,7 @@ def test_a_config_yaml_written_before_loads_and_round_trips(tmp_path):
     save_yaml_config(cfg, tmp_path / "new.yaml")
     # The same file, key for key, plus the keys added since (at their neutral defaults).
     added = "  estimator_path: ''\n"
-    data_added = "  layout: auto\n  split_file: ''\n"
+    data_added = "  kappa_deg: 0.0\n  layout: auto\n  split_file: ''\n"
     expected = OLD_TINY_CONFIG.replace("  pairing_file: ''\n", added + "  pairing_file: ''\n")
     expected = expected.replace("  light_jitter: 0.0\n", "  light_jitter: 0.0\n" + data_added)
     expected = expected.replace("  lr_final: 0.1\n", "  lr_decay_steps: 1000\n  lr_final: 0.1\n")

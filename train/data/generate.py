@@ -194,10 +194,11 @@ def generate_subject(params: SubjectParams, *, n_frames: int, res: int = 128, se
 
 def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int, res: int = 128, seed: int = 0,
                   test_fraction: float = 0.25, light_jitter: float = LIGHT_JITTER, log=print,
-                  test_frames: int | None = None, scale: float = 1.0) -> list[Path]:
+                  test_frames: int | None = None, scale: float = 1.0, kappa_deg: float = 0.0) -> list[Path]:
     """Write ``subject0000.h5`` ... plus ``split.json`` into ``out_dir``; returns the subject files.
 
-    Every subject is rendered at head scale ``scale`` (:func:`generate_subject`).
+    Every subject is rendered at head scale ``scale`` (:func:`generate_subject`); with ``kappa_deg`` > 0 each
+    has eyes whose optical axes differ from the gaze label by a κ of its own (``SubjectParams.sample``).
 
     The held-out subjects (the last ``test_fraction``) get ``test_frames`` frames each (default ``n_frames``).
     Evaluation pairs take their input from the first half of a subject's rows and their target from the second
@@ -206,6 +207,8 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
     check_count(n_subjects, "n_subjects", 1, MAX_SUBJECTS, "a number of subject files")
     check_count(seed, "seed", *SEED_RANGE, "a seed")
     scale = check_scale(scale)
+    if not (isinstance(kappa_deg, (int, float)) and 0 <= kappa_deg <= 15):
+        raise ToolkitError(f"kappa_deg must be a number of degrees in [0, 15], got {kappa_deg!r}")
     for name, frames in (("n_frames", n_frames), ("test_frames", test_frames)):
         if frames is not None:
             check_count(frames, name, 1, MAX_FRAMES, "frames per subject")
@@ -218,7 +221,7 @@ def synth_dataset(out_dir: str | os.PathLike, *, n_subjects: int, n_frames: int,
     rig = eth_xgaze_rig(radius=RIG_RADIUS)
     n_test = held_out_count(n_subjects, test_fraction)
     for s in range(n_subjects):
-        params = SubjectParams.sample(seed * 100003 + s)
+        params = SubjectParams.sample(seed * 100003 + s, kappa_deg)
         frames = test_frames if test_frames is not None and s >= n_subjects - n_test else n_frames
         rows, subj, attrs = generate_subject(params, n_frames=frames, res=res, rig=rig, light_jitter=light_jitter,
                                              scale=scale)

@@ -84,33 +84,51 @@ def sample_expression(rng: np.random.Generator, n: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class SubjectParams:
-    """A subject's identity: ``identity`` [22] in [-1, 1] (names in IDENTITY_NAMES), and its seed."""
+    """A subject's identity: ``identity`` [22] in [-1, 1] (names in IDENTITY_NAMES), its seed, and its eyes'
+    ``kappa`` (pitch, yaw) in radians: the optical axis (where the eyeball's iris points) relative to the visual
+    axis (the gaze label), yaw temporal in each eye (mirrored between the eyes), as real eyes' angle κ (about 5°
+    horizontally); (0, 0): the eyes point where the subject looks."""
 
     identity: tuple[float, ...] = tuple(0.0 for _ in IDENTITY_NAMES)
     seed: int = 0
+    kappa: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self):
         u = np.asarray(self.identity, np.float64)
         if u.shape != (len(IDENTITY_NAMES),) or not np.isfinite(u).all() or np.abs(u).max() > 1 + 1e-6:
             raise ToolkitError(f"SubjectParams.identity: expected {len(IDENTITY_NAMES)} finite values in [-1, 1]")
+        k = np.asarray(self.kappa, np.float64)
+        if k.shape != (2,) or not np.isfinite(k).all() or np.abs(k).max() > 0.5:
+            raise ToolkitError(f"SubjectParams.kappa: expected (pitch, yaw) radians within ±0.5, got {self.kappa}")
 
     @classmethod
-    def sample(cls, seed: int) -> "SubjectParams":
-        """A random identity, deterministic in ``seed``."""
+    def sample(cls, seed: int, kappa_deg: float = 0.0) -> "SubjectParams":
+        """A random identity, deterministic in ``seed``; with ``kappa_deg`` > 0 a random κ of its own stream:
+        yaw ``kappa_deg`` × (1 + 0.3 N(0, 1)) degrees, pitch 0.3 ``kappa_deg`` N(0, 1) (real eyes: about 5 ± 2°
+        horizontally, smaller vertically). The identity does not depend on ``kappa_deg``."""
         rng = np.random.default_rng([seed, 7])
-        return cls(tuple(float(x) for x in rng.uniform(-1, 1, len(IDENTITY_NAMES))), int(seed))
+        identity = tuple(float(x) for x in rng.uniform(-1, 1, len(IDENTITY_NAMES)))
+        if not kappa_deg:
+            return cls(identity, int(seed))
+        z = np.random.default_rng([seed, 11]).standard_normal(2)
+        kappa = np.radians([0.3 * kappa_deg * z[0], kappa_deg * (1 + 0.3 * z[1])])
+        return cls(identity, int(seed), tuple(float(x) for x in np.clip(kappa, -0.5, 0.5)))
 
     def vector(self) -> np.ndarray:
         return np.asarray(self.identity, np.float32)
 
     def to_json(self) -> str:
-        return json.dumps({"identity": list(self.identity), "seed": self.seed, "names": list(IDENTITY_NAMES)})
+        d = {"identity": list(self.identity), "seed": self.seed, "names": list(IDENTITY_NAMES)}
+        if any(self.kappa):  # written only when set: files without κ stay as they were
+            d["kappa"] = list(self.kappa)
+        return json.dumps(d)
 
     @classmethod
     def from_json(cls, text: str) -> "SubjectParams":
         try:
             d = json.loads(text)
-            return cls(tuple(float(x) for x in d["identity"]), int(d.get("seed", 0)))
+            return cls(tuple(float(x) for x in d["identity"]), int(d.get("seed", 0)),
+                       tuple(float(x) for x in d.get("kappa", (0.0, 0.0))))
         except (ValueError, KeyError, TypeError) as e:
             raise ToolkitError(f"subject params: not a SubjectParams JSON ({e})") from e
 

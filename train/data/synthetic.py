@@ -127,10 +127,20 @@ class Subject:
 
     # -- eyes -------------------------------------------------------------------------------
     def eyeball_vertices(self, pitchyaw) -> np.ndarray:
-        """[2, Ve, 3] head-frame eyeball vertices turned to head-frame gaze ``pitchyaw`` [2] (radians)."""
-        R = gaze_rotation(torch.as_tensor(np.array(pitchyaw, np.float64))).numpy()
-        local = self.eye_radius * self.eye_local @ R.T
-        return (local[None] + self.eye_centers[:, None, :]).astype(np.float32)
+        """[2, Ve, 3] head-frame eyeball vertices turned to head-frame gaze ``pitchyaw`` [2] (radians): each
+        eye's optical axis is the gaze plus the subject's κ (``SubjectParams.kappa``), its yaw temporal (the
+        image-left eye, at x < 0, towards -x: + yaw; the other - yaw)."""
+        py = np.array(pitchyaw, np.float64)
+        kp, ky = self.params.kappa
+        if not (kp or ky):
+            R = gaze_rotation(torch.as_tensor(py)).numpy()
+            local = self.eye_radius * self.eye_local @ R.T
+            return (local[None] + self.eye_centers[:, None, :]).astype(np.float32)
+        eyes = []
+        for centre, sign in zip(self.eye_centers, (1.0, -1.0)):
+            R = gaze_rotation(torch.as_tensor(py + np.array([kp, sign * ky]))).numpy()
+            eyes.append(self.eye_radius * self.eye_local @ R.T + centre)
+        return np.stack(eyes).astype(np.float32)
 
     # -- landmarks --------------------------------------------------------------------------
     def landmarks(self, expression=None) -> np.ndarray:

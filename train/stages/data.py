@@ -20,5 +20,5 @@ def stage_data(ctx: RunContext) -> dict[str, str]:
 
     synth_dataset(ctx.run_dir / "data", n_subjects=d.subjects, n_frames=d.frames, res=d.res, seed=d.seed,
                   test_fraction=d.test_fraction, light_jitter=d.light_jitter, log=ctx.log,
-                  test_frames=d.test_frames or None)
+                  test_frames=d.test_frames or None, kappa_deg=d.kappa_deg)
     return {"dir": "data", "split": "data/split.json"}

@@ -352,3 +352,33 @@ def test_generator_counts_are_bounded_before_any_work(tmp_path, monkeypatch):
     with pytest.raises(ToolkitError, match=r"estimator_images: 4000000 images at 256 pixels would allocate"):
         estimator_images(range(1000), n_frames=2000, res=256)
     assert not (tmp_path / "s").exists()
+
+
+def test_kappa_turns_each_eye_temporally_and_leaves_default_subjects_as_they_were():
+    """SubjectParams.kappa: the optical axis = the gaze label + (kappa pitch, ± kappa yaw), yaw temporal per eye;
+    a subject sampled without it is the same subject, written the same way."""
+    import json
+
+    import numpy as np
+
+    from train.data.subject_params import SubjectParams
+    from train.data.synthetic import build_subject
+
+    plain, turned = SubjectParams.sample(3), SubjectParams.sample(3, kappa_deg=5.0)
+    assert plain.identity == turned.identity and plain.kappa == (0.0, 0.0) and "kappa" not in json.loads(plain.to_json())
+    assert SubjectParams.from_json(turned.to_json()) == turned and 0.02 < turned.kappa[1] < 0.16
+    a, b = build_subject(plain, subdivisions=1), build_subject(turned, subdivisions=1)
+    ea, eb = a.eyeball_vertices([0.0, 0.0]), b.eyeball_vertices([0.0, 0.0])
+
+    def front(subject, eyes):  # each eyeball's axis: the rotation taking its template (looking along -z) to it
+        out = []
+        for e, c in zip(eyes, subject.eye_centers):
+            Rt = np.linalg.lstsq(subject.eye_local, (e - c) / subject.eye_radius, rcond=None)[0]
+            out.append(Rt.T @ np.array([0.0, 0.0, -1.0]))
+        return out
+
+    yaw = lambda g: np.degrees(np.arctan2(-g[0], -g[2]))  # noqa: E731  (ETH-XGaze: + yaw towards -x)
+    fa, fb = front(a, ea), front(b, eb)
+    assert abs(yaw(fa[0])) < 1e-3 and abs(yaw(fa[1])) < 1e-3
+    k = np.degrees(turned.kappa[1])
+    assert abs(yaw(fb[0]) - k) < 1e-3 and abs(yaw(fb[1]) + k) < 1e-3  # image-left eye (x < 0) turns to -x
