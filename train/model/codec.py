@@ -246,13 +246,16 @@ def train_autoencoder(images: torch.Tensor, config: AutoencoderConfig | None = N
     """
     if images.dim() != 4 or images.shape[1] != 3 or images.shape[0] == 0:
         raise ToolkitError(f"train_autoencoder images: expected [N>0, 3, H, W] in [0, 1], got {list(images.shape)}")
-    if not torch.isfinite(images).all():
+    # rows streamed from subject files (train.data.rows.RowImages) were checked when their files were read
+    in_memory = isinstance(images, torch.Tensor)
+    if in_memory and not torch.isfinite(images).all():
         raise ToolkitError("train_autoencoder images: contain NaN or infinite values")
     if pixel_weights is not None:
-        if pixel_weights.shape != (images.shape[0], 1, *images.shape[2:]):
+        if tuple(pixel_weights.shape) != (images.shape[0], 1, *images.shape[2:]):
             raise ToolkitError(f"train_autoencoder pixel_weights: expected shape {[images.shape[0], 1, *images.shape[2:]]}, "
                                f"got {list(pixel_weights.shape)}")
-        if not torch.isfinite(pixel_weights).all() or bool((pixel_weights < 0).any()):
+        if isinstance(pixel_weights, torch.Tensor) and (not torch.isfinite(pixel_weights).all()
+                                                        or bool((pixel_weights < 0).any())):
             raise ToolkitError("train_autoencoder pixel_weights: expected finite weights >= 0 (found NaN, inf or < 0)")
     if steps < 0 or batch_size < 1:
         raise ToolkitError(f"train_autoencoder: expected steps >= 0 and batch_size >= 1, got {steps}, {batch_size}")
