@@ -201,6 +201,18 @@ def normalized_head_rotation(head_pitchyaw: torch.Tensor) -> torch.Tensor:
     return torch.stack([x, y, z], -1)
 
 
+def head_to_camera_gaze(gaze_head: torch.Tensor, head_pose: torch.Tensor) -> torch.Tensor:
+    """[B, 2] head-frame gaze, [B, 2] head pose (normalized camera) -> [B, 2] camera-frame gaze (pitch, yaw)."""
+    g = (normalized_head_rotation(head_pose) @ pitchyaw_to_vector(gaze_head).unsqueeze(-1)).squeeze(-1)
+    return vector_to_pitchyaw(g)
+
+
+def camera_to_head_gaze(gaze_cam: torch.Tensor, head_pose: torch.Tensor) -> torch.Tensor:
+    """The inverse of :func:`head_to_camera_gaze`: [B, 2] camera-frame gaze -> [B, 2] head-frame gaze."""
+    R = normalized_head_rotation(head_pose)
+    return vector_to_pitchyaw((R.transpose(-1, -2) @ pitchyaw_to_vector(gaze_cam).unsqueeze(-1)).squeeze(-1))
+
+
 def angular_error_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Angle in degrees between [..., 3] vectors, or between [..., 2] pitch/yaw pairs (converted first)."""
     if a.shape[-1] == 2:

@@ -77,14 +77,14 @@ def _head_frame_world(rows: Mapping[str, np.ndarray], out: dict, where: str) -> 
 def _head_gaze_from_camera(gaze_cam: np.ndarray, head_pose: np.ndarray) -> np.ndarray:
     """The head-frame gaze of an ETH-XGaze row. The normalized camera has no roll relative to the head: its
     down axis is forward x head-x (normalization_example.py L56-62), so the head x-axis seen from it has no y
-    component, and with the head z-axis from face_head_pose (L327-330) that fixes the head rotation."""
-    p, y = head_pose[:, 0], head_pose[:, 1]
-    z = np.stack([np.cos(p) * np.sin(y), np.sin(p), np.cos(p) * np.cos(y)], -1)
-    x = np.stack([np.cos(y), np.zeros_like(y), -np.sin(y)], -1)
-    M = np.stack([x, np.cross(z, x), z], -1)  # columns: the head axes in the camera frame
-    p, y = gaze_cam[:, 0], gaze_cam[:, 1]  # native (pitch, yaw) -> direction, as toolkit.rotations
-    g = np.einsum("nji,nj->ni", M, np.stack([-np.cos(p) * np.sin(y), -np.sin(p), -np.cos(p) * np.cos(y)], -1))
-    return np.stack([np.arcsin(np.clip(-g[:, 1], -1, 1)), np.arctan2(-g[:, 0], -g[:, 2])], -1)
+    component, and with the head z-axis from face_head_pose (L327-330) that fixes the head rotation
+    (``toolkit.rotations.camera_to_head_gaze``, in float64)."""
+    import torch
+
+    from toolkit.rotations import camera_to_head_gaze
+
+    f64 = lambda a: torch.from_numpy(np.asarray(a, np.float64))  # noqa: E731
+    return camera_to_head_gaze(f64(gaze_cam), f64(head_pose)).numpy()
 
 
 def _native_dtypes(out: dict) -> dict:

@@ -22,9 +22,10 @@ import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from toolkit.io import load_checkpoint, save_checkpoint
+from toolkit.rotations import head_to_camera_gaze
 from train.estimator.config import GazeEstimatorConfig
 from train.estimator.crops import MIRROR_SIGNS, eye_patches, mirror_faces
-from train.estimator.frames import head_to_camera_gaze, mean_direction
+from train.estimator.frames import mean_direction
 
 CHECKPOINT_KIND = "ditgaze.gaze_estimator"
 CHECKPOINT_VERSION = 1

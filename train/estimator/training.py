@@ -10,11 +10,10 @@ from typing import Callable
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.rotations import angular_error_deg, pitchyaw_to_vector
+from toolkit.rotations import angular_error_deg, camera_to_head_gaze, pitchyaw_to_vector
 from train.estimator.augment import BLUR_BOX_MARGIN, augment_batch, augment_eye_inputs, random_blur
 from train.estimator.config import GazeEstimatorConfig, GazeEstimatorTrainConfig
 from train.estimator.crops import eye_patch_box, mirror_faces
-from train.estimator.frames import camera_to_head_gaze
 from train.estimator.network import GazeEstimator
 
 log = logging.getLogger(__name__)

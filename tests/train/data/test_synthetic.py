@@ -101,7 +101,7 @@ def test_file_labels_are_consistent(subject_file, subject):
         np.testing.assert_allclose(vector_to_pitchyaw(torch.from_numpy(g_cam)).numpy(), r["pitchyaw_cam"][i], atol=1e-5)
     # The normalized camera leaves no head roll: the camera-frame gaze is the head-frame gaze turned by the
     # rotation that the camera-frame head pose alone fixes (what the gaze estimator composes).
-    from train.estimator.frames import head_to_camera_gaze
+    from toolkit.rotations import head_to_camera_gaze
 
     composed = head_to_camera_gaze(torch.from_numpy(r["pitchyaw_head"]).double(),
                                    torch.from_numpy(r["face_head_pose"]).double())

@@ -250,7 +250,7 @@ def test_blurring_the_eye_patch_box_alone_gives_the_patches_of_the_whole_blurred
 
 
 def test_head_frame_output_is_composed_exactly():
-    from train.estimator.frames import camera_to_head_gaze, head_to_camera_gaze
+    from toolkit.rotations import camera_to_head_gaze, head_to_camera_gaze
 
     torch.manual_seed(3)
     gh = (torch.rand(32, 2) * 2 - 1) * 0.8
