@@ -146,7 +146,7 @@ def ablation_figure(table: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from toolkit.io import atomic_path
+    from train.augment.report import write_png
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     names = list(table)
@@ -157,7 +157,4 @@ def ablation_figure(table: dict, path: Path) -> None:
         ax.bar(range(len(names)), means, yerr=[min(e, 1e3) for e in err], capsize=4)
         ax.set_xticks(range(len(names)), names, rotation=15, fontsize=8)
         ax.set_ylabel("gaze error (deg)" if column == "gaze" else "PSNR (dB)")
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    write_png(fig, path)

@@ -60,9 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", required=True, help="a finished run directory")
     p.add_argument("--out", required=True, help="output folder: augment.json, augment.md, augment.png")
     p.add_argument("--device", default="auto", help="cpu, cuda or auto")
+    docs = _field_docs()
     for f in fields(AugmentConfig):
         flag = "--" + f.name.replace("_", "-")
-        doc = " ".join(_field_doc(f.name).split())
+        doc = " ".join(docs.get(f.name, "").split())
         if f.name in ("ks", "subjects"):
             p.add_argument(flag, type=int, nargs="+", default=list(f.default), help=doc)
         elif f.name == "protocols":
@@ -79,14 +80,12 @@ def config_from_args(args: argparse.Namespace) -> AugmentConfig:
     return cfg
 
 
-def _field_doc(name: str) -> str:
-    """A field's docstring (the string literal after it in the class body), for ``--help``."""
+def _field_docs() -> dict[str, str]:
+    """{field: its docstring} (the string literal after each field in the class body), for ``--help``."""
     import ast
     import inspect
 
     body = ast.parse(inspect.getsource(AugmentConfig)).body[0].body
-    for node, nxt in zip(body, body[1:]):
-        if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", None) == name \
-                and isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant):
-            return str(nxt.value.value)
-    return ""
+    return {node.target.id: str(nxt.value.value) for node, nxt in zip(body, body[1:])
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+            and isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant)}

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from train.augment.config import AugmentConfig
-from train.augment.rows import Rows, gaze_grid, read_rows, redirected_rows, source_rows, truth_rows
+from train.augment.rows import Rows, concat, gaze_grid, read_rows, redirected_rows, source_rows, truth_rows
 
 ARMS_A = ("i", "ii", "iii", "iv")
 """(i) the base estimator; (ii) fine-tuned on k real frames; (iii) plus their redirected copies; (iv) plus the
@@ -120,9 +120,9 @@ def protocol_b(run, cfg: AugmentConfig, device, log: Callable[[str], None] = pri
                     person = subjects[path]
                     rows = source_rows(person, sorted(set(person.frames.tolist())), cfg.redirect_cameras)
                     copies[path] = redirected_rows(run, model, renderer, path, rows, gazes, 0, device)
-            real = _concat([subjects[p] for p in chosen])
+            real = concat([subjects[p] for p in chosen])
             errors = {"real": est.error(est.train(real, rep), test),
-                      "redirected": est.error(est.train(real.cat(_concat([copies[p] for p in chosen])), rep), test)}
+                      "redirected": est.error(est.train(real.cat(concat([copies[p] for p in chosen])), rep), test)}
             for arm, e in errors.items():
                 out[arm].setdefault(str(n), []).append(e)
             log(f"[augment] B rep {rep} n={n}: " + ", ".join(f"{a} {e:.2f}" for a, e in errors.items()))
@@ -130,11 +130,4 @@ def protocol_b(run, cfg: AugmentConfig, device, log: Callable[[str], None] = pri
 
 
 def _all_rows(files: list[Path], res: int, layout: str) -> Rows:
-    return _concat([read_rows(p, res, layout) for p in files])
-
-
-def _concat(parts: list[Rows]) -> Rows:
-    out = parts[0]
-    for p in parts[1:]:
-        out = out.cat(p)
-    return out
+    return concat([read_rows(p, res, layout) for p in files])

@@ -82,8 +82,6 @@ def figure(summary: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from toolkit.io import atomic_path
-
     fig, axes = plt.subplots(1, len(summary), figsize=(5 * len(summary), 3.6), squeeze=False)
     for ax, (protocol, arms) in zip(axes[0], summary.items()):
         for arm, cells in arms.items():
@@ -93,7 +91,18 @@ def figure(summary: dict, path: Path) -> None:
         ax.set_ylabel("gaze error (deg)")
         ax.set_title(f"protocol {protocol}")
         ax.legend()
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    write_png(fig, path)
+
+
+def write_png(fig, path: Path) -> None:
+    """Write a matplotlib figure to ``path`` atomically as a PNG, and close it."""
+    import matplotlib.pyplot as plt
+
+    from toolkit.io import atomic_path
+
+    try:
+        fig.tight_layout()
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=100)
+    finally:
+        plt.close(fig)

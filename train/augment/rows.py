@@ -30,7 +30,7 @@ class Rows:
         return Rows(*(getattr(self, f.name)[mask_or_index] for f in fields(self)))
 
     def cat(self, other: "Rows") -> "Rows":
-        return Rows(*(torch.cat([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
+        return concat([self, other])
 
     def in_frames(self, frames) -> torch.Tensor:
         """[N] bool: the rows of ``frames``."""
@@ -117,7 +117,7 @@ def redirected_rows(run, model, renderer, path: Path, rows: list[int], gazes: to
                 images = model_gaze_sweep(model, renderer, item, gazes, cfg.data.res, eval_sampling_steps(cfg), device)
         out.append(_grid_rows(images, item, gazes))
     ds.close()
-    return _concat(out)
+    return concat(out)
 
 
 def truth_rows(path: Path, rows: list[int], gazes: torch.Tensor, res: int) -> Rows:
@@ -132,11 +132,9 @@ def truth_rows(path: Path, rows: list[int], gazes: torch.Tensor, res: int) -> Ro
         targets = [pairs.render_target(r, g.double().numpy()) for g in gazes]
         out.append(_grid_rows(torch.stack([t["image"] for t in targets]), item, gazes))
     pairs.data.close()
-    return _concat(out)
+    return concat(out)
 
 
-def _concat(parts: list[Rows]) -> Rows:
-    out = parts[0]
-    for p in parts[1:]:
-        out = out.cat(p)
-    return out
+def concat(parts: list[Rows]) -> Rows:
+    """The rows of ``parts`` (at least one) in order."""
+    return Rows(*(torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Rows)))
