@@ -270,6 +270,14 @@ def write_ditgaze(path, truth: Truth) -> Path:
     return write_subject_h5(path, truth.rows)
 
 
+def write_native_folder(folder: Path, first_seed: int) -> Path:
+    """Three native subjects (2 frames x 3 cameras) and their split.json: subjects 0 and 1 train, 2 is held out."""
+    for i in range(3):
+        write_ditgaze(folder / f"subject{i:04d}.h5", native_truth(n_frames=2, n_cams=3, seed=first_seed + i))
+    (folder / "split.json").write_text(json.dumps({"train": ["subject0000", "subject0001"], "test": ["subject0002"]}))
+    return folder
+
+
 def write_peer_split(path, train: list[str], val: list[str]) -> Path:
     """GazeGaussian configs/dataset/eth_xgaze/train_test_split.json (= GazeNeRF data/eth_xgaze/...): entries
     "subject0012.h5" without the "xgaze_" prefix its loaders add (dataloader/eth_xgaze.py L276)."""

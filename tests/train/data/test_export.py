@@ -10,18 +10,14 @@ import numpy as np
 import pytest
 
 from tests.fuzz.cli import assert_refused
-from tests.train.data.peer_fixtures import native_truth, write_ditgaze
+from tests.train.data.peer_fixtures import write_native_folder
 from train.data.__main__ import main
 from train.data.dataset import GazeDataset
 
 
 @pytest.fixture(scope="module")
 def src(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("native")
-    for i in range(3):
-        write_ditgaze(folder / f"subject{i:04d}.h5", native_truth(n_frames=2, n_cams=3, seed=10 + i))
-    (folder / "split.json").write_text(json.dumps({"train": ["subject0000", "subject0001"], "test": ["subject0002"]}))
-    return folder
+    return write_native_folder(tmp_path_factory.mktemp("native"), first_seed=10)
 
 
 @pytest.fixture(scope="module")
