@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from toolkit.errors import ToolkitError
 from train.config import component
 from train.stages.artifacts import RunArtifacts
@@ -41,21 +39,24 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
 
 def subject_views_in_layout(path: Path, layout: str = "auto") -> dict:
     """``geometry.fit_dataset.subject_views`` of a subject file in any layout the rows can be read from: a
-    native file read directly (with the generator's ground-truth mesh), another converted row by row to the
-    native conventions by ``GazeDataset`` (``train.data.layouts``)."""
+    native file read directly (with the generator's ground-truth mesh), another validated as ``GazeDataset``
+    validates it and its label keys and masks converted whole to the native conventions
+    (``train.data.layout_conversion.to_native``): no face image is read."""
     from geometry.fit_dataset import SUBJECT_KEYS, read_subject, subject_views
-    from train.data.dataset import GazeDataset
-    from train.data.layout_files import row_layout
+    from toolkit.h5 import has_key, open_h5, read_array
+    from train.data.layout_conversion import to_native
+    from train.data.layout_files import row_layout, validate_file
     from train.data.layouts import DITGAZE
 
-    if row_layout(path, layout) is DITGAZE:
+    lay = row_layout(path, layout)
+    if lay is DITGAZE:
         return read_subject(path)
-    ds = GazeDataset([path], layout=layout)
-    rows = [ds.read_row(0, i) for i in range(len(ds))]
-    ds.close()
-    if "facial_landmarks_3d" not in rows[0]:
-        raise ToolkitError(f"{path}: no 3D landmarks (key 'facial_landmarks_3d'): every frame of this {layout} file "
-                           "is seen by one camera, so none can be triangulated; the geometry stage needs a "
+    validate_file(path, lay)
+    with open_h5(path) as f:  # the 2D landmarks: what a GazeNeRF file's 3D ones are triangulated from
+        stored = {k: read_array(path, f, k) for k in (*SUBJECT_KEYS, "facial_landmarks") if has_key(path, f, k)}
+    arrays = to_native(lay, stored, str(path))
+    if "facial_landmarks_3d" not in arrays:
+        raise ToolkitError(f"{path}: no 3D landmarks (key 'facial_landmarks_3d'): every frame of this {lay.name} "
+                           "file is seen by one camera, so none can be triangulated; the geometry stage needs a "
                            "multi-camera subject (geometry.subject)")
-    arrays = {k: np.stack([np.asarray(r[k]) for r in rows]) for k in SUBJECT_KEYS if k in rows[0]}
-    return subject_views(arrays, path)
+    return subject_views({k: arrays[k] for k in SUBJECT_KEYS if k in arrays}, path)
