@@ -150,7 +150,7 @@ def open_source(run, args):
         ds = GazeDataset([args.dataset], res=cfg.data.res, with_mesh=True)
         return ds
     from apps.labels_csv import LabelsCsvSource
-    from geometry.mesh_stats import load_mesh
+    from geometry.mesh_files import load_mesh
     from toolkit.scene import GaussianScene
     from train.data.generate import NORM_CROP, NORM_DISTANCE
 

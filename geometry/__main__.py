@@ -38,7 +38,8 @@ def _check_res(res, flag: str, low: int, kind: str, feature_dim: int) -> int:
 
 
 def _cmd_inspect(a) -> int:
-    from geometry.mesh_stats import format_stats, inspect_mesh, load_mesh
+    from geometry.mesh_files import load_mesh
+    from geometry.mesh_stats import format_stats, inspect_mesh
 
     stats = inspect_mesh(*load_mesh(a.mesh))
     print(json.dumps(stats, indent=2) if a.json else format_stats(stats))
@@ -46,7 +47,8 @@ def _cmd_inspect(a) -> int:
 
 
 def _cmd_compare(a) -> int:
-    from geometry.mesh_stats import BYTES_PER_SAMPLE, MAX_SAMPLES, compare_meshes, load_mesh
+    from geometry.mesh_files import load_mesh
+    from geometry.mesh_stats import BYTES_PER_SAMPLE, MAX_SAMPLES, compare_meshes
 
     n = check_count(a.samples, "--samples", 1, MAX_SAMPLES, "a number of surface samples per mesh")
     check_allocation(2 * n * BYTES_PER_SAMPLE, f"--samples {n}", "lower --samples")
@@ -68,7 +70,7 @@ CLEAN_FLAGS = {"weld_tolerance": "--weld-tolerance", "min_component_fraction": "
 
 def _cmd_clean(a) -> int:
     from geometry.cleanup import CleanupConfig, check_config, check_remesh_size, clean_mesh
-    from geometry.mesh_stats import check_mesh_extension, load_mesh, save_mesh
+    from geometry.mesh_files import check_mesh_extension, load_mesh, save_mesh
 
     check_mesh_extension(a.output)  # before the pipeline runs, not after
     check_not_an_input(a.output, [a.input])
@@ -85,7 +87,7 @@ def _cmd_clean(a) -> int:
 
 
 def _cmd_extract(a) -> int:
-    from geometry.mesh_stats import check_mesh_extension, save_mesh
+    from geometry.mesh_files import check_mesh_extension, save_mesh
     from geometry.sdf import SDFNet, extract_mesh
 
     check_mesh_extension(a.output)
@@ -137,7 +139,7 @@ def _cmd_fit(a) -> int:
 
 
 def _cmd_render(a) -> int:
-    from geometry.mesh_stats import load_mesh
+    from geometry.mesh_files import load_mesh
     from geometry.render_sheet import check_sheet, contact_sheet
 
     if not a.output.lower().endswith(".png"):

@@ -152,7 +152,8 @@ def fit_dataset(dataset: str | os.PathLike, out_dir: str | os.PathLike, cfg: Fit
     otherwise ``dataset`` is read as a native file. Returns the summary written to fit.json (timing, held-out
     IoU, Chamfer to the ground truth if present).
     """
-    from geometry.mesh_stats import compare_meshes, save_mesh
+    from geometry.mesh_files import save_mesh
+    from geometry.mesh_stats import compare_meshes
 
     cfg = cfg or FitConfig()
     out = Path(out_dir)

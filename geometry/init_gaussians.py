@@ -191,7 +191,7 @@ def init_gaussians(verts: torch.Tensor, faces: torch.Tensor, landmarks: torch.Te
 
 def _check_inputs(verts: torch.Tensor, faces: torch.Tensor, landmarks, cfg: InitConfig) -> torch.Tensor:
     """The mesh, the landmarks and the eye / lid settings of :func:`init_gaussians` -> landmarks [68, 3] float."""
-    from geometry.mesh_stats import check_mesh
+    from geometry.mesh_files import check_mesh
 
     check_mesh(verts, faces, "init_gaussians mesh")
     landmarks = torch.as_tensor(landmarks, dtype=torch.float32)

@@ -105,7 +105,7 @@ def _run_normalization(files) -> tuple[float, float]:
 def run_target(run_dir: str | os.PathLike, size: int | None = None) -> Target:
     """The :class:`Target` of a trained run: its geometry's head and eyes, its data's normalization and
     ``data.res`` (``size`` overrides the resolution)."""
-    from geometry.mesh_stats import load_mesh
+    from geometry.mesh_files import load_mesh
     from toolkit.eyes import check_eyes_metadata
     from toolkit.scene import GaussianScene
     from train.model.gaussian_config import UNITS_PER_METRE

@@ -13,7 +13,7 @@ import pytest
 import torch
 import trimesh
 
-from geometry.mesh_stats import save_mesh
+from geometry.mesh_files import save_mesh
 from tests.fuzz.cli import assert_refused
 
 TRI = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"

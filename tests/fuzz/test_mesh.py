@@ -20,7 +20,8 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
-from geometry.mesh_stats import compare_meshes, load_mesh
+from geometry.mesh_files import load_mesh
+from geometry.mesh_stats import compare_meshes
 from toolkit.errors import ToolkitError
 
 FORMATS = ("obj", "off", "ply-ascii", "ply-binary")

@@ -8,7 +8,8 @@ import torch
 import trimesh
 
 from geometry.cleanup import CleanupConfig, clean_mesh
-from geometry.mesh_stats import compare_meshes, inspect_mesh, load_mesh, save_mesh
+from geometry.mesh_files import load_mesh, save_mesh
+from geometry.mesh_stats import compare_meshes, inspect_mesh
 from toolkit.errors import ToolkitError
 
 

@@ -14,7 +14,7 @@ import torch
 import trimesh
 
 from geometry.__main__ import main
-from geometry.mesh_stats import save_mesh
+from geometry.mesh_files import save_mesh
 from geometry.sdf import SDFNet, SDFNetConfig, SphereInit, pretrain_sphere
 from tests.gl import skip_without_gl
 from toolkit.errors import run_cli

@@ -17,7 +17,7 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     from geometry.fit import FitConfig
     from geometry.fit_dataset import fit_dataset
     from geometry.init_gaussians import InitConfig, init_gaussians
-    from geometry.mesh_stats import load_mesh
+    from geometry.mesh_files import load_mesh
     from geometry.sdf import SDFNet
 
     g = ctx.config.geometry

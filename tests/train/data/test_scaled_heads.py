@@ -371,7 +371,7 @@ def scaled_run(tmp_path_factory) -> tuple[Path, Path]:
 def test_tiny_run_fits_the_unit_head_of_a_scaled_subject(scaled_run):
     """Every stage runs on scaled subjects. The geometry stage's neutral mesh of the 0.9 subject has the size of its
     head-frame (unit) mesh, not 0.9 of it, and its Gaussians, posed by the folded rows, fall on the head."""
-    from geometry.mesh_stats import load_mesh
+    from geometry.mesh_files import load_mesh
     from toolkit.scene import GaussianScene
     from train.data.dataset import GazeDataset
 
