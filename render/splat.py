@@ -110,16 +110,10 @@ def rasterize(
         sweep that renders every camera's tiles together).
     """
     per_camera, backgrounds = _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width, height,
-                                            backgrounds, sh_degree, tile_size, chunk, alpha_min, t_min)
+                                            backgrounds, sh_degree, tile_size, chunk, alpha_min, t_min, check_finite)
     width, height = int(width), int(height)
     C, D = viewmats.shape[0], features.shape[-1]
     dtype = means.dtype
-    if check_finite:
-        named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
-                 "viewmats": viewmats, "Ks": Ks}
-        if backgrounds is not None:
-            named["backgrounds"] = backgrounds
-        _check_finite(named)
 
     if use_gsplat(means, features, sh_degree):  # CUDA tensors and gsplat installed: its kernels (gsplat_backend)
         return rasterize_gsplat(means, quats, scales, opacities, features, viewmats, Ks, width, height,
@@ -151,8 +145,9 @@ def rasterize(
 
 
 def _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width, height, backgrounds, sh_degree,
-                  tile_size, chunk, alpha_min, t_min) -> tuple[bool, torch.Tensor | None]:
-    """Shapes, dtypes and settings of a :func:`rasterize` call -> (per-camera Gaussians?, backgrounds [C, D])."""
+                  tile_size, chunk, alpha_min, t_min, check_finite) -> tuple[bool, torch.Tensor | None]:
+    """Shapes, dtypes and settings of a :func:`rasterize` call, and (``check_finite``) finite inputs ->
+    (per-camera Gaussians?, backgrounds [C, D])."""
     _check_shape("viewmats", viewmats, (None, 4, 4))
     C = viewmats.shape[0]
     _check_shape("Ks", Ks, (C, 3, 3))
@@ -186,6 +181,10 @@ def _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width
         raise ToolkitError(f"rasterize: tile_size and chunk must be >= 1, got {tile_size}, {chunk}")
     if not 0 < alpha_min < ALPHA_MAX or not 0 <= t_min < 1:
         raise ToolkitError(f"rasterize: need 0 < alpha_min < {ALPHA_MAX} and 0 <= t_min < 1")
+    if check_finite:
+        named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
+                 "viewmats": viewmats, "Ks": Ks, **({} if backgrounds is None else {"backgrounds": backgrounds})}
+        _check_finite(named)
     return per_camera, backgrounds
 
 
