@@ -7,6 +7,11 @@ run's, so the rows differ in that switch alone). Every row is evaluated by the s
 and ``ablation.png`` give each row's mean and its paired 95 % interval against the full model (units: seeds)
 and its wall time. Resumable: ``train.run`` skips every stage that finished under the same config, so a rerun
 trains only what is missing. ``--augment`` adds protocol A of ``train.run augment`` per row as a column.
+
+``--row NAME OVERRIDE...`` (repeatable) replaces Table 3's rows by rows of the user's own against the same full
+model, e.g. one switch of the paper's recipe each (docs/model.md): ``--row "paper optimizer"
+gaussian.lr=1e-4 gaussian.renderer_lr=1e-4 gaussian.lr_schedule=step``. Only Gaussian- and eval-stage keys
+make a row that shares the full run's earlier stages; another key retrains those stages in the row's copy.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 from typing import Sequence
@@ -39,6 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, default=3, help="seeds (repetitions) per row, >= 1 (default: 3)")
     p.add_argument("--run-dir", default="out/ablate", help="folder of the rows' run directories and the table")
     p.add_argument("--augment", action="store_true", help="add protocol A of `train.run augment` per row")
+    p.add_argument("--row", nargs="+", action="append", metavar=("NAME", "OVERRIDE"),
+                   help="a row of your own, repeatable: its name, then its section.key=value overrides of the full "
+                        "model; given, these rows replace Table 3's")
     p.add_argument("overrides", nargs="*", help="section.key=value overrides applied to every row")
     return p
 
@@ -50,23 +59,45 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not 1 <= args.seeds <= 100:
         raise ToolkitError(f"ablate --seeds: expected 1 to 100 seeds, got {args.seeds}")
     root = Path(args.run_dir)
-    results = {name: [] for name, _ in ROWS}
+    rows = table_rows(args.row)
+    results = {name: [] for name, _ in rows}
     for seed in range(args.seeds):
         full = root / f"seed{seed}" / "full"
-        for k, (name, switch) in enumerate(ROWS):
+        for k, (name, switch) in enumerate(rows):
             row_dir = full if k == 0 else full.with_name(_slug(name))
             results[name].append(_run_row(args, full, row_dir, seed, switch))
     table = summarize_rows(results)
     atomic_write_json(root / "ablation.json", {"rows": table, "raw": results, "seeds": args.seeds,
-                                               "preset": args.preset, "overrides": args.overrides})
+                                               "preset": args.preset, "overrides": args.overrides,
+                                               "row_overrides": {name: list(switch) for name, switch in rows}})
     atomic_write_text(root / "ablation.md", ablation_markdown(table, args))
     ablation_figure(table, root / "ablation.png")
     print(json.dumps({"table": str(root / "ablation.md")}))
     return 0
 
 
+def table_rows(custom: list[list[str]] | None) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """The rows to train: Table 3's (:data:`ROWS`), or ``ROWS[0]`` (the full model) and the ``--row`` rows
+    ([name, override, ...] each), checked for one line each before any training."""
+    if not custom:
+        return ROWS
+    rows = [ROWS[0]]
+    for name, *overrides in custom:
+        slugs = [_slug(n) for n, _ in rows]
+        if not _slug(name).strip("_.") or _slug(name) in slugs:
+            raise ToolkitError(f"ablate --row {name!r}: expected a name of its own (not empty, not 'full', "
+                               f"unlike the other rows' folders {slugs})")
+        bad = [o for o in overrides if "=" not in o or "." not in o.split("=", 1)[0]]
+        if not overrides or bad:
+            raise ToolkitError(f"ablate --row {name!r}: expected one or more section.key=value overrides, got "
+                               f"{bad or overrides}")
+        rows.append((name, tuple(overrides)))
+    return tuple(rows)
+
+
 def _slug(name: str) -> str:
-    return name.replace("w/o ", "no_").replace(" ", "_").lower()
+    """The row's folder name: lower case, 'w/o ' as 'no_', anything but letters, digits, '.', '-' as '_'."""
+    return re.sub(r"[^a-z0-9.\-]+", "_", name.replace("w/o ", "no_").lower())
 
 
 def _run_row(args, full: Path, row_dir: Path, seed: int, switch: tuple[str, ...]) -> dict:
@@ -106,7 +137,7 @@ def summarize_rows(results: dict[str, list[dict]]) -> dict:
     """{row: {column: paired(row, full) or None}} over the seeds (``train.augment.report.paired``)."""
     from train.augment.report import paired
 
-    full = results[ROWS[0][0]]
+    full = results[ROWS[0][0]]  # the full model is every table's first row
     table = {}
     for name, runs in results.items():
         cells = {}
@@ -124,7 +155,8 @@ def summarize_rows(results: dict[str, list[dict]]) -> dict:
 
 def ablation_markdown(table: dict, args) -> str:
     columns = [c for c in next(iter(table.values())) if any(row[c] is not None for row in table.values())]
-    lines = [f"# Table 3: ablations ({args.preset} preset, {args.seeds} seed{'s' * (args.seeds != 1)})", "",
+    title = "Switches against the full model" if args.row else "Table 3: ablations"
+    lines = [f"# {title} ({args.preset} preset, {args.seeds} seed{'s' * (args.seeds != 1)})", "",
              "Mean over seeds; other rows: (row − full) and its paired 95 % t interval (units: seeds). Gaze and head "
              "pose in degrees, wall time of the Gaussian and eval stages.", "",
              "| row | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]

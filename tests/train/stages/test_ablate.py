@@ -4,11 +4,13 @@ resumable."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 
+from toolkit.errors import ToolkitError
 from train import run
-from train.ablate import ROWS, summarize_rows
+from train.ablate import ROWS, summarize_rows, table_rows
 
 QUICK = ["gaussian.steps=2", "eval.pairs_per_subject=1", "eval.tta_steps=0", "estimator.steps=2", "codec.steps=2"]
 
@@ -57,3 +59,31 @@ def test_rows_compare_paired_over_seeds():
     cell = table["w/o orthogonality loss"]["gaze"]
     assert (cell["mean"], cell["diff"], cell["n"]) == (7.0, 1.5, 2)
     assert table["w/o orthogonality loss"]["PSNR"]["diff"] == -1.0 and table["full"]["LPIPS"] is None
+
+
+def test_rows_of_ones_own_share_the_full_model(ablation, tmp_path):
+    """``--row NAME OVERRIDE...`` trains those rows instead of Table 3's, against the same (here: copied,
+    already trained) full model, which is not retrained."""
+    shutil.copytree(ablation / "seed0" / "full", tmp_path / "seed0" / "full")
+    ckpt = tmp_path / "seed0" / "full" / "gaussian" / "final.safetensors"
+    before = ckpt.stat().st_mtime_ns
+    assert run.main(["ablate", "--preset", "tiny", "--seeds", "1", "--run-dir", str(tmp_path), *QUICK,
+                     "--row", "ssim 0.2", "gaussian.lambda_ssim=0.2"]) == 0
+    assert ckpt.stat().st_mtime_ns == before
+    assert sorted(p.name for p in (tmp_path / "seed0").iterdir()) == ["full", "ssim_0.2"]
+    assert "lambda_ssim: 0.2" in (tmp_path / "seed0" / "ssim_0.2" / "config.yaml").read_text()
+    table = json.loads((tmp_path / "ablation.json").read_text())
+    assert list(table["rows"]) == ["full", "ssim 0.2"]
+    assert table["row_overrides"]["ssim 0.2"] == ["gaussian.lambda_ssim=0.2"]
+    assert (tmp_path / "ablation.md").read_text().startswith("# Switches against the full model")
+
+
+@pytest.mark.parametrize("row, expected", [(["x"], "one or more section.key=value"),
+                                           (["x", "lambda_ssim=0.2"], "one or more section.key=value"),
+                                           (["full", "gaussian.steps=2"], "a name of its own"),
+                                           (["//", "gaussian.steps=2"], "a name of its own")])
+def test_a_bad_row_is_one_line_before_any_training(row, expected):
+    with pytest.raises(ToolkitError, match=expected):
+        table_rows([row])
+    assert table_rows(None) == ROWS
+    assert [n for n, _ in table_rows([["a b", "gaussian.steps=2"], ["c", "eval.tta_steps=0"]])] == ["full", "a b", "c"]
