@@ -143,7 +143,8 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
     base = to_dict(GaussianStageConfig())
     older = {k: v for k, v in base.items() if k not in ("lr_schedule", "lr_final", "dit_feature_hidden",
                                                          "eyeball_colours", "ema_decay", "lr_decay_steps",
-                                                         "vgg_path", "lambda_perceptual")}
+                                                         "vgg_path", "lambda_perceptual", "field_input",
+                                                         "eye_field_terms")}
     assert config_hash(GaussianStageConfig()) == config_hash(older)
     assert config_hash(GaussianStageConfig(vgg_path="v.pth")) != config_hash(older)
     assert config_hash(GaussianStageConfig(lr_schedule="step", lr_decay_steps=10)) != config_hash(older)
@@ -151,6 +152,8 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
     assert config_hash(GaussianStageConfig(dit_feature_hidden=16)) != config_hash(older)
     assert config_hash(GaussianStageConfig(eyeball_colours=True)) != config_hash(older)
     assert config_hash(GaussianStageConfig(ema_decay=0.5)) != config_hash(older)
+    assert config_hash(GaussianStageConfig(field_input="feature")) != config_hash(older)
+    assert config_hash(GaussianStageConfig(eye_field_terms=True)) != config_hash(older)
 
 
 def test_the_options_added_to_the_eval_stage_are_neutral_at_their_defaults():
@@ -292,7 +295,7 @@ def test_every_mapped_stage_field_names_a_field_of_its_component():
                 cls, name = f.metadata["maps_to"]
                 assert name in {c.name for c in dataclasses.fields(classes[cls])}, (type(section).__name__, f.name)
                 mapped.add((cls, name))
-    assert len(mapped) == 21 and set(classes) == {cls for cls, _ in mapped}
+    assert len(mapped) == 23 and set(classes) == {cls for cls, _ in mapped}
 
 
 def test_component_configs_take_the_stage_values():
@@ -450,6 +453,8 @@ def test_a_config_yaml_written_before_loads_and_round_trips(tmp_path):
     expected = expected.replace("  ema_decay: 0.0\n", "  vgg_path: ''\n  lambda_perceptual: 0.1\n  ema_decay: 0.0\n")
     expected = expected.replace("  sweep_frames: 3\n",
                                 "  data_root: ''\n  data_layout: auto\n  data_split_file: ''\n  sweep_frames: 3\n")
+    expected = expected.replace("  eyeball_colours: false\n",
+                                "  eyeball_colours: false\n  field_input: position\n  eye_field_terms: false\n")
     assert (tmp_path / "new.yaml").read_text() == expected
     assert load_yaml_config(RunConfig, tmp_path / "new.yaml") == cfg
 
@@ -488,12 +493,13 @@ def test_stage_fingerprints_are_those_of_runs_made_before():
     assert _stage_fingerprints(preset("demo")) == {
         "data": "1a5f68e91e56f7db", "geometry": "5cda16a313497540", "codec": "60547948bf352234",
         "estimator": "10736ce72ae20e23", "gaussian": "08a7a333e21d3520", "eval": "aeb8274f425f85e3"}
-    # the paper preset's optimizer is the paper's since 2026-11-27 (Adam 1e-4, step decay): its Gaussian stage is
-    # another training, so its fingerprint (and its eval's) differ from the runs made before; a run directory
-    # keeps its own config.yaml, so an old paper run stays up to date
+    # the paper preset's optimizer is the paper's since 2026-11-27 (Adam 1e-4, step decay), and so are its fields'
+    # inputs and eye terms (gaussian.field_input, gaussian.eye_field_terms): its Gaussian stage is another
+    # training, so its fingerprint (and its eval's) differ from the runs made before; a run directory keeps its
+    # own config.yaml, so an old paper run stays up to date
     assert _stage_fingerprints(preset("paper")) == {
         "data": "af896099bae7e529", "geometry": "089d06ecc8d0ece7", "codec": "4dcd3c5e93298486",
-        "estimator": "a0cb85c142b48267", "gaussian": "6c0fc37354bf3a8e", "eval": "f1b7cf111d5961de"}
+        "estimator": "a0cb85c142b48267", "gaussian": "308ffff3f82c73f7", "eval": "02404c836e4a9b6e"}
     assert _stage_fingerprints(apply_overrides(preset("tiny"), MAPPED_OVERRIDES)) == {
         "data": "db21dac3ae9cd246", "geometry": "dc13af8ddc940534", "codec": "1acc1d10a8090196",
         "estimator": "4dd48a805590f945", "gaussian": "034c8f6fda0a7a88", "eval": "8add558ad7e302fb"}

@@ -1,10 +1,11 @@
 """Conditioned fields of the two-stream Gaussian model: positional encoding, MLPs, face deformation, eye rotation,
-eye appearance, and the parametric eyeball colours.
+eye appearance (code-driven and gaze-driven), and the parametric eyeball colours.
 
 Every field MLP starts with a plain ``nn.Linear`` named ``first`` of width ``hidden``, equal across fields (the
-orthogonality loss hooks those of the expression, pose and gaze MLPs; the eye appearance field applies its
-``first`` as two matrix products, so hooks on it would not fire), and ends with a zero-initialized linear layer so that at
-initialization the face is undeformed and the eyes follow the analytic gaze rotation exactly.
+orthogonality loss hooks those of the expression, pose and gaze MLPs; the MLPs that read a per-Gaussian and a
+per-sample input apply their ``first`` as two matrix products, :meth:`FieldMLP.split_forward`, so hooks on them
+would not fire), and ends with a zero-initialized linear layer so that at initialization the face is undeformed
+and the eyes follow the analytic gaze rotation exactly.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import torch.nn as nn
 from toolkit.errors import ToolkitError
 from toolkit.eyes import gaze_rotation
 from toolkit.rotations import so3_exp
+from train.model.gaussian_config import FIELD_INPUTS
 
 
 def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
@@ -45,6 +47,17 @@ class FieldMLP(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = torch.relu(self.first(x))
+        return self._rest(h)
+
+    def split_forward(self, per_item: torch.Tensor, per_sample: torch.Tensor) -> torch.Tensor:
+        """The MLP on ``[per_item, per_sample]`` for every (sample, item) pair: per_item [N, P], per_sample [B, C]
+        -> [B, N, out]. The first layer runs as two matrix products, the per-item half once and the per-sample half
+        once per sample, instead of on B·N concatenated rows (forward hooks on ``first`` do not fire)."""
+        w, p = self.first.weight, per_item.shape[1]
+        h = (per_item @ w[:, :p].T)[None] + (per_sample.to(per_item.dtype) @ w[:, p:].T + self.first.bias)[:, None]
+        return self._rest(torch.relu(h))
+
+    def _rest(self, h: torch.Tensor) -> torch.Tensor:
         for layer in self.hidden:
             h = torch.relu(layer(h))
         return self.last(h)
@@ -53,31 +66,53 @@ class FieldMLP(nn.Module):
 class FaceDeformationField(nn.Module):
     """Expression (τ) and pose (γ) MLPs on canonical face Gaussians, blended per Gaussian by λτ, λγ.
 
-    Each MLP maps ``[PE(x_can), condition]`` per Gaussian to raw deltas
-    ``[Δposition 3, Δfeature D, Δlog-scale 3, Δrotation 3 (quaternion vector part), Δopacity-logit 1]``;
-    the expression MLP's condition is τ, the pose MLP's is PE(γ). The blend
-    ``Δ = λτ·Δ_expr + λγ·Δ_pose`` lets regions near the landmarks (eyes, brows, mouth) follow the expression
-    while far regions (hair, neck) follow the pose, as in GazeGaussian.
+    ``field_input="position"``: each MLP maps ``[PE(x_can), condition]`` per Gaussian to raw deltas
+    ``[Δposition 3, Δfeature D, Δlog-scale 3, Δrotation 3 (quaternion vector part), Δopacity-logit 1]``.
+    ``field_input="feature"`` (GazeGaussian's form, its paper's eq. 2): ``expr_mlp`` / ``pose_mlp`` map
+    ``[PE(x_can), condition]`` to Δposition only, and ``expr_attr_mlp`` / ``pose_attr_mlp`` map
+    ``[tanh(z₀), condition]``, z₀ the Gaussian's canonical feature, to the other deltas. GazeGaussian's
+    ``models/gaussian_model.py`` reads ``pos_embedding(xyz)`` in its deform MLPs (L229-239) and ``tanh(feature)``
+    (L134) in its colour and attribute MLPs (L207-226). z₀ is not detached there (L134, L303 trains it through
+    those MLPs) nor here: its gradient comes from both the splat and the deltas it conditions.
+
+    The expression MLPs' condition is τ, the pose MLPs' PE(γ). The blend ``Δ = λτ·Δ_expr + λγ·Δ_pose`` lets
+    regions near the landmarks (eyes, brows, mouth) follow the expression while far regions (hair, neck) follow
+    the pose, as in GazeGaussian.
     """
 
     def __init__(self, feature_dim: int, code_dim: int, pose_dim: int, hidden: int, depth: int,
-                 pos_freqs: int, pose_freqs: int):
+                 pos_freqs: int, pose_freqs: int, field_input: str = "position"):
         super().__init__()
+        if field_input not in FIELD_INPUTS:
+            raise ToolkitError(f"FaceDeformationField: field_input must be one of {list(FIELD_INPUTS)}, got {field_input!r}")
         self.feature_dim, self.pos_freqs, self.pose_freqs = feature_dim, pos_freqs, pose_freqs
+        self.field_input = field_input
         self.out_dim = 3 + feature_dim + 3 + 3 + 1
-        pe = encoded_dim(3, pos_freqs)
-        self.expr_mlp = FieldMLP(pe + code_dim, hidden, self.out_dim, depth)
-        self.pose_mlp = FieldMLP(pe + encoded_dim(pose_dim, pose_freqs), hidden, self.out_dim, depth)
+        pe, pose_in = encoded_dim(3, pos_freqs), encoded_dim(pose_dim, pose_freqs)
+        moved = self.out_dim if field_input == "position" else 3
+        self.expr_mlp = FieldMLP(pe + code_dim, hidden, moved, depth)
+        self.pose_mlp = FieldMLP(pe + pose_in, hidden, moved, depth)
+        if field_input == "feature":
+            self.expr_attr_mlp = FieldMLP(feature_dim + code_dim, hidden, self.out_dim - 3, depth)
+            self.pose_attr_mlp = FieldMLP(feature_dim + pose_in, hidden, self.out_dim - 3, depth)
 
     def forward(self, x_norm: torch.Tensor, code: torch.Tensor, pose_norm: torch.Tensor,
-                lam_expr: torch.Tensor) -> dict[str, torch.Tensor]:
-        """x_norm [N, 3] normalized canonical positions, code [B, C], pose_norm [B, P], lam_expr [N] in [0, 1]
+                lam_expr: torch.Tensor, z: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """x_norm [N, 3] normalized canonical positions, code [B, C], pose_norm [B, P], lam_expr [N] in [0, 1],
+        z [N, D] canonical features (read with ``field_input="feature"`` only)
         -> dict of raw deltas, each [B, N, k]: "pos" 3, "feature" D, "log_scale" 3, "rot" 3, "opacity" 1."""
         B, N = code.shape[0], x_norm.shape[0]
         pe = positional_encoding(x_norm, self.pos_freqs)[None].expand(B, N, -1)
         d_expr = self.expr_mlp(torch.cat([pe, code[:, None].expand(B, N, code.shape[1])], -1))
         pose_pe = positional_encoding(pose_norm, self.pose_freqs)
         d_pose = self.pose_mlp(torch.cat([pe, pose_pe[:, None].expand(B, N, pose_pe.shape[1])], -1))
+        if self.field_input == "feature":
+            if z is None or z.shape != (N, self.feature_dim):
+                raise ToolkitError(f"FaceDeformationField: field_input='feature' needs z [N={N}, {self.feature_dim}], "
+                                   f"got {None if z is None else list(z.shape)}")
+            zt = torch.tanh(z)  # bounded however large the features grow, as GazeGaussian's L134
+            d_expr = torch.cat([d_expr, self.expr_attr_mlp.split_forward(zt, code).to(d_expr.dtype)], -1)
+            d_pose = torch.cat([d_pose, self.pose_attr_mlp.split_forward(zt, pose_pe).to(d_pose.dtype)], -1)
         lam = lam_expr.to(d_expr.dtype)[None, :, None]
         d = lam * d_expr + (1 - lam) * d_pose
         D = self.feature_dim
@@ -133,13 +168,32 @@ class EyeAppearanceField(nn.Module):
         -> [B, N, feature_dim] raw feature deltas (zero at initialization)."""
         pe = positional_encoding(x_eye, self.pos_freqs)
         where = torch.cat([pe, nn.functional.one_hot(side.long(), 2).to(pe.dtype)], -1)  # [N, P]
-        # The first layer split in two: the per-Gaussian half once, the per-code half once per sample.
-        w = self.mlp.first.weight
-        h = (where @ w[:, :where.shape[1]].T)[None] + (code.to(pe.dtype) @ w[:, where.shape[1]:].T + self.mlp.first.bias)[:, None]
-        h = torch.relu(h)
-        for layer in self.mlp.hidden:
-            h = torch.relu(layer(h))
-        return self.mlp.last(h)
+        return self.mlp.split_forward(where, code)
+
+
+class EyeGazeAppearanceField(nn.Module):
+    """Gaze-driven appearance of the eye Gaussians: from each one's canonical feature z₀ and the gaze φ, raw
+    deltas of its feature, log-scale and opacity logit (the G_c, G_κ terms of GazeGaussian's eye branch).
+
+    GazeGaussian's ``models/gaussian_model.py`` feeds ``[tanh(feature), PE(pitchyaw)]`` to its eye colour MLP,
+    whose output is added to the colour (L145-149), and to its eye attribute MLP, whose output shifts the
+    scale, rotation and opacity (L157-158, L245-256). Rotation is left out here: the eye Gaussians are
+    isotropic, so a rotation of one changes nothing. Like the other fields, the last layer starts at zero, so
+    at initialization the eyes render exactly as without it.
+    """
+
+    def __init__(self, feature_dim: int, hidden: int, depth: int, gaze_freqs: int):
+        super().__init__()
+        self.feature_dim, self.gaze_freqs = feature_dim, gaze_freqs
+        self.mlp = FieldMLP(feature_dim + encoded_dim(2, gaze_freqs), hidden, feature_dim + 2, depth)
+
+    def forward(self, z: torch.Tensor, gaze: torch.Tensor) -> dict[str, torch.Tensor]:
+        """z [Ne, D] canonical eye features, gaze [B, 2] (pitch, yaw) radians -> raw deltas "feature"
+        [B, Ne, D], "log_scale" [B, Ne], "opacity" [B, Ne] (zero at initialization)."""
+        pe = positional_encoding(gaze / math.pi, self.gaze_freqs)
+        d = self.mlp.split_forward(torch.tanh(z), pe)  # tanh: GazeGaussian's L134
+        D = self.feature_dim
+        return {"feature": d[..., :D], "log_scale": d[..., D], "opacity": d[..., D + 1]}
 
 
 class EyeballColours(nn.Module):

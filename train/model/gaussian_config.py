@@ -10,6 +10,9 @@ from toolkit.errors import ToolkitError
 UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
 """Scene units (``scene.metadata["units"]``) per metre: the config's distances are in metres."""
 
+FIELD_INPUTS = ("position", "feature")
+"""Values of :attr:`GaussianModelConfig.field_input`."""
+
 
 @dataclass
 class GaussianModelConfig:
@@ -55,6 +58,17 @@ class GaussianModelConfig:
     """the eye Gaussians' RGB channels (0..2) from :class:`train.model.fields.EyeballColours`, a pupil, an iris and a
     sclera by each Gaussian's polar angle from its eye's canonical optical axis (-z), instead of a free colour
     per Gaussian; their other channels stay free. Excludes ``eye_appearance`` (both would set the eye colours)."""
+    field_input: str = "position"
+    """what the face field's MLPs read per Gaussian beside their condition (τ or PE(γ)): ``position``, PE(x) for
+    every delta; ``feature``, GazeGaussian's form: PE(x) for Δposition, tanh(z₀) (the Gaussian's canonical
+    feature, ``face_features``) for Δfeature, Δlog-scale, Δrotation and Δopacity
+    (:class:`train.model.fields.FaceDeformationField`)."""
+    eye_field_terms: bool = False
+    """gaze-driven deltas of the eye Gaussians' features, log-scales and opacities from their canonical features
+    and the gaze (:class:`train.model.fields.EyeGazeAppearanceField`), bounded like the face field's
+    (``max_feature_delta``, ``max_log_scale_delta``, ``max_opacity_delta``); zero at initialization. Added after
+    ``eye_appearance``'s delta; with ``eyeball_colours`` the RGB channels stay parametric and the term moves the
+    other channels, the scales and the opacities."""
     render_scale: float = 0.25
     num_images: int = 0
     """> 0 adds per-training-image learnable codes and camera offsets (auto-decoder)."""
@@ -81,6 +95,9 @@ class GaussianModelConfig:
             raise ToolkitError(f"GaussianModelConfig.render_scale: expected (0, 1], got {self.render_scale}")
         if self.socket_sigma_m <= 0:
             raise ToolkitError(f"GaussianModelConfig.socket_sigma_m: expected > 0 metres, got {self.socket_sigma_m}")
+        if self.field_input not in FIELD_INPUTS:
+            raise ToolkitError(f"GaussianModelConfig.field_input: expected one of {list(FIELD_INPUTS)}, "
+                               f"got {self.field_input!r}")
         if self.eyeball_colours and self.eye_appearance:
             raise ToolkitError("GaussianModelConfig: eyeball_colours and eye_appearance both set the eye Gaussians' "
                                "colours; enable one of them")

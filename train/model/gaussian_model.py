@@ -10,8 +10,11 @@ Eye stream: canonical eye Gaussians (parts 1 and 2, isotropic: one log-scale eac
 by :class:`train.model.fields.EyeRotationField` about **that eye's own eyeball centre** from
 ``scene.metadata["eyes"]`` (``toolkit.eyes.eyeball_info``); left and right eyes use their own Gaussians and
 centres. Gaze φ [B, 2] is (pitch, yaw) in the head frame. Their features are shared by every identity, or,
-with ``eye_appearance``, shifted per code by :class:`train.model.fields.EyeAppearanceField`; with ``eyeball_colours``
-their RGB channels come from a parametric pupil / iris / sclera (:class:`train.model.fields.EyeballColours`).
+with ``eye_appearance``, shifted per code by :class:`train.model.fields.EyeAppearanceField`; with ``eye_field_terms``
+their features, scales and opacities also follow the gaze (:class:`train.model.fields.EyeGazeAppearanceField`); with
+``eyeball_colours`` their RGB channels come from a parametric pupil / iris / sclera
+(:class:`train.model.fields.EyeballColours`). The face field reads each Gaussian's position, or with
+``field_input="feature"`` its canonical feature for every delta but Δposition (GazeGaussian's form).
 
 Then the rigid head transform ``x_world = R(γ[:3]) x + γ[3:]`` (γ[:3] axis-angle radians, γ[3:] translation in
 scene units), optional per-image camera offsets, and splatting with ``render.splat.rasterize`` into
@@ -40,7 +43,13 @@ from toolkit.cameras import resize_intrinsics
 from toolkit.errors import ToolkitError
 from toolkit.rotations import matrix_to_quat, normalize_quat, quat_multiply, so3_exp
 from toolkit.scene import GaussianScene
-from train.model.fields import EyeAppearanceField, EyeballColours, EyeRotationField, FaceDeformationField
+from train.model.fields import (
+    EyeAppearanceField,
+    EyeballColours,
+    EyeGazeAppearanceField,
+    EyeRotationField,
+    FaceDeformationField,
+)
 from train.model.gaussian_config import GaussianModelConfig
 from train.model.gaussian_io import checkpoint_metadata, posed_scene, read_checkpoint, streams_from_scene
 
@@ -78,7 +87,7 @@ class GaussianModel(nn.Module):
         # softmax: well defined however far the nearest face Gaussian is (no empty neighbourhood).
         self.register_buffer("socket_weights", torch.softmax(-d2 / (2 * sigma ** 2), dim=-1))
         self.face_field = FaceDeformationField(cfg.feature_dim, cfg.code_dim, cfg.pose_dim, cfg.hidden, cfg.depth,
-                                               cfg.pos_freqs, cfg.pose_freqs)
+                                               cfg.pos_freqs, cfg.pose_freqs, cfg.field_input)
         self.eye_field = EyeRotationField(cfg.code_dim, cfg.hidden, cfg.depth, cfg.gaze_freqs, cfg.max_eye_residual)
         if cfg.eye_appearance:
             self.eye_appearance = EyeAppearanceField(cfg.feature_dim, cfg.code_dim, cfg.hidden, cfg.depth,
@@ -92,6 +101,8 @@ class GaussianModel(nn.Module):
         else:
             self.eye_appearance = None
         self.eyeball_colours = EyeballColours() if cfg.eyeball_colours else None
+        self.eye_gaze_terms = (EyeGazeAppearanceField(cfg.feature_dim, cfg.hidden, cfg.depth, cfg.gaze_freqs)
+                               if cfg.eye_field_terms else None)
         if cfg.num_images > 0:
             self.image_codes = nn.Embedding(cfg.num_images, cfg.code_dim)
             self.camera_offsets = nn.Embedding(cfg.num_images, 6)
@@ -185,7 +196,7 @@ class GaussianModel(nn.Module):
         self.cache_misses += 1
         x_norm = (self.face_means - self.norm_center) / self.norm_scale
         pose_norm = torch.cat([pose[:, :3] / math.pi, pose[:, 3:] / self.norm_scale], -1)
-        d = self.face_field(x_norm, code, pose_norm, self.expression_weights())
+        d = self.face_field(x_norm, code, pose_norm, self.expression_weights(), self.face_features)
         d = {k: v.float() for k, v in d.items()}
         means = self.face_means + cfg.max_offset * self.norm_scale * torch.tanh(d["pos"])
         dq = torch.cat([torch.ones_like(d["rot"][..., :1]), 0.5 * d["rot"]], -1)
@@ -234,11 +245,24 @@ class GaussianModel(nn.Module):
             x_eye = (self.eye_means.detach() - c) / self.eye_radius[self.eye_side, None]
             d = self.eye_appearance(x_eye, self.eye_side, code).float()
             features = features + self.config.max_feature_delta * torch.tanh(d)
+        if self.eye_gaze_terms is not None:
+            scales, opacities, features = self._gaze_terms(gaze, features)
         if self.eyeball_colours is not None:
             rgb = self.eyeball_colours(self.eye_polar_angles()).to(features.dtype)
             features = torch.cat([rgb[None].expand(B, -1, -1), features[..., 3:]], -1)
         return {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
                 "rotations": R}
+
+    def _gaze_terms(self, gaze: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """(scales [B, Ne, 3], opacities [B, Ne], features [B, Ne, D]) of the eye Gaussians with the bounded
+        gaze-driven deltas of ``eye_gaze_terms`` (config ``eye_field_terms``) applied; ``features`` [B, Ne, D]
+        are the eye features before them."""
+        cfg, ne = self.config, self.num_eye
+        t = {k: v.float() for k, v in self.eye_gaze_terms(self.eye_features, gaze.float()).items()}
+        log_scales = self.eye_log_scales + cfg.max_log_scale_delta * torch.tanh(t["log_scale"])
+        scales = torch.exp(log_scales)[..., None].expand(-1, ne, 3)
+        opacities = torch.sigmoid(self.eye_opacity_logits + cfg.max_opacity_delta * torch.tanh(t["opacity"]))
+        return scales, opacities, features + cfg.max_feature_delta * torch.tanh(t["feature"])
 
     def gaussians(self, code: torch.Tensor, pose: torch.Tensor, gaze: torch.Tensor,
                   image_index: torch.Tensor | None = None) -> dict[str, dict[str, torch.Tensor]]:
@@ -356,9 +380,13 @@ class GaussianModel(nn.Module):
         # Checkpoints written before socket_weights existed: the buffer recomputed from their means.
         state.setdefault("socket_weights", model.socket_weights)
         try:
-            model.load_state_dict(state)
-        except RuntimeError as e:
-            raise ToolkitError(f"{path}: tensors do not match the stored config ({str(e).splitlines()[0][:160]})") from None
+            result = model.load_state_dict(state, strict=False)
+        except RuntimeError as e:  # a shape mismatch: its first detail line names the tensor
+            detail = [ln.strip() for ln in str(e).splitlines() if ln.strip()][1:2] or [str(e)]
+            raise ToolkitError(f"{path}: tensors do not match the stored config ({detail[0][:160]})") from None
+        if result.missing_keys or result.unexpected_keys:
+            raise ToolkitError(f"{path}: tensors do not match the stored config (missing {result.missing_keys[:4]}, "
+                               f"unexpected {result.unexpected_keys[:4]})")
         return model.to(device)
 
     # ------------------------------------------------------------------ export
