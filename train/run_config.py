@@ -92,6 +92,11 @@ class GeometryStageConfig:
     (docs/results.md, 2026-11-24)."""
     subject: int = field(default=0, metadata=at_least(0, "a training-subject index"))
     """index of the training subject whose views define the neutral mesh (the last one if beyond)."""
+    pretrain_fields: int = field(default=0, metadata=NEUTRAL | at_least(0, "a step count") | STEP_CAP)
+    """steps pre-training the two-stream model's face deformation and eye rotation fields on the training split
+    after the mesh is fitted (GazeGaussian's MeshHead stage; ``train.stages.field_pretrain``, docs/model.md), >= 0;
+    the Gaussian stage starts from them. 0: off, the fields start untrained (zero last layers). With it on, the
+    stage also depends on the ``gaussian`` section's model fields (the fields' architecture)."""
 
 
 @dataclass
@@ -237,6 +242,20 @@ class GaussianStageConfig:
     eyeball_colours: bool = field(default=False, metadata=NEUTRAL | maps_to("GaussianModelConfig", "eyeball_colours"))
     """the eye Gaussians' RGB from a parametric pupil / iris / sclera (:class:`train.model.fields.EyeballColours`)
     instead of a free colour each; excludes ``eye_appearance``."""
+    region_renders: Literal["masks", "separate"] = field(default="masks", metadata=NEUTRAL)
+    """where the image loss's face and eye terms come from: ``masks``, the head render under the face and eye
+    masks; ``separate``, GazeGaussian's form: the face-only and the eye-only Gaussians also splatted and rendered
+    on their own, their terms taken from those renders against the masked targets (and their splatted RGB
+    against the target in their region), at about three times a step's cost (docs/model.md)."""
+    field_input: Literal["position", "feature"] = field(
+        default="position", metadata=NEUTRAL | maps_to("GaussianModelConfig", "field_input"))
+    """what the face field's MLPs read per Gaussian: ``position``, PE(x) for every delta; ``feature``, the
+    paper's form (GazeGaussian's eq. 2): PE(x) for Δposition, the Gaussian's canonical feature z₀ for Δfeature,
+    Δscale, Δrotation and Δopacity (docs/model.md)."""
+    eye_field_terms: bool = field(default=False, metadata=NEUTRAL | maps_to("GaussianModelConfig", "eye_field_terms"))
+    """gaze-driven deltas of the eye Gaussians' features, scales and opacities from their canonical features (the
+    paper's eye-branch appearance terms; zero at initialization). With ``eyeball_colours`` the RGB stays
+    parametric and the terms move the other channels, the scales and the opacities (docs/model.md)."""
     ckpt_every: int = field(default=100, metadata=COUNT)
     """steps between checkpoints."""
     log_every: int = field(default=10, metadata=COUNT)
@@ -317,6 +336,11 @@ class EvalConfig:
     identity_arch: Literal["iresnet18", "iresnet34", "iresnet50", "iresnet100"] = field(default="iresnet50",
                                                                                         metadata=NEUTRAL)
     """the ArcFace backbone's architecture (its file's block counts must match)."""
+    natural_fit_row: bool = True
+    """when the test-time fit has a gaze term (``tta_gaze_weight`` > 0 and ``tta_steps`` > 0), also evaluate the
+    same pairs after the natural fit, without any gaze term (same steps and weights), and report its gaze error,
+    PSNR and SSIM beside the main row (``metrics.natural_fit``): the fit the toolkit produces data with. A second
+    fitting pass (the demo's eval stage: about 1.6x the time); false skips it. No effect without a gaze term."""
 
 
 def eval_sampling_steps(cfg: "RunConfig") -> int:
@@ -383,8 +407,10 @@ def paper_preset() -> RunConfig:
     """The paper's setting, on a GPU: 512² renders, DiT depth 6 / 8 heads (``DiT-Gaze-paper``), 4x feature
     upscaling and GazeGaussian's schedule lengths; ``lambda_ssim`` 0.2, since 0.8 was measured at the demo's
     scale only. Its optimizer: Adam at 1e-4 with GazeGaussian's step decay 0.1^(epoch / 1000) over its 100
-    epochs, here 100,000 steps (``lr_decay_steps`` 1,000,000: the rates end at 0.79 of their start). The
-    perceptual term needs the user's VGG16 weights (``gaussian.vgg_path``)."""
+    epochs, here 100,000 steps (``lr_decay_steps`` 1,000,000: the rates end at 0.79 of their start). The face
+    field reads each Gaussian's feature z₀ and the eyes have gaze-driven appearance terms (``field_input``
+    ``feature``, ``eye_field_terms``), as GazeGaussian's fields do. The perceptual term needs the user's VGG16
+    weights (``gaussian.vgg_path``)."""
     return RunConfig(
         preset="paper",
         data=DataConfig(subjects=80, frames=20, test_frames=0, res=512),
@@ -394,7 +420,8 @@ def paper_preset() -> RunConfig:
                                        synthetic_frames=120),
         gaussian=GaussianStageConfig(dit_model="DiT-Gaze-paper", steps=100_000, batch=4, gaussians_hidden=256,
                                      lambda_ssim=0.2, feature_upscale=4, ckpt_every=2000, log_every=50,
-                                     lr=1e-4, renderer_lr=1e-4, lr_schedule="step", lr_decay_steps=1_000_000),
+                                     lr=1e-4, renderer_lr=1e-4, lr_schedule="step", lr_decay_steps=1_000_000,
+                                     field_input="feature", eye_field_terms=True),
         eval=EvalConfig(pairs_per_subject=100),
     )
 

@@ -13,13 +13,13 @@ from train.stages.data import stage_data
 from train.stages.estimator import stage_estimator
 from train.stages.eval import stage_eval
 from train.stages.gaussian import GAUSSIAN_INPUTS, gaussian_section, stage_gaussian
-from train.stages.geometry import stage_geometry
+from train.stages.geometry import geometry_section, stage_geometry
 from train.stages.pipeline import Stage
 
 STAGES = [
     # Stage(name, body, the stages it reads, the part of the config it reads)
     Stage("data", stage_data, config=lambda c: c.data),
-    Stage("geometry", stage_geometry, ("data",), config=lambda c: (c.seed, c.geometry)),
+    Stage("geometry", stage_geometry, ("data",), config=geometry_section),
     Stage("codec", stage_codec, ("data",), config=lambda c: (c.seed, c.codec)),
     Stage("estimator", stage_estimator, ("data",), config=lambda c: (c.seed, c.estimator)),
     # ("geometry", "codec", "estimator") and (seed, gaussian): declared beside the stage, whose checkpoints'

@@ -33,6 +33,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     device = torch.device(info.device) if info.enabled else resolve_device(cfg)
     torch.manual_seed(cfg.seed)
     model, renderer = run.build_model(device)  # at the training files' code widths (RunArtifacts.training_code_widths)
+    load_pretrained_fields(ctx, model)
     # Read a batch at a time: the paper's split is ~75 GB as float32 tensors (docs/pipeline.md, Data in memory).
     data = open_split(run.split("train"), "all", cfg.data.res, layout=cfg.data.layout)
     try:
@@ -40,6 +41,18 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     finally:
         data.close()
         cleanup(info)
+
+
+def load_pretrained_fields(ctx: RunContext, model) -> None:
+    """Start the model's fields from the geometry stage's pre-trained ones when it wrote them
+    (``geometry.pretrain_fields``, :mod:`train.stages.field_pretrain`)."""
+    fields = ctx.outputs.get("geometry", {}).get("fields")
+    if fields is None:
+        return
+    from train.stages.field_pretrain import load_fields
+
+    names = load_fields(model, ctx.run_dir / fields)
+    ctx.log(f"[gaussian] {', '.join(names)} start from the geometry stage's pre-training ({fields})")
 
 
 def _train(ctx: RunContext, run: RunArtifacts, info, device, model, renderer, data) -> dict[str, str]:

@@ -1,5 +1,5 @@
 """Stage ``geometry``: fit the SDF to one training subject's views, extract its DMTet mesh and place the
-Gaussians on it (the two-stream model's initialization)."""
+Gaussians on it (the two-stream model's initialization); optionally pre-train the model's fields."""
 
 from __future__ import annotations
 
@@ -13,7 +13,9 @@ from train.stages.pipeline import RunContext
 
 def stage_geometry(ctx: RunContext) -> dict[str, str]:
     """The training subject ``geometry.subject`` -> ``geometry/`` (the SDF, the neutral mesh, the fit's summary
-    and the Gaussian scene, with the subject's 3D landmarks in its metadata)."""
+    and the Gaussian scene, with the subject's 3D landmarks in its metadata); with ``geometry.pretrain_fields``,
+    the model's fields pre-trained on the training split (``geometry/fields.safetensors``,
+    :mod:`train.stages.field_pretrain`)."""
     from geometry.fit import FitConfig
     from geometry.fit_dataset import fit_dataset
     from geometry.init_gaussians import InitConfig, init_gaussians
@@ -34,7 +36,23 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
     scene = init_gaussians(verts, faces, data["landmarks"], net, component(InitConfig, g, seed=ctx.config.seed))
     scene.metadata["landmarks"] = data["landmarks"].tolist()
     scene.save(out / "gaussians.safetensors")
-    return {"scene": "geometry/gaussians.safetensors", "mesh": "geometry/neutral_mesh.ply", "fit": "geometry/fit.json"}
+    outputs = {"scene": "geometry/gaussians.safetensors", "mesh": "geometry/neutral_mesh.ply", "fit": "geometry/fit.json"}
+    if g.pretrain_fields > 0:
+        from train.stages.field_pretrain import pretrain_run_fields
+
+        outputs["fields"] = pretrain_run_fields(ctx, out / "gaussians.safetensors")
+    return outputs
+
+
+def geometry_section(cfg):
+    """The part of the config the geometry stage's fingerprint hashes: the seed and the ``geometry`` section, and
+    with ``geometry.pretrain_fields`` on, what the pre-trained fields depend on too: the two-stream model's
+    configuration and ``gaussian.rgb_init``."""
+    if cfg.geometry.pretrain_fields <= 0:
+        return cfg.seed, cfg.geometry
+    from train.training.trainer import model_config
+
+    return cfg.seed, cfg.geometry, model_config(cfg.gaussian), cfg.gaussian.rgb_init
 
 
 def subject_views_in_layout(path: Path, layout: str = "auto") -> dict:

@@ -8,7 +8,9 @@ One step on a batch of training images (all in the input's camera, head pose and
    or with the U-Net baseline;
 3. losses: per-region image loss (L1 + SSIM, white background) on the decoded image, L1 of the splatted
    RGB channels against the downsampled target, the diffusion loss, the gaze loss (frozen estimator on
-   render vs target), the orthogonality loss on the first layers of the gaze / pose / expression MLPs;
+   render vs target), the orthogonality loss on the first layers of the gaze / pose / expression MLPs. With
+   ``gaussian.region_renders=separate`` the face and eye terms come from the face-only and eye-only Gaussians'
+   own renders instead of the head render's regions (:meth:`GaussianTrainer._separate_regions`);
 4. weak supervision: the same inputs with an intermediate gaze φ from the gaze sampler (progressive range),
    rendered on the one-step path; supervised by the gaze loss against φ (converted to the camera frame of
    the estimator's labels) and by the image loss on the **face region only** — the eyes are not compared
@@ -34,7 +36,7 @@ from train.losses import (
     gaze_to_camera,
     head_to_camera_rotation,
 )
-from train.model.gaussian_model import GaussianModel, GaussianModelConfig
+from train.model.gaussian_model import RENDERS, GaussianModel, GaussianModelConfig
 from train.run_config import GaussianStageConfig
 from train.training.gaze_sampler import GazeSampler, GazeSamplerConfig
 
@@ -206,17 +208,38 @@ class GaussianTrainer:
         onestep = torch.rand(B, generator=g) < self.cfg.onestep_fraction
         return torch.where(onestep, torch.full_like(t, T - 1), t).to(self.device)
 
-    def _render(self, b, gaze, target, g, t=None):
+    def _render(self, b, gaze, target, g, t=None, renders=("head",)):
         R = self.data.res
-        maps = self.model(b["code"], b["pose"], gaze, b["viewmat"], b["K"], R, R, renders=("head",))
+        maps = self.model(b["code"], b["pose"], gaze, b["viewmat"], b["K"], R, R, renders=renders)
+        return maps, self._decode(maps["head"], b, gaze, target, g, t)
+
+    def _decode(self, feats, b, gaze, target, g, t=None):
+        """The renderer's training pass on the splatted ``feats`` [B, F, h, w] against ``target`` [B, 3, H, W]."""
         extra = {}
         if self.shard is not None and getattr(self.renderer, "diffusion", None) is not None:
             # The global batch's noise, drawn where the renderer would draw it, then this rank's rows.
-            shape = self.renderer.latent_shape(maps["head"])
+            shape = self.renderer.latent_shape(feats)
             extra["noise"] = torch.randn((self.cfg.batch, *shape[1:]), generator=g)[self.shard].to(self.device)
-        out = self.renderer.training_forward(maps["head"], b["code"], target, gaze=gaze, pose=b["pose"], generator=g,
-                                             t=t, **extra)
-        return maps, out
+        return self.renderer.training_forward(feats, b["code"], target, gaze=gaze, pose=b["pose"], generator=g,
+                                              t=t, **extra)
+
+    def _separate_regions(self, b, maps, masks, target, g, t) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """``gaussian.region_renders=separate``: the face-only and eye-only splats (``maps["face"]``, ``maps["eyes"]``)
+        rendered on their own against the target on white outside their region, as GazeGaussian does
+        (models/gaze_gaussian.py L142-163; losses/gazenerf_loss.py L363-442: the face and eye terms on those renders
+        against ``gt * mask + (1 - mask)``). Returns ({"face", "eyes"}: [B, 3, H, W] decoded images, for the image
+        loss's regions) and the extra terms {"rgb_face", "rgb_eyes": the splats' RGB L1 in their region, at the
+        splat's size; "diffusion_face", "diffusion_eyes": the renderer's own losses on those renders}."""
+        images, terms = {}, {}
+        for r in ("face", "eyes"):
+            on_white = target * masks[r] + (1 - masks[r])
+            out = self._decode(maps[r], b, b["gaze_head"], on_white, g, t)
+            images[r] = out.image
+            terms[f"diffusion_{r}"] = out.aux_loss
+            small = F.interpolate(on_white, size=maps[r].shape[-2:], mode="area")
+            m = F.interpolate(masks[r], size=maps[r].shape[-2:], mode="area")
+            terms[f"rgb_{r}"] = ((maps[r][:, :3] - small).abs() * m).sum() / (3 * m.sum() + 1e-6)
+        return images, terms
 
     def _prefetch(self, step: int) -> None:
         """Start reading the rows step ``step`` will draw, while this step computes. They are guessed: the loop
@@ -239,14 +262,21 @@ class GaussianTrainer:
         B = b["image"].shape[0]
         masks = region_masks(b)
         target = b["image"]
-        maps, out = self._render(b, b["gaze_head"], target, g, self._rows(self._timesteps(cfg.batch, g)))
+        separate = cfg.region_renders == "separate"
+        t = self._rows(self._timesteps(cfg.batch, g))
+        maps, out = self._render(b, b["gaze_head"], target, g, t, renders=RENDERS if separate else ("head",))
         img = out.image
-        l_img, _ = self.image_loss(img, target, masks)
+        pred, regions = (self._separate_regions(b, maps, masks, target, g, t) if separate else ({}, {}))
+        l_img, _ = self.image_loss({"head": img, **pred} if separate else img, target, masks)
         small = F.interpolate(target, size=maps["rgb"].shape[-2:], mode="area")
         l_rgb = (maps["rgb"] - small).abs().mean()
         l_gaze = self.gaze_loss(img, target_image=target, landmarks=b["landmarks"])
         terms = {"image": l_img, "rgb": l_rgb, "diffusion": out.aux_loss, "gaze": l_gaze}
         total = l_img + cfg.lambda_rgb * l_rgb + cfg.diffusion_weight * out.aux_loss + cfg.lambda_gaze * l_gaze
+        if separate:
+            terms.update(regions)
+            total = total + cfg.lambda_rgb * (regions["rgb_face"] + regions["rgb_eyes"]) \
+                + cfg.diffusion_weight * (regions["diffusion_face"] + regions["diffusion_eyes"])
         if self.ortho is not None:
             l_ortho = self.ortho()
             terms["ortho"] = l_ortho
