@@ -409,19 +409,21 @@ def paper_preset() -> RunConfig:
     scale only. Its optimizer: Adam at 1e-4 with GazeGaussian's step decay 0.1^(epoch / 1000) over its 100
     epochs, here 100,000 steps (``lr_decay_steps`` 1,000,000: the rates end at 0.79 of their start). The face
     field reads each Gaussian's feature z₀ and the eyes have gaze-driven appearance terms (``field_input``
-    ``feature``, ``eye_field_terms``), as GazeGaussian's fields do. The perceptual term needs the user's VGG16
-    weights (``gaussian.vgg_path``)."""
+    ``feature``, ``eye_field_terms``), as GazeGaussian's fields do. The face and eye terms come from the
+    face-only and eye-only Gaussians' own renders (``region_renders`` ``separate``), and the geometry stage
+    pre-trains the fields for 3000 steps (``pretrain_fields``; the paper gives no count: the SDF fit's). The
+    perceptual term needs the user's VGG16 weights (``gaussian.vgg_path``)."""
     return RunConfig(
         preset="paper",
         data=DataConfig(subjects=80, frames=20, test_frames=0, res=512),
-        geometry=GeometryStageConfig(steps=3000, extract_res=128, gaussians=100_000),
+        geometry=GeometryStageConfig(steps=3000, extract_res=128, gaussians=100_000, pretrain_fields=3000),
         codec=CodecStageConfig(steps=20_000, base_channels=64, downsample=8, batch=16),
         estimator=EstimatorStageConfig(steps=20_000, input_size=224, batch=64, synthetic_subjects=200,
                                        synthetic_frames=120),
         gaussian=GaussianStageConfig(dit_model="DiT-Gaze-paper", steps=100_000, batch=4, gaussians_hidden=256,
                                      lambda_ssim=0.2, feature_upscale=4, ckpt_every=2000, log_every=50,
                                      lr=1e-4, renderer_lr=1e-4, lr_schedule="step", lr_decay_steps=1_000_000,
-                                     field_input="feature", eye_field_terms=True),
+                                     field_input="feature", eye_field_terms=True, region_renders="separate"),
         eval=EvalConfig(pairs_per_subject=100),
     )
 

@@ -144,7 +144,7 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
     older = {k: v for k, v in base.items() if k not in ("lr_schedule", "lr_final", "dit_feature_hidden",
                                                          "eyeball_colours", "ema_decay", "lr_decay_steps",
                                                          "vgg_path", "lambda_perceptual", "field_input",
-                                                         "eye_field_terms")}
+                                                         "eye_field_terms", "region_renders")}
     assert config_hash(GaussianStageConfig()) == config_hash(older)
     assert config_hash(GaussianStageConfig(vgg_path="v.pth")) != config_hash(older)
     assert config_hash(GaussianStageConfig(lr_schedule="step", lr_decay_steps=10)) != config_hash(older)
@@ -154,6 +154,22 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
     assert config_hash(GaussianStageConfig(ema_decay=0.5)) != config_hash(older)
     assert config_hash(GaussianStageConfig(field_input="feature")) != config_hash(older)
     assert config_hash(GaussianStageConfig(eye_field_terms=True)) != config_hash(older)
+    assert config_hash(GaussianStageConfig(region_renders="separate")) != config_hash(older)
+
+
+def test_the_field_pretraining_is_neutral_off_and_ties_the_geometry_stage_to_the_model_when_on():
+    """geometry.pretrain_fields=0 leaves the geometry stage's fingerprint as before; on, the stage also hashes the
+    two-stream model's config (the pre-trained fields' architecture), and only then."""
+    from train.run_config import GeometryStageConfig, preset
+
+    older = {k: v for k, v in to_dict(GeometryStageConfig()).items() if k not in ("pretrain_fields", "lid_gaussians")}
+    assert config_hash(GeometryStageConfig()) == config_hash(older)
+    prints = lambda *o: _stage_fingerprints(apply_overrides(preset("tiny"), list(o)))["geometry"]  # noqa: E731
+    off, on = prints(), prints("geometry.pretrain_fields=5")
+    assert on != off
+    assert prints("gaussian.gaussians_hidden=8") == off  # off: the Gaussian stage's fields are not the geometry's
+    assert prints("geometry.pretrain_fields=5", "gaussian.gaussians_hidden=8") != on
+    assert prints("geometry.pretrain_fields=5", "gaussian.lr=0.01") == on  # the training's settings are not
 
 
 def test_the_options_added_to_the_eval_stage_are_neutral_at_their_defaults():
@@ -454,7 +470,9 @@ def test_a_config_yaml_written_before_loads_and_round_trips(tmp_path):
     expected = expected.replace("  sweep_frames: 3\n",
                                 "  data_root: ''\n  data_layout: auto\n  data_split_file: ''\n  sweep_frames: 3\n")
     expected = expected.replace("  eyeball_colours: false\n",
-                                "  eyeball_colours: false\n  field_input: position\n  eye_field_terms: false\n")
+                                "  eyeball_colours: false\n  region_renders: masks\n  field_input: position\n"
+                                "  eye_field_terms: false\n")
+    expected = expected.replace("  subject: 0\n", "  subject: 0\n  pretrain_fields: 0\n")
     assert (tmp_path / "new.yaml").read_text() == expected
     assert load_yaml_config(RunConfig, tmp_path / "new.yaml") == cfg
 
@@ -494,12 +512,13 @@ def test_stage_fingerprints_are_those_of_runs_made_before():
         "data": "1a5f68e91e56f7db", "geometry": "5cda16a313497540", "codec": "60547948bf352234",
         "estimator": "10736ce72ae20e23", "gaussian": "08a7a333e21d3520", "eval": "aeb8274f425f85e3"}
     # the paper preset's optimizer is the paper's since 2026-11-27 (Adam 1e-4, step decay), and so are its fields'
-    # inputs and eye terms (gaussian.field_input, gaussian.eye_field_terms): its Gaussian stage is another
-    # training, so its fingerprint (and its eval's) differ from the runs made before; a run directory keeps its
-    # own config.yaml, so an old paper run stays up to date
+    # inputs and eye terms (gaussian.field_input, gaussian.eye_field_terms), its region renders and its fields'
+    # pre-training in the geometry stage (gaussian.region_renders, geometry.pretrain_fields): its geometry and
+    # Gaussian stages are other trainings, so their fingerprints (and the eval's) differ from the runs made
+    # before; a run directory keeps its own config.yaml, so an old paper run stays up to date
     assert _stage_fingerprints(preset("paper")) == {
-        "data": "af896099bae7e529", "geometry": "089d06ecc8d0ece7", "codec": "4dcd3c5e93298486",
-        "estimator": "a0cb85c142b48267", "gaussian": "308ffff3f82c73f7", "eval": "02404c836e4a9b6e"}
+        "data": "af896099bae7e529", "geometry": "c950e7c71b39351d", "codec": "4dcd3c5e93298486",
+        "estimator": "a0cb85c142b48267", "gaussian": "fb7cbfeaa16e08bf", "eval": "97024201ff9a7c3c"}
     assert _stage_fingerprints(apply_overrides(preset("tiny"), MAPPED_OVERRIDES)) == {
         "data": "db21dac3ae9cd246", "geometry": "dc13af8ddc940534", "codec": "1acc1d10a8090196",
         "estimator": "4dd48a805590f945", "gaussian": "034c8f6fda0a7a88", "eval": "8add558ad7e302fb"}
