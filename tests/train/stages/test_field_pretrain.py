@@ -120,3 +120,27 @@ def test_both_switches_train_end_to_end_and_the_gaussian_stage_starts_from_the_p
     data.close()
     assert sorted(seen) == sorted(state) and all(torch.equal(seen[k], state[k]) for k in state)
     assert any(not torch.equal(_field_state(fresh)[k], state[k]) for k in state)
+
+
+@pytest.mark.parametrize("override,expected", [
+    ("geometry.pretrain_fields=-1", "expected a step count >= 0, got -1"),
+    ("geometry.pretrain_fields=1.5", "expected an integer, got 1.5"),
+    ("geometry.pretrain_fields=20000000", "expected at most 10000000 steps"),
+    ("gaussian.region_renders=both", "expected one of ['masks', 'separate'], got 'both'"),
+])
+def test_bad_values_of_the_switches_are_one_line_naming_the_key(override, expected):
+    from train.config import apply_overrides
+    from train.run_config import preset
+
+    with pytest.raises(ToolkitError) as err:
+        apply_overrides(preset("tiny"), [override])
+    key = override.split("=")[0]
+    assert str(err.value).startswith(f"config key '{key}': {expected}") and "\n" not in str(err.value)
+
+
+def test_the_paper_preset_turns_both_switches_on_and_the_others_leave_them_off():
+    from train.run_config import preset
+
+    assert preset("paper").geometry.pretrain_fields > 0 and preset("paper").gaussian.region_renders == "separate"
+    for name in ("demo", "tiny"):
+        assert preset(name).geometry.pretrain_fields == 0 and preset(name).gaussian.region_renders == "masks"
