@@ -246,7 +246,8 @@ class GaussianStageConfig:
     """where the image loss's face and eye terms come from: ``masks``, the head render under the face and eye
     masks; ``separate``, GazeGaussian's form: the face-only and the eye-only Gaussians also splatted and rendered
     on their own, their terms taken from those renders against the masked targets (and their splatted RGB
-    against the target in their region), at about three times a step's cost (docs/model.md)."""
+    against the target in their region): three splats and three renderer passes instead of one, 1.6x the tiny
+    preset's step time (docs/model.md)."""
     field_input: Literal["position", "feature"] = field(
         default="position", metadata=NEUTRAL | maps_to("GaussianModelConfig", "field_input"))
     """what the face field's MLPs read per Gaussian: ``position``, PE(x) for every delta; ``feature``, the

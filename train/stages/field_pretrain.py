@@ -27,6 +27,7 @@ learns from the RGB and silhouette terms, as the peer's ``eye_deform_mlp`` learn
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -192,11 +193,13 @@ def pretrain_run_fields(ctx, scene_path: Path) -> str:
     try:
         if cfg.gaussian.rgb_init:
             init_rgb(model, data)
+        t0 = time.perf_counter()
         result = pretrain_fields(model, data, cfg.geometry.pretrain_fields, cfg.seed, ctx.log)
+        result["seconds"] = time.perf_counter() - t0
     finally:
         data.close()
     ctx.log(f"[geometry] fields pre-trained for {result['steps']} steps: total {result['before']['total']:.4g} -> "
-            f"{result['after']['total']:.4g}")
+            f"{result['after']['total']:.4g}, {result['seconds']:.1f} s")
     rel = f"geometry/{FILE}"
     save_fields(model, ctx.run_dir / rel, result)
     return rel
