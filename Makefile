@@ -40,7 +40,7 @@ $(STAMP):
 	$(VPY) -m pip install -q --upgrade pip setuptools wheel
 	# torch first, from the pinned spec, so nothing below can pull a CUDA build.
 	$(VPY) -m pip install -q "$(TORCH_SPEC)"
-	$(VPY) -m pip install -q -e ".[dev,sd-vae,bench,photos]"
+	$(VPY) -m pip install -q -e ".[dev,sd-vae,bench,photos,identity]"
 	$(VPY) -m pip install -q --no-deps "$(PHOTOS_SPEC)"
 	@rm -f $(VENV)/.ditgaze-installed-*
 	@touch $@

@@ -337,7 +337,7 @@ class EvalConfig:
     identity_arch: Literal["iresnet18", "iresnet34", "iresnet50", "iresnet100"] = field(default="iresnet50",
                                                                                         metadata=NEUTRAL)
     """the ArcFace backbone's architecture (its file's block counts must match)."""
-    natural_fit_row: bool = True
+    natural_fit_row: bool = field(default=True, metadata=NEUTRAL)
     """when the test-time fit has a gaze term (``tta_gaze_weight`` > 0 and ``tta_steps`` > 0), also evaluate the
     same pairs after the natural fit, without any gaze term (same steps and weights), and report its gaze error,
     PSNR and SSIM beside the main row (``metrics.natural_fit``): the fit the toolkit produces data with. A second

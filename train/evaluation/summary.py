@@ -1,6 +1,6 @@
 """Joining and summarizing the protocol's raw results: :func:`train.evaluation.protocol.evaluate_raw`'s
 per-pair scores of disjoint subject groups merged, put back in subject order, and made into the metrics
-table (means, medians, bootstrap intervals, FID)."""
+table (means, medians, bootstrap intervals, FID), with the identity measures and the natural fit's row."""
 
 from __future__ import annotations
 
@@ -56,8 +56,18 @@ def in_subject_order(raw: dict[str, Any], subjects: list[str]) -> dict[str, Any]
     return out
 
 
-def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log=print) -> dict[str, Any]:
-    """:func:`evaluate`'s result from :func:`evaluate_raw`'s (or :func:`merge_raw_evaluations`'s)."""
+IDENTITY_KEYS = ("identity_similarity", "identity_similarity_input", "identity_drift", "identity_drift_real")
+"""The per-pair identity scores (``train.evaluation.protocol``), each in a record only when its model was given:
+ArcFace similarity render <-> target and input <-> render, dlib embedding distance input -> render and, its
+floor, input -> real target."""
+
+
+def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log=print,
+                         natural_fit: dict[str, Any] | None = None) -> dict[str, Any]:
+    """:func:`evaluate`'s result from :func:`evaluate_raw`'s (or :func:`merge_raw_evaluations`'s). ``natural_fit``:
+    the same pairs' raw result under the fit without a gaze term (the eval stage's second pass), summarized
+    into ``metrics["natural_fit"]`` (:func:`natural_fit_summary`), its pairs' records in
+    ``"natural_fit_per_pair"``."""
     gaze_err, head_err, psnrs, ssims = raw["gaze_err"], raw["head_err"], raw["psnrs"], raw["ssims"]
     reals, fakes, n_images, total_render_time = raw["reals"], raw["fakes"], raw["n_images"], raw["render_seconds"]
     metrics = {
@@ -68,7 +78,8 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
         # How far the mean could move with other pairs of the same subjects: a few pairs make much of it.
         "gaze_error_ci95_deg": bootstrap_mean_interval(gaze_err), "psnr_ci95": bootstrap_mean_interval(psnrs),
         "psnr": summarize(psnrs), "ssim": summarize(ssims),
-        **{k: summarize([r[k] for r in raw["per_pair"] if k in r]) for k in ("lpips", "identity_similarity")},
+        **{k: summarize([r[k] for r in raw["per_pair"] if k in r]) for k in ("lpips", *IDENTITY_KEYS)},
+        **identity_drift_intervals(raw["per_pair"]),
         "fid": fid_or_none(torch.cat(reals), torch.cat(fakes), log) if reals else None,
         "images_per_s": n_images / max(total_render_time, 1e-9) if n_images else None, "pairs": len(psnrs),
     }
@@ -79,5 +90,36 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
            "examples": raw["examples"], "references": references_out, "labels": labels, "worst_eyes": worst}
     if own_gaze_row:
         out["own_gaze"] = {k: summarize(v) for k, v in raw["own_scores"].items()}
+    if natural_fit is not None:
+        metrics["natural_fit"] = natural_fit_summary(natural_fit, raw["per_pair"])
+        out["natural_fit_per_pair"] = natural_fit["per_pair"]
     return out
+
+
+def identity_drift_intervals(per_pair: list[dict[str, Any]]) -> dict[str, tuple[float, float] | None]:
+    """95% bootstrap intervals over the pairs of the mean identity drift (input -> render), of its floor (input
+    -> real target) and of their paired difference (``identity_drift_excess_ci95``: what the redirection loses
+    beyond a change of gaze); None without the face embedding."""
+    drift = [r for r in per_pair if "identity_drift" in r]
+    return {"identity_drift_ci95": bootstrap_mean_interval([r["identity_drift"] for r in drift]),
+            "identity_drift_real_ci95": bootstrap_mean_interval([r["identity_drift_real"] for r in drift]),
+            "identity_drift_excess_ci95": bootstrap_mean_interval(
+                [r["identity_drift"] - r["identity_drift_real"] for r in drift])}
+
+
+def natural_fit_summary(natural: dict[str, Any], per_pair: list[dict[str, Any]]) -> dict[str, Any]:
+    """The natural fit's row from its raw result (the same pairs fitted without a gaze term): gaze and
+    head-pose errors, PSNR, SSIM with the main row's spread measures, the renders' reading against the
+    targets' labels (``render_vs_label_gaze_deg``, eye realism; None without labels), and the paired change of
+    the gaze error against the main row's fit, ``per_pair`` (``gaze_error_delta_deg``: natural minus main, mean
+    and 95% interval over the pairs both scored)."""
+    ge, ps = natural["gaze_err"], natural["psnrs"]
+    main = {(r["subject"], r["pair"]): r["gaze_error_deg"] for r in per_pair}
+    delta = [r["gaze_error_deg"] - main[k] for r in natural["per_pair"] if (k := (r["subject"], r["pair"])) in main]
+    return {"gaze_error_deg": summarize(ge), "gaze_error_median_deg": float(np.median(ge)) if ge else None,
+            "gaze_error_ci95_deg": bootstrap_mean_interval(ge), "head_pose_error_deg": summarize(natural["head_err"]),
+            "psnr": summarize(ps), "psnr_ci95": bootstrap_mean_interval(ps), "ssim": summarize(natural["ssims"]),
+            "render_vs_label_gaze_deg": summarize(natural["label_scores"].get("render", {}).get("gaze_error_deg", [])),
+            "gaze_error_delta_deg": summarize(delta), "gaze_error_delta_ci95_deg": bootstrap_mean_interval(delta),
+            "pairs": len(ps)}
 
