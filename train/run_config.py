@@ -341,7 +341,8 @@ class EvalConfig:
     """when the test-time fit has a gaze term (``tta_gaze_weight`` > 0 and ``tta_steps`` > 0), also evaluate the
     same pairs after the natural fit, without any gaze term (same steps and weights), and report its gaze error,
     PSNR and SSIM beside the main row (``metrics.natural_fit``): the fit the toolkit produces data with. A second
-    fitting pass (the demo's eval stage: about 1.6x the time); false skips it. No effect without a gaze term."""
+    fitting pass (the demo's eval stage: 1.2x its CPU time, docs/results.md 2026-11-27); false skips it. No
+    effect without a gaze term."""
 
 
 def eval_sampling_steps(cfg: "RunConfig") -> int:

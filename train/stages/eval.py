@@ -6,6 +6,7 @@ test-time fit has a gaze term, the same pairs are evaluated a second time after 
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -31,11 +32,14 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     device = run.device
     _check_the_fit_reads_another_estimator(run)
     check_eval_pairing(ctx.config, run.eval_files())  # one line before the models load
+    t0 = time.perf_counter()
     raw = _evaluate_test_split(ctx, run, device)
     natural = None
     if natural_fit_applies(ctx.config.eval):
-        ctx.log("[eval] the same pairs after the natural fit (no gaze term)")
+        t1 = time.perf_counter()
+        ctx.log(f"[eval] {t1 - t0:.0f} s; now the same pairs after the natural fit (no gaze term)")
         natural = _evaluate_test_split(ctx, run, device, natural=True)
+        ctx.log(f"[eval] the natural fit's pass: {time.perf_counter() - t1:.0f} s")
     res = summarize_evaluation(raw, own_gaze_row=True, log=ctx.log, natural_fit=natural)
     if res["metrics"]["identity_drift"] is None:
         from train.losses.face_embedding import IDENTITY_EXTRA
@@ -66,7 +70,7 @@ def natural_fit_applies(e: EvalConfig) -> bool:
     ``trainer/gazenerf_trainer.py`` L946-1022; its loss, ``losses/gazenerf_loss.py`` L384-391, adds the angle
     between the render's and the input's readings by ``GazePerceptualLoss``, L105-117: ETH-XGaze's ResNet-50 as
     the evaluation estimator, ``evaluate_metrics.py`` L131-135, with other weights). GazeGaussian's
-    ``train_single_image`` (ucwxb/GazeGaussian, ``trainer/gazegaussian_trainer.py`` L316-346) fits with the same
+    ``train_single_image`` (ucwxb/GazeGaussian, ``trainer/gazegaussian_trainer.py`` L316-345) fits with the same
     term (``losses/gazenerf_loss.py`` L444-449) but its release has no evaluation script. The main row is that
     protocol; the natural row is how the toolkit produces data (``train.augment.rows``), so both are reported."""
     return e.natural_fit_row and e.tta_gaze_weight > 0 and e.tta_steps > 0
