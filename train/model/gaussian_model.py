@@ -374,7 +374,7 @@ class GaussianModel(nn.Module):
         try:
             model = cls(GaussianModelConfig(**raw), face, eyes, state["eye_centers"], state["landmarks"],
                         units_per_metre, rasterizer)
-        except (TypeError, ValueError, RuntimeError) as e:  # a config value of the wrong type, say
+        except (TypeError, ValueError, RuntimeError, ToolkitError) as e:  # a config value out of range, say
             raise ToolkitError(f"{path}: cannot build the model from its config and tensors "
                                f"({str(e).splitlines()[0][:160]})") from None
         # Checkpoints written before socket_weights existed: the buffer recomputed from their means.

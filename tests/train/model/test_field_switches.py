@@ -185,6 +185,20 @@ def test_a_file_written_before_the_switches_loads_with_them_off(scene, tmp_path)
         GaussianModel.load(path)
 
 
+def test_a_file_with_a_bad_switch_value_is_refused_naming_the_file_and_the_key(scene, tmp_path):
+    from toolkit.io import load_checkpoint, save_checkpoint
+
+    path = tmp_path / "bad.safetensors"
+    small_model(scene).save(path)
+    state, info = load_checkpoint(path)
+    info["config"]["field_input"] = "z0"
+    save_checkpoint(path, state, info)
+    with pytest.raises(ToolkitError) as err:
+        GaussianModel.load(path)
+    msg = str(err.value)
+    assert msg.startswith(f"{path}: ") and "field_input" in msg and "'z0'" in msg and "\n" not in msg
+
+
 def test_config_errors_name_the_key():
     with pytest.raises(ToolkitError, match=r"GaussianModelConfig\.field_input: expected one of \['position', 'feature'\]"):
         GaussianModelConfig(field_input="z0").validate()
