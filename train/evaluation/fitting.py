@@ -26,7 +26,10 @@ TTA_WEIGHT_GROUPS = ("features", "eye_features", "eye_colours", "eye_field", "re
 eyeball for a gaze), the neural renderer (the DiT; the baseline's whole network) and a latent renderer's codec
 decoder (``decoder``: frozen in training, unfrozen for the fit alone; on a latent DiT's demo run it gave
 +0.04 dB and +0.18° gaze error, docs/results.md, 2026-11-23). The encoder, the face deformation field, the eye appearance field
-(``gaussian.eye_appearance``; the code it reads is fitted) and the Gaussians' geometry are never fitted.
+(``gaussian.eye_appearance``; the code it reads is fitted) and the Gaussians' geometry are never fitted. The
+features are also field inputs under two switches, so fitting them moves more than colours: with
+``gaussian.field_input=feature`` the face features condition the face field's scale, rotation and opacity
+deltas, and with ``gaussian.eye_field_terms`` the eye features the eye Gaussians' gaze-driven scale and opacity.
 
 ``eye_colours`` (a model with ``eyeball_colours``, :class:`train.model.fields.EyeballColours`): the parametric
 eyeball's pupil, iris and sclera colours and its two edge angles, at the code's rate. Eleven numbers,
