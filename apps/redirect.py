@@ -31,7 +31,7 @@ Inputs:
 ``--fit-weights`` fits every row as the evaluation fits a pair before rendering it
 (``train.trained_run.TrainedRun.row_fitter``): what a face the run never trained on needs (docs/redirect.md).
 ``--natural-eyes`` fits other weights with a gaze term that may only turn the eyes
-(``train.run_config.NATURAL_EYES_FIT``).
+(``train.presets.NATURAL_EYES_FIT``).
 
 Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun skips finished chunks,
 and the final file is assembled (atomically) when all chunks exist. ``OUT.parts/settings.json`` records the
@@ -194,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "trained weights each time (CSV rows need their own gaze)")
     ap.add_argument("--natural-eyes", action="store_true",
                     help="with --fit-weights: fit the face features, eye rotation field and renderer, with a gaze "
-                         "term that may only turn the eyes (train.run_config.NATURAL_EYES_FIT): no coloured specks "
+                         "term that may only turn the eyes (train.presets.NATURAL_EYES_FIT): no coloured specks "
                          "in the eyes (the demo preset's own fit; docs/redirect.md)")
     ap.add_argument("--largest-face", action="store_true", help="photo input: only the largest face of each photo")
     ap.add_argument("--paste-back", action="store_true",

@@ -70,7 +70,7 @@ def redirect_settings(run, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
         settings["eval"] = as_json({k: v for k, v in vars(run.config.eval).items()
                                     if k.startswith("tta_") and k != "tta_steps"})  # the steps: fit_steps
         if args.natural_eyes:  # what the fit then uses in place of the section's weights and gaze term
-            from train.run_config import NATURAL_EYES_FIT
+            from train.presets import NATURAL_EYES_FIT
 
             settings["natural_eyes_fit"] = as_json(NATURAL_EYES_FIT)
     return settings

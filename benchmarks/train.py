@@ -203,7 +203,7 @@ def paper_trainer(trained, device, n_gaussians: int, batch: int):
     from train.model.codec import AutoencoderConfig, KLAutoencoder
     from train.model.gaussian_model import GaussianModel
     from train.model.renderer import make_renderer
-    from train.run_config import paper_preset
+    from train.presets import paper_preset
     from train.training.trainer import GaussianTrainer, TrainBatchData, model_config, open_split
 
     p = paper_preset()

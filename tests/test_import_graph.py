@@ -15,6 +15,7 @@ TRAIN_LAYERS = (
     ("train.losses",),
     ("train.data", "train.model", "train.estimator"),
     ("train.run_config",),
+    ("train.presets",),
     ("train.training", "train.evaluation"),
     ("train.stages",),
     ("train.trained_run",),

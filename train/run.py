@@ -41,7 +41,8 @@ import torch  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.host import keep_freed_memory  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
-from train.run_config import PRESETS, RunConfig, preset  # noqa: E402
+from train.presets import PRESETS, preset  # noqa: E402
+from train.run_config import RunConfig  # noqa: E402
 from train.stages import STAGE_NAMES, STAGES  # noqa: E402
 from train.stages.artifacts import resolve_device  # noqa: E402
 from train.stages.checks import check_config  # noqa: E402

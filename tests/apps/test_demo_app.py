@@ -23,7 +23,7 @@ def test_pipeline_outputs_fit_the_held_out_face_first(tiny_trained_run, tmp_path
 
     import train.evaluation.fitting as evaluate
     from apps.demo import run_pipeline
-    from train.run_config import NATURAL_EYES_FIT
+    from train.presets import NATURAL_EYES_FIT
 
     shutil.copytree(tiny_trained_run, tmp_path / "run")
     fits = []

@@ -69,7 +69,7 @@ def test_natural_eyes_fits_the_natural_weights_with_a_term_that_only_turns_the_e
     """``--natural-eyes``: each row's fit takes ``NATURAL_EYES_FIT`` (weights, gaze weight, reach) instead of the
     run's eval section."""
     import train.evaluation.fitting as evaluate
-    from train.run_config import NATURAL_EYES_FIT
+    from train.presets import NATURAL_EYES_FIT
 
     seen = []
     real_fit = evaluate.test_time_fit

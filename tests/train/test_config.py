@@ -160,7 +160,8 @@ def test_the_options_added_to_the_gaussian_stage_are_neutral_at_their_defaults()
 def test_the_field_pretraining_is_neutral_off_and_ties_the_geometry_stage_to_the_model_when_on():
     """geometry.pretrain_fields=0 leaves the geometry stage's fingerprint as before; on, the stage also hashes the
     two-stream model's config (the pre-trained fields' architecture), and only then."""
-    from train.run_config import GeometryStageConfig, preset
+    from train.presets import preset
+    from train.run_config import GeometryStageConfig
 
     older = {k: v for k, v in to_dict(GeometryStageConfig()).items() if k not in ("pretrain_fields", "lid_gaussians")}
     assert config_hash(GeometryStageConfig()) == config_hash(older)
@@ -278,7 +279,8 @@ def test_rules_keep_neutral_and_the_hash():
 def test_every_run_config_field_rule_reads_its_own_default():
     """Every preset passes its field rules (a rule that refused a default would make every run fail)."""
     from train.config import check_fields
-    from train.run_config import PRESETS, RunConfig
+    from train.presets import PRESETS
+    from train.run_config import RunConfig
 
     check_fields(RunConfig())
     for make in PRESETS.values():
@@ -455,7 +457,8 @@ eval:
 
 
 def test_a_config_yaml_written_before_loads_and_round_trips(tmp_path):
-    from train.run_config import RunConfig, preset
+    from train.presets import preset
+    from train.run_config import RunConfig
 
     (tmp_path / "old.yaml").write_text(OLD_TINY_CONFIG)
     cfg = load_yaml_config(RunConfig, tmp_path / "old.yaml")
@@ -505,7 +508,7 @@ def _stage_fingerprints(cfg) -> dict[str, str]:
 def test_stage_fingerprints_are_those_of_runs_made_before():
     """A run directory made before stays up to date: the fingerprints below were computed by the code before the
     fields declared their rules and component mappings, for the presets and for every mapped field changed."""
-    from train.run_config import preset
+    from train.presets import preset
 
     assert _stage_fingerprints(preset("tiny")) == {
         "data": "db21dac3ae9cd246", "geometry": "4991e636ad3a1e1c", "codec": "de494783a5e00c84",

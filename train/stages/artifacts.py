@@ -191,10 +191,10 @@ class RunArtifacts:
         row's target gazes in turn (``train.evaluation.fitting.term_gaze_order``). The weights are tuned in
         place: the caller restores them (``train.evaluation.fitting.restored_weights``) after rendering the
         row. ``gaze_term=False`` leaves the gaze term out whatever the run's weight. ``natural_eyes`` fits
-        ``train.run_config.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the term
+        ``train.presets.NATURAL_EYES_FIT`` instead of the run's weights and gaze term: the term
         may turn the eyes but not repaint them."""
         from train.evaluation.fitting import face_only_mask, test_time_fit
-        from train.run_config import NATURAL_EYES_FIT
+        from train.presets import NATURAL_EYES_FIT
 
         e = self.config.eval
         weights = NATURAL_EYES_FIT["weights"] if natural_eyes else tuple(e.tta_weights)

@@ -173,7 +173,7 @@ def test_frames_past_255_are_told_apart_by_their_rows():
 def _artifacts(tmp_path, root, *overrides: str):
     from toolkit.procedural import demo_head_scene
     from train.config import apply_overrides
-    from train.run_config import preset
+    from train.presets import preset
     from train.stages.artifacts import RunArtifacts
     from train.stages.pipeline import RunContext
 

@@ -286,7 +286,7 @@ def test_preprocess_matches_the_peer_warp(size, focal, distance_m):
 def test_the_eval_stage_reads_with_the_peer_estimator_when_configured(peer_file, tmp_path):
     from train.config import apply_overrides
     from train.evaluation.report import ruler_note
-    from train.run_config import preset
+    from train.presets import preset
     from train.stages.artifacts import RunArtifacts
     from train.stages.checks import check_config
     from train.stages.pipeline import RunContext

@@ -144,7 +144,7 @@ def test_release_files_are_detected(release):
 # ------------------------------------------------------------------------------------------------ the stage
 
 def _context(tmp_path, root, **estimator):
-    from train.run_config import preset
+    from train.presets import preset
     from train.stages.pipeline import RunContext
 
     cfg = preset("tiny")

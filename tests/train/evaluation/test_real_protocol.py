@@ -114,7 +114,7 @@ def test_the_real_protocol_fits_and_scores_with_the_real_renderer(files):
     from train.data.pairing import load_pairing
     from train.evaluation.protocol import evaluate
     from train.evaluation.report import report_markdown
-    from train.run_config import preset
+    from train.presets import preset
 
     _, real, targets = files
     model, renderer, est = untrained_eval_parts()
@@ -134,7 +134,7 @@ def test_the_real_protocol_fits_and_scores_with_the_real_renderer(files):
 def test_pairs_outside_a_subjects_rows_stop_the_evaluation_before_any_work(files, tmp_path, monkeypatch):
     import train.evaluation.protocol as protocol
     from train.data.pairing import load_pairing
-    from train.run_config import preset
+    from train.presets import preset
     from train.stages.checks import check_config, check_eval_pairing
 
     _, real, targets = files

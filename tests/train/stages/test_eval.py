@@ -238,7 +238,8 @@ def test_labels_note_says_whether_the_fit_may_repaint_the_eyes():
     from dataclasses import replace
 
     from train.evaluation.report import labels_note
-    from train.run_config import NATURAL_EYES_FIT, EvalConfig, RunConfig
+    from train.presets import NATURAL_EYES_FIT
+    from train.run_config import EvalConfig, RunConfig
 
     def note(eye_appearance=False, eyeball_colours=False, **ev):
         cfg = RunConfig(eval=EvalConfig(**ev))

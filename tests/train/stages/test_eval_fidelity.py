@@ -10,7 +10,8 @@ import pytest
 from train import run
 from train.evaluation.report import fidelity_section, protocol_note
 from train.evaluation.summary import natural_fit_summary
-from train.run_config import EvalConfig, tiny_preset
+from train.presets import tiny_preset
+from train.run_config import EvalConfig
 from train.stages.eval import natural_fit_applies
 
 TINY = ["--preset", "tiny"]

@@ -130,7 +130,7 @@ def test_both_switches_train_end_to_end_and_the_gaussian_stage_starts_from_the_p
 ])
 def test_bad_values_of_the_switches_are_one_line_naming_the_key(override, expected):
     from train.config import apply_overrides
-    from train.run_config import preset
+    from train.presets import preset
 
     with pytest.raises(ToolkitError) as err:
         apply_overrides(preset("tiny"), [override])
@@ -139,7 +139,7 @@ def test_bad_values_of_the_switches_are_one_line_naming_the_key(override, expect
 
 
 def test_the_paper_preset_turns_both_switches_on_and_the_others_leave_them_off():
-    from train.run_config import preset
+    from train.presets import preset
 
     assert preset("paper").geometry.pretrain_fields > 0 and preset("paper").gaussian.region_renders == "separate"
     for name in ("demo", "tiny"):

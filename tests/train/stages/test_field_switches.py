@@ -10,7 +10,7 @@ import pytest
 from toolkit import ToolkitError
 from train import run
 from train.config import apply_overrides
-from train.run_config import preset
+from train.presets import preset
 from train.trained_run import TrainedRun
 
 

@@ -133,14 +133,15 @@ def test_pixel_space_dit_runs_without_a_codec(tiny_run, tmp_path):
 def test_demo_preset_renders_in_pixel_space_at_its_resolution():
     from train.model.codec import PixelCodec
     from train.model.renderer import make_renderer
-    from train.run_config import RunConfig, preset
+    from train.presets import preset
+    from train.run_config import RunConfig
 
     cfg = preset("demo")
     g, res = cfg.gaussian, cfg.data.res
     assert (cfg.codec.kind, g.dit_model, cfg.estimator.steps) == ("pixel", "DiT-Gaze-pixel", 1200)
     assert (g.steps, cfg.eval.tta_steps) == (240, 30)  # sized for the slowest 2-core machine measured
     # The natural fit (the gaze term only turns the eyes), and the Gaussian stage at twice the rates.
-    from train.run_config import NATURAL_EYES_FIT
+    from train.presets import NATURAL_EYES_FIT
 
     assert (cfg.eval.tta_weights, cfg.eval.tta_gaze_weight, cfg.eval.tta_gaze_reach, cfg.eval.tta_gaze_terms,
             cfg.eval.tta_gaze_every) == tuple(NATURAL_EYES_FIT[k] for k in ("weights", "gaze_weight", "reach",

@@ -8,7 +8,7 @@ import torch
 
 from toolkit import ToolkitError
 from train import run
-from train.run_config import PRESETS, preset
+from train.presets import PRESETS, preset
 from train.stages.checks import check_config
 
 TINY = ["--preset", "tiny"]
