@@ -522,8 +522,8 @@ def test_stage_fingerprints_are_those_of_runs_made_before():
     # Gaussian stages are other trainings, so their fingerprints (and the eval's) differ from the runs made
     # before; a run directory keeps its own config.yaml, so an old paper run stays up to date
     assert _stage_fingerprints(preset("paper")) == {
-        "data": "af896099bae7e529", "geometry": "c950e7c71b39351d", "codec": "4dcd3c5e93298486",
-        "estimator": "a0cb85c142b48267", "gaussian": "fb7cbfeaa16e08bf", "eval": "a36a63025650d43e"}
+        "data": "af896099bae7e529", "geometry": "015b52b8cb71a1e4", "codec": "4dcd3c5e93298486",
+        "estimator": "a0cb85c142b48267", "gaussian": "5f924b8e07f14cc4", "eval": "0db5b6082873989e"}
     assert _stage_fingerprints(apply_overrides(preset("tiny"), MAPPED_OVERRIDES)) == {
         "data": "db21dac3ae9cd246", "geometry": "dc13af8ddc940534", "codec": "1acc1d10a8090196",
         "estimator": "4dd48a805590f945", "gaussian": "034c8f6fda0a7a88", "eval": "8add558ad7e302fb"}

@@ -182,15 +182,21 @@ def identity_note(metrics: dict) -> str:
             + (f" (paired, render minus real: {excess[0]:+.3f} to {excess[1]:+.3f})." if excess else "."))
 
 
+def _deg(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f}°"
+
+
 def protocol_note(e: EvalConfig, natural: dict | None) -> str:
     """Which gaze-error row is the field's protocol and which the toolkit's natural fit."""
     if not (e.tta_steps > 0 and e.tta_gaze_weight > 0):
         return ("The test-time fit has no gaze term: the main row is the natural fit, the one the toolkit produces "
                 "data with. The field's protocol fits with one (GazeNeRF's evaluation fits every input with a gaze "
                 "term read by an estimator of the metric's design), so the peers' gaze errors are not like for like.")
-    row = (f"the *natural fit* row ({natural['gaze_error_deg']:.2f}°; paired change "
-           f"{natural['gaze_error_delta_deg']:+.2f}°) drops that term: the fit the toolkit produces data with"
-           if natural else "`eval.natural_fit_row=true` adds the same pairs after the fit without it")
+    delta = natural.get("gaze_error_delta_deg") if natural else None
+    change = f"; paired change {delta:+.2f}°" if delta is not None else ""
+    row = (f"the *natural fit* row ({_deg(natural.get('gaze_error_deg'))}{change}) drops that term: the fit the "
+           "toolkit produces data with" if natural else "`eval.natural_fit_row=true` adds the same pairs after the "
+                                                         "fit without it")
     return ("The main row's test-time fit has a gaze term read by the loss estimator; that is the field's protocol "
             "(GazeNeRF's evaluation fits every input with a gaze term read by an estimator of the evaluation "
             f"estimator's design), so compare it with the peers. {row[0].upper() + row[1:]}.")

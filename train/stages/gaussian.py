@@ -33,7 +33,6 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     device = torch.device(info.device) if info.enabled else resolve_device(cfg)
     torch.manual_seed(cfg.seed)
     model, renderer = run.build_model(device)  # at the training files' code widths (RunArtifacts.training_code_widths)
-    load_pretrained_fields(ctx, model)
     # Read a batch at a time: the paper's split is ~75 GB as float32 tensors (docs/pipeline.md, Data in memory).
     data = open_split(run.split("train"), "all", cfg.data.res, layout=cfg.data.layout)
     try:
@@ -67,6 +66,9 @@ def _train(ctx: RunContext, run: RunArtifacts, info, device, model, renderer, da
     if g.rgb_init:
         seen = init_rgb(model, data)
         ctx.log(f"[gaussian] RGB channels initialized from the training images ({100 * seen:.0f}% of the Gaussians seen)")
+    # After the RGB initialization, as the pre-training ran: its fields were trained on the colours the fresh
+    # (undeformed) fields give, which those loaded now would change under gaussian.field_input=feature.
+    load_pretrained_fields(ctx, model)
     trainer = GaussianTrainer(g, model, renderer, run.estimator("loss", device), data, device, g.steps,
                               shard=shard(g.batch, info) if info.enabled else None, seed=cfg.seed)
     opt = torch.optim.Adam(optimizer_groups(model, renderer, g))

@@ -46,13 +46,19 @@ def stage_geometry(ctx: RunContext) -> dict[str, str]:
 
 def geometry_section(cfg):
     """The part of the config the geometry stage's fingerprint hashes: the seed and the ``geometry`` section, and
-    with ``geometry.pretrain_fields`` on, what the pre-trained fields depend on too: the two-stream model's
-    configuration and ``gaussian.rgb_init``."""
+    with ``geometry.pretrain_fields`` on, what the pre-trained fields depend on too: the ``gaussian`` fields that
+    set the two-stream model (``maps_to`` GaussianModelConfig), ``feature_upscale`` and ``rgb_init``, as a
+    ``gaussian`` section whose other fields are at their defaults, so that a switch added later with a
+    :data:`train.config.NEUTRAL` default leaves the fingerprint as it was."""
     if cfg.geometry.pretrain_fields <= 0:
         return cfg.seed, cfg.geometry
-    from train.training.trainer import model_config
+    from dataclasses import fields, replace
 
-    return cfg.seed, cfg.geometry, model_config(cfg.gaussian), cfg.gaussian.rgb_init
+    from train.run_config import GaussianStageConfig
+
+    keys = [f.name for f in fields(cfg.gaussian) if f.metadata.get("maps_to", ("",))[0] == "GaussianModelConfig"]
+    model_part = {k: getattr(cfg.gaussian, k) for k in (*keys, "feature_upscale", "rgb_init")}
+    return cfg.seed, cfg.geometry, replace(GaussianStageConfig(), **model_part)
 
 
 def subject_views_in_layout(path: Path, layout: str = "auto") -> dict:

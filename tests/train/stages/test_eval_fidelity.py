@@ -69,6 +69,10 @@ def test_the_natural_row_applies_exactly_with_a_gaze_term_and_the_switch():
     assert not natural_fit_applies(EvalConfig(tta_steps=0, tta_gaze_weight=1e-3))
     off = protocol_note(EvalConfig(tta_steps=2, tta_gaze_weight=1e-3, natural_fit_row=False), None)
     assert "field's protocol" in off and "`eval.natural_fit_row=true` adds" in off
+    on = EvalConfig(tta_steps=2, tta_gaze_weight=1e-3)
+    assert "(7.25°; paired change +1.50°)" in protocol_note(on, {"gaze_error_deg": 7.25, "gaze_error_delta_deg": 1.5})
+    # no pair scored in both rows: the change is left out, not a TypeError
+    assert "(n/a)" in protocol_note(on, {"gaze_error_deg": None, "gaze_error_delta_deg": None})
 
 
 def test_natural_fit_summary_pairs_the_rows_by_subject_and_pair():
