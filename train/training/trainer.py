@@ -33,6 +33,7 @@ from train.losses import (
     ImageLoss,
     ImageLossConfig,
     OrthogonalityLoss,
+    composite_on_white,
     gaze_to_camera,
     head_to_camera_rotation,
 )
@@ -232,7 +233,7 @@ class GaussianTrainer:
         splat's size; "diffusion_face", "diffusion_eyes": the renderer's own losses on those renders}."""
         images, terms = {}, {}
         for r in ("face", "eyes"):
-            on_white = target * masks[r] + (1 - masks[r])
+            on_white = composite_on_white(target, masks[r])
             out = self._decode(maps[r], b, b["gaze_head"], on_white, g, t)
             images[r] = out.image
             terms[f"diffusion_{r}"] = out.aux_loss
