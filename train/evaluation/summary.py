@@ -68,16 +68,10 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
     the same pairs' raw result under the fit without a gaze term (the eval stage's second pass), summarized
     into ``metrics["natural_fit"]`` (:func:`natural_fit_summary`), its pairs' records in
     ``"natural_fit_per_pair"``."""
-    gaze_err, head_err, psnrs, ssims = raw["gaze_err"], raw["head_err"], raw["psnrs"], raw["ssims"]
+    psnrs = raw["psnrs"]
     reals, fakes, n_images, total_render_time = raw["reals"], raw["fakes"], raw["n_images"], raw["render_seconds"]
     metrics = {
-        "gaze_error_deg": summarize(gaze_err), "head_pose_error_deg": summarize(head_err),
-        # The mean is the protocol's; the median shows how much of it a few pairs make (side views where the
-        # target looks far away from the camera and the estimator barely sees an iris).
-        "gaze_error_median_deg": float(np.median(gaze_err)) if gaze_err else None,
-        # How far the mean could move with other pairs of the same subjects: a few pairs make much of it.
-        "gaze_error_ci95_deg": bootstrap_mean_interval(gaze_err), "psnr_ci95": bootstrap_mean_interval(psnrs),
-        "psnr": summarize(psnrs), "ssim": summarize(ssims),
+        **render_scores(raw),
         **{k: summarize([r[k] for r in raw["per_pair"] if k in r]) for k in ("lpips", *IDENTITY_KEYS)},
         **identity_drift_intervals(raw["per_pair"]),
         "fid": fid_or_none(torch.cat(reals), torch.cat(fakes), log) if reals else None,
@@ -94,6 +88,20 @@ def summarize_evaluation(raw: dict[str, Any], *, own_gaze_row: bool = False, log
         metrics["natural_fit"] = natural_fit_summary(natural_fit, raw["per_pair"])
         out["natural_fit_per_pair"] = natural_fit["per_pair"]
     return out
+
+
+def render_scores(raw: dict[str, Any]) -> dict[str, Any]:
+    """The renders' scores of a raw evaluation (the main row's and the natural fit's alike): gaze error (mean,
+    median, 95% interval), head-pose error, PSNR (mean, interval), SSIM."""
+    gaze_err, psnrs = raw["gaze_err"], raw["psnrs"]
+    return {
+        "gaze_error_deg": summarize(gaze_err), "head_pose_error_deg": summarize(raw["head_err"]),
+        # The mean is the protocol's; the median shows how much of it a few pairs make (side views where the
+        # target looks far away from the camera and the estimator barely sees an iris).
+        "gaze_error_median_deg": float(np.median(gaze_err)) if gaze_err else None,
+        # How far the mean could move with other pairs of the same subjects: a few pairs make much of it.
+        "gaze_error_ci95_deg": bootstrap_mean_interval(gaze_err), "psnr_ci95": bootstrap_mean_interval(psnrs),
+        "psnr": summarize(psnrs), "ssim": summarize(raw["ssims"])}
 
 
 def identity_drift_intervals(per_pair: list[dict[str, Any]]) -> dict[str, tuple[float, float] | None]:
@@ -113,13 +121,10 @@ def natural_fit_summary(natural: dict[str, Any], per_pair: list[dict[str, Any]])
     targets' labels (``render_vs_label_gaze_deg``, eye realism; None without labels), and the paired change of
     the gaze error against the main row's fit, ``per_pair`` (``gaze_error_delta_deg``: natural minus main, mean
     and 95% interval over the pairs both scored)."""
-    ge, ps = natural["gaze_err"], natural["psnrs"]
     main = {(r["subject"], r["pair"]): r["gaze_error_deg"] for r in per_pair}
     delta = [r["gaze_error_deg"] - main[k] for r in natural["per_pair"] if (k := (r["subject"], r["pair"])) in main]
-    return {"gaze_error_deg": summarize(ge), "gaze_error_median_deg": float(np.median(ge)) if ge else None,
-            "gaze_error_ci95_deg": bootstrap_mean_interval(ge), "head_pose_error_deg": summarize(natural["head_err"]),
-            "psnr": summarize(ps), "psnr_ci95": bootstrap_mean_interval(ps), "ssim": summarize(natural["ssims"]),
+    return {**render_scores(natural),
             "render_vs_label_gaze_deg": summarize(natural["label_scores"].get("render", {}).get("gaze_error_deg", [])),
             "gaze_error_delta_deg": summarize(delta), "gaze_error_delta_ci95_deg": bootstrap_mean_interval(delta),
-            "pairs": len(ps)}
+            "pairs": len(natural["psnrs"])}
 
