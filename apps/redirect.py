@@ -16,8 +16,9 @@ Inputs:
 
 - an HDF5 subject file (docs/data.md): camera, head pose and codes come from the file;
 - a folder of normalized face crops (ETH-XGaze style) with a labels CSV, one row per image. Columns
-  (details and frames in ``apps/labels_csv.py`` and docs/redirect.md): ``image`` (path relative to the CSV),
-  ``head_pitch``, ``head_yaw`` (degrees, the face direction in the normalized camera) are required;
+  (details in ``apps/labels_table.py``, frames in ``apps/labels_csv.py``, docs/redirect.md): ``image`` (path
+  relative to the CSV), ``head_pitch``, ``head_yaw`` (degrees, the face direction in the normalized camera) are
+  required;
   ``head_roll``, ``gaze_pitch``/``gaze_yaw`` (the image's own gaze, camera frame, degrees), ``focal``
   (pixels), ``distance`` (metres), ``mask`` (head mask image) and ``code`` (``.npy`` of the model's shape code)
   are optional. Rows without a code get one by test-time fitting on the image (``--fit-steps``; needs the
@@ -53,7 +54,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from apps.labels_csv import is_labels_csv
+from apps.labels_table import is_labels_csv
 from apps.redirect_parts import (
     assemble,
     check_parts_settings,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.labels_csv import is_labels_csv
+from apps.labels_table import is_labels_csv
 from toolkit.errors import ToolkitError
 
 SETTINGS_VERSION = 3

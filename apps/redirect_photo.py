@@ -60,7 +60,7 @@ def _photos_in(folder: Path) -> list[Path]:
 def is_photo_input(path: str | os.PathLike) -> bool:
     """Whether an INPUT argument names photos: a ``.jpg``/``.jpeg``/``.png`` file (existing or not: a missing
     one is refused as such later), or a folder of them holding no ``labels.csv`` and no HDF5 file."""
-    from apps.labels_csv import is_labels_csv
+    from apps.labels_table import is_labels_csv
     from apps.photo.images import PHOTO_SUFFIXES
 
     p = Path(path)

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from apps import redirect
-from apps.labels_csv import head_rotation, read_labels
+from apps.labels_csv import head_rotation
+from apps.labels_table import read_labels
 from tests.apps.helpers import interrupt_redirect_before_assembly
 from toolkit import ToolkitError
 from toolkit.errors import run_cli

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from apps.labels_csv import read_labels
+from apps.labels_table import read_labels
 from toolkit.errors import ToolkitError
 from train.data.pairing import load_pairing
 

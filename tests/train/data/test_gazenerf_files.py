@@ -234,7 +234,7 @@ def test_the_redirect_apps_codes_are_as_wide_as_the_runs(tmp_path):
     """apps.redirect checks a labels CSV's codes against the trained run's widths (TrainedRun.code_widths)."""
     import cv2
 
-    from apps.labels_csv import read_labels
+    from apps.labels_table import read_labels
 
     cv2.imwrite(str(tmp_path / "a.png"), np.zeros((64, 64, 3), np.uint8))
     np.save(tmp_path / "code.npy", np.zeros(179, np.float32))
