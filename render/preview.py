@@ -1,19 +1,10 @@
 """The moderngl preview splatter: the fast picture a person looks at, equal to ``render.splat.rasterize``.
 
-Conventions (identical to the torch splatter, see ``render.splat``): OpenCV camera axes, ``viewmat``
-world-to-camera [4, 4], ``K`` [3, 3] in pixels, pixel (i, j) sampled at (j + 0.5, i + 0.5); quaternions
-wxyz normalized here (zero -> identity); Sigma = R S S^T R^T; EWA Jacobian with gsplat's tangent clamp
-(x/z in [-(cx/fx + 0.3 tan_x), (W - cx)/fx + 0.3 tan_x], tan_x = W / (2 fx), same for y); cov2d + 0.3 I;
-conic from the dilated covariance; the Gaussians drawn are those ``render.cull`` keeps (the torch splatter's
-own rule: finite, projectable, not needles, near < z < far); alpha = min(0.99, o exp(-sigma)), skipped
-below 1/255; premultiplied back-to-front "over" blending (sorted by camera depth of the means) into an
-RGBA32F target; C = sum c_i a_i T_i + T bg, alpha = 1 - T. The only difference is that GL blends every
-Gaussian, while the torch splatter stops a pixel once T <= 1e-4 (a difference below 1e-2 at a few pixels).
-
-GL 3.3 core (no SSBOs): per-Gaussian data in a float texture, one instanced quad per visible Gaussian
-in sorted order through a per-instance index buffer (``render.preview_shaders``). Each quad is oriented
-along the screen-space ellipse's axes and cut where alpha reaches 1/255 for that Gaussian's opacity
-(sqrt(2 ln(255 o)) standard deviations, <= 3.33 as in the torch splatter's boxes).
+Conventions are the torch splatter's (``render.splat``; docs/preview.md lists them): the same projection,
+tangent clamp, dilation, alpha cut and ``render.cull`` rule, composited back to front (premultiplied "over")
+into an RGBA32F target. The only difference: GL blends every Gaussian, while the torch splatter stops a pixel
+once T <= 1e-4 (below 1e-2 at a few pixels). GL 3.3 core: per-Gaussian data in a float texture, one
+instanced quad per visible Gaussian in sorted order, cut where alpha reaches 1/255 (``render.preview_shaders``).
 
 What a frame skips (``PreviewSplatter.stats`` records what happened):
 - the depth sort, when the previous order is still exactly sorted for the new view and Gaussians
