@@ -23,22 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot  # noqa: E402
+from benchmarks.common import OUT_DIR, count, demo_or_tiny_run, format_table, machine_info, save_plot  # noqa: E402
 from toolkit.errors import run_cli  # noqa: E402
-
-
-def default_run_dir() -> str:
-    """``out/demo/run`` when ``make demo`` trained it; else a tiny-preset run, trained here once."""
-    from train import run
-
-    demo = Path("out/demo/run")
-    if (demo / "gaussian" / "final.safetensors").is_file() and (demo / "stages" / "eval.json").is_file():
-        return str(demo)
-    tiny = OUT_DIR / "augment_tiny_run"
-    print(f"no trained demo run at {demo} (`make demo` makes one): using the tiny preset in {tiny}")
-    if run.main(["--preset", "tiny", "--run-dir", str(tiny)]) != 0:
-        raise SystemExit("training the tiny run failed")
-    return str(tiny)
 
 
 def protocol_a_rows(run_dir: str, cams: int, args) -> list[dict]:
@@ -75,7 +61,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=count("--threads", 1), default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    run_dir = args.run_dir or default_run_dir()
+    run_dir = args.run_dir or demo_or_tiny_run("augment_tiny_run")
     print(machine_info())
     rows = [r for cams in args.redirect_cameras for r in protocol_a_rows(run_dir, cams, args)]
     print(format_table(rows))

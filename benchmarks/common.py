@@ -145,3 +145,18 @@ def save_plot(path: str | Path, series: dict[str, tuple[Sequence[float], Sequenc
         plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
     return path
+
+
+def demo_or_tiny_run(tiny_name: str) -> str:
+    """``out/demo/run`` when ``make demo`` trained it; else a tiny-preset run in ``OUT_DIR / tiny_name``, trained
+    here once (seconds to minutes) and reused by later calls."""
+    from train import run
+
+    demo = Path("out/demo/run")
+    if (demo / "gaussian" / "final.safetensors").is_file() and (demo / "stages" / "eval.json").is_file():
+        return str(demo)
+    tiny = OUT_DIR / tiny_name
+    print(f"no trained demo run at {demo} (`make demo` makes one): using the tiny preset in {tiny}")
+    if run.main(["--preset", "tiny", "--run-dir", str(tiny)]) != 0:
+        raise SystemExit("training the tiny run failed")
+    return str(tiny)

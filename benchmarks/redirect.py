@@ -37,22 +37,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot  # noqa: E402
+from benchmarks.common import OUT_DIR, count, demo_or_tiny_run, format_table, machine_info, save_plot  # noqa: E402
 from toolkit.errors import run_cli  # noqa: E402
-
-
-def default_run_dir() -> str:
-    """``out/demo/run`` when ``make demo`` trained it; else a tiny-preset run, trained here once (seconds)."""
-    from train import run
-
-    demo = Path("out/demo/run")
-    if (demo / "gaussian" / "final.safetensors").is_file() and (demo / "stages" / "eval.json").is_file():
-        return str(demo)
-    tiny = OUT_DIR / "redirect_tiny_run"
-    print(f"no trained demo run at {demo} (`make demo` makes one): using the tiny preset in {tiny}")
-    if run.main(["--preset", "tiny", "--run-dir", str(tiny)]) != 0:
-        raise SystemExit("training the tiny run failed")
-    return str(tiny)
 
 
 def ground_truth(files, rows: dict, gazes: np.ndarray, res: int) -> dict[str, torch.Tensor]:
@@ -120,7 +106,7 @@ def main(argv=None) -> int:
     from apps.redirect import parse_gazes, render_chunk
     from train.trained_run import TrainedRun
 
-    run_dir = args.run_dir or default_run_dir()
+    run_dir = args.run_dir or demo_or_tiny_run("redirect_tiny_run")
     trained = TrainedRun.open(run_dir)
     cfg = trained.config
     res, device = cfg.data.res, torch.device("cpu")
