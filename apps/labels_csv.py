@@ -13,8 +13,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from apps.labels_table import LabelRow, labels_csv_file, read_image_checked, read_labels
+from apps.labels_table import LabelRow, labels_csv_file, read_labels
 from toolkit.errors import ToolkitError
+from toolkit.images import read_image
 from toolkit.rotations import pitchyaw_to_vector, so3_exp
 
 FACE_CENTER_LANDMARKS = [36, 39, 42, 45, 48, 54]
@@ -73,7 +74,7 @@ class LabelsCsvSource:
     def _image(self, r: LabelRow) -> torch.Tensor:
         from train.data.dataset import resize_image
 
-        bgr = read_image_checked(r.image, f"{self.path} line {r.line}, column 'image':")
+        bgr = read_image(r.image, f"{self.path} line {r.line}, column 'image':")
         rgb = resize_image(bgr[..., ::-1].astype(np.float32) / 255.0, self.res)
         return torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
 
@@ -82,7 +83,7 @@ class LabelsCsvSource:
 
         if r.mask is None:
             return None
-        m = (read_image_checked(r.mask, f"{self.path} line {r.line}, column 'mask':", gray=True) > 0).astype(np.float32)
+        m = (read_image(r.mask, f"{self.path} line {r.line}, column 'mask':", gray=True) > 0).astype(np.float32)
         return torch.from_numpy((resize_image(m, self.res) > 0.5).astype(np.float32))[None]
 
     def geometry(self, idx: list[int]) -> dict[str, torch.Tensor]:

@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.errors import ToolkitError
+from toolkit.images import read_image
 
 REQUIRED_COLUMNS = ("image", "head_pitch", "head_yaw")
 MAX_FOCAL = 1000
@@ -65,17 +66,10 @@ class LabelRow:
     code: np.ndarray | None  # [identity + expression], the model's widths
 
 
-def read_image_checked(path: Path, what: str, *, gray: bool = False) -> np.ndarray:
-    """The image at ``path`` (BGR, or gray), or one ToolkitError that starts with ``what``."""
-    from toolkit.images import read_image
-
-    return read_image(path, what, gray=gray)
-
-
 def _image_size(path: Path, what: str) -> tuple[int, int]:
     """(height, width); decoded once (its size checked from the header first), so that a file whose pixels do
     not decode is refused with every other check of the CSV rather than mid-run."""
-    img = read_image_checked(path, what, gray=True)
+    img = read_image(path, what, gray=True)
     return int(img.shape[0]), int(img.shape[1])
 
 
