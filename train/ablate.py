@@ -168,7 +168,13 @@ def ablation_markdown(table: dict, args) -> str:
 def _cell(c: dict | None, full: bool) -> str:
     if c is None:
         return "n/a"
-    return f"{c['mean']:.3g}" if full else f"{c['mean']:.3g} ({c['diff']:+.2g} [{c['lo']:+.2g}, {c['hi']:+.2g}])"
+    mean = _num(c["mean"], 3)
+    return mean if full else f"{mean} ({_num(c['diff'], 2, '+')} [{_num(c['lo'], 2, '+')}, {_num(c['hi'], 2, '+')}])"
+
+
+def _num(x: float, digits: int, sign: str = "") -> str:
+    """``x`` to ``digits`` significant digits, never in exponent form (wall times run to thousands of seconds)."""
+    return f"{x:{sign}.0f}" if abs(x) >= 10 ** digits else f"{x:{sign}.{digits}g}"
 
 
 def ablation_figure(table: dict, path: Path) -> None:

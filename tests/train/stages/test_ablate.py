@@ -10,7 +10,7 @@ import pytest
 
 from toolkit.errors import ToolkitError
 from train import run
-from train.ablate import ROWS, summarize_rows, table_rows
+from train.ablate import ROWS, _cell, summarize_rows, table_rows
 
 QUICK = ["gaussian.steps=2", "eval.pairs_per_subject=1", "eval.tta_steps=0", "estimator.steps=2", "codec.steps=2"]
 
@@ -59,6 +59,14 @@ def test_rows_compare_paired_over_seeds():
     cell = table["w/o orthogonality loss"]["gaze"]
     assert (cell["mean"], cell["diff"], cell["n"]) == (7.0, 1.5, 2)
     assert table["w/o orthogonality loss"]["PSNR"]["diff"] == -1.0 and table["full"]["LPIPS"] is None
+
+
+def test_table_cells_keep_large_values_out_of_exponent_form():
+    row = {"mean": 384.4, "diff": -994.6, "lo": -5121.0, "hi": 3080.2}
+    assert _cell(row, full=False) == "384 (-995 [-5121, +3080])"
+    assert _cell({"mean": 1379.0}, full=True) == "1379"
+    assert _cell({"mean": 0.98531}, full=True) == "0.985"
+    assert _cell({"mean": 5.07, "diff": 0.1, "lo": -1.46, "hi": 1.66}, full=False) == "5.07 (+0.1 [-1.5, +1.7])"
 
 
 def test_rows_of_ones_own_share_the_full_model(ablation, tmp_path):
