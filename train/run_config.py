@@ -153,6 +153,10 @@ class EstimatorStageConfig:
     reads as the same gaze (docs/results.md, 2026-11-22)."""
     blur_sigma: float = field(default=1.2, metadata=maps_to("GazeEstimatorTrainConfig", "blur_sigma"))
     """largest standard deviation of that blur, pixels, >= 0."""
+    warmup_steps: int = field(default=0, metadata=NEUTRAL | at_least(0, "a step count") | STEP_CAP
+                              | maps_to("GazeEstimatorTrainConfig", "warmup_steps"))
+    """steps of a linear learning-rate warm-up before each estimator's cosine decay, >= 0; 0: none. 100 kept
+    every seed of the augmentation benchmark's estimators from diverging (docs/results.md, 2026-11-27)."""
 
 
 @dataclass

@@ -314,7 +314,7 @@ def test_every_mapped_stage_field_names_a_field_of_its_component():
                 cls, name = f.metadata["maps_to"]
                 assert name in {c.name for c in dataclasses.fields(classes[cls])}, (type(section).__name__, f.name)
                 mapped.add((cls, name))
-    assert len(mapped) == 23 and set(classes) == {cls for cls, _ in mapped}
+    assert len(mapped) == 24 and set(classes) == {cls for cls, _ in mapped}
 
 
 def test_component_configs_take_the_stage_values():
@@ -329,9 +329,9 @@ def test_component_configs_take_the_stage_values():
     assert fit.batch == classes["FitConfig"]().batch  # what no stage field sets keeps the component's default
     init = component(classes["InitConfig"], g, seed=3)
     assert (init.n_points, init.eye_points, init.lid_points, init.seed) == (900, 8, 10, 3)
-    e = EstimatorStageConfig(steps=5, batch=4, blur_prob=0.25, blur_sigma=0.5, mirror_average=False)
+    e = EstimatorStageConfig(steps=5, batch=4, blur_prob=0.25, blur_sigma=0.5, mirror_average=False, warmup_steps=2)
     tc = component(classes["GazeEstimatorTrainConfig"], e, seed=1, log_every=5)
-    assert (tc.steps, tc.batch_size, tc.blur_prob, tc.blur_sigma, tc.seed) == (5, 4, 0.25, 0.5, 1)
+    assert (tc.steps, tc.batch_size, tc.blur_prob, tc.blur_sigma, tc.warmup_steps, tc.seed) == (5, 4, 0.25, 0.5, 2, 1)
     design = classes["GazeEstimatorConfig"](input_size=48)
     assert component(design, e) == classes["GazeEstimatorConfig"](input_size=48, mirror_average=False)
     m = model_config(GaussianStageConfig(gaussians_hidden=8, eyes_follow_face=False, eyeball_colours=True,
@@ -477,6 +477,7 @@ def test_a_config_yaml_written_before_loads_and_round_trips(tmp_path):
                                 "  eyeball_colours: false\n  region_renders: masks\n  field_input: position\n"
                                 "  eye_field_terms: false\n")
     expected = expected.replace("  subject: 0\n", "  subject: 0\n  pretrain_fields: 0\n")
+    expected = expected.replace("  blur_sigma: 1.2\n", "  blur_sigma: 1.2\n  warmup_steps: 0\n")
     expected = expected.replace("  identity_arch: iresnet50\n", "  identity_arch: iresnet50\n  natural_fit_row: true\n")
     assert (tmp_path / "new.yaml").read_text() == expected
     assert load_yaml_config(RunConfig, tmp_path / "new.yaml") == cfg

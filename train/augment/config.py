@@ -30,6 +30,10 @@ class AugmentConfig:
     ``eval.tta_steps``."""
     base_steps: int = field(default=0, metadata=at_least(0, "a step count"))
     """training steps of the base estimator (and of protocol B's); 0: the run's ``estimator.steps``."""
+    warmup_steps: int = field(default=100, metadata=at_least(0, "a step count"))
+    """linear learning-rate warm-up of every estimator trained from scratch (protocol A's base, protocol B's),
+    steps >= 0: without it some seeds diverge in their first steps and never recover (one protocol B
+    estimator ended at 34 deg; docs/results.md, 2026-11-27). Fine-tuning starts at its low rate."""
     tune_steps: int = field(default=60, metadata=COUNT)
     """fine-tuning steps of every protocol A arm, >= 1 (the same for all arms); 300 at 5e-4 over-fitted the
     control to 3x the base's error on the demo (docs/results.md, 2026-11-27)."""

@@ -97,6 +97,11 @@ class GazeEstimatorTrainConfig:
     augmentation."""
     blur_sigma: float = 1.2
     """largest Gaussian blur standard deviation, pixels of the full image (drawn uniformly in [0, blur_sigma])."""
+    warmup_steps: int = 0
+    """steps of a linear learning-rate warm-up (from ``lr / warmup_steps`` to ``lr``) before the cosine decay,
+    >= 0; 0: none, the first step at the full rate. Without it AdamW's first steps at 2e-3 throw a freshly
+    initialized estimator off (its loss rises from 1.0 to ~1.8), and some seeds never recover (docs/results.md,
+    2026-11-27)."""
     seed: int = 0
     log_every: int = 250
 
@@ -110,6 +115,8 @@ class GazeEstimatorTrainConfig:
                                    f"got {getattr(self, name)}")
         if not self.blur_sigma >= 0:
             raise ToolkitError(f"GazeEstimatorTrainConfig.blur_sigma: expected a width >= 0 (pixels), got {self.blur_sigma}")
+        if not self.warmup_steps >= 0:
+            raise ToolkitError(f"GazeEstimatorTrainConfig.warmup_steps: expected a step count >= 0, got {self.warmup_steps}")
         if self.steps < 1 or self.batch_size < 1:
             raise ToolkitError(f"GazeEstimatorTrainConfig: steps and batch_size must be >= 1, got {self.steps}, "
                                f"{self.batch_size}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -47,7 +48,7 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
     g = torch.Generator().manual_seed(tc.seed)
     model = _initial_estimator(config, init, device)
     opt = torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, tc.steps) / tc.steps)))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, functools.partial(_rate_factor, tc.steps, tc.warmup_steps))
     n = images.shape[0]
     history: list[dict] = []
     perm, pos = torch.randperm(n, generator=g), 0
@@ -75,6 +76,13 @@ def train_gaze_estimator(images: torch.Tensor, labels: torch.Tensor, config: Gaz
             history.append(_history_record(model, step, loss, val, device, callback))
     model.eval()
     return model, history
+
+
+def _rate_factor(steps: int, warmup: int, step: int) -> float:
+    """The learning rate's factor before optimizer step ``step + 1``: a half cosine from 1 to 0 over ``steps``,
+    times a linear ramp ``(step + 1) / warmup`` over the first ``warmup`` steps."""
+    factor = 0.5 * (1 + math.cos(math.pi * min(step, steps) / steps))
+    return factor * (step + 1) / warmup if step < warmup else factor
 
 
 @torch.no_grad()

@@ -150,6 +150,29 @@ def test_trainer_fine_tunes_from_init_weights():
         train_gaze_estimator(imgs, labels, dataclasses.replace(TINY, hidden=16), tc, init=base)
 
 
+def test_warmup_ramps_the_first_steps_and_leaves_the_cosine_alone_without_it():
+    """A freshly initialized estimator's first AdamW step moves each weight by about the rate (the update is
+    m / sqrt(v) = sign(g)); a warm-up of w steps makes that step rate / w."""
+    from train.estimator.training import _rate_factor
+
+    for step in (0, 7, 99, 100, 250):  # no warm-up: the half cosine alone, as before the option existed
+        assert _rate_factor(100, 0, step) == 0.5 * (1 + math.cos(math.pi * min(step, 100) / 100))
+    assert _rate_factor(100, 10, 0) == pytest.approx(0.1) and _rate_factor(100, 10, 9) == pytest.approx(
+        0.5 * (1 + math.cos(math.pi * 9 / 100)))
+    assert _rate_factor(100, 10, 10) == _rate_factor(100, 0, 10)
+    imgs, labels, _ = drawn_face_dataset(16, 32, n_subjects=2, seed=0)
+    torch.manual_seed(5)
+    start = GazeEstimator(TINY)
+    moved = {}
+    for warmup in (0, 10):
+        tc = GazeEstimatorTrainConfig(steps=1, batch_size=8, lr=1e-2, weight_decay=0.0, seed=1, warmup_steps=warmup)
+        model, _ = train_gaze_estimator(imgs, labels, TINY, tc, init=start)
+        moved[warmup] = max(float((a - b).detach().abs().max()) for a, b in zip(model.parameters(), start.parameters()))
+    assert moved[0] == pytest.approx(1e-2, rel=0.05) and moved[10] == pytest.approx(1e-3, rel=0.05)
+    with pytest.raises(ToolkitError, match="warmup_steps"):
+        train_gaze_estimator(imgs, labels, TINY, GazeEstimatorTrainConfig(warmup_steps=-1))
+
+
 def test_trainer_rejects_bad_data():
     with pytest.raises(ToolkitError, match="labels"):
         train_gaze_estimator(torch.rand(4, 3, 32, 32), torch.zeros(4, 2), TINY)

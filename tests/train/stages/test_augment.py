@@ -74,6 +74,22 @@ def test_the_arms_differ_only_in_their_data(tiny_run):
     assert est.seed(0) not in (t.config.seed * 10 + 1, t.config.seed * 10 + 2)
 
 
+def test_warmup_reaches_training_from_scratch_and_not_fine_tuning(tiny_run):
+    from train.augment.config import AugmentConfig
+    from train.augment.protocol import Estimators
+    from train.augment.rows import read_rows
+    from train.trained_run import TrainedRun
+
+    t = TrainedRun.open(tiny_run)
+    rows = read_rows(t.split("train")[0], t.config.data.res)
+    cold, warm = (Estimators(t, AugmentConfig(base_steps=3, tune_steps=2, warmup_steps=w), "cpu") for w in (0, 5))
+    base_cold, base_warm = cold.train(rows, 0), warm.train(rows, 0)
+    same = [torch.equal(x, y) for x, y in zip(base_cold.state_dict().values(), base_warm.state_dict().values())]
+    assert not all(same)
+    tuned_cold, tuned_warm = cold.train(rows, 0, init=base_cold), warm.train(rows, 0, init=base_cold)
+    assert all(torch.equal(x, y) for x, y in zip(tuned_cold.state_dict().values(), tuned_warm.state_dict().values()))
+
+
 def test_bad_settings_are_one_line(tiny_run, tmp_path):
     out = tmp_path / "out"
     assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", out, "--ks", "0"],
