@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m train.run augment",
                                 description="Measure whether redirected data makes a gaze estimator better "
                                             "(docs/augment.md). On the demo run, protocol A with its defaults "
-                                            "(3 repetitions) took 10.3 min on an idle 2-core machine.")
+                                            "(3 repetitions) took 12.3 min on an idle 2-core machine.")
     p.add_argument("--run-dir", required=True, help="a finished run directory")
     p.add_argument("--out", required=True, help="output folder: augment.json, augment.md, augment.png")
     p.add_argument("--device", default="auto", help="cpu, cuda or auto")
