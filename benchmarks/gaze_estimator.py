@@ -161,6 +161,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--batch", type=count("--batch", 1), default=64)
     ap.add_argument("--channels", help="comma list of stride-2 stage widths (default: the design's own)")
     ap.add_argument("--lr", type=positive("--lr"), default=2e-3)
+    ap.add_argument("--warmup-steps", type=count("--warmup-steps", 0), default=0,
+                    help="linear learning-rate warm-up steps before the cosine decay (0: none)")
     ap.add_argument("--input-size", type=count("--input-size", 1), default=64, help="face mode: input width")
     ap.add_argument("--res", type=count("--res", 1), default=128, help="face-crop size of the rendered images (eyes mode: "
                     "train.estimator.config.eye_config(res), the estimator stage's design at that size)")
@@ -235,7 +237,7 @@ def _train_mode(a: argparse.Namespace, mode: str, cfg: GazeEstimatorConfig, trai
     """Train one design, printing each held-out evaluation: (model, its training config, history, and the
     training seconds at each history record, the held-out evaluations left out)."""
     tc = GazeEstimatorTrainConfig(steps=a.steps, batch_size=a.batch, lr=a.lr, log_every=a.log_every,
-                                  landmark_noise=a.landmark_noise, mirror=a.mirror)
+                                  landmark_noise=a.landmark_noise, mirror=a.mirror, warmup_steps=a.warmup_steps)
     if a.budget_s is not None:
         step_s = probe_step_s(train, cfg, tc, a.device, init=init)
         tc = dataclasses.replace(tc, steps=max(1, int(a.budget_s / step_s)))
