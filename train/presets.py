@@ -41,10 +41,12 @@ def demo_preset() -> RunConfig:
     - the Gaussian stage at twice the default rates (4e-3, renderer 1e-3) (docs/results.md, 2026-11-23);
     - the natural-eyes fit (:data:`NATURAL_EYES_FIT`), 30 steps (docs/results.md, 2026-11-23 and 2026-11-24);
     - step counts (estimators 1200, Gaussian stage 240, fit 30) sized for the slowest 2-core machines seen
-      (docs/results.md, 2026-11-23)."""
+      (docs/results.md, 2026-11-23);
+    - the estimators' learning rate warmed up over 100 steps: every seed's estimator came out better, the worst
+      1.5° better (docs/results.md, 2026-11-27)."""
     return RunConfig(preset="demo", geometry=GeometryStageConfig(gaussians=12_000),
                      codec=CodecStageConfig(kind="pixel"),
-                     estimator=EstimatorStageConfig(steps=1200),
+                     estimator=EstimatorStageConfig(steps=1200, warmup_steps=100),
                      gaussian=GaussianStageConfig(dit_model="DiT-Gaze-pixel", steps=240, lr=4e-3, renderer_lr=1e-3,
                                                   eyeball_colours=True),
                      eval=natural_eyes_eval(tta_steps=30))
@@ -59,14 +61,15 @@ def paper_preset() -> RunConfig:
     ``feature``, ``eye_field_terms``), as GazeGaussian's fields do. The face and eye terms come from the
     face-only and eye-only Gaussians' own renders (``region_renders`` ``separate``), and the geometry stage
     pre-trains the fields for 3000 steps (``pretrain_fields``; the paper gives no count: the SDF fit's). The
-    perceptual term needs the user's VGG16 weights (``gaussian.vgg_path``)."""
+    perceptual term needs the user's VGG16 weights (``gaussian.vgg_path``). Its estimators warm their learning
+    rate up over 100 steps, as the demo's."""
     return RunConfig(
         preset="paper",
         data=DataConfig(subjects=80, frames=20, test_frames=0, res=512),
         geometry=GeometryStageConfig(steps=3000, extract_res=128, gaussians=100_000, pretrain_fields=3000),
         codec=CodecStageConfig(steps=20_000, base_channels=64, downsample=8, batch=16),
         estimator=EstimatorStageConfig(steps=20_000, input_size=224, batch=64, synthetic_subjects=200,
-                                       synthetic_frames=120),
+                                       synthetic_frames=120, warmup_steps=100),
         gaussian=GaussianStageConfig(dit_model="DiT-Gaze-paper", steps=100_000, batch=4, gaussians_hidden=256,
                                      lambda_ssim=0.2, feature_upscale=4, ckpt_every=2000, log_every=50,
                                      lr=1e-4, renderer_lr=1e-4, lr_schedule="step", lr_decay_steps=1_000_000,

@@ -155,8 +155,8 @@ class EstimatorStageConfig:
     """largest standard deviation of that blur, pixels, >= 0."""
     warmup_steps: int = field(default=0, metadata=NEUTRAL | at_least(0, "a step count") | STEP_CAP
                               | maps_to("GazeEstimatorTrainConfig", "warmup_steps"))
-    """steps of a linear learning-rate warm-up before each estimator's cosine decay, >= 0; 0: none. 100 kept
-    every seed of the augmentation benchmark's estimators from diverging (docs/results.md, 2026-11-27)."""
+    """steps of a linear learning-rate warm-up before each estimator's cosine decay, >= 0; 0: none (the demo and
+    paper presets: 100, which made every seed's estimator better; docs/results.md, 2026-11-27)."""
 
 
 @dataclass
