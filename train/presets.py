@@ -42,8 +42,8 @@ def demo_preset() -> RunConfig:
     - the natural-eyes fit (:data:`NATURAL_EYES_FIT`), 30 steps (docs/results.md, 2026-11-23 and 2026-11-24);
     - step counts (estimators 1200, Gaussian stage 240, fit 30) sized for the slowest 2-core machines seen
       (docs/results.md, 2026-11-23);
-    - the estimators' learning rate warmed up over 100 steps: every seed's estimator came out better, the worst
-      1.5° better (docs/results.md, 2026-11-27)."""
+    - the estimators' learning rate warmed up over 100 steps: each of 3 seeds' two estimators came out better,
+      by 0.2-1.5° (docs/results.md, 2026-11-27)."""
     return RunConfig(preset="demo", geometry=GeometryStageConfig(gaussians=12_000),
                      codec=CodecStageConfig(kind="pixel"),
                      estimator=EstimatorStageConfig(steps=1200, warmup_steps=100),

@@ -37,13 +37,16 @@ class Estimators:
         return 1000 + 10 * self.cfg.seed + repetition
 
     def train(self, rows: Rows, repetition: int, *, init=None):
-        """From scratch (``init`` None, the base schedule after ``warmup_steps``) or fine-tuned from ``init`` (``tune_steps`` at
-        ``tune_lr``), with the stage's standard augmentation (flip, blur, colour jitter)."""
+        """From scratch (``init`` None: the base schedule after ``warmup_steps``) or fine-tuned from ``init``
+        (``tune_steps`` at ``tune_lr``, no warm-up), with the stage's standard augmentation (flip, blur, colour
+        jitter)."""
         from train.estimator.training import train_gaze_estimator
 
-        tc = replace(self.train_config, seed=self.seed(repetition), log_every=10**9,
-                     **({"steps": self.base_steps, "warmup_steps": self.cfg.warmup_steps} if init is None else
-                        {"steps": self.cfg.tune_steps, "lr": self.cfg.tune_lr, "warmup_steps": 0}))
+        if init is None:
+            schedule = {"steps": self.base_steps, "warmup_steps": self.cfg.warmup_steps}
+        else:
+            schedule = {"steps": self.cfg.tune_steps, "lr": self.cfg.tune_lr, "warmup_steps": 0}
+        tc = replace(self.train_config, seed=self.seed(repetition), log_every=10**9, **schedule)
         model, _ = train_gaze_estimator(rows.images, rows.labels, self.design, tc, landmarks=rows.landmarks,
                                         device=self.device, init=init)
         return model
