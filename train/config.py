@@ -162,11 +162,12 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     return float(value) if tp is float else value
 
 
-def check_fields(cfg: T, prefix: str = "") -> T:
-    """``cfg``, a dataclass, once every field (its sections' too) passes its type and its declared rules."""
+def check_fields(cfg: T, prefix: str = "", spell: Callable[[str], str] = str) -> T:
+    """``cfg``, a dataclass, once every field (its sections' too) passes its type and its declared rules; an error
+    names the field as ``prefix + spell(name)`` (a command line's flag: ``spell`` turns ``_`` into ``-``)."""
     hints = typing.get_type_hints(type(cfg))
     for f in dataclasses.fields(cfg):
-        key, value = prefix + f.name, getattr(cfg, f.name)
+        key, value = prefix + spell(f.name), getattr(cfg, f.name)
         _coerce(value, hints[f.name], key)
         for ok, expected in f.metadata.get("rules", ()):
             if not ok(value):

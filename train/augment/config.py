@@ -47,7 +47,7 @@ class AugmentConfig:
     """base seed of the benchmark (estimator seeds are 1000 + 10 x seed + repetition: disjoint from the stage's)."""
 
     def validate(self) -> None:
-        check_fields(self, "augment --")
+        check_fields(self, "augment --", spell=lambda name: name.replace("_", "-"))
         for name, values, low in (("ks", self.ks, 1), ("subjects", self.subjects, 1)):
             if not values or any(int(v) != v or v < low for v in values):
                 raise ToolkitError(f"augment --{name}: expected integers >= {low}, got {list(values)}")

@@ -100,4 +100,6 @@ def test_bad_settings_are_one_line(tiny_run, tmp_path):
                    r"not a run directory", out_dir=tmp_path)
     assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", out, "--seeds", "0"],
                    r"'augment --seeds': expected a count", inputs=[tiny_run], out_dir=tmp_path)
+    assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", out, "--warmup-steps", "-1"],
+                   r"'augment --warmup-steps': expected a step count", inputs=[tiny_run], out_dir=tmp_path)
     assert not out.exists()
