@@ -95,3 +95,23 @@ def test_a_bad_row_is_one_line_before_any_training(row, expected):
         table_rows([row])
     assert table_rows(None) == ROWS
     assert [n for n, _ in table_rows([["a b", "gaussian.steps=2"], ["c", "eval.tta_steps=0"]])] == ["full", "a b", "c"]
+
+
+def test_lpips_and_fid_become_columns_when_every_run_scores_them():
+    from types import SimpleNamespace
+
+    from train.ablate import ablation_markdown
+
+    def run(gaze, lpips, fid):
+        return {"gaze_error_deg": gaze, "psnr": 30.0, "lpips": lpips, "fid": fid, "seconds": 5.0}
+
+    given = summarize_rows({"full": [run(5.0, 0.20, 60.0), run(6.0, 0.22, 62.0)],
+                            "w/o DiT renderer": [run(9.0, 0.30, 150.0), run(11.0, 0.34, 160.0)]})
+    assert given["w/o DiT renderer"]["LPIPS"]["diff"] == pytest.approx(0.11)
+    args = SimpleNamespace(row=None, preset="demo", seeds=2)
+    header = ablation_markdown(given, args).splitlines()[4]
+    assert "| LPIPS |" in header and "| FID |" in header
+    # one seed without LPIPS weights: the column is n/a for that row, never a mean over the seeds that had them
+    partial = summarize_rows({"full": [run(5.0, 0.20, 60.0), run(6.0, None, 62.0)],
+                              "w/o DiT renderer": [run(9.0, 0.30, 150.0), run(11.0, 0.34, 160.0)]})
+    assert partial["full"]["LPIPS"] is None and partial["w/o DiT renderer"]["LPIPS"] is None
