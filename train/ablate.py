@@ -35,6 +35,8 @@ its own upscale (4: docs/renderer.md)."""
 METRICS = (("gaze", "gaze_error_deg", -1), ("head pose", "head_pose_error_deg", -1), ("PSNR", "psnr", 1),
            ("SSIM", "ssim", 1), ("LPIPS", "lpips", -1), ("FID", "fid", -1))
 """(column, metrics.json key, +1 when higher is better)."""
+AUGMENT_COLUMN = "augment A (iii) − (ii)"
+"""The prefix of the augmentation columns (``--augment``): one per calibration level k."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -146,10 +148,12 @@ def summarize_rows(results: dict[str, list[dict]]) -> dict:
             a, r = [x.get(key) for x in runs], [x.get(key) for x in full]
             known = all(isinstance(v, (int, float)) and math.isfinite(v) for v in a + r)  # LPIPS, FID: n/a without weights
             cells[column] = paired(a, r) if known else None
-        if all("augment_A" in x for x in runs):
+        if all("augment_A" in x for x in runs + full):
             for k in runs[0]["augment_A"]:
-                cells[f"augment A k={k}: (iii) − (ii)"] = paired([x["augment_A"][k] for x in runs],
-                                                                 [0.0] * len(runs))
+                gains = [x["augment_A"][k] for x in runs]
+                # The full row's cell is (iii) − (ii) against 0, with its interval; the others' against the full row's.
+                cells[f"{AUGMENT_COLUMN} k={k}"] = (paired(gains, [0.0] * len(runs)) | {"against_zero": True}
+                                                    if runs is full else paired(gains, [x["augment_A"][k] for x in full]))
         table[name] = cells
     return table
 
@@ -159,17 +163,26 @@ def ablation_markdown(table: dict, args) -> str:
     title = "Switches against the full model" if args.row else "Table 3: ablations"
     lines = [f"# {title} ({args.preset} preset, {args.seeds} seed{'s' * (args.seeds != 1)})", "",
              "Mean over seeds; other rows: (row − full) and its paired 95 % t interval (units: seeds). Gaze and head "
-             "pose in degrees, wall time of the Gaussian and eval stages.", "",
+             "pose in degrees, wall time of the Gaussian and eval stages." + _augment_note(table), "",
              "| row | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
     for name, cells in table.items():
         lines.append(f"| {name} | " + " | ".join(_cell(cells[c], name == ROWS[0][0]) for c in columns) + " |")
     return "\n".join(lines + ["", "![ablation](ablation.png)", ""])
 
 
+def _augment_note(table: dict) -> str:
+    if not any(c.startswith(AUGMENT_COLUMN) for c in next(iter(table.values()))):
+        return ""
+    return (f" {AUGMENT_COLUMN}: protocol A of `train.run augment`, (iii) − (ii) in degrees (negative: the row's "
+            "redirected copies help a k-frame calibration), the full row with its own 95 % interval over the seeds.")
+
+
 def _cell(c: dict | None, full: bool) -> str:
     if c is None:
         return "n/a"
     mean = _num(c["mean"], 3)
+    if c.get("against_zero"):
+        return f"{mean} [{_num(c['lo'], 2, '+')}, {_num(c['hi'], 2, '+')}]"
     return mean if full else f"{mean} ({_num(c['diff'], 2, '+')} [{_num(c['lo'], 2, '+')}, {_num(c['hi'], 2, '+')}])"
 
 

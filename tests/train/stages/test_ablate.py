@@ -115,3 +115,37 @@ def test_lpips_and_fid_become_columns_when_every_run_scores_them():
     partial = summarize_rows({"full": [run(5.0, 0.20, 60.0), run(6.0, None, 62.0)],
                               "w/o DiT renderer": [run(9.0, 0.30, 150.0), run(11.0, 0.34, 160.0)]})
     assert partial["full"]["LPIPS"] is None and partial["w/o DiT renderer"]["LPIPS"] is None
+
+
+def test_the_augment_column_compares_each_row_with_the_full_models_gain():
+    from types import SimpleNamespace
+
+    from train.ablate import AUGMENT_COLUMN, ablation_markdown
+
+    def run(gain_k1):
+        return {"gaze_error_deg": 5.0, "psnr": 30.0, "seconds": 5.0, "augment_A": {"1": gain_k1}}
+
+    table = summarize_rows({"full": [run(-2.0), run(-3.0), run(-1.0)],
+                            "w/o DiT renderer": [run(-1.0), run(-2.5), run(-0.5)]})
+    full, row = table["full"][f"{AUGMENT_COLUMN} k=1"], table["w/o DiT renderer"][f"{AUGMENT_COLUMN} k=1"]
+    # full: (iii) − (ii) against 0 over the seeds, t(2) = 4.303, sd 1: -2 ± 4.303 / sqrt(3)
+    assert (full["mean"], full["diff"]) == (-2.0, -2.0)
+    assert full["hi"] == pytest.approx(-2.0 + 4.303 / 3 ** 0.5, abs=1e-3)
+    # the row: its gain against the full model's, seed by seed: +1.0, +0.5, +0.5 (sd 0.289, half-width 0.717)
+    assert row["mean"] == pytest.approx(-4 / 3) and row["diff"] == pytest.approx(2 / 3)
+    md = ablation_markdown(table, SimpleNamespace(row=None, preset="demo", seeds=3))
+    line = {ln.split("|")[1].strip(): ln for ln in md.splitlines() if ln.startswith("| ")}
+    assert line["full"].endswith("| -2 [-4.5, +0.48] |")
+    assert line["w/o DiT renderer"].endswith("| -1.33 (+0.67 [-0.05, +1.4]) |")
+    assert "(iii) − (ii) in degrees" in md
+
+
+def test_a_rows_augment_result_is_reused_not_recomputed(tmp_path, monkeypatch):
+    import train.augment.cli
+    from train.ablate import _augment_row
+
+    (tmp_path / "augment").mkdir()
+    (tmp_path / "augment" / "augment.json").write_text(json.dumps(
+        {"A": {"iii": {"1": {"mean": 7.0, "diff": -1.5, "lo": -2.0, "hi": -1.0, "n": 2}}}}))
+    monkeypatch.setattr(train.augment.cli, "main", lambda argv: pytest.fail("protocol A ran again"))
+    assert _augment_row(tmp_path) == {"1": -1.5}
