@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m train.run ablate",
                                 description="Train and evaluate the paper's Table 3 rows over seeds (docs/augment.md). "
                                             "The demo preset on 2 cores: ~15 min for a seed's full run, then "
-                                            "5-7 min for each other row; --augment adds ~4 min a row and seed.")
+                                            "5-7 min for each other row; --augment adds 3-5 min a row and seed.")
     p.add_argument("--preset", default="demo", help="the preset of every row (default: demo)")
     p.add_argument("--seeds", type=int, default=3, help="seeds (repetitions) per row, >= 1 (default: 3)")
     p.add_argument("--run-dir", default="out/ablate", help="folder of the rows' run directories and the table")
