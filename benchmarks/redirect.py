@@ -1,6 +1,8 @@
 """apps.redirect on held-out synthetic subjects: seconds per redirected image against its error, by fitting.
 
-For a trained run, every held-out subject's rows (``--rows``, spread over the file) are redirected to
+For a trained run, every held-out subject's rows (``--rows``, spread over the file; ``--split train``: every
+training subject's instead, the faces the model was trained on, so its redirection of a face it knows: the
+bound a fit of a new face approaches) are redirected to
 ``--gazes`` with ``apps.redirect.render_chunk`` -- the app's own rendering path -- once per ``--fit-steps``
 value: 0 renders with the file's codes and the trained weights as they are (the app's default for HDF5
 input); N > 0 first fits each row as the evaluation fits a pair (``TrainedRun.row_fitter``, the app's
@@ -98,6 +100,8 @@ def main(argv=None) -> int:
     ap.add_argument("--natural-steps", type=count("--natural-steps", 0), nargs="*", default=[],
                     help="also fit these step counts as apps.redirect --natural-eyes does (a gaze term that may "
                          "only turn the eyes)")
+    ap.add_argument("--split", choices=("test", "train"), default="test",
+                    help="redirect the run's held-out subjects (default) or its training subjects")
     ap.add_argument("--threads", type=count("--threads", 1), default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -113,13 +117,13 @@ def main(argv=None) -> int:
     model, renderer = trained.load_model(device)
     estimator = trained.estimator("eval", device)
     gazes = parse_gazes(args.gazes)
-    files = trained.split("test")
+    files = trained.split(args.split)
     rows, items = spread_rows(files, args.rows, res)
     G = len(gazes)
     landmarks = torch.stack([torch.as_tensor(it["landmarks"]).float() for _, _, it in items]).repeat_interleave(G, 0)
     t0 = time.perf_counter()
     truth = ground_truth(files, rows, gazes, res)
-    print(f"{machine_info()}\nrun {run_dir}: {len(items)} rows x {G} gazes, ground truth rendered in "
+    print(f"{machine_info()}\nrun {run_dir}, {args.split} subjects: {len(items)} rows x {G} gazes, ground truth rendered in "
           f"{time.perf_counter() - t0:.1f} s")
 
     table = [{"fit steps": "ground truth", "s/image": None,
@@ -150,7 +154,7 @@ def main(argv=None) -> int:
     print(format_table(table))
     fitted = [r for r in table if isinstance(r["fit steps"], int)]
     x = [r["s/image"] for r in fitted]
-    path = save_plot(OUT_DIR / "redirect.png",
+    path = save_plot(OUT_DIR / ("redirect.png" if args.split == "test" else f"redirect_{args.split}.png"),
                      {"read against the ground truth's reading": (x, [r["vs truth °"] for r in fitted]),
                       "read against its label": (x, [r["label °"] for r in fitted]),
                       "ground truth against its label (the ruler)": ([min(x), max(x)], [table[0]["label °"]] * 2)},
