@@ -1,4 +1,5 @@
-"""apps.redirect on held-out synthetic subjects: seconds per redirected image against its error, by fitting.
+"""apps.redirect on a run's synthetic subjects (held out, or its training ones): seconds per redirected image
+against its error, by fitting.
 
 For a trained run, every held-out subject's rows (``--rows``, spread over the file; ``--split train``: every
 training subject's instead, the faces the model was trained on, so its redirection of a face it knows: the
@@ -21,10 +22,11 @@ truth's head mask:
 The ``ground truth`` row reads the ground truth itself against its label: the ruler's own error, the floor
 of the ``label °`` column. A fit with the gaze term can read *below* it: the term tunes the render to the loss
 estimator, a sibling of the evaluation one, so ``vs truth °`` is the column to rank settings by. Prints the
-table and writes ``out/benchmarks/redirect.png`` (both gaze columns against seconds per image).
+table and writes ``out/benchmarks/redirect.png`` (``redirect_train.png`` with ``--split train``; both gaze
+columns against seconds per image).
 
     .venv/bin/python benchmarks/redirect.py [--run-dir out/demo/run] [--rows 4] [--gazes grid:3x3:25]
-                                            [--fit-steps 0 10 20 40] [--threads 2]
+                                            [--fit-steps 0 10 20 40] [--split test|train] [--threads 2]
 """
 
 from __future__ import annotations

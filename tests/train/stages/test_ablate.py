@@ -111,10 +111,15 @@ def test_lpips_and_fid_become_columns_when_every_run_scores_them():
     args = SimpleNamespace(row=None, preset="demo", seeds=2)
     header = ablation_markdown(given, args).splitlines()[4]
     assert "| LPIPS |" in header and "| FID |" in header
-    # one seed without LPIPS weights: the column is n/a for that row, never a mean over the seeds that had them
-    partial = summarize_rows({"full": [run(5.0, 0.20, 60.0), run(6.0, None, 62.0)],
-                              "w/o DiT renderer": [run(9.0, 0.30, 150.0), run(11.0, 0.34, 160.0)]})
-    assert partial["full"]["LPIPS"] is None and partial["w/o DiT renderer"]["LPIPS"] is None
+    # a seed of a row without LPIPS: that row's cell is n/a, never a mean over the seeds that had it
+    row_gap = summarize_rows({"full": [run(5.0, 0.20, 60.0), run(6.0, 0.22, 62.0)],
+                              "w/o DiT renderer": [run(9.0, 0.30, 150.0), run(11.0, None, 160.0)]})
+    assert row_gap["w/o DiT renderer"]["LPIPS"] is None and row_gap["full"]["LPIPS"]["mean"] == pytest.approx(0.21)
+    # a seed of the full model without it: every row's cell is n/a (each is paired against the full model)
+    full_gap = summarize_rows({"full": [run(5.0, 0.20, 60.0), run(6.0, None, 62.0)],
+                               "w/o DiT renderer": [run(9.0, 0.30, 150.0), run(11.0, 0.34, 160.0)]})
+    assert full_gap["full"]["LPIPS"] is None and full_gap["w/o DiT renderer"]["LPIPS"] is None
+    assert full_gap["w/o DiT renderer"]["FID"]["diff"] == pytest.approx(94.0)
 
 
 def test_the_augment_column_compares_each_row_with_the_full_models_gain():
