@@ -153,7 +153,7 @@ def summarize_rows(results: dict[str, list[dict]]) -> dict:
                 gains = [x["augment_A"][k] for x in runs]
                 # The full row's cell is (iii) − (ii) against 0, with its interval; the others' against the full row's.
                 cells[f"{AUGMENT_COLUMN} k={k}"] = (paired(gains, [0.0] * len(runs)) | {"against_zero": True}
-                                                    if runs is full else paired(gains, [x["augment_A"][k] for x in full]))
+                                                    if name == ROWS[0][0] else paired(gains, [x["augment_A"][k] for x in full]))
         table[name] = cells
     return table
 
@@ -163,15 +163,15 @@ def ablation_markdown(table: dict, args) -> str:
     title = "Switches against the full model" if args.row else "Table 3: ablations"
     lines = [f"# {title} ({args.preset} preset, {args.seeds} seed{'s' * (args.seeds != 1)})", "",
              "Mean over seeds; other rows: (row − full) and its paired 95 % t interval (units: seeds). Gaze and head "
-             "pose in degrees, wall time of the Gaussian and eval stages." + _augment_note(table), "",
+             "pose in degrees, wall time of the Gaussian and eval stages." + _augment_note(columns), "",
              "| row | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
     for name, cells in table.items():
         lines.append(f"| {name} | " + " | ".join(_cell(cells[c], name == ROWS[0][0]) for c in columns) + " |")
     return "\n".join(lines + ["", "![ablation](ablation.png)", ""])
 
 
-def _augment_note(table: dict) -> str:
-    if not any(c.startswith(AUGMENT_COLUMN) for c in next(iter(table.values()))):
+def _augment_note(columns: list[str]) -> str:
+    if not any(c.startswith(AUGMENT_COLUMN) for c in columns):
         return ""
     return (f" {AUGMENT_COLUMN}: protocol A of `train.run augment`, (iii) − (ii) in degrees (negative: the row's "
             "redirected copies help a k-frame calibration), the full row with its own 95 % interval over the seeds.")
