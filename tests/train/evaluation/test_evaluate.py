@@ -7,47 +7,20 @@ import numpy as np
 import pytest
 import torch
 
-from tests.train.helpers import one_frame_subject_file, untrained_eval_parts
+from tests.train.evaluation.fit_inputs import pair_inputs, render_input_error
+from tests.train.helpers import untrained_eval_parts
 from toolkit.errors import ToolkitError
-
-
-@pytest.fixture(scope="module")
-def subject_file(tmp_path_factory):
-    return one_frame_subject_file(tmp_path_factory.mktemp("eval"), subject_seed=5, frame_seed=2)
-
-
-def _inputs(subject_file, n: int):
-    """(batch, image, head mask, eye mask) of the inputs of the first ``n`` pairs, at 64²."""
-    from train.data.pairing import SyntheticRedirectionPairs
-
-    pairs = SyntheticRedirectionPairs(subject_file, res=64, seed=0)
-    items = [pairs[i]["input"] for i in range(n)]
-    st = lambda k: torch.stack([torch.as_tensor(it[k]) for it in items]).float()  # noqa: E731
-    batch = {"code": st("latent_code"), "in_pose": st("pose"), "in_viewmat": st("viewmat"), "K": st("K"),
-             "in_gaze_head": st("pitchyaw_head")}
-    return batch, st("image"), st("head_mask"), (st("left_eye_mask") + st("right_eye_mask")).clamp(0, 1)
-
-
-def _input_error(model, renderer, batch, image, mask, code) -> float:
-    """L1 on white of the one-step render with ``code`` against the input image."""
-    from train.losses.metrics import composite_on_white
-
-    with torch.no_grad():
-        maps = model(code, batch["in_pose"], batch["in_gaze_head"], batch["in_viewmat"], batch["K"], 64, 64,
-                     renders=("head",))
-        out = renderer.render(maps["head"], code, gaze=batch["in_gaze_head"], pose=batch["in_pose"])
-    return float((composite_on_white(out, mask) - composite_on_white(image, mask)).abs().mean())
 
 
 def test_test_time_fit_lowers_the_input_error_and_keeps_the_weights(subject_file):
     from train.evaluation.fitting import test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
-    batch, image, mask, _ = _inputs(subject_file, 3)
+    batch, image, mask, _ = pair_inputs(subject_file, 3)
     weights = {k: v.clone() for k, v in {**model.state_dict(), **renderer.state_dict()}.items()}
 
     def input_error(code):
-        return _input_error(model, renderer, batch, image, mask, code)
+        return render_input_error(model, renderer, batch, image, mask, code)
 
     fitted = test_time_fit(model, renderer, batch, image, mask, 64, steps=15)
     assert torch.isfinite(fitted).all() and not torch.equal(fitted, batch["code"])
@@ -132,11 +105,11 @@ def test_fitting_weights_changes_them_in_place_and_restored_weights_puts_them_ba
 
     model, _, _ = untrained_eval_parts()
     renderer = _renderer(kind)
-    batch, image, mask, _ = _inputs(subject_file, 1)
+    batch, image, mask, _ = pair_inputs(subject_file, 1)
     before = {k: v.clone() for k, v in {**model.state_dict(), **renderer.state_dict()}.items()}
 
     def input_error(code):
-        return _input_error(model, renderer, batch, image, mask, code)
+        return render_input_error(model, renderer, batch, image, mask, code)
 
     start = input_error(batch["code"])
     code_only = input_error(test_time_fit(model, renderer, batch, image, mask, 64, steps=15))
@@ -163,14 +136,14 @@ def test_fitting_the_codec_decoder_tunes_it_alone_and_leaves_it_frozen(subject_f
 
     model, _, _ = untrained_eval_parts()
     renderer = _renderer("dit")
-    batch, image, mask, _ = _inputs(subject_file, 1)
+    batch, image, mask, _ = pair_inputs(subject_file, 1)
     before = {k: v.clone() for k, v in renderer.state_dict().items()}
 
     def fit_error(weights):
         with restored_weights(model, renderer):
             code = test_time_fit(model, renderer, batch, image, mask, 64, steps=15, weights=weights)
             changed = {k: v.clone() for k, v in renderer.state_dict().items()}
-            err = _input_error(model, renderer, batch, image, mask, code)
+            err = render_input_error(model, renderer, batch, image, mask, code)
         return err, changed
 
     dit_only, _ = fit_error(("renderer",))
@@ -189,7 +162,7 @@ def test_failed_fit_freezes_the_codec_decoder_again(subject_file, monkeypatch):
 
     model, _, _ = untrained_eval_parts()
     renderer = _renderer("dit")
-    batch, image, mask, _ = _inputs(subject_file, 1)
+    batch, image, mask, _ = pair_inputs(subject_file, 1)
 
     def boom(*a, **k):
         assert all(p.requires_grad for p in renderer.codec.decoder.parameters())  # unfrozen during the fit
@@ -234,7 +207,7 @@ def test_failed_fit_leaves_no_gradients_on_the_weights(subject_file):
     from train.evaluation.fitting import restored_weights, test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
-    batch, image, mask, _ = _inputs(subject_file, 1)
+    batch, image, mask, _ = pair_inputs(subject_file, 1)
     calls = {"n": 0}
     forward = renderer.training_forward
 
@@ -278,7 +251,7 @@ def test_fitting_ignores_what_the_input_shows_inside_the_mask_hole(subject_file)
     from train.evaluation.fitting import face_only_mask, restored_weights, test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
-    batch, image, head, eyes = _inputs(subject_file, 1)
+    batch, image, head, eyes = pair_inputs(subject_file, 1)
     assert eyes.sum() > 0
     mask = face_only_mask(head, eyes)
     scrambled = torch.where(mask > 0, image, torch.rand_like(image))
@@ -294,7 +267,7 @@ def test_fitting_rejects_learning_rates_that_are_not_positive(subject_file):
     from train.evaluation.fitting import test_time_fit
 
     model, renderer, _ = untrained_eval_parts()
-    batch, image, mask, _ = _inputs(subject_file, 1)
+    batch, image, mask, _ = pair_inputs(subject_file, 1)
     with pytest.raises(ToolkitError, match="learning rate > 0 \\(code, features\\), got 0"):
         test_time_fit(model, renderer, batch, image, mask, 64, steps=1, lr=0.0)
     with pytest.raises(ToolkitError, match="renderer learning rate > 0, got -1"):
@@ -353,12 +326,6 @@ def test_own_gaze_batch_turns_the_render_back_on_the_input():
     assert own["code"] is b["code"] and own["K"] is b["K"] and b["gaze_head"][0, 0] == 4  # the input batch is untouched
 
 
-@pytest.fixture(scope="module")
-def two_frame_file(tmp_path_factory):
-    """Two frames: every pair's target has another gaze than its input."""
-    return one_frame_subject_file(tmp_path_factory.mktemp("eval2"), subject_seed=6, frame_seed=3, n_frames=2)
-
-
 @pytest.mark.parametrize("tta_weights", [(), ("features",)])
 def test_own_gaze_row_scores_the_input_rendered_at_its_own_gaze(two_frame_file, monkeypatch, tta_weights):
     """A stand-in model that reproduces exactly the input at the input's view and gaze (and a grey face
@@ -407,7 +374,7 @@ def test_fitting_region_is_the_head_or_the_face_without_the_eyes(subject_file, m
     model, renderer, est = untrained_eval_parts()
     ev.evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=2, tta_steps=1, log=lambda s: None,
                 tta_region=region)
-    _, _, head, eyes = _inputs(subject_file, 1)
+    _, _, head, eyes = pair_inputs(subject_file, 1)
     mask = seen[0][:1]
     inside_eyes = float((mask * eyes).sum())
     assert eyes.sum() > 0 and mask.sum() > 0
@@ -418,199 +385,6 @@ def test_fitting_region_is_the_head_or_the_face_without_the_eyes(subject_file, m
     with pytest.raises(ToolkitError, match="tta_region"):
         ev.evaluate(model, renderer, est, [subject_file], res=64, pairs_per_subject=1, log=lambda s: None,
                     tta_region="eyes")
-
-
-def _target_batch(two_frame_file, n: int):
-    """The first ``n`` pairs of the two-frame subject: the input batch plus each pair's target gaze and the
-    input's landmarks (what :class:`train.evaluation.fitting.FitGaze` reads)."""
-    from train.data.pairing import SyntheticRedirectionPairs
-
-    batch, image, mask, _ = _inputs(two_frame_file, n)
-    pairs = SyntheticRedirectionPairs(two_frame_file, res=64, seed=0)
-    batch["gaze_head"] = torch.stack([torch.as_tensor(pairs[i]["target"]["pitchyaw_head"]) for i in range(n)]).float()
-    batch["landmarks"] = torch.stack([torch.as_tensor(pairs[i]["input"]["landmarks"]) for i in range(n)]).float()
-    return batch, image, mask
-
-
-def _target_gaze_error(model, renderer, loss, batch, image, mask, code) -> float:
-    """The loss estimator's angle (degrees) between its reading of the render at the target gaze (input view)
-    and that gaze in the camera frame."""
-    from train.evaluation.fitting import FitGaze
-
-    with torch.no_grad():
-        term = FitGaze(loss, 1.0, ("target",)).term(model, renderer, batch, code, None, image, mask, 64, None)
-    return float(term)
-
-
-class _ColourGaze(torch.nn.Module):
-    """A stand-in loss estimator whose reading follows the image's mean colour (radians, pitch/yaw): unlike an
-    untrained CNN, it responds strongly to what the fit changes."""
-
-    def forward(self, images, landmarks=None):
-        rgb = images.mean((2, 3))
-        return torch.stack([rgb[:, 0] - rgb[:, 2], rgb[:, 1] - 0.5], 1)
-
-
-def test_gaze_term_fits_toward_the_target_gaze(two_frame_file):
-    """With the ``target`` term the fit lowers the loss estimator's error at the target gaze, well below where the
-    photometric fit alone leaves it."""
-    from train.evaluation.fitting import FitGaze, restored_weights, test_time_fit
-    from train.losses import GazeLoss
-
-    model, renderer, _ = untrained_eval_parts()
-    loss = GazeLoss(_ColourGaze())
-    batch, image, mask = _target_batch(two_frame_file, 2)
-    assert not torch.allclose(batch["gaze_head"], batch["in_gaze_head"])
-    before = _target_gaze_error(model, renderer, loss, batch, image, mask, batch["code"])
-    errors = {}
-    for name, gaze in (("plain", None), ("gaze", FitGaze(loss, 1.0))):
-        with restored_weights(model, renderer):
-            code = test_time_fit(model, renderer, batch, image, mask, 64, steps=10, lr=0.1, weights=("features",), gaze=gaze)
-            assert torch.isfinite(code).all()
-            errors[name] = _target_gaze_error(model, renderer, loss, batch, image, mask, code)
-    # Measured: 55.3° before, 50.1° after the photometric fit, 42.6° with the gaze term.
-    assert errors["gaze"] < errors["plain"] - 3 and errors["gaze"] < before - 5, (before, errors)
-
-
-def test_eye_field_group_lets_the_gaze_term_turn_the_eyes_and_is_restored(two_frame_file):
-    """``eye_field``: the eye rotation field's weights are fitted (at the renderer's rate) and put back by
-    ``restored_weights``; the face deformation field is never touched."""
-    from train.evaluation.fitting import FitGaze, fitted_weights, restored_weights, test_time_fit
-    from train.losses import GazeLoss
-
-    model, renderer, _ = untrained_eval_parts()
-    assert fitted_weights(model, renderer, ["eye_field"]) == list(model.eye_field.parameters())
-    loss = GazeLoss(_ColourGaze())
-    batch, image, mask = _target_batch(two_frame_file, 1)
-    before = {k: v.clone() for k, v in model.state_dict().items()}
-    with restored_weights(model, renderer):
-        code = test_time_fit(model, renderer, batch, image, mask, 64, steps=5, lr=0.1, renderer_lr=1e-2,
-                             weights=("eye_field",), gaze=FitGaze(loss, 1.0))
-        assert torch.isfinite(code).all()
-        changed = model.state_dict()
-        assert any(not torch.equal(changed[k], before[k]) for k in before if k.startswith("eye_field."))
-        assert all(torch.equal(changed[k], before[k]) for k in before if k.startswith("face_field."))
-        assert all(p.grad is None for p in model.parameters())
-    assert all(torch.equal(model.state_dict()[k], v) for k, v in before.items())
-
-
-def test_gaze_term_limited_to_its_reach_leaves_the_other_weights_to_the_photometric_fit(two_frame_file):
-    """``FitGaze.reach``: one step (the term enters the last) with the term reaching the eye rotation field only
-    moves the face features exactly as the photometric fit alone does, and the eye field otherwise; reaching
-    everything (the default) moves the features too."""
-    from train.evaluation.fitting import FitGaze, restored_weights, test_time_fit
-    from train.losses import GazeLoss
-
-    model, renderer, _ = untrained_eval_parts()
-    loss = GazeLoss(_ColourGaze())
-    batch, image, mask = _target_batch(two_frame_file, 1)
-    weights = ("features", "eye_field")
-    after = {}
-    for name, gaze in (("plain", None), ("reach", FitGaze(loss, 1.0, reach=("eye_field",))), ("all", FitGaze(loss, 1.0))):
-        with restored_weights(model, renderer):
-            code = test_time_fit(model, renderer, batch, image, mask, 64, steps=1, lr=0.1, renderer_lr=1e-2,
-                                 weights=weights, gaze=gaze)
-            after[name] = (code, model.face_features.detach().clone(),
-                           [p.detach().clone() for p in model.eye_field.parameters()])
-    plain, reach, every = after["plain"], after["reach"], after["all"]
-    assert torch.equal(reach[0], plain[0]) and torch.equal(reach[1], plain[1])  # code and features: photometric only
-    assert any(not torch.equal(a, b) for a, b in zip(reach[2], plain[2]))  # the eye field: the term's too
-    assert not torch.equal(every[1], plain[1])  # reaching everything, the term moves the features as well
-    with pytest.raises(ToolkitError, match="may reach only the code and fitted weights"):
-        test_time_fit(model, renderer, batch, image, mask, 64, steps=1, weights=("features",),
-                      gaze=FitGaze(loss, 1.0, reach=("eye_field",)))
-    with pytest.raises(ToolkitError, match="may reach some of"):
-        FitGaze(loss, 1.0, reach=("eyes",))
-
-
-def test_own_gaze_term_reaches_the_code_without_another_render(two_frame_file, monkeypatch):
-    """``own`` reads the fitting render itself: the model runs once per step, and the fitted code differs from
-    the photometric fit's."""
-    from train.evaluation.fitting import FitGaze, test_time_fit
-    from train.losses import GazeLoss
-
-    model, renderer, est = untrained_eval_parts()
-    batch, image, mask = _target_batch(two_frame_file, 2)
-    plain = test_time_fit(model, renderer, batch, image, mask, 64, steps=3)
-    calls = []
-    forward = type(model).forward
-    monkeypatch.setattr(type(model), "forward", lambda self, *a, **k: calls.append(1) or forward(self, *a, **k))
-    own = test_time_fit(model, renderer, batch, image, mask, 64, steps=3, gaze=FitGaze(GazeLoss(est), 1.0, ("own",)))
-    assert len(calls) == 3
-    assert torch.isfinite(own).all() and not torch.allclose(own, plain)
-
-
-@pytest.mark.parametrize("every,renders", [(1, 10), (2, 8), (3, 7), (5, 6)])
-def test_target_term_renders_once_more_on_every_kth_step_the_last_included(two_frame_file, monkeypatch, every,
-                                                                          renders):
-    """``every``: 5 steps, the turned render on steps 5, 5-k, ... only -- the model runs 5 + ceil(5 / k) times."""
-    from train.evaluation.fitting import FitGaze, test_time_fit
-    from train.losses import GazeLoss
-
-    model, renderer, est = untrained_eval_parts()
-    batch, image, mask = _target_batch(two_frame_file, 1)
-    gazes = []
-    forward = type(model).forward
-    monkeypatch.setattr(type(model), "forward",
-                        lambda self, code, pose, gaze, *a, **k: gazes.append(gaze.clone()) or forward(self, code, pose, gaze, *a, **k))
-    test_time_fit(model, renderer, batch, image, mask, 64, steps=5, gaze=FitGaze(GazeLoss(est), 1.0, every=every))
-    assert len(gazes) == renders
-    assert torch.equal(gazes[-1], batch["gaze_head"])  # the last step ends on the turned render
-
-
-def test_fit_gaze_rejects_bad_weights_and_terms():
-    from train.evaluation.fitting import FitGaze
-
-    for weight, terms, match in ((-1.0, ("target",), "weight must be >= 0"), (float("nan"), ("target",), "weight"),
-                                 (1.0, ("eyes",), "gaze terms must be some of"), (1.0, (), "gaze terms")):
-        with pytest.raises(ToolkitError, match=match):
-            FitGaze(None, weight, terms)
-    for every in (0, -1, 1.5):
-        with pytest.raises(ToolkitError, match="'every' must be an integer >= 1"):
-            FitGaze(None, 1.0, every=every)
-
-
-def test_target_gaze_in_the_camera_frame_matches_the_generator_label(two_frame_file):
-    """The turned render's label: the target's head-frame gaze through the input's view and head pose is the
-    generator's own camera-frame gaze of the target (the pair shares the input's view)."""
-    from toolkit.rotations import angular_error_deg, so3_exp
-    from train.data.pairing import SyntheticRedirectionPairs
-    from train.losses import gaze_to_camera
-
-    pairs = SyntheticRedirectionPairs(two_frame_file, res=64, seed=0)
-    items = [pairs[i] for i in range(4)]
-    st = lambda part, k: torch.stack([torch.as_tensor(it[part][k]) for it in items]).float()  # noqa: E731
-    R = st("input", "viewmat")[:, :3, :3] @ so3_exp(st("input", "pose")[:, :3])
-    cam = gaze_to_camera(st("target", "pitchyaw_head"), R)
-    assert float(angular_error_deg(cam, st("target", "pitchyaw_cam")).max()) < 0.01
-
-
-def test_gaze_term_reads_the_whole_head_whatever_region_the_fit_compares(two_frame_file):
-    """With ``batch["in_head_mask"]`` the estimator sees the renders inside the input's head mask even when the
-    fitting mask (here empty: everything white) leaves the eyes out."""
-    from train.evaluation.fitting import FitGaze
-
-    class Spy(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.images = []
-
-        def forward(self, render, target_image=None, target_gaze=None, landmarks=None):
-            self.images.append(render.detach())
-            return render.mean() * 0
-
-    model, renderer, _ = untrained_eval_parts()
-    batch, image, _ = _target_batch(two_frame_file, 1)
-    empty = torch.zeros_like(image[:, :1])
-    spy = Spy()
-    term = FitGaze(spy, 1.0, ("own", "target"))
-    with torch.no_grad():
-        term.term(model, renderer, batch, batch["code"], image, image, empty, 64, None)
-        assert all(bool((x == 1).all()) for x in spy.images)  # no head mask: the fitting mask, all white
-        spy.images.clear()
-        term.term(model, renderer, {**batch, "in_head_mask": torch.ones_like(empty)}, batch["code"], image, image,
-                  empty, 64, None)
-    assert len(spy.images) == 2 and all(bool((x != 1).any()) for x in spy.images)
 
 
 def test_render_target_at_the_inputs_own_gaze_reproduces_the_input(subject_file):
@@ -729,7 +503,7 @@ def test_eye_colours_group_fits_the_parametric_eyeball_alone_and_is_restored(sub
     def spy(groups, *a, **k):  # which rate each fitted tensor gets
         seen.update({id(p): g["lr"] for g in groups for p in g["params"]})
         return real_adam(groups, *a, **k)
-    batch, image, mask, eyes = _inputs(subject_file, 1)
+    batch, image, mask, eyes = pair_inputs(subject_file, 1)
     before = {k: v.clone() for k, v in model.state_dict().items()}
     with restored_weights(model, renderer), pytest.MonkeyPatch.context() as mp:
         mp.setattr(torch.optim, "Adam", spy)
