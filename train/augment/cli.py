@@ -47,9 +47,22 @@ def _check_splits(run, cfg) -> None:
     """One line before any work when the run's data cannot give the protocols their subjects."""
     if not run.split("test"):
         raise ToolkitError(f"{run.run_dir}: the run has no held-out subjects to calibrate on")
+    if "A" in cfg.protocols and min(cfg.ks) >= (most := max(_frame_count(f, run) for f in run.split("test"))):
+        raise ToolkitError(f"augment --ks {list(cfg.ks)}: the run's held-out persons have at most {most} frames, "
+                           f"and a k must leave a frame to test on (k < {most})")
     if "B" in cfg.protocols and not any(n <= len(run.split("train")) for n in cfg.subjects):
         raise ToolkitError(f"augment --subjects {list(cfg.subjects)}: the run has {len(run.split('train'))} "
                            "training subjects")
+
+
+def _frame_count(path: Path, run) -> int:
+    from train.data.dataset import GazeDataset
+
+    ds = GazeDataset([path], layout=run.config.data.layout)
+    try:
+        return len(set(ds.frame_indices(0).tolist()))
+    finally:
+        ds.close()
 
 
 def _as_json(cfg) -> dict:

@@ -65,8 +65,8 @@ def markdown(summary: dict, meta: dict) -> str:
     if "A" in summary:
         for k in sorted(summary["A"]["ii"], key=int):
             g = gain(summary, k)
-            lines.append(f"k = {k}: (iii) is {100 * g['relative']:+.1f} % better than (ii) and closes "
-                         f"{100 * g['gap_closed']:.0f} % of the (ii) → (iv) gap.")
+            lines.append(f"k = {k}: (iii) against (ii), {-100 * g['relative']:+.1f} % error (negative is better); "
+                         f"(iii) closes {100 * g['gap_closed']:.0f} % of the (ii) → (iv) gap.")
     lines += ["", "![error against k](augment.png)", ""]
     return "\n".join(lines)
 
@@ -87,6 +87,7 @@ def figure(summary: dict, path: Path) -> None:
         for arm, cells in arms.items():
             lv = sorted(cells, key=int)
             ax.plot([int(v) for v in lv], [cells[v]["mean"] for v in lv], "o-", label=arm)
+        ax.set_xticks(sorted({int(v) for cells in arms.values() for v in cells}))
         ax.set_xlabel("calibration frames k" if protocol == "A" else "training subjects n")
         ax.set_ylabel("gaze error (deg)")
         ax.set_title(f"protocol {protocol}")

@@ -244,6 +244,10 @@ class GazeDataset(torch.utils.data.Dataset):
             self._label_cache[k] = cached
         return cached
 
+    def frame_indices(self, k: int) -> np.ndarray:
+        """[n] int: the frame of each row of file ``k``, from its labels alone (no image is read)."""
+        return np.asarray(self._labels(k, self._file(k))["frame_index"]).reshape(-1)
+
     def read_row(self, k: int, row: int) -> dict[str, np.ndarray]:
         """Raw arrays of one row of file ``k`` (no resizing), for tools that need the stored data."""
         f = self._file(k)

@@ -43,6 +43,8 @@ def test_the_outputs_hold_every_arm_paired_with_the_control(augmented):
                 assert all(math.isfinite(e) and 0 <= e <= 180 for e in errs)
     md = (augmented / "augment.md").read_text()
     assert "Protocol A: personal calibration" in md and "| iii |" in md and "closes" in md
+    ii, iii = res["A"]["ii"]["1"]["mean"], res["A"]["iii"]["1"]["mean"]  # a gain reads negative, as diff does
+    assert f"k = 1: (iii) against (ii), {100 * (iii - ii) / ii:+.1f} % error (negative is better)" in md
     assert (augmented / "augment.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -102,4 +104,7 @@ def test_bad_settings_are_one_line(tiny_run, tmp_path):
                    r"'augment --seeds': expected a count", inputs=[tiny_run], out_dir=tmp_path)
     assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", out, "--warmup-steps", "-1"],
                    r"'augment --warmup-steps': expected a step count", inputs=[tiny_run], out_dir=tmp_path)
+    assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", out, "--ks", "50", "60"],
+                   r"augment --ks \[50, 60\]: the run's held-out persons have at most \d+ frames, and a k must "
+                   r"leave a frame to test on", inputs=[tiny_run], out_dir=tmp_path)
     assert not out.exists()
