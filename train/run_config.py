@@ -28,6 +28,7 @@ SEED = at_least(0, "a seed") | rule(lambda s: s < 2**32, "a seed below 2^32")
 MAX_STEPS = 10_000_000
 STEP_CAP = rule(lambda n: n <= MAX_STEPS, f"at most {MAX_STEPS} steps (a loop that long is a typo)")
 """Every step count's upper bound: the paper's longest schedule is 100,000 steps."""
+DEVICE = rule(lambda d: re.fullmatch(r"auto|cpu|cuda(:\d+)?", d) is not None, "auto, cpu, cuda or cuda:N")
 
 
 @dataclass
@@ -360,8 +361,7 @@ class RunConfig:
     """the preset the config started from (named in the report)."""
     seed: int = field(default=0, metadata=SEED)
     """seed of every stage's training, in [0, 2^32)."""
-    device: str = field(default="auto", metadata=rule(lambda d: re.fullmatch(r"auto|cpu|cuda(:\d+)?", d) is not None,
-                                                      "auto, cpu, cuda or cuda:N"))
+    device: str = field(default="auto", metadata=DEVICE)
     """"auto" (CUDA when available), "cpu", "cuda" or "cuda:N"."""
     threads: int = field(default=0, metadata=within(0, 1024, "a thread count {}"))
     """torch CPU threads, 0 to 1024 (0: torch's default)."""

@@ -104,7 +104,29 @@ def test_bad_settings_are_one_line(tiny_run, tmp_path):
                    r"'augment --seeds': expected a count", inputs=[tiny_run], out_dir=tmp_path)
     assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", out, "--warmup-steps", "-1"],
                    r"'augment --warmup-steps': expected a step count", inputs=[tiny_run], out_dir=tmp_path)
+    for flag, value, expected in (("--seed", str(2**32), "a seed below 2\\^32"), ("--device", "tpu", "auto, cpu, cuda"),
+                                  ("--grid", "16", r"gazes per axis in \[1, 15\]"),
+                                  ("--base-steps", "100000000", "at most 10000000 steps")):
+        assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", out, flag, value],
+                       rf"'augment {flag}': expected {expected}", inputs=[tiny_run], out_dir=tmp_path)
     assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", out, "--ks", "50", "60"],
                    r"augment --ks \[50, 60\]: the run's held-out persons have at most \d+ frames, and a k must "
                    r"leave a frame to test on", inputs=[tiny_run], out_dir=tmp_path)
     assert not out.exists()
+
+
+def test_output_places_and_memory_are_checked_before_any_work(tiny_run, tmp_path, monkeypatch):
+    """Each refusal comes before the base estimator trains (the time cap): a path under a file, an output file
+    that is a folder, and copies that would not fit the memory budget."""
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file")
+    assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", blocker / "sub", *FAST],
+                   r"--out .*blocker/sub: cannot write here", inputs=[tiny_run, blocker], seconds=20)
+    taken = tmp_path / "taken"
+    (taken / "augment.png").mkdir(parents=True)
+    assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", taken, *FAST],
+                   r"augment.png is a folder; expected a file", inputs=[tiny_run], out_dir=taken, seconds=20)
+    monkeypatch.setenv("DITGAZE_MEMORY_GB", "0.001")
+    assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", tmp_path / "o", *FAST, "--grid", "15"],
+                   r"augment's \d+ redirected images would allocate .*; lower --grid or --redirect-cameras",
+                   inputs=[tiny_run], out_dir=tmp_path, seconds=20)
