@@ -63,6 +63,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise ToolkitError(f"ablate --seeds: expected 1 to 100 seeds, got {args.seeds}")
     root = Path(args.run_dir)
     rows = table_rows(args.row)
+    check_rows(args.preset, args.overrides, rows)
     results = {name: [] for name, _ in rows}
     for seed in range(args.seeds):
         full = root / f"seed{seed}" / "full"
@@ -98,6 +99,22 @@ def table_rows(custom: list[list[str]] | None) -> tuple[tuple[str, tuple[str, ..
     return tuple(rows)
 
 
+def check_rows(preset_name: str, overrides: list[str], rows) -> None:
+    """Each row's config built and checked as its ``train.run`` will build it, before any training: a bad preset,
+    key or value is one line naming the row."""
+    from train.config import apply_overrides
+    from train.presets import PRESETS, preset
+    from train.stages.checks import check_config
+
+    if preset_name not in PRESETS:
+        raise ToolkitError(f"ablate --preset {preset_name!r}: expected one of {sorted(PRESETS)}")
+    for name, switch in rows:
+        try:
+            check_config(apply_overrides(preset(preset_name), [*overrides, *switch]))
+        except ToolkitError as e:
+            raise ToolkitError(f"ablate row {name!r}: {e}") from None
+
+
 def _slug(name: str) -> str:
     """The row's folder name: lower case, 'w/o ' as 'no_', anything but letters, digits, '.', '-' as '_'."""
     return re.sub(r"[^a-z0-9.\-]+", "_", name.replace("w/o ", "no_").lower())
@@ -111,11 +128,15 @@ def _run_row(args, full: Path, row_dir: Path, seed: int, switch: tuple[str, ...]
     if row_dir == full:
         argv = ["--preset", args.preset, "--run-dir", str(full), f"seed={seed}", *args.overrides]
     else:
-        if not (row_dir / "config.yaml").exists():  # a copy of the full run: its data, geometry, codec, estimators
-            shutil.copytree(full, row_dir, ignore=shutil.ignore_patterns("gaussian", "metrics.json", "report.md"))
+        if not row_dir.exists():  # a copy of the full run: its data, geometry, codec, estimators
+            _copy_run(full, row_dir)
         argv = ["--preset", args.preset, "--run-dir", str(row_dir), f"seed={seed}", *args.overrides, *switch]
-    if subprocess.run([sys.executable, "-m", "train.run", *argv]).returncode != 0:
-        raise ToolkitError(f"{row_dir}: the row's run failed (its error is above)")
+    # The row's own error line becomes this command's one error line; its other stderr (warnings) passes through.
+    proc = subprocess.run([sys.executable, "-m", "train.run", *argv], stderr=subprocess.PIPE, text=True)
+    errors = [ln.removeprefix("error: ") for ln in proc.stderr.splitlines() if ln.startswith("error: ")]
+    sys.stderr.write("".join(ln + "\n" for ln in proc.stderr.splitlines() if not ln.startswith("error: ")))
+    if proc.returncode != 0:
+        raise ToolkitError(f"{row_dir}: the row's run failed: {errors[-1] if errors else f'exit {proc.returncode}'}")
     metrics = json.loads((row_dir / "metrics.json").read_text())["metrics"]
     seconds = sum(json.loads((row_dir / "stages" / f"{s}.json").read_text()).get("seconds", 0.0)
                   for s in ("gaussian", "eval"))
@@ -123,6 +144,14 @@ def _run_row(args, full: Path, row_dir: Path, seed: int, switch: tuple[str, ...]
     if args.augment:
         out["augment_A"] = _augment_row(row_dir)
     return out
+
+
+def _copy_run(full: Path, row_dir: Path) -> None:
+    """``full`` without its Gaussian stage and evaluation, copied to ``row_dir`` whole or not at all."""
+    tmp = row_dir.with_name(f".{row_dir.name}.copying")
+    shutil.rmtree(tmp, ignore_errors=True)  # an interrupted copy's leftovers
+    shutil.copytree(full, tmp, ignore=shutil.ignore_patterns("gaussian", "metrics.json", "report.md", "augment"))
+    tmp.rename(row_dir)
 
 
 def _augment_row(row_dir: Path) -> dict:

@@ -154,3 +154,46 @@ def test_a_rows_augment_result_is_reused_not_recomputed(tmp_path, monkeypatch):
         {"A": {"iii": {"1": {"mean": 7.0, "diff": -1.5, "lo": -2.0, "hi": -1.0, "n": 2}}}}))
     monkeypatch.setattr(train.augment.cli, "main", lambda argv: pytest.fail("protocol A ran again"))
     assert _augment_row(tmp_path) == {"1": -1.5}
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--row", "myrow", "gaussian.stpes=3"], r"ablate row 'myrow': unknown config key 'gaussian.stpes'"),
+    (["--preset", "bogus"], r"ablate --preset 'bogus': expected one of \["),
+    (["gaussian.lr=nan"], r"ablate row 'full': config key 'gaussian.lr': expected a number, got 'nan'")])
+def test_every_rows_config_is_checked_before_any_training(tmp_path, argv, expected):
+    from tests.fuzz.cli import assert_refused
+
+    preset = [] if "--preset" in argv else ["--preset", "tiny"]
+    assert_refused("train.run", ["ablate", *preset, "--seeds", "1", "--run-dir", tmp_path / "t", *argv], expected,
+                   out_dir=tmp_path, seconds=30)
+    assert not (tmp_path / "t").exists()
+
+
+def test_a_failed_row_is_one_error_line_naming_it(tmp_path, monkeypatch, capsys):
+    """The row's process printed its own error line: it becomes the command's one line, its warnings pass."""
+    import argparse
+    import subprocess
+
+    from train.ablate import _run_row
+
+    failed = subprocess.CompletedProcess([], 2, stderr="UserWarning: slow\nerror: data.root: no such folder\n")
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: failed)
+    args = argparse.Namespace(preset="tiny", overrides=[], augment=False)
+    with pytest.raises(ToolkitError, match=r"full: the row's run failed: data.root: no such folder$"):
+        _run_row(args, tmp_path / "full", tmp_path / "full", 0, ())
+    assert capsys.readouterr().err == "UserWarning: slow\n"
+
+
+def test_a_rows_copy_leaves_out_the_full_models_own_results(tmp_path):
+    from train.ablate import _copy_run
+
+    full = tmp_path / "full"
+    for name in ("config.yaml", "geometry/mesh.ply", "gaussian/final.safetensors", "augment/augment.json",
+                 "metrics.json"):
+        (full / name).parent.mkdir(parents=True, exist_ok=True)
+        (full / name).write_text(name)
+    (tmp_path / ".row.copying").mkdir()  # an interrupted copy's leftovers
+    _copy_run(full, tmp_path / "row")
+    copied = sorted(str(p.relative_to(tmp_path / "row")) for p in (tmp_path / "row").rglob("*"))
+    assert copied == ["config.yaml", "geometry", "geometry/mesh.ply"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["full", "row"]
