@@ -35,7 +35,8 @@ Inputs:
 (``train.presets.NATURAL_EYES_FIT``).
 
 Resumable: work is done in chunks written atomically to ``OUT.parts/``; a rerun skips finished chunks,
-and the final file is assembled (atomically) when all chunks exist. ``OUT.parts/settings.json`` records the
+and the final file is assembled (atomically) when all chunks exist, each checked as it is read (a damaged
+one is refused by name, ``redirect_parts.read_chunk``). ``OUT.parts/settings.json`` records the
 settings the chunks were made with; a rerun with other settings is refused rather than mixed in.
 Shardable: under ``torchrun`` each process renders the chunks ``k ≡ rank (mod world)`` and rank 0 assembles.
 Each chunk draws its random numbers (a diffusion renderer's noise while fitting) from its own stream, seeded
@@ -62,10 +63,10 @@ from apps.redirect_parts import (
     redirect_settings,
     sampling_steps,
 )
-from apps.redirect_render import render_chunk
+from apps.redirect_render import OUTPUT_KEYS, render_chunk
 from toolkit.errors import ToolkitError, run_cli
 from toolkit.host import keep_freed_memory
-from toolkit.io import check_not_an_input
+from toolkit.io import check_not_an_input, check_not_inside
 from toolkit.limits import check_allocation, check_count
 
 GRID_EXAMPLE = "grid:5x5:30 (pitch rows × yaw columns over ±30°), random:200:35 (200 gazes uniform in ±35°), file:gazes.csv"
@@ -229,6 +230,7 @@ def check_args(args: argparse.Namespace) -> None:
     data = Path(args.dataset)
     read = [data, *(sorted(data.glob("*.h5")) + sorted(data.glob("*.hdf5")) if data.is_dir() else [])]
     check_not_an_input(args.out, [*read, args.run_dir], "out", "dataset")
+    check_not_inside(args.out, args.run_dir, "out", "run")  # its checkpoints, configs and training subjects
 
 
 def check_sizes(n_rows: int, n_gazes: int, res: int, args: argparse.Namespace) -> None:
@@ -335,7 +337,8 @@ def redirect_dataset(args: argparse.Namespace, gazes: np.ndarray, run=None, attr
     if info.is_main:
         n = assemble(parts, len(chunks), out, {"source_file": str(args.dataset), "run_dir": str(Path(args.run_dir)),
                                                "gazes_spec": args.gazes, "generator": "apps.redirect",
-                                               **(attrs or {})}, extra_rows)
+                                               **(attrs or {})}, extra_rows,
+                     source_rows=[np.repeat(c, len(gazes)) for c in chunks], keys=OUTPUT_KEYS)
         # The settings go last: chunks left by an interrupted clean-up stay tied to what made them.
         for p in sorted(parts.iterdir(), key=lambda p: p.name == "settings.json"):
             p.unlink()

@@ -4,6 +4,7 @@ the final HDF5 file assembled from them."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -105,33 +106,81 @@ def check_parts_settings(parts: Path, settings: dict) -> None:
         atomic_write_json(path, settings)
 
 
-def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict, extra_rows: dict | None = None) -> int:
+def read_chunk(path: Path, parts: Path, keys: set[str] | None, like: dict | None, source_rows: np.ndarray | None) -> dict:
+    """Chunk ``path``'s arrays, checked before any goes into the output: a chunk left by an earlier run may have
+    been cut short or edited, and a bad one would otherwise be a traceback or, worse, a file with NaN or with
+    datasets of unequal lengths. It must load, hold exactly ``keys`` (None: any, ``face_patch`` among them), give
+    every array its expected rows (``source_rows`` [n]: the ``source_row`` column it must hold, else as many as
+    its ``face_patch``), the trailing shapes and dtypes of ``like`` (the chunk read before it, so the datasets
+    can grow) and only finite floats. Any fault is one ToolkitError naming the chunk and how to have it rendered again."""
+    from toolkit.errors import one_line
+
+    def bad(problem: str) -> ToolkitError:
+        return ToolkitError(f"chunk {path}: {problem}; delete it (or the folder {parts}) and rerun the same "
+                            "command to render it again")
+
+    try:
+        z = np.load(path)  # pickles refused (allow_pickle=False): a chunk holds plain arrays
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError("a single .npy array, not an .npz archive")
+        with z:
+            arrays = {name: z[name] for name in z.files}
+    except Exception as e:  # noqa: BLE001 -- a damaged archive fails in many ways (zip, zlib, npy header, EOF)
+        raise bad(f"unreadable ({type(e).__name__}: {one_line(e, 160)})") from None
+    needed = {"face_patch"} | ({"source_row"} if source_rows is not None else set())  # counted, compared below
+    keys = keys if keys is not None else set(arrays) | needed
+    missing, extra = sorted(keys - set(arrays)), sorted(set(arrays) - keys)
+    if missing or extra:
+        raise bad("; ".join([f"missing the arrays {', '.join(missing)}"] * bool(missing)
+                            + [f"unexpected arrays {', '.join(extra)}"] * bool(extra)))
+    rows = np.shape(arrays["face_patch"])[:1] if source_rows is None else (len(source_rows),)
+    for name, v in sorted(arrays.items()):
+        if not rows or v.shape[:1] != rows:
+            raise bad(f"array {name!r} has shape {v.shape}, expected " + (f"{rows[0]} rows" if rows else "rows"))
+        if like is not None and (v.shape[1:] != like[name].shape[1:] or v.dtype != like[name].dtype):
+            raise bad(f"array {name!r} is {v.dtype} of shape {v.shape}, expected {like[name].dtype} rows of shape "
+                      f"{like[name].shape[1:]} as in the chunks before it")
+        n_bad = int((~np.isfinite(v)).sum()) if v.dtype.kind in "fc" else 0
+        if n_bad:
+            raise bad(f"array {name!r} holds {n_bad} non-finite values (NaN or inf)")
+    if source_rows is not None and not np.array_equal(arrays["source_row"], source_rows):
+        raise bad("its 'source_row' column is not the input rows this chunk renders")
+    return arrays
+
+
+def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict, extra_rows: dict | None = None,
+             source_rows: list[np.ndarray] | None = None, keys: Sequence[str] | None = None) -> int:
     """Concatenate the chunk files into one HDF5 file (atomic); returns the number of images. ``extra_rows``:
-    name -> [N_in, ...] arrays of the input rows, written per output row (``v[source_row]``)."""
+    name -> [N_in, ...] arrays of the input rows, written per output row (``v[source_row]``). Each chunk is
+    checked as it is read (``read_chunk``) against ``source_rows`` (per chunk, the ``source_row`` column it
+    must hold; default: as many rows as its ``face_patch``) and ``keys`` (default: the first chunk's); a bad
+    one writes nothing."""
     from toolkit.io import atomic_h5
     from toolkit.limits import check_allocation
 
-    n = 0
+    n, like = 0, None
     # The file is built in memory (a full disk then fails cleanly, see atomic_h5): at most its parts' size.
     check_allocation(sum(chunk_path(parts, k).stat().st_size for k in range(n_chunks)), f"writing {out_path}",
                      "ask for fewer target gazes or inputs per run")
     with atomic_h5(out_path) as h:
         # One chunk in memory at a time: the datasets grow as the chunks are appended.
         for k in range(n_chunks):
-            with np.load(chunk_path(parts, k)) as z:
-                for name in z.files:
-                    v = z[name]
-                    if name not in h:
-                        # Growing datasets need chunks: one image each (as write_subject_h5 stores them),
-                        # small rows ~64 KiB at a time (h5py's guess from the first part may be 1 row).
-                        rows = 1 if v.ndim >= 3 else max(1, min(4096, (1 << 16) // max(1, v[0].nbytes)))
-                        h.create_dataset(name, data=v, maxshape=(None, *v.shape[1:]), chunks=(rows, *v.shape[1:]),
-                                         compression="lzf" if v.ndim >= 3 else None)
-                        continue
-                    d = h[name]
-                    d.resize(d.shape[0] + v.shape[0], axis=0)
-                    d[-v.shape[0]:] = v
-                n += int(z["face_patch"].shape[0])
+            want = set(keys) if keys is not None else set(like) if like is not None else None
+            arrays = read_chunk(chunk_path(parts, k), parts, want, like,
+                                None if source_rows is None else source_rows[k])
+            for name, v in arrays.items():
+                if name not in h:
+                    # Growing datasets need chunks: one image each (as write_subject_h5 stores them),
+                    # small rows ~64 KiB at a time (h5py's guess from the first part may be 1 row).
+                    rows = 1 if v.ndim >= 3 else max(1, min(4096, (1 << 16) // max(1, v[0].nbytes)))
+                    h.create_dataset(name, data=v, maxshape=(None, *v.shape[1:]), chunks=(rows, *v.shape[1:]),
+                                     compression="lzf" if v.ndim >= 3 else None)
+                    continue
+                d = h[name]
+                d.resize(d.shape[0] + v.shape[0], axis=0)
+                d[-v.shape[0]:] = v
+            n += int(arrays["face_patch"].shape[0])
+            like = {name: v[:0] for name, v in arrays.items()}  # shapes and dtypes only, not the chunk's data
         for k, v in (extra_rows or {}).items():
             h.create_dataset(k, data=np.asarray(v)[h["source_row"][:]])
         for k, v in attrs.items():

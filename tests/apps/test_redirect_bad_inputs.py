@@ -4,14 +4,20 @@ exit 2, inputs unchanged, nothing new beside the output. Part of the fuzz suite 
 from __future__ import annotations
 
 import os
+import re
 import resource
+import shutil
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
+import h5py
+import numpy as np
 import pytest
 
+from apps import redirect
+from tests.apps.helpers import interrupt_redirect_before_assembly
 from tests.apps.test_redirect_csv import HEADER, write_crops
 from tests.fuzz.cli import assert_refused
 
@@ -58,6 +64,20 @@ def test_outputs_that_are_inputs_or_not_hdf5(tiny_trained_run, tmp_path):
     assert_refused("apps.redirect", [tiny_trained_run, data, data], r"out", inputs=[data], out_dir=tmp_path)
     assert_refused("apps.redirect", [tiny_trained_run, data, tmp_path / "out.png"], r"ending in .h5",
                    inputs=[data], out_dir=tmp_path)
+
+
+def test_output_replacing_a_file_of_the_run_is_refused(tiny_trained_run, tmp_path):
+    """An output that is an existing file of the run (here its training subject, not the input rows) would be
+    replaced by the redirected rows: refused before any work, under any spelling of its path; every file of
+    the run is left as it was and nothing is added to it."""
+    run_files = sorted(p for p in tiny_trained_run.rglob("*") if p.is_file())
+    subject = tiny_trained_run / "data" / "subject0000.h5"
+    assert subject in run_files
+    other = _h5(tiny_trained_run)
+    for out in (subject, tiny_trained_run / "data" / ".." / "data" / "subject0000.h5"):
+        assert_refused("apps.redirect", [tiny_trained_run, other, out, "--rows", "1", "--gazes", "grid:1x1:10"],
+                       r"^error: out .*subject0000.h5: already exists inside the run .*; writing it would replace it",
+                       inputs=run_files, out_dir=tiny_trained_run)
 
 
 def test_gaze_files(tiny_trained_run, tmp_path):
@@ -133,3 +153,72 @@ def test_redirect_on_a_full_disk(tiny_trained_run, tmp_path):
     assert len(errors) == 1 and "file too large" in errors[0], r.stderr[-2000:]
     assert not [p for p in tmp_path.rglob("*") if p.name.endswith(".tmp")]
     assert not (tmp_path / "out.h5").exists()
+
+
+def _truncate(chunk: Path) -> None:
+    chunk.write_bytes(chunk.read_bytes()[:1000])
+
+
+def _empty(chunk: Path) -> None:
+    chunk.write_bytes(b"")
+
+
+def _rewrite(chunk: Path, change) -> None:
+    with np.load(chunk) as z:
+        arrays = {k: z[k] for k in z.files}
+    change(arrays)
+    np.savez(chunk, **arrays)
+
+
+def _nan(arrays: dict) -> None:
+    arrays["pose"][0, 0] = np.nan
+    arrays["pitchyaw_cam"][-1] = np.nan
+
+
+def _without_pose(arrays: dict) -> None:
+    del arrays["pose"]
+
+
+DAMAGED_CHUNKS = [
+    ("truncated", _truncate, r"unreadable \(BadZipFile"),
+    ("zero-bytes", _empty, r"unreadable \(EOFError"),
+    ("nan", lambda c: _rewrite(c, _nan), r"array 'pitchyaw_cam' holds 2 non-finite values"),
+    ("missing-key", lambda c: _rewrite(c, _without_pose), r"missing the arrays pose"),
+    ("short-key", lambda c: _rewrite(c, lambda a: a.update(pose=a["pose"][:1])), r"'pose' has shape \(1, 6\), expected 2 rows"),
+    ("wrong-rows", lambda c: _rewrite(c, lambda a: a.update(source_row=a["source_row"] + 5)), r"'source_row' column is not"),
+]
+
+
+@pytest.fixture(scope="module")
+def leftover_chunks(tiny_trained_run, tmp_path_factory):
+    """An interrupted run's ``OUT.parts`` (settings and two chunks of 2 images each) and the arguments that made
+    it (the output path aside)."""
+    d = tmp_path_factory.mktemp("leftover")
+    flags = ["--gazes", "grid:1x2:10", "--rows", "2", "--batch", "1"]
+    args = [str(tiny_trained_run), str(_h5(tiny_trained_run)), str(d / "o.h5"), *flags]
+    with pytest.MonkeyPatch.context() as mp:
+        interrupt_redirect_before_assembly(args, mp)
+    parts = d / "o.h5.parts"
+    assert (parts / "settings.json").is_file() and len(list(parts.glob("part_*.npz"))) == 2
+    return parts, args
+
+
+@pytest.mark.parametrize("damage, match", [pytest.param(f, m, id=i) for i, f, m in DAMAGED_CHUNKS])
+def test_resume_refuses_a_damaged_chunk(leftover_chunks, tmp_path, damage, match):
+    """A leftover chunk is checked as it is read: a damaged one is one line naming it and saying how to redo it,
+    no output is written, and the chunks stay for the rerun."""
+    parts, args = leftover_chunks
+    out = tmp_path / "o.h5"
+    shutil.copytree(parts, tmp_path / "o.h5.parts")  # the settings do not name the output: they apply here too
+    chunk = tmp_path / "o.h5.parts" / "part_00001.npz"
+    damage(chunk)
+    assert_refused("apps.redirect", [*args[:2], out, *args[3:]],
+                   rf"^error: chunk {re.escape(str(chunk))}: .*{match}.*; delete it \(or the folder "
+                   rf"{re.escape(str(chunk.parent))}\) and rerun",
+                   inputs=[Path(args[1]), chunk], out_dir=tmp_path)
+    assert not out.exists()
+    chunk.unlink()  # as the error says: the chunk is rendered again and the file assembled
+    assert redirect.main([*args[:2], str(out), *args[3:]]) == 0
+    with h5py.File(out) as h:
+        assert {h[k].shape[0] for k in h} == {4}
+        assert np.isfinite(h["pose"][:]).all() and np.isfinite(h["pitchyaw_cam"][:]).all()
