@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -63,11 +64,52 @@ def check_args(args: argparse.Namespace) -> None:
                             ("--focal", args.focal, 1.0, 1e6), ("--scale", args.scale, 0.5, 2.0)):
         if v is not None and not (math.isfinite(v) and lo <= v <= hi):
             raise ToolkitError(f"{flag} must be in [{lo:g}, {hi:g}], got {v}")
+    if args.sheet is not None and Path(args.sheet).suffix.lower() != ".png":
+        raise ToolkitError(f"--sheet {args.sheet}: expected a file name ending in .png")
+
+
+def sheet_path(args: argparse.Namespace) -> tuple[Path, str]:
+    """The contact sheet's path and how to name it in an error line (the flag, or that it is the flag's default)."""
+    if args.sheet:
+        return Path(args.sheet), "--sheet"
+    return Path(args.out) / "contact_sheet.png", "--sheet (default OUT/contact_sheet.png)"
+
+
+def _check_can_make(folder: Path, what: str) -> None:
+    """``folder`` or its nearest existing ancestor must be a writable folder, so that the folders down to it can
+    be made: found out here rather than when the first file is written, after every photo was read."""
+    up = next((q for q in (folder, *folder.parents) if q.exists()), None)
+    if up is None:
+        return
+    if not up.is_dir():
+        raise ToolkitError(f"{what}: {up} is a file, not a folder")
+    if not os.access(up, os.W_OK | os.X_OK):
+        raise ToolkitError(f"{what}: cannot write in the folder {up} (no permission)")
+
+
+def check_outputs(args: argparse.Namespace, groups: list[tuple[str, list[Path]]]) -> None:
+    """Every output location, before any photo is read, so that a refusal leaves nothing written: the output
+    folder and the contact sheet can be made there, and neither a subject file nor the sheet replaces an input
+    (a photo, also one found in a given folder, the labels CSV or the run directory)."""
+    from toolkit.io import check_not_an_input
+
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ToolkitError(f"--out {out}: exists and is not a folder")
-    if args.sheet is not None and Path(args.sheet).suffix.lower() != ".png":
-        raise ToolkitError(f"--sheet {args.sheet}: expected a file name ending in .png")
+    _check_can_make(out, f"--out {out}")
+    sheet, flag = sheet_path(args)
+    if sheet.is_dir():
+        raise ToolkitError(f"{flag} {sheet}: is a folder, expected a .png file path")
+    _check_can_make(sheet.parent, f"{flag} {sheet}")
+    photos = [p for _, files in groups for p in files] + list(args.photos)
+    others = [q for q in (args.labels, args.like) if q]
+    for output, what in [(sheet, flag)] + [(out / f"{name}.h5", "--out's output") for name, _ in groups]:
+        check_not_an_input(output, photos, what, "photo")
+        check_not_an_input(output, others, what, "file")
+    for name, _ in groups:
+        h5 = out / f"{name}.h5"
+        if h5.is_dir():
+            raise ToolkitError(f"--out {out}: the output {h5} is a folder, expected a file path")
 
 
 def make_target(args: argparse.Namespace):
@@ -123,14 +165,13 @@ def prepare_group(name: str, photos: list[Path], finder, target, args, labels, r
 def main(argv: Sequence[str] | None = None) -> int:
     from apps.photo.faces import FaceFinder
     from apps.photo.images import photo_groups
-    from toolkit.io import check_not_an_input
 
     args = build_parser().parse_args(argv)
     check_args(args)
     groups = photo_groups(args.photos)
     every = [p for _, files in groups for p in files]
-    for name, files in groups:
-        check_not_an_input(Path(args.out) / f"{name}.h5", every, "output", "photo")
+    check_outputs(args, groups)
+    for _, files in groups:
         if len(json.dumps([str(p) for p in files])) > MAX_SOURCE_NAMES_BYTES:
             raise ToolkitError(f"{files[0].parent}: {len(files)} photos; their names exceed the {MAX_SOURCE_NAMES_BYTES}"
                                " bytes a file's source_files attribute holds: split the folder")
@@ -159,7 +200,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                            f"none of the {len(every)} photos gave a usable face (each reason above)")
     from apps.photo.sheet import write_contact_sheet
 
-    sheet = Path(args.sheet) if args.sheet else Path(args.out) / "contact_sheet.png"
+    sheet = sheet_path(args)[0]
     write_contact_sheet(sheet, strips, len(strips))
     print(f"wrote {len(written)} file(s) to {args.out}: {len(strips)} faces from {len(every) - len(problems)} of "
           f"{len(every)} photos; contact sheet {sheet}")

@@ -93,6 +93,24 @@ def _focal_35mm(im) -> float | None:
     return value if value is not None and math.isfinite(value) and 4 <= value <= 2000 else None
 
 
+def _check_not_a_stub(path: Path) -> None:
+    """Pillow recognizes some data formats by their signature (HDF5, GRIB, BUFR) as "stub" images of 0x0 pixels
+    it cannot decode: such a file is refused as not an image, not by the size check as an empty one."""
+    import warnings
+
+    from PIL import Image, ImageFile
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(path) as im:
+                fmt, stub = im.format, isinstance(im, ImageFile.StubImageFile) or 0 in im.size
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+        return  # missing, unreadable, not an image at all or too large: image_size words each
+    if stub:
+        raise ToolkitError(f"photo {path}: not a readable image ({fmt} data, not a picture)")
+
+
 def load_photo(path: str | os.PathLike) -> Photo:
     """Decode a photo (JPEG, PNG or anything Pillow reads) upright as 8-bit BGR. Not an image, a truncated or
     corrupt file, an image over ``toolkit.images.MAX_IMAGE_PIXELS``: a ToolkitError naming the file."""
@@ -104,6 +122,7 @@ def load_photo(path: str | os.PathLike) -> Photo:
     from toolkit.limits import check_allocation
 
     path = Path(path)
+    _check_not_a_stub(path)
     h, w = image_size(path, "photo")  # the header alone: a decompression bomb is refused before decoding
     check_allocation(h * w * 12, f"photo {path} ({w}x{h} pixels)")
     try:
