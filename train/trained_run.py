@@ -35,7 +35,7 @@ class TrainedRun(RunArtifacts):
         run_dir = Path(run_dir)
         if not (run_dir / "config.yaml").is_file():
             raise ToolkitError(f"{run_dir}: not a run directory (no config.yaml); train one with python -m train.run")
-        ctx = RunContext(run_dir, load_yaml_config(RunConfig, run_dir / "config.yaml"), log=lambda m: None)
+        ctx = RunContext(run_dir, _run_config(run_dir / "config.yaml"), log=lambda m: None)
         stale = finished_stages(STAGES, ctx)
         if "gaussian" not in ctx.outputs:
             raise ToolkitError(f"{run_dir}: stage 'gaussian' has not finished; there is no trained model")
@@ -58,3 +58,18 @@ class TrainedRun(RunArtifacts):
         """(model, renderer) untrained, at the trained model's code widths (:meth:`code_widths`) unless given:
         a finished run's training files need not be at hand."""
         return super().build_model(device, code_widths or self.code_widths())
+
+
+def _run_config(path: Path) -> RunConfig:
+    """A finished run's ``config.yaml``, its values checked as ``train.run`` checks them (not the files it names,
+    which a copied run may lack): an error names the file and the key, before any model is built."""
+    from train.stages.checks import check_values
+
+    if not path.read_text(encoding="utf-8", errors="replace").strip():
+        raise ToolkitError(f"{path}: empty; expected the run's config (python -m train.run writes it)")
+    cfg = load_yaml_config(RunConfig, path)
+    try:
+        check_values(cfg)
+    except ToolkitError as e:
+        raise ToolkitError(f"{path}: {e}") from None
+    return cfg

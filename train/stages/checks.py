@@ -19,12 +19,18 @@ def _require(ok: object, key: str, text: str) -> None:
 
 def check_config(cfg: RunConfig) -> None:
     """Every check of a run config, before any work; each failure is one ``ToolkitError`` naming the key."""
+    check_values(cfg)
+    _check_memory(cfg)
+    _check_files(cfg)  # last: what names something outside the config, once the values themselves are sound
+
+
+def check_values(cfg: RunConfig) -> None:
+    """The checks of the config's values alone (not the files it names, nor this machine's memory): what a
+    finished run's ``config.yaml`` must still pass to be opened."""
     check_fields(cfg)
     _check_sizes(cfg)
     _check_models(cfg)
     _check_fit(cfg)
-    _check_memory(cfg)
-    _check_files(cfg)  # last: what names something outside the config, once the values themselves are sound
 
 
 def _check_sizes(cfg: RunConfig) -> None:

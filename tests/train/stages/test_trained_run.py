@@ -25,6 +25,23 @@ def test_open_run_uses_a_run_finished_under_an_older_config(tiny_run, tmp_path, 
     assert "gaussian" in caplog.text and "different config" in caplog.text
 
 
+@pytest.mark.parametrize("edit, expected", [
+    (lambda t: t.replace("\n  res: ", "\n  res: -5 #", 1), r"config.yaml: config key 'data.res': expected an image size"),
+    (lambda t: t.replace("\n  sampling_steps: ", "\n  sampling_steps: 1000000000 #", 1),
+     r"config.yaml: config key 'gaussian.sampling_steps'"),
+    (lambda t: " \n", r"config.yaml: empty; expected the run's config")])
+def test_a_finished_runs_config_is_checked_when_opened(tiny_run, tmp_path, edit, expected):
+    """Every app opens a run through TrainedRun.open: a value train.run would refuse is named with its file and
+    key there, not later by whatever first reads it."""
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d, ignore=shutil.ignore_patterns("data"))
+    text = (d / "config.yaml").read_text()
+    assert edit(text) != text
+    (d / "config.yaml").write_text(edit(text))
+    with pytest.raises(ToolkitError, match=expected):
+        TrainedRun.open(d)
+
+
 def test_redirect_app_writes_a_loadable_dataset(tiny_run, tmp_path):
     from apps import redirect
     from train.data.dataset import GazeDataset
