@@ -230,7 +230,8 @@ def check_args(args: argparse.Namespace) -> None:
     data = Path(args.dataset)
     read = [data, *(sorted(data.glob("*.h5")) + sorted(data.glob("*.hdf5")) if data.is_dir() else [])]
     check_not_an_input(args.out, [*read, args.run_dir], "out", "dataset")
-    check_not_inside(args.out, args.run_dir, "out", "run")  # its checkpoints, configs and training subjects
+    if (Path(args.run_dir) / "config.yaml").is_file():  # else TrainedRun.open says it is not a run directory
+        check_not_inside(args.out, args.run_dir, "out", "run")  # its checkpoints, configs and training subjects
 
 
 def check_sizes(n_rows: int, n_gazes: int, res: int, args: argparse.Namespace) -> None:
