@@ -58,6 +58,7 @@ import torch
 from apps.labels_table import is_labels_csv
 from apps.redirect_parts import (
     assemble,
+    check_out_of_run,
     check_parts_settings,
     chunk_path,
     redirect_settings,
@@ -66,7 +67,7 @@ from apps.redirect_parts import (
 from apps.redirect_render import OUTPUT_KEYS, render_chunk
 from toolkit.errors import ToolkitError, run_cli
 from toolkit.host import keep_freed_memory
-from toolkit.io import check_not_an_input, check_not_inside
+from toolkit.io import check_not_an_input
 from toolkit.limits import check_allocation, check_count
 
 GRID_EXAMPLE = "grid:5x5:30 (pitch rows × yaw columns over ±30°), random:200:35 (200 gazes uniform in ±35°), file:gazes.csv"
@@ -231,7 +232,7 @@ def check_args(args: argparse.Namespace) -> None:
     read = [data, *(sorted(data.glob("*.h5")) + sorted(data.glob("*.hdf5")) if data.is_dir() else [])]
     check_not_an_input(args.out, [*read, args.run_dir], "out", "dataset")
     if (Path(args.run_dir) / "config.yaml").is_file():  # else TrainedRun.open says it is not a run directory
-        check_not_inside(args.out, args.run_dir, "out", "run")  # its checkpoints, configs and training subjects
+        check_out_of_run(args.out, args.run_dir)
 
 
 def check_sizes(n_rows: int, n_gazes: int, res: int, args: argparse.Namespace) -> None:

@@ -77,6 +77,31 @@ def redirect_settings(run, src, args, gazes: np.ndarray, n_rows: int, fit_steps:
     return settings
 
 
+def check_out_of_run(out: str | Path, run_dir: str | Path) -> None:
+    """Before any work: an output inside the run directory must neither add a subject file to its data folder
+    (a retraining would take it as a subject) nor replace one of its files; an earlier output of this command
+    there (its ``generator`` attribute) may be written again. Paths compared resolved, links followed."""
+    out_r, run_r = Path(out).resolve(), Path(run_dir).resolve()
+    if not out_r.is_relative_to(run_r):
+        return
+    if out_r.is_relative_to(run_r / "data"):
+        raise ToolkitError(f"out {out}: inside the run's data folder ({run_dir}/data), where a retraining would "
+                           "read it as a subject; give another path")
+    if out_r.exists() and not _is_redirect_output(out_r):
+        raise ToolkitError(f"out {out}: already exists inside the run {run_dir} and is not an earlier output of "
+                           "apps.redirect; writing it would replace it, give another path")
+
+
+def _is_redirect_output(path: Path) -> bool:
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return f.attrs.get("generator") == "apps.redirect"
+    except (OSError, ValueError):  # not an HDF5 file: one of the run's own
+        return False
+
+
 def check_parts_settings(parts: Path, settings: dict) -> None:
     """Record ``settings`` in ``parts/settings.json``, or refuse (ToolkitError) when chunks already there were
     made with other settings: a resumed run must not mix, say, fitted and unfitted rows in one file. Settings
@@ -180,7 +205,7 @@ def assemble(parts: Path, n_chunks: int, out_path: Path, attrs: dict, extra_rows
                 d.resize(d.shape[0] + v.shape[0], axis=0)
                 d[-v.shape[0]:] = v
             n += int(arrays["face_patch"].shape[0])
-            like = {name: v[:0] for name, v in arrays.items()}  # shapes and dtypes only, not the chunk's data
+            like = {name: np.empty((0, *v.shape[1:]), v.dtype) for name, v in arrays.items()}  # not a view: frees the chunk
         for k, v in (extra_rows or {}).items():
             h.create_dataset(k, data=np.asarray(v)[h["source_row"][:]])
         for k, v in attrs.items():

@@ -177,17 +177,6 @@ def check_not_an_input(output: str | os.PathLike, inputs: list[str | os.PathLike
                                "another path")
 
 
-def check_not_inside(output: str | os.PathLike, folder: str | os.PathLike, flag: str = "output",
-                     kind: str = "folder") -> None:
-    """A ToolkitError, before any work, when ``output`` is an existing file under ``folder`` (a folder the command
-    reads, say a trained run): writing it would replace one of that folder's files. A new file there is
-    harmless, so only what exists is refused; paths are compared resolved, links followed."""
-    out, root = Path(output).resolve(), Path(folder).resolve()
-    if out.exists() and out.is_relative_to(root):
-        raise ToolkitError(f"{flag} {output}: already exists inside the {kind} {folder}; writing it would replace "
-                           "it, give another path")
-
-
 def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata: dict[str, Any] | None = None) -> None:
     """Write tensors as safetensors with JSON-encodable ``metadata`` stored under the key ``"json"``."""
     from safetensors.torch import save as st_save

@@ -20,6 +20,7 @@ from apps import redirect
 from tests.apps.helpers import interrupt_redirect_before_assembly
 from tests.apps.test_redirect_csv import HEADER, write_crops
 from tests.fuzz.cli import assert_refused
+from toolkit.errors import ToolkitError
 
 pytestmark = pytest.mark.fuzz
 ROOT = Path(__file__).resolve().parents[2]
@@ -66,18 +67,36 @@ def test_outputs_that_are_inputs_or_not_hdf5(tiny_trained_run, tmp_path):
                    inputs=[data], out_dir=tmp_path)
 
 
-def test_output_replacing_a_file_of_the_run_is_refused(tiny_trained_run, tmp_path):
-    """An output that is an existing file of the run (here its training subject, not the input rows) would be
-    replaced by the redirected rows: refused before any work, under any spelling of its path; every file of
-    the run is left as it was and nothing is added to it."""
+def test_an_output_inside_the_run_neither_replaces_its_files_nor_joins_its_data(tiny_trained_run, tmp_path):
+    """An output in the run's data folder (its training subjects, or a new file a retraining would take as a
+    subject) is refused before any work, under any
+    spelling of its path; every file of the run is left as it was and nothing is added to it."""
     run_files = sorted(p for p in tiny_trained_run.rglob("*") if p.is_file())
     subject = tiny_trained_run / "data" / "subject0000.h5"
     assert subject in run_files
     other = _h5(tiny_trained_run)
-    for out in (subject, tiny_trained_run / "data" / ".." / "data" / "subject0000.h5"):
+    for out, match in ((subject, "inside the run's data folder"),
+                       (tiny_trained_run / "data" / ".." / "data" / "subject0000.h5", "inside the run's data folder"),
+                       (tiny_trained_run / "data" / "new.h5", "inside the run's data folder")):
         assert_refused("apps.redirect", [tiny_trained_run, other, out, "--rows", "1", "--gazes", "grid:1x1:10"],
-                       r"^error: out .*subject0000.h5: already exists inside the run .*; writing it would replace it",
-                       inputs=run_files, out_dir=tiny_trained_run)
+                       rf"^error: out .*: {match}", inputs=run_files, out_dir=tiny_trained_run)
+
+
+def test_an_earlier_output_inside_the_run_may_be_written_again(tiny_trained_run, tmp_path):
+    from apps import redirect
+    from apps.redirect_parts import check_out_of_run
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_trained_run, run)
+    argv = [run, _h5(run), run / "redirected.h5", "--rows", "1", "--gazes", "grid:1x1:10"]
+    assert redirect.main([str(a) for a in argv]) == 0
+    check_out_of_run(run / "redirected.h5", run)  # its own earlier output: not refused
+    with h5py.File(run / "mine.h5", "w") as f:  # any other HDF5 file of the run's folder is
+        f.attrs["generator"] = "a notebook"
+    with pytest.raises(ToolkitError, match=r"mine.h5: already exists inside the run .* not an earlier output of "
+                                           r"apps.redirect; writing it would replace it"):
+        check_out_of_run(run / "mine.h5", run)
+    assert redirect.main([str(a) for a in argv[:3]] + ["--rows", "1", "--gazes", "grid:1x1:20"]) == 0
 
 
 def test_gaze_files(tiny_trained_run, tmp_path):
