@@ -29,21 +29,35 @@ def one_line(e: BaseException | str, limit: int | None = 200) -> str:
 OUR_PACKAGES = ("toolkit", "render", "geometry", "train", "apps", "benchmarks")
 
 
+ERROR_FILE_ENV = "DITGAZE_ERROR_FILE"
+"""When set, :func:`run_cli` writes its error line's text to that file instead of stderr: for a parent that runs
+the command as a child process and reports the failure as its own one line (``train.ablate``)."""
+
+
+def _report(text: str) -> None:
+    if path := os.environ.get(ERROR_FILE_ENV):
+        with contextlib.suppress(OSError):
+            with open(path, "w", encoding="utf-8") as f:
+                f.write(text)
+            return
+    print(f"error: {text}", file=sys.stderr)
+
+
 def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[str] | None = None) -> int:
     """Run a CLI entry point; ``ToolkitError``, a missing package, a file-system error on a named path and Ctrl-C
-    become one line on stderr, never a traceback."""
+    become one line on stderr (or in :data:`ERROR_FILE_ENV`'s file), never a traceback."""
     try:
         code = main(argv)
     except ToolkitError as e:
-        print(f"error: {e}", file=sys.stderr)
+        _report(str(e))
         return 2
     except ModuleNotFoundError as e:
         if (e.name or "").split(".")[0] in OUR_PACKAGES:
             raise  # a broken import of our own code is a bug, not a missing install
         # Heavy dependencies (open3d, pymeshlab, trimesh, glfw) are imported lazily, inside the command that needs
         # them, so a partial install fails here rather than at start-up.
-        print(f"error: this command needs the Python package {e.name!r}, which is not installed "
-              f"(`make setup` installs every dependency)", file=sys.stderr)
+        _report(f"this command needs the Python package {e.name!r}, which is not installed "
+                "(`make setup` installs every dependency)")
         return 2
     except BrokenPipeError:
         # The reader went away (`... | head`): stop quietly, as cat does. Point stdout at /dev/null so the
@@ -55,9 +69,9 @@ def run_cli(main: Callable[[Sequence[str] | None], int | None], argv: Sequence[s
         if e.filename is None:
             raise  # not about a path the user gave: a bug or a system fault, keep its traceback
         # A path the user gave that the system refuses (a file where a folder should be, no permission, a full disk).
-        print(f"error: {e.filename}: {e.strerror or e}", file=sys.stderr)
+        _report(f"{e.filename}: {e.strerror or e}")
         return 2
     except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
+        _report("interrupted")
         return 130
     return int(code or 0)

@@ -19,12 +19,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Sequence
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import ERROR_FILE_ENV, ToolkitError
 
 ROWS = (("full", ()),
         ("w/o DiT renderer", ("gaussian.renderer=unet", "gaussian.feature_upscale=4")),
@@ -108,9 +110,14 @@ def check_rows(preset_name: str, overrides: list[str], rows) -> None:
 
     if preset_name not in PRESETS:
         raise ToolkitError(f"ablate --preset {preset_name!r}: expected one of {sorted(PRESETS)}")
-    for name, switch in rows:
+    try:
+        shared = apply_overrides(preset(preset_name), overrides)
+        check_config(shared)  # the full row's config
+    except ToolkitError as e:
+        raise ToolkitError(f"ablate overrides (every row's): {e}") from None
+    for name, switch in rows[1:]:
         try:
-            check_config(apply_overrides(preset(preset_name), [*overrides, *switch]))
+            check_config(apply_overrides(shared, list(switch)))
         except ToolkitError as e:
             raise ToolkitError(f"ablate row {name!r}: {e}") from None
 
@@ -128,15 +135,18 @@ def _run_row(args, full: Path, row_dir: Path, seed: int, switch: tuple[str, ...]
     if row_dir == full:
         argv = ["--preset", args.preset, "--run-dir", str(full), f"seed={seed}", *args.overrides]
     else:
-        if not row_dir.exists():  # a copy of the full run: its data, geometry, codec, estimators
+        if not (row_dir / "config.yaml").exists():  # a copy of the full run: its data, geometry, codec, estimators
             _copy_run(full, row_dir)
         argv = ["--preset", args.preset, "--run-dir", str(row_dir), f"seed={seed}", *args.overrides, *switch]
-    # The row's own error line becomes this command's one error line; its other stderr (warnings) passes through.
-    proc = subprocess.run([sys.executable, "-m", "train.run", *argv], stderr=subprocess.PIPE, text=True)
-    errors = [ln.removeprefix("error: ") for ln in proc.stderr.splitlines() if ln.startswith("error: ")]
-    sys.stderr.write("".join(ln + "\n" for ln in proc.stderr.splitlines() if not ln.startswith("error: ")))
-    if proc.returncode != 0:
-        raise ToolkitError(f"{row_dir}: the row's run failed: {errors[-1] if errors else f'exit {proc.returncode}'}")
+    # The row's error line comes back through a file and becomes this command's one error line; its progress
+    # and warnings reach the terminal as they happen.
+    with tempfile.TemporaryDirectory() as tmp:
+        error_file = Path(tmp) / "error"
+        code = subprocess.run([sys.executable, "-m", "train.run", *argv],
+                              env={**os.environ, ERROR_FILE_ENV: str(error_file)}).returncode
+        error = error_file.read_text(encoding="utf-8").strip() if error_file.exists() else ""
+    if code != 0:
+        raise ToolkitError(f"{row_dir}: the row's run failed: {error or f'exit {code} (its output is above)'}")
     metrics = json.loads((row_dir / "metrics.json").read_text())["metrics"]
     seconds = sum(json.loads((row_dir / "stages" / f"{s}.json").read_text()).get("seconds", 0.0)
                   for s in ("gaussian", "eval"))
@@ -148,6 +158,9 @@ def _run_row(args, full: Path, row_dir: Path, seed: int, switch: tuple[str, ...]
 
 def _copy_run(full: Path, row_dir: Path) -> None:
     """``full`` without its Gaussian stage and evaluation, copied to ``row_dir`` whole or not at all."""
+    if row_dir.exists():
+        raise ToolkitError(f"{row_dir}: exists but is not a run directory (no config.yaml); remove it, and the "
+                           "row is copied from the full run again")
     tmp = row_dir.with_name(f".{row_dir.name}.copying")
     shutil.rmtree(tmp, ignore_errors=True)  # an interrupted copy's leftovers
     shutil.copytree(full, tmp, ignore=shutil.ignore_patterns("gaussian", "metrics.json", "report.md", "augment"))

@@ -24,6 +24,17 @@ def test_expected_failures_are_one_line(capsys, exc, code, text):
     assert text in err and err.count("\n") == 1 and "Traceback" not in err
 
 
+def test_a_parent_can_take_the_error_line_through_a_file(capsys, monkeypatch, tmp_path):
+    """With the error-file variable set (a parent running the CLI as its child), the line goes to that file."""
+    from toolkit.errors import ERROR_FILE_ENV
+
+    monkeypatch.setenv(ERROR_FILE_ENV, str(tmp_path / "error"))
+    assert run_cli(_raises(ToolkitError("gaussian.lr: expected a number")), []) == 2
+    assert (tmp_path / "error").read_text() == "gaussian.lr: expected a number" and capsys.readouterr().err == ""
+    monkeypatch.setenv(ERROR_FILE_ENV, str(tmp_path / "missing" / "error"))  # unwritable: stderr as always
+    assert run_cli(_raises(ToolkitError("x")), []) == 2 and capsys.readouterr().err == "error: x\n"
+
+
 def test_exit_codes_pass_through_and_bugs_still_raise():
     assert run_cli(lambda argv: None, []) == 0
     assert run_cli(lambda argv: 3, []) == 3

@@ -159,7 +159,8 @@ def test_a_rows_augment_result_is_reused_not_recomputed(tmp_path, monkeypatch):
 @pytest.mark.parametrize("argv, expected", [
     (["--row", "myrow", "gaussian.stpes=3"], r"ablate row 'myrow': unknown config key 'gaussian.stpes'"),
     (["--preset", "bogus"], r"ablate --preset 'bogus': expected one of \["),
-    (["gaussian.lr=nan"], r"ablate row 'full': config key 'gaussian.lr': expected a number, got 'nan'")])
+    (["gaussian.lr=nan"], r"ablate overrides \(every row's\): config key 'gaussian.lr': expected a number, got 'nan'"),
+    (["--row", "r", "gaussian.renderer=gan"], r"ablate row 'r': config key 'gaussian.renderer': expected one of")])
 def test_every_rows_config_is_checked_before_any_training(tmp_path, argv, expected):
     from tests.fuzz.cli import assert_refused
 
@@ -169,19 +170,29 @@ def test_every_rows_config_is_checked_before_any_training(tmp_path, argv, expect
     assert not (tmp_path / "t").exists()
 
 
-def test_a_failed_row_is_one_error_line_naming_it(tmp_path, monkeypatch, capsys):
-    """The row's process printed its own error line: it becomes the command's one line, its warnings pass."""
+def test_a_failed_row_is_one_error_line_naming_it(tmp_path, monkeypatch):
+    """The row's process hands its error line over through the error file: it becomes the command's one line
+    (its other output reaches the terminal as it runs)."""
     import argparse
+    import os
     import subprocess
 
+    from toolkit.errors import ERROR_FILE_ENV
     from train.ablate import _run_row
 
-    failed = subprocess.CompletedProcess([], 2, stderr="UserWarning: slow\nerror: data.root: no such folder\n")
-    monkeypatch.setattr(subprocess, "run", lambda *a, **k: failed)
+    def child(argv, env):
+        with open(env[ERROR_FILE_ENV], "w") as f:
+            f.write("data.root: no such folder")
+        return subprocess.CompletedProcess(argv, 2)
+
+    monkeypatch.setattr(subprocess, "run", child)
     args = argparse.Namespace(preset="tiny", overrides=[], augment=False)
     with pytest.raises(ToolkitError, match=r"full: the row's run failed: data.root: no such folder$"):
         _run_row(args, tmp_path / "full", tmp_path / "full", 0, ())
-    assert capsys.readouterr().err == "UserWarning: slow\n"
+    monkeypatch.setattr(subprocess, "run", lambda argv, env: subprocess.CompletedProcess(argv, 1))  # a traceback
+    with pytest.raises(ToolkitError, match=r"the row's run failed: exit 1 \(its output is above\)$"):
+        _run_row(args, tmp_path / "full", tmp_path / "full", 0, ())
+    assert ERROR_FILE_ENV not in os.environ
 
 
 def test_a_rows_copy_leaves_out_the_full_models_own_results(tmp_path):
@@ -197,3 +208,6 @@ def test_a_rows_copy_leaves_out_the_full_models_own_results(tmp_path):
     copied = sorted(str(p.relative_to(tmp_path / "row")) for p in (tmp_path / "row").rglob("*"))
     assert copied == ["config.yaml", "geometry", "geometry/mesh.ply"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["full", "row"]
+    (tmp_path / "row" / "config.yaml").unlink()  # a folder of that name that is no run: named, not copied into
+    with pytest.raises(ToolkitError, match=r"row: exists but is not a run directory \(no config.yaml\)"):
+        _copy_run(full, tmp_path / "row")
