@@ -26,8 +26,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cfg = config_from_args(args)
     run = TrainedRun.open(args.run_dir)
-    if cfg.device != "auto":
-        run.config.device = cfg.device
+    run.config.device = cfg.device  # auto: CUDA when available, whatever device the run trained on
     device = resolve_device(run.config)
     out = Path(args.out)
     check_not_an_input(out, [Path(args.run_dir)], "--out", "folder")
