@@ -164,7 +164,14 @@ class RunArtifacts:
 
         path = self.context.path("gaussian", "checkpoint")
         model, renderer = self.build_model(device, checkpoint_code_widths(path))
-        load_training_checkpoint(path, modules={"model": model, "renderer": renderer}, restore_rng=False)
+        modules = {"model": model, "renderer": renderer}
+        load_training_checkpoint(path, modules=modules, restore_rng=False)
+        # A damaged file is named here, not later by the splatter or the renderer as a diverged fit.
+        for prefix, module in modules.items():
+            for name, t in module.state_dict().items():
+                if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                    raise ToolkitError(f"{path}: tensor '{prefix}.{name}' holds NaN or inf values: the checkpoint is "
+                                       "damaged (re-run stage gaussian)")
         return model.eval(), renderer.eval()
 
     # ----------------------------------------------------------------------------- test-time fitting

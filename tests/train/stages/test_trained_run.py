@@ -4,6 +4,7 @@ import shutil
 
 import h5py
 import pytest
+import torch
 
 from toolkit import ToolkitError
 from train.trained_run import TrainedRun
@@ -73,3 +74,23 @@ def test_preview_opens_a_trained_run(tiny_run, tmp_path):
     assert (tmp_path / "sweep.png").exists() and len(info["gazes"]) == 2
     with pytest.raises(ToolkitError, match=r"a trained run directory \(with config.yaml\)"):
         load_scene(str(tmp_path))
+
+
+def test_a_trained_model_holding_nan_is_named_with_its_file_and_tensor(tiny_run, tmp_path):
+    """A damaged final checkpoint is refused where it is read, naming the file and the tensor, instead of by the
+    splatter (\"rasterize: means contains NaN\") or as a diverged test-time fit."""
+    from toolkit.io import load_tensors, save_tensors
+
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d, ignore=shutil.ignore_patterns("data"))
+    run = TrainedRun.open(d)
+    path = run.context.path("gaussian", "checkpoint")
+    model, _ = run.load_model("cpu")  # undamaged: loads
+    tensors, meta = load_tensors(path)
+    key = next(k for k, v in tensors.items() if v.is_floating_point() and v.numel() > 1 and "renderer" in k)
+    tensors[key] = tensors[key].clone().reshape(-1).index_fill(0, torch.tensor([0]), float("nan")).reshape(
+        tensors[key].shape)
+    save_tensors(path, tensors, meta)
+    with pytest.raises(ToolkitError, match=r"final.safetensors: tensor 'renderer\..*' holds NaN or inf values: the "
+                                           r"checkpoint is damaged"):
+        run.load_model("cpu")
