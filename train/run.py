@@ -15,7 +15,8 @@ config section and upstream stages, are unchanged; one module each in ``train/st
 The resolved config is written to ``config.yaml``; a config with an unknown key or a wrong type fails
 before any work. Without ``--preset`` or ``--config`` an existing run directory continues its own
 ``config.yaml`` (``--run-dir out/run --stages eval eval.tta_steps=20`` re-runs one stage of that run); a run
-refused because an unselected upstream stage is missing or was made under another config leaves it untouched.
+refused because an unselected upstream stage (direct or read through others) is missing or was made under another
+config, a stage record it reads is unreadable, or an eval output cannot be written leaves it untouched.
 Launch with ``torchrun --nproc_per_node N -m train.run ...`` for DDP in stage gaussian: each process takes 1/N
 of ``gaussian.batch`` (the same rows of every random draw) and the gradients are averaged, so the weights equal
 one process's on the whole batch up to float sums (tested); rank 0 logs and writes the checkpoints.
@@ -122,6 +123,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     run_dir = Path(args.run_dir)
     ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True))
     check_run(STAGES, stages, ctx, force)  # a refused run leaves the run's config.yaml as it was
+    if "eval" in stages:  # its outputs too: not after the stages before it have run (the stage checks again)
+        from train.evaluation.report import check_eval_outputs
+
+        check_eval_outputs(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     save_yaml_config(cfg, run_dir / "config.yaml")
     t0 = time.perf_counter()

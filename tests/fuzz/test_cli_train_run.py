@@ -110,3 +110,56 @@ def test_the_memory_budget_follows_the_environment(tmp_path, monkeypatch):
     monkeypatch.setenv("DITGAZE_MEMORY_GB", "lots")
     assert_refused("train.run", ["--preset", "tiny", "--run-dir", tmp_path / "run"], r"^error: DITGAZE_MEMORY_GB",
                    out_dir=tmp_path)
+
+
+def _finished_looking_run(run):
+    """A run directory whose config.yaml and stage records say every stage of the tiny preset finished (each
+    record with no output files): what the checks before any work read, without training anything."""
+    from toolkit.io import atomic_write_json
+    from train.config import save_yaml_config
+    from train.presets import preset
+    from train.stages import STAGES
+    from train.stages.pipeline import fingerprint
+
+    cfg = preset("tiny")
+    run.mkdir()
+    save_yaml_config(cfg, run / "config.yaml")
+    prints = {}
+    for stage in STAGES:
+        prints[stage.name] = fingerprint(stage, cfg, prints)
+        atomic_write_json(run / "stages" / f"{stage.name}.json", {"fingerprint": prints[stage.name], "outputs": {}})
+
+
+# (id, what is done to the finished run, error regex): each read only through the stages the eval stage reads.
+DAMAGED_RUNS = [
+    ("garbage-data-record", lambda r: (r / "stages/data.json").write_text("garbage\n"), r"data\.json: unreadable"),
+    ("truncated-codec-record", lambda r: (r / "stages/codec.json").write_text("{\n"), r"codec\.json: unreadable"),
+    ("no-data-record", lambda r: (r / "stages/data.json").unlink(),
+     r"stage 'eval' needs stage 'data' \(through stage '\w+'\), which has not run"),
+    ("no-geometry-record", lambda r: (r / "stages/geometry.json").unlink(),
+     r"stage 'eval' needs stage 'geometry' \(through stage 'gaussian'\), which has not run"),
+    ("qualitative-is-a-dir", lambda r: (r / "qualitative.png").mkdir(),
+     r"qualitative\.png: is a directory, expected a file path to write"),
+    ("report-is-a-dir", lambda r: (r / "report.md").mkdir(), r"report\.md: is a directory, expected a file path"),
+]
+
+
+@pytest.mark.parametrize("damage, match", [pytest.param(f, m, id=i) for i, f, m in DAMAGED_RUNS])
+def test_a_refused_eval_rerun_leaves_the_run_and_its_config_as_they_were(tmp_path, damage, match):
+    """The overrides must not reach config.yaml when the run is refused for what its stage records say (an
+    upstream stage read only through another one too) or for an eval output it cannot write."""
+    run = tmp_path / "run"
+    _finished_looking_run(run)
+    damage(run)
+    assert_refused("train.run", ["--run-dir", run, "--stages", "eval", "eval.pairs_per_subject=1",
+                                 "eval.tta_steps=0"], match, inputs=[run], out_dir=tmp_path)
+
+
+def test_a_bad_record_of_a_stage_downstream_is_refused_before_the_config_is_written(tmp_path):
+    """--stages data on a finished run skips data, then reads the eval stage's record: a bad one is refused
+    before the overrides are written."""
+    run = tmp_path / "run"
+    _finished_looking_run(run)
+    (run / "stages/eval.json").write_text("[]\n")
+    assert_refused("train.run", ["--run-dir", run, "--stages", "data", "eval.tta_steps=0"],
+                   r"eval\.json: expected a JSON object", inputs=[run], out_dir=tmp_path)

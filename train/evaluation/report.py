@@ -4,10 +4,12 @@ evaluation (``train.evaluation.summary.summarize_evaluation``'s result)."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import torch
 
+from toolkit.errors import ToolkitError
 from train.run_config import EvalConfig, RunConfig, eval_sampling_steps
 
 LABEL_ROW = "*reference: the target read against its labels*"
@@ -227,8 +229,8 @@ def ruler_note(cfg: RunConfig, run_dir: Path) -> str:
 
 
 def report_markdown(res: dict, cfg: RunConfig, run_dir: Path, figures: dict[str, str]) -> str:
-    """The whole ``report.md``: the setting, the table, the notes, the figures (``figures``: what
-    :func:`write_figures` wrote) and the ablation commands."""
+    """The whole ``report.md``: the setting, the table, the notes, the figures (``figures``: {figure name: file
+    name}, what :func:`figure_pngs` made) and the ablation commands."""
     ablation = f"renderer={cfg.gaussian.renderer}, orthogonality={cfg.gaussian.orthogonality}, " \
                f"weak_supervision={cfg.gaussian.weak_supervision}"
     return (f"# DiT-Gaze evaluation ({cfg.preset} preset)\n\n"
@@ -250,24 +252,50 @@ def report_markdown(res: dict, cfg: RunConfig, run_dir: Path, figures: dict[str,
             + ablation_section(run_dir, cfg))
 
 
-def write_figures(run_dir: Path, res: dict, sweep: torch.Tensor) -> dict[str, str]:
-    """Write ``qualitative.png`` (rows: inputs, targets and renders of the first pairs, then ``sweep`` [G, 3,
-    H, W], the first input at the sweep's gazes) and, when there are any, ``eyes.png`` (the eyes of the pairs
-    with the largest gaze errors) into ``run_dir``; returns {figure name: file name}."""
+EVAL_OUTPUTS = ("metrics.json", "report.md", "qualitative.png", "eyes.png")
+"""The files the eval stage writes into the run directory (``eyes.png`` only when there are eye views)."""
+
+
+def check_eval_outputs(run_dir: Path) -> None:
+    """Refuse, before the evaluation's work, a run directory the eval stage could not write all of its outputs
+    into: a failure on the last of them would leave the first ones new beside the others old."""
+    for name in EVAL_OUTPUTS:
+        if (run_dir / name).is_dir():
+            raise ToolkitError(f"{run_dir / name}: is a directory, expected a file path to write (the eval stage's "
+                               f"{name})")
+    if run_dir.is_dir() and not os.access(run_dir, os.W_OK | os.X_OK):
+        raise ToolkitError(f"{run_dir}: not writable, expected a folder the eval stage can write "
+                           f"{', '.join(EVAL_OUTPUTS)} into")
+
+
+def figure_pngs(res: dict, sweep: torch.Tensor) -> dict[str, tuple[str, bytes]]:
+    """{figure name: (file name, PNG bytes)}: ``qualitative.png`` (rows: inputs, targets and renders of the first
+    pairs, then ``sweep`` [G, 3, H, W], the first input at the sweep's gazes) and, when there are any,
+    ``eyes.png`` (the eyes of the pairs with the largest gaze errors)."""
     import cv2
 
-    from toolkit.io import atomic_write_bytes
     from train.evaluation.figures import eye_views_grid, image_grid
 
     ex = res["examples"]
     k = min(6, ex["input"].shape[0])
     grid = image_grid([ex["input"][:k], ex["target"][:k], ex["render"][:k], sweep],
                       ["input", "target", "render", "gaze sweep"])
-    ok, png = cv2.imencode(".png", grid[:, :, ::-1])
-    atomic_write_bytes(run_dir / "qualitative.png", png.tobytes())
-    figures = {"figure": "qualitative.png"}
+    figures = {"figure": ("qualitative.png", cv2.imencode(".png", grid[:, :, ::-1])[1].tobytes())}
     if res["worst_eyes"]:
-        ok, png = cv2.imencode(".png", eye_views_grid(res["worst_eyes"])[:, :, ::-1])
-        atomic_write_bytes(run_dir / "eyes.png", png.tobytes())
-        figures["eyes"] = "eyes.png"
+        figures["eyes"] = ("eyes.png", cv2.imencode(".png", eye_views_grid(res["worst_eyes"])[:, :, ::-1])[1].tobytes())
     return figures
+
+
+def write_eval_outputs(run_dir: Path, metrics: dict, figures: dict[str, tuple[str, bytes]], report: str) -> None:
+    """Write the eval stage's outputs, all made beforehand, one after another (each atomically), after checking
+    again that each can be written; an ``eyes.png`` of an earlier evaluation that this one has no eye views for
+    is removed, so no figure of another evaluation stays beside this one's report."""
+    from toolkit.io import atomic_write_bytes, atomic_write_json, atomic_write_text
+
+    check_eval_outputs(run_dir)
+    for name, png in figures.values():
+        atomic_write_bytes(run_dir / name, png)
+    if "eyes" not in figures:
+        (run_dir / "eyes.png").unlink(missing_ok=True)
+    atomic_write_text(run_dir / "report.md", report)
+    atomic_write_json(run_dir / "metrics.json", metrics)

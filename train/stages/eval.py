@@ -13,7 +13,6 @@ from pathlib import Path
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.io import atomic_write_json, atomic_write_text
 from train.run_config import EvalConfig, RunConfig, eval_sampling_steps
 from train.stages.artifacts import RunArtifacts, resolve_device
 from train.stages.pipeline import RunContext
@@ -24,10 +23,17 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     """The evaluation protocol on the test split, the report and the figures. Test subjects may be evaluated in
     two processes at once (:func:`eval_groups`); each subject's scores depend only on the threads its process
     has, and the merged result is what one process with that many threads gives (tested)."""
-    from train.evaluation.report import describe_protocol, report_markdown, write_figures
+    from train.evaluation.report import (
+        check_eval_outputs,
+        describe_protocol,
+        figure_pngs,
+        report_markdown,
+        write_eval_outputs,
+    )
     from train.evaluation.summary import summarize_evaluation
     from train.stages.checks import check_eval_pairing
 
+    check_eval_outputs(ctx.run_dir)  # minutes of work must not end in a refusal that leaves half the outputs new
     run = RunArtifacts(ctx)
     device = run.device
     _check_the_fit_reads_another_estimator(run)
@@ -49,15 +55,15 @@ def stage_eval(ctx: RunContext) -> dict[str, str]:
     datasets = run.dataset_names()
     ctx.log(f"[eval] protocol: {protocol}; trained on {datasets['train']}, evaluated on {datasets['eval']}")
     res["datasets"] = datasets
-    atomic_write_json(ctx.run_dir / "metrics.json", {"protocol": protocol, "datasets": datasets,
-                                                     "metrics": res["metrics"],
-                                                     "per_subject": res["per_subject"],
-                                                     "per_pair": res["per_pair"], "own_gaze": res["own_gaze"],
-                                                     "references": res["references"], "labels": res["labels"],
-                                                     **({"natural_fit_per_pair": res["natural_fit_per_pair"]}
-                                                        if natural is not None else {})})
-    figures = write_figures(ctx.run_dir, res, _eval_sweep(run, device))
-    atomic_write_text(ctx.run_dir / "report.md", report_markdown(res, ctx.config, ctx.run_dir, figures))
+    metrics = {"protocol": protocol, "datasets": datasets, "metrics": res["metrics"],
+               "per_subject": res["per_subject"], "per_pair": res["per_pair"], "own_gaze": res["own_gaze"],
+               "references": res["references"], "labels": res["labels"],
+               **({"natural_fit_per_pair": res["natural_fit_per_pair"]} if natural is not None else {})}
+    # Every output is made before the first is written, so that a failure while making one (the sweep's fit,
+    # a figure) leaves the previous evaluation's set whole; the pipeline writes the stage's record after them.
+    pngs = figure_pngs(res, _eval_sweep(run, device))
+    figures = {k: name for k, (name, _) in pngs.items()}
+    write_eval_outputs(ctx.run_dir, metrics, pngs, report_markdown(res, ctx.config, ctx.run_dir, figures))
     ctx.log(f"[eval] report: {ctx.run_dir / 'report.md'}")
     return {"report": "report.md", "metrics": "metrics.json", **figures}
 

@@ -74,29 +74,46 @@ def fingerprint(stage: Stage, cfg: Any, upstream: dict[str, str]) -> str:
 
 
 def check_dependencies(stages: list[Stage], selected: list[str], ctx: RunContext) -> None:
-    """Raise for a selected stage whose unselected dependency is missing or stale (or unknown), before anything
-    runs or is written: fingerprints depend on the config alone, not on outputs. :func:`run_stages` starts with
-    it; ``train.run`` also calls it before writing the run's ``config.yaml``."""
+    """Raise for a selected stage whose unselected upstream stage, direct or read through others (eval reads the
+    data, geometry, codec and estimator outputs beside the Gaussian checkpoint), is missing or stale (or
+    unknown), before anything runs or is written: fingerprints depend on the config alone, not on outputs.
+    :func:`run_stages` starts with it; ``train.run`` also calls it before writing the run's ``config.yaml``."""
     prints: dict[str, str] = {}
     for stage in stages:
         missing_dep = [d for d in stage.depends if d not in prints]
         if missing_dep:
             raise ToolkitError(f"stage '{stage.name}' depends on unknown stage(s) {missing_dep}")
         prints[stage.name] = fingerprint(stage, ctx.config, prints)
-    for stage in stages:
-        if stage.name not in selected:
+    needs = _unselected_upstream(stages, selected)
+    for stage in stages:  # pipeline order: the first missing one is the one to run first
+        if stage.name not in needs:
+            continue
+        d, (reader, via) = stage.name, needs[stage.name]
+        who = f"stage '{reader}' needs stage '{d}'" + (f" (through stage '{via}')" if via else "")
+        record = _finished_record(ctx.run_dir, d)
+        if record is None:
+            raise ToolkitError(f"{who}, which has not run in {ctx.run_dir}")
+        if record.get("fingerprint") != prints[d]:
+            raise ToolkitError(f"{who}, whose outputs in {ctx.run_dir} were made under another config than this one "
+                               f"(or from other upstream outputs); re-run it too (--stages {d},...), or start from "
+                               f"the run's own config (--config {ctx.run_dir / 'config.yaml'}) with the same overrides")
+
+
+def _unselected_upstream(stages: list[Stage], selected: list[str]) -> dict[str, tuple[str, str | None]]:
+    """Every unselected stage a selected one reads, directly or through other stages -> (that selected stage,
+    the unselected stage that reads it, or None when the selected one reads it directly)."""
+    needs: dict[str, tuple[str, str | None]] = {}
+    for stage in reversed(stages):  # a stage's readers come after it, so they are seen first
+        if stage.name in selected:
+            reader = stage.name
+        elif stage.name in needs:
+            reader = needs[stage.name][0]
+        else:
             continue
         for d in stage.depends:
-            if d in selected:
-                continue
-            record = _finished_record(ctx.run_dir, d)
-            if record is None:
-                raise ToolkitError(f"stage '{stage.name}' needs stage '{d}', which has not run in {ctx.run_dir}")
-            if record.get("fingerprint") != prints[d]:
-                raise ToolkitError(f"stage '{stage.name}' needs stage '{d}', whose outputs in {ctx.run_dir} were made "
-                                   f"under another config than this one (or from other upstream outputs); re-run it "
-                                   f"too (--stages {d},...), or start from the run's own config "
-                                   f"(--config {ctx.run_dir / 'config.yaml'}) with the same overrides")
+            if d not in selected:
+                needs.setdefault(d, (reader, None if reader == stage.name else stage.name))
+    return needs
 
 
 def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force: list[str] = ()) -> dict[str, str]:
@@ -143,9 +160,9 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
 
 
 def check_run(stages: list[Stage], selected: list[str], ctx: RunContext, force: list[str] = ()) -> None:
-    """Every check :func:`run_stages` makes before any stage runs (dependencies present and current, nothing
-    made stale half-way); ``train.run`` calls it before writing the run's ``config.yaml``, so a refused run
-    leaves the directory as it was."""
+    """Every check :func:`run_stages` makes before any stage runs (upstream stages present and current, every
+    stage record it reads readable, nothing made stale half-way); ``train.run`` calls it before writing the
+    run's ``config.yaml``, so a refused run leaves the directory as it was."""
     check_dependencies(stages, selected, ctx)
     _check_nothing_goes_stale_midway(stages, selected, ctx, force)
 
@@ -164,6 +181,8 @@ def _check_nothing_goes_stale_midway(stages: list[Stage], selected: list[str], c
         if stage.name not in selected:
             if cause is not None:
                 stale[stage.name] = cause
+            else:  # run_stages reads this record too (one a re-run drops is gone by then): refuse a bad one now
+                _finished_record(ctx.run_dir, stage.name)
             continue
         for d in stage.depends:
             if d in stale:
