@@ -8,7 +8,6 @@ import dataclasses
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.io import load_metadata
 from train.run_config import RunConfig
 from train.stages.artifacts import CODE_WIDTHS_KEY, RunArtifacts, resolve_device
 from train.stages.pipeline import RunContext, Stage, fingerprint
@@ -28,6 +27,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     from train.training.trainer import open_split
 
     cfg = ctx.config
+    start = resume_step(ctx)  # before any work: the checkpoints may refuse the run
     run = RunArtifacts(ctx)
     info = init_distributed(cfg.device if cfg.device != "auto" else "auto")
     device = torch.device(info.device) if info.enabled else resolve_device(cfg)
@@ -36,7 +36,7 @@ def stage_gaussian(ctx: RunContext) -> dict[str, str]:
     # Read a batch at a time: the paper's split is ~75 GB as float32 tensors (docs/pipeline.md, Data in memory).
     data = open_split(run.split("train"), "all", cfg.data.res, layout=cfg.data.layout)
     try:
-        return _train(ctx, run, info, device, model, renderer, data)
+        return _train(ctx, run, info, device, model, renderer, data, start)
     finally:
         data.close()
         cleanup(info)
@@ -54,9 +54,31 @@ def load_pretrained_fields(ctx: RunContext, model) -> None:
     ctx.log(f"[gaussian] {', '.join(names)} start from the geometry stage's pre-training ({fields})")
 
 
-def _train(ctx: RunContext, run: RunArtifacts, info, device, model, renderer, data) -> dict[str, str]:
-    """The stage's training on ``data`` (:class:`train.training.trainer.TrainRows`) from the built modules."""
-    from train.training.checkpoint import CheckpointManager, save_training_checkpoint
+def resume_step(ctx: RunContext) -> int:
+    """The step the stage starts at: 0, or under ``--resume`` the step recorded in the newest readable checkpoint
+    (a name could lie; :meth:`~train.training.checkpoint.CheckpointManager.newest` refuses one that does). A
+    directory under a checkpoint's name, or checkpoints none of which reads, are refused here, before the
+    model is built."""
+    from train.training.checkpoint import CheckpointManager
+
+    mgr = CheckpointManager(ctx.run_dir / "gaussian" / "checkpoints")
+    mgr.check_files()
+    found = mgr.resume_from() if ctx.resume else None
+    if found is None:
+        return 0
+    path, meta = found
+    ema_decay = ctx.config.gaussian.ema_decay
+    if ema_decay > 0 and "ema_model" not in meta["modules"]:
+        raise ToolkitError(f"{path}: written without a weight average, so it cannot resume with "
+                           f"gaussian.ema_decay={ema_decay}; resume with the run's earlier value (0), or "
+                           "rerun the stage without --resume")
+    return meta["step"]
+
+
+def _train(ctx: RunContext, run: RunArtifacts, info, device, model, renderer, data, start: int) -> dict[str, str]:
+    """The stage's training on ``data`` (:class:`train.training.trainer.TrainRows`) from the built modules, from
+    step ``start`` (:func:`resume_step`)."""
+    from train.training.checkpoint import save_training_checkpoint
     from train.training.distributed import shard
     from train.training.loop import MetricsLogger, train_loop
     from train.training.trainer import GaussianTrainer, init_rgb, lr_factor, optimizer_groups
@@ -73,13 +95,8 @@ def _train(ctx: RunContext, run: RunArtifacts, info, device, model, renderer, da
                               shard=shard(g.batch, info) if info.enabled else None, seed=cfg.seed)
     opt = torch.optim.Adam(optimizer_groups(model, renderer, g))
     stage_dir = ctx.run_dir / "gaussian"
-    mgr = CheckpointManager(stage_dir / "checkpoints")
-    if ctx.resume and mgr.latest() is not None:
-        if g.ema_decay > 0 and "ema_model" not in load_metadata(mgr.latest()).get("modules", []):
-            raise ToolkitError(f"{mgr.latest()}: written without a weight average, so it cannot resume with "
-                               f"gaussian.ema_decay={g.ema_decay}; resume with the run's earlier value (0), or "
-                               "rerun the stage without --resume")
-        trainer.fast_forward(int(mgr.latest().name[5:13]))
+    # The sampler's draws of the steps before ``start``; none past the last step, which no step would use.
+    trainer.fast_forward(min(start, g.steps))
     modules, final, after_step = _trained_modules(model, renderer, g.ema_decay)
     metrics = MetricsLogger(ctx.run_dir, tensorboard=True)
     try:

@@ -8,6 +8,7 @@ crash or SIGKILL mid-save leaves the previous checkpoint intact (at most one int
 
 from __future__ import annotations
 
+import json
 import random
 import re
 from pathlib import Path
@@ -16,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, one_line
 from toolkit.io import load_metadata, load_tensors, save_tensors
 
 _NAME = re.compile(r"ckpt_(\d{8})\.safetensors$")
@@ -78,6 +79,62 @@ def set_rng_state(tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> Non
     np.random.set_state((n[0], np.array(n[1], dtype=np.uint32), *n[2:]))
 
 
+def _check_rng_state(path: str | Path, meta: dict[str, Any], tensors: dict[str, torch.Tensor] | None) -> None:
+    """Try a checkpoint's random-number states on throwaway generators, so a malformed one is refused as one line
+    before anything is restored (the global generators' setters raise Python errors half-way otherwise)."""
+    if "rng" not in meta:
+        raise ToolkitError(f"{path}: has no random-number state to resume from (metadata key 'rng')")
+    rng = meta["rng"]
+    try:
+        random.Random().setstate(_from_json(rng["python"]))
+        n = rng["numpy"]
+        np.random.RandomState().set_state((n[0], np.array(n[1], dtype=np.uint32), *n[2:]))
+        if tensors is not None:
+            torch.Generator().set_state(tensors["rng/torch"])
+    except (TypeError, ValueError, KeyError, IndexError, OverflowError, RuntimeError) as e:
+        raise ToolkitError(f"{path}: metadata 'rng' must be the random-number states a checkpoint records "
+                           f"(python, numpy, and the tensor 'rng/torch'), got {_shown(rng)} "
+                           f"({type(e).__name__}: {one_line(e, limit=120)})") from None
+
+
+def _shown(value: Any) -> str:
+    """A metadata value as its JSON, cut short: a random-number state alone is thousands of numbers."""
+    text = json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def check_checkpoint_metadata(path: str | Path, meta: dict[str, Any], *, rng: bool = True) -> None:
+    """Refuse, as one line naming the file and the field, metadata that is not what
+    :func:`save_training_checkpoint` writes: the file is then a forgery or was edited, and reading it on
+    would fail deep in a load with a Python error. ``rng``: its random-number state is needed too."""
+    if "step" not in meta or "modules" not in meta:
+        raise ToolkitError(f"{path}: not a training checkpoint (no step/modules in its metadata)")
+
+    def expect(field: str, ok: bool, what: str) -> None:
+        if not ok:
+            raise ToolkitError(f"{path}: metadata '{field}' must be {what}, got {_shown(meta[field])}")
+
+    step = meta["step"]
+    expect("step", isinstance(step, int) and not isinstance(step, bool) and step >= 0, "a step count (a whole number >= 0)")
+    expect("modules", isinstance(meta["modules"], list) and all(isinstance(m, str) for m in meta["modules"]),
+           "a list of module names")
+    expect("extra", isinstance(meta.setdefault("extra", {}), dict), "a JSON object")
+    optim = meta.setdefault("optim", {})
+    expect("optim", isinstance(optim, dict) and all(
+        isinstance(o, dict) and isinstance(o.get("param_groups"), list) and isinstance(o.get("scalars"), dict)
+        and all(isinstance(sc, dict) for sc in o["scalars"].values()) for o in optim.values()),
+        "a JSON object of optimizer states (each with a list 'param_groups' and an object 'scalars')")
+    if rng:
+        _check_rng_state(path, meta, None)
+
+
+def checkpoint_metadata(path: str | Path, *, rng: bool = True) -> dict[str, Any]:
+    """The metadata of the training checkpoint ``path``, checked (:func:`check_checkpoint_metadata`)."""
+    meta = load_metadata(path)
+    check_checkpoint_metadata(path, meta, rng=rng)
+    return meta
+
+
 def save_training_checkpoint(
     path: str | Path,
     *,
@@ -115,8 +172,9 @@ def load_training_checkpoint(
     ``ToolkitError`` naming the module and the first offending parameter.
     """
     tensors, meta = load_tensors(path)
-    if "step" not in meta or "modules" not in meta:
-        raise ToolkitError(f"{path}: not a training checkpoint (no step/modules in its metadata)")
+    check_checkpoint_metadata(path, meta, rng=False)
+    if restore_rng:  # checked before any module is loaded, so a refusal leaves them as they were
+        _check_rng_state(path, meta, tensors)
     for name, m in modules.items():
         prefix = f"module/{name}/"
         sd = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
@@ -139,17 +197,15 @@ def load_training_checkpoint(
         m.load_state_dict(sd)
     for name, opt in (optimizers or {}).items():
         key = f"optim/{name}"
-        if key not in meta.get("optim", {}):
+        if key not in meta["optim"]:
             raise ToolkitError(f"{path}: has no state for optimizer '{name}'")
         try:
             opt.load_state_dict(_unflatten_optimizer(key, tensors, meta["optim"]))
-        except (ValueError, KeyError, TypeError) as e:  # another grouping of the parameters, say
+        except (ValueError, KeyError, TypeError, AttributeError, IndexError) as e:  # another grouping, say
             raise ToolkitError(f"{path}: incompatible state for optimizer '{name}' ({str(e).splitlines()[0][:160]})") from None
     if restore_rng:
-        if "rng" not in meta:
-            raise ToolkitError(f"{path}: has no random-number state to resume from (metadata key 'rng')")
         set_rng_state(tensors, meta["rng"])
-    return {"step": int(meta["step"]), "extra": meta.get("extra", {})}
+    return {"step": meta["step"], "extra": meta["extra"]}
 
 
 class CheckpointManager:
@@ -160,6 +216,8 @@ class CheckpointManager:
         self.keep = max(1, keep)
         self.skipped: list[Path] = []
         """the unreadable checkpoints the last :meth:`latest` passed over"""
+        self.reasons: dict[Path, str] = {}
+        """why each of :attr:`skipped` could not be read"""
 
     def path_for(self, step: int) -> Path:
         return self.folder / f"ckpt_{step:08d}.safetensors"
@@ -169,18 +227,51 @@ class CheckpointManager:
             return []
         return sorted((p for p in self.folder.iterdir() if _NAME.search(p.name)), key=lambda p: p.name)
 
+    def check_files(self) -> None:
+        """Refuse a directory (or a link to nothing, a device...) with a checkpoint's name, before any training:
+        it is no checkpoint to resume, and saving over it, or clearing it for a fresh run, would fail later."""
+        for p in self.all():
+            if not p.is_file():
+                kind = "a directory" if p.is_dir() else "a broken link" if p.is_symlink() else "no regular file"
+                raise ToolkitError(f"{p}: is {kind}, expected a checkpoint file (the training saves its checkpoints "
+                                   "under this name); move it out of the checkpoint folder")
+
     def latest(self) -> Path | None:
-        """The newest checkpoint whose header reads (writes are atomic, so an unreadable one was damaged
-        afterwards: the one before it is the one to resume from)."""
-        self.skipped = []
+        """The newest checkpoint whose header and metadata read (writes are atomic, so an unreadable one was
+        damaged afterwards: the one before it is the one to resume from)."""
+        found = self.newest()
+        return found[0] if found is not None else None
+
+    def newest(self) -> tuple[Path, dict[str, Any]] | None:
+        """``(path, checked metadata)`` of :meth:`latest`. A checkpoint whose recorded step is not the one its name
+        says (a copy under another name) is refused: resuming it would start at one step and replay the
+        data of the other, and its name would keep it the newest however long the run trained."""
+        self.check_files()
+        self.skipped, self.reasons = [], {}
         for p in reversed(self.all()):
             try:
-                load_metadata(p)
-            except ToolkitError:
+                meta = checkpoint_metadata(p)
+            except ToolkitError as e:
                 self.skipped.append(p)
+                self.reasons[p] = str(e)
                 continue
-            return p
+            named = int(_NAME.search(p.name).group(1))
+            if meta["step"] != named:
+                raise ToolkitError(f"{p}: its name says step {named} but its metadata records step {meta['step']} "
+                                   f"(a copy?); rename it to {self.path_for(meta['step']).name} or remove it")
+            return p, meta
         return None
+
+    def resume_from(self) -> tuple[Path, dict[str, Any]] | None:
+        """:meth:`newest`, None for a folder without checkpoints; refused when there are checkpoints but none
+        reads, before any training: resuming from the start would delete them with its first save."""
+        found = self.newest()
+        if found is None and self.skipped:
+            first = self.skipped[-1]
+            raise ToolkitError(f"{self.folder}: none of its checkpoints can be read "
+                               f"({', '.join(p.name for p in reversed(self.skipped))}; {self.reasons[first]}); "
+                               "remove them to train the stage afresh, or rerun without --resume")
+        return found
 
     def save(self, step: int, **kwargs: Any) -> Path:
         path = self.path_for(step)

@@ -25,7 +25,7 @@ from typing import Any, Callable, Iterator
 import torch
 
 from toolkit.errors import ToolkitError
-from train.training.checkpoint import CheckpointManager, load_metadata, load_training_checkpoint
+from train.training.checkpoint import CheckpointManager, load_training_checkpoint
 from train.training.distributed import DistInfo, all_ranks, average_gradients
 
 StepFn = Callable[[int, torch.Generator], dict[str, torch.Tensor]]
@@ -70,26 +70,29 @@ class MetricsLogger:
         from a run that crashed or was re-run, are dropped, and so is a line torn by a crash, so the log holds
         each step of the model being trained once. Rewritten atomically; other stages' records are kept."""
         try:
-            text = self.path.read_text(encoding="utf-8")
+            data = self.path.read_bytes()
         except FileNotFoundError:
             return
-        lines = text.splitlines(keepends=True)
-        if lines and not lines[-1].endswith("\n"):
-            lines.pop()  # torn by a crash mid-write
+        except OSError as e:  # a directory or an unreadable file in its place: nothing trained yet
+            raise ToolkitError(f"{self.path}: cannot read the metrics log ({e.strerror}); expected a file of "
+                               "JSON lines (remove or move it to start a new log)") from None
+        # Bytes, line by line: a line that is not UTF-8 is garbage like any other that is not a record, kept as it is.
+        *whole, torn = data.split(b"\n")  # ``torn``: after the last newline, b"" or a line torn by a crash
+        lines = [line + b"\n" for line in whole]
 
-        def superseded(line: str) -> bool:
+        def superseded(line: bytes) -> bool:
             try:
-                rec = json.loads(line)
-            except ValueError:
+                rec = json.loads(line.decode("utf-8"))
+            except (ValueError, RecursionError):  # UnicodeDecodeError among them; RecursionError: nested deep
                 return False  # not ours to judge: kept as it is
             return isinstance(rec, dict) and rec.get("stage") == stage and isinstance(rec.get("step"), int) \
                 and rec["step"] > step
 
-        kept = [line for line in lines if not superseded(line)]
-        if "".join(kept) != text:
-            from toolkit.io import atomic_write_text
+        kept = b"".join(line for line in lines if not superseded(line))
+        if kept != data:
+            from toolkit.io import atomic_write_bytes
 
-            atomic_write_text(self.path, "".join(kept))
+            atomic_write_bytes(self.path, kept)
 
     def log(self, stage: str, step: int, values: dict[str, float]) -> None:
         rec = {"stage": stage, "step": step, "time": time.time(), **values}
@@ -218,22 +221,26 @@ def _starting_point(stage: str, mgr: CheckpointManager, modules: dict[str, torch
                     optimizers: dict[str, torch.optim.Optimizer], *, resume: bool, fingerprint: str | None,
                     is_main: bool, log: Callable[[str], None] | None) -> tuple[int, Path | None]:
     """``(first step, newest checkpoint)``: with ``resume`` the newest readable checkpoint is loaded into
-    ``modules`` and ``optimizers`` (its fingerprint must match); without, the main rank deletes the old ones."""
-    last_ckpt = mgr.latest()  # reads checkpoint headers: once
-    if mgr.skipped and resume and log is not None and is_main:
+    ``modules`` and ``optimizers`` (its fingerprint must match); without, the main rank deletes the old ones.
+    Whatever keeps that from working (a directory under a checkpoint's name, checkpoints none of which reads)
+    is refused here, before any step and with nothing deleted."""
+    mgr.check_files()
+    if not resume:
+        if is_main:
+            for old in mgr.all():
+                old.unlink(missing_ok=True)
+        return 0, None
+    found = mgr.resume_from()  # reads checkpoint headers: once
+    if found is None:
+        return 0, None
+    last_ckpt, meta = found
+    if mgr.skipped and log is not None and is_main:
         log(f"[{stage}] skipped unreadable checkpoint(s) {[p.name for p in mgr.skipped]}; resuming from "
-            f"{last_ckpt.name if last_ckpt is not None else 'the start'}")
-    if resume and last_ckpt is not None:
-        recorded = load_metadata(last_ckpt).get("extra", {}).get("fingerprint")
-        if fingerprint is not None and recorded != fingerprint:
-            raise ToolkitError(f"{last_ckpt}: written by a run under another config or from other inputs than "
-                               f"this one, so it cannot be resumed; rerun without --resume to train the stage afresh")
-        return load_training_checkpoint(last_ckpt, modules=modules, optimizers=optimizers)["step"], last_ckpt
-    if is_main:
-        for old in mgr.all():
-            old.unlink(missing_ok=True)
-        last_ckpt = None
-    return 0, last_ckpt
+            f"{last_ckpt.name}")
+    if fingerprint is not None and meta["extra"].get("fingerprint") != fingerprint:
+        raise ToolkitError(f"{last_ckpt}: written by a run under another config or from other inputs than "
+                           f"this one, so it cannot be resumed; rerun without --resume to train the stage afresh")
+    return load_training_checkpoint(last_ckpt, modules=modules, optimizers=optimizers)["step"], last_ckpt
 
 
 def _progress_bar(stage: str, steps: int, start: int):
