@@ -9,6 +9,7 @@ crash or SIGKILL mid-save leaves the previous checkpoint intact (at most one int
 from __future__ import annotations
 
 import json
+import os
 import random
 import re
 from pathlib import Path
@@ -231,7 +232,8 @@ class CheckpointManager:
         """Refuse a directory (or a link to nothing, a device...) with a checkpoint's name, before any training:
         it is no checkpoint to resume, and saving over it, or clearing it for a fresh run, would fail later."""
         for p in self.all():
-            if not p.is_file():
+            # An entry gone since the listing (another rank clearing the folder for a fresh run) is no problem.
+            if not p.is_file() and (p.is_dir() or os.path.lexists(p)):
                 kind = "a directory" if p.is_dir() else "a broken link" if p.is_symlink() else "no regular file"
                 raise ToolkitError(f"{p}: is {kind}, expected a checkpoint file (the training saves its checkpoints "
                                    "under this name); move it out of the checkpoint folder")

@@ -146,6 +146,22 @@ def test_a_directory_under_a_checkpoints_name_is_refused_before_any_step(finishe
     assert calls == [] and _files(mgr.folder) == before
 
 
+def test_a_checkpoint_gone_since_the_listing_is_no_refusal(finished, monkeypatch):
+    """Under torchrun the main rank clears the folder for a fresh run while another rank checks it: a file
+    listed and then deleted is not "no regular file". A link to nothing still is."""
+    from train.training.checkpoint import CheckpointManager
+
+    _, mgr = finished
+    listed = mgr.all()
+    for p in listed:
+        p.unlink()
+    monkeypatch.setattr(CheckpointManager, "all", lambda self: listed)
+    mgr.check_files()
+    listed[0].symlink_to(mgr.folder / "nowhere")
+    with pytest.raises(ToolkitError, match=r"is a broken link, expected a checkpoint file"):
+        mgr.check_files()
+
+
 def test_undecodable_lines_of_the_metrics_log_are_kept_like_other_garbage(tmp_path):
     ml = MetricsLogger(tmp_path, tensorboard=False)
     for step in (1, 2, 3):
