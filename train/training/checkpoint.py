@@ -247,8 +247,8 @@ class CheckpointManager:
     def newest(self) -> tuple[Path, dict[str, Any]] | None:
         """``(path, checked metadata)`` of :meth:`latest`. A checkpoint whose recorded step is not the one its name
         says (a copy under another name) is refused: resuming it would start at one step and replay the
-        data of the other, and its name would keep it the newest however long the run trained."""
-        self.check_files()
+        data of the other, and its name would keep it the newest however long the run trained. Callers that
+        resume check the folder first (:meth:`check_files`)."""
         self.skipped, self.reasons = [], {}
         for p in reversed(self.all()):
             try:
