@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -75,32 +74,17 @@ def sheet_path(args: argparse.Namespace) -> tuple[Path, str]:
     return Path(args.out) / "contact_sheet.png", "--sheet (default OUT/contact_sheet.png)"
 
 
-def _check_can_make(folder: Path, what: str) -> None:
-    """``folder`` or its nearest existing ancestor must be a writable folder, so that the folders down to it can
-    be made: found out here rather than when the first file is written, after every photo was read."""
-    up = next((q for q in (folder, *folder.parents) if q.exists()), None)
-    if up is None:
-        return
-    if not up.is_dir():
-        raise ToolkitError(f"{what}: {up} is a file, not a folder")
-    if not os.access(up, os.W_OK | os.X_OK):
-        raise ToolkitError(f"{what}: cannot write in the folder {up} (no permission)")
-
-
 def check_outputs(args: argparse.Namespace, groups: list[tuple[str, list[Path]]]) -> None:
     """Every output location, before any photo is read, so that a refusal leaves nothing written: the output
     folder and the contact sheet can be made there, and neither a subject file nor the sheet replaces an input
     (a photo, also one found in a given folder, the labels CSV or the run directory)."""
-    from toolkit.io import check_not_an_input
+    from toolkit.io import check_not_an_input, check_output_folder
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ToolkitError(f"--out {out}: exists and is not a folder")
-    _check_can_make(out, f"--out {out}")
+    out = check_output_folder(args.out, f"--out {args.out}")
     sheet, flag = sheet_path(args)
     if sheet.is_dir():
         raise ToolkitError(f"{flag} {sheet}: is a folder, expected a .png file path")
-    _check_can_make(sheet.parent, f"{flag} {sheet}")
+    check_output_folder(sheet.parent, f"{flag} {sheet}")
     photos = [p for _, files in groups for p in files] + list(args.photos)
     others = [q for q in (args.labels, args.like) if q]
     for output, what in [(sheet, flag)] + [(out / f"{name}.h5", "--out's output") for name, _ in groups]:

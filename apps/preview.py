@@ -29,7 +29,7 @@ import torch
 from apps.preview_sweep import MAX_FRAMES, MAX_GAZES, check_sweep, parse_range, render_gaze_sweep
 from apps.preview_window import run_window
 from toolkit.errors import ToolkitError, run_cli
-from toolkit.io import check_not_an_input
+from toolkit.io import check_not_an_input, check_output_folder
 from toolkit.limits import check_allocation, check_count
 
 DEMO_MAX = 2_000_000
@@ -136,10 +136,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise ToolkitError("--headless needs --sweep OUT.mp4 or OUT.png")
     if args.sweep and not args.headless:
         raise ToolkitError("--sweep is the headless output: add --headless (without it the window opens)")
-    shots = Path(args.screenshot_dir)
-    up = next((q for q in (shots, *shots.parents) if q.exists()), None)
-    if not args.headless and up is not None and not up.is_dir():
-        raise ToolkitError(f"--screenshot-dir {shots}: {up} is a file, not a folder")
+    if not args.headless:
+        check_output_folder(args.screenshot_dir, f"--screenshot-dir {args.screenshot_dir}")
     if args.sweep:
         # Everything about the sweep is refused before the scene is loaded or built.
         pitches, yaws = parse_range(args.pitch, "pitch"), parse_range(args.yaw, "yaw")

@@ -11,6 +11,7 @@ import numpy as np
 
 from apps.gaze_scene import GazeScene, frame_camera, visibility_warning
 from toolkit.errors import ToolkitError
+from toolkit.io import check_output_folder
 from toolkit.limits import check_allocation, check_count
 
 MAX_GAZES = 1000
@@ -55,9 +56,7 @@ def check_sweep(out_path, n_pitch: int, n_yaw: int, width: int, height: int) -> 
         raise ToolkitError(f"{path}: sweep output must end in .mp4 (video) or .png (contact sheet)")
     if path.is_dir():
         raise ToolkitError(f"--sweep {path}: is a directory, expected a .png or .mp4 file path")
-    up = next((q for q in path.parents if q.exists()), None)
-    if up is not None and not up.is_dir():
-        raise ToolkitError(f"--sweep {path}: {up} is a file, not a folder")
+    check_output_folder(path.parent, f"--sweep {path}")
     frames = check_count(n_pitch * n_yaw, "--pitch x --yaw", 1, MAX_FRAMES, "a number of sweep frames")
     hint = "lower --size or the number of --pitch / --yaw gazes"
     # The frames as uint8 RGB, then stacked, then reordered into the video or laid out on the sheet.

@@ -121,14 +121,13 @@ def resolve_inputs(args: argparse.Namespace) -> None:
 
 def check_photo_out(args: argparse.Namespace) -> None:
     """The output folder's checks for photo input, before any work (one-line ToolkitErrors)."""
-    from toolkit.io import check_not_an_input
+    from toolkit.io import check_not_an_input, check_output_folder
 
     out = Path(args.out)
     if out.suffix.lower() in (".h5", ".hdf5"):
         raise ToolkitError(f"out {out}: photo input writes a folder ({OUT_NAME}, face grids, pasted photos); give a "
                            "folder name, not an HDF5 file")
-    if out.exists() and not out.is_dir():
-        raise ToolkitError(f"out {out}: exists and is not a folder")
+    check_output_folder(out, f"out {out}")
     for p in args.photos:
         if p.resolve().parent == out.resolve():
             raise ToolkitError(f"out {out}: holds the input photo {p}; a later run would read the PNGs written "

@@ -22,7 +22,7 @@ import torch
 from geometry.fit import FitConfig, fit_silhouettes
 from geometry.silhouettes import Views, silhouette_iou
 from toolkit.errors import ToolkitError
-from toolkit.io import atomic_write_json, check_readable_file
+from toolkit.io import atomic_write_json, check_output_folder, check_readable_file
 from toolkit.rotations import so3_exp
 
 DEFAULT_HOLDOUT = (2, 7, 10, 15)
@@ -157,8 +157,7 @@ def fit_dataset(dataset: str | os.PathLike, out_dir: str | os.PathLike, cfg: Fit
 
     cfg = cfg or FitConfig()
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ToolkitError(f"{out}: exists and is not a folder")
+    check_output_folder(out, str(out))
     t0 = time.perf_counter()
     data = views if views is not None else read_subject(dataset)
     train, test = split_views(data, holdout_cams)

@@ -165,6 +165,19 @@ def check_readable_file(path: str | os.PathLike, what: str = "file") -> Path:
     return path
 
 
+def check_output_folder(folder: str | os.PathLike, what: str) -> Path:
+    """``folder``, an output folder a command makes later, once it is a folder or can be made: its nearest existing
+    ancestor is a folder this process may write in. A ToolkitError naming ``what`` (the flag) otherwise, before
+    any work rather than at the first write, after the inputs were read."""
+    folder = Path(folder)
+    up = next((q for q in (folder, *folder.parents) if q.exists()), None)
+    if up is not None and not up.is_dir():
+        raise ToolkitError(f"{what}: {up} is a file, not a folder")
+    if up is not None and not os.access(up, os.W_OK | os.X_OK):
+        raise ToolkitError(f"{what}: cannot write in the folder {up} (no permission)")
+    return folder
+
+
 def check_not_an_input(output: str | os.PathLike, inputs: list[str | os.PathLike], flag: str = "output",
                        kind: str = "file") -> None:
     """A ToolkitError, before any work, when writing ``output`` would replace what the command reads: ``inputs``

@@ -5,6 +5,7 @@ from toolkit import ToolkitError
 from toolkit.io import (
     atomic_write,
     atomic_write_json,
+    check_output_folder,
     load_checkpoint,
     load_foreign_torch_checkpoint,
     load_state_dict_file,
@@ -27,6 +28,17 @@ def test_atomic_write_under_a_file_is_one_clear_error(tmp_path):
     (tmp_path / "blocker").write_text("a file, not a folder")
     with pytest.raises(ToolkitError, match=r"blocker/out.json: cannot write here"):
         atomic_write_json(tmp_path / "blocker" / "out.json", {"a": 1})
+
+
+def test_an_output_folder_is_checked_before_it_is_made(tmp_path):
+    """A folder to be made later passes when it or its nearest existing ancestor is a folder; a file on its way is
+    named, and nothing is created by the check."""
+    assert check_output_folder(tmp_path / "a" / "b", "--out") == tmp_path / "a" / "b"
+    assert not (tmp_path / "a").exists()
+    (tmp_path / "f").write_text("a file")
+    for folder in (tmp_path / "f", tmp_path / "f" / "sub" / "deeper"):
+        with pytest.raises(ToolkitError, match=rf"^--out x: {tmp_path}/f is a file, not a folder$"):
+            check_output_folder(folder, "--out x")
 
 
 def test_metadata_that_is_not_an_object_is_refused(tmp_path):

@@ -16,7 +16,7 @@ OUTPUTS = ("augment.json", "augment.md", "augment.png")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from toolkit.io import atomic_write_json, atomic_write_text, check_not_an_input
+    from toolkit.io import atomic_write_json, atomic_write_text, check_not_an_input, check_output_folder
     from train.augment.config import build_parser, config_from_args
     from train.augment.protocol import protocol_a, protocol_b
     from train.augment.report import figure, markdown, summarize
@@ -30,8 +30,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     device = resolve_device(run.config)
     out = Path(args.out)
     check_not_an_input(out, [Path(args.run_dir)], "--out", "folder")
-    if out.exists() and not out.is_dir():
-        raise ToolkitError(f"--out {out}: exists and is not a folder")
+    check_output_folder(out, f"--out {out}")
     _check_splits(run, cfg)
     _make_out(out)
     t0, log = time.perf_counter(), (lambda m: print(m, flush=True))
@@ -84,10 +83,11 @@ def _frames(path: Path, run) -> tuple[int, int]:
 
 
 def _make_out(out: Path) -> None:
-    """The output folder, made before any work; none of its three files may be a folder."""
+    """The output folder (checked by ``check_output_folder``), made before any work; none of its three files may
+    be a folder."""
     try:
         out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:  # a parent that is a file, a read-only mount
+    except OSError as e:  # a read-only mount
         raise ToolkitError(f"--out {out}: cannot write here ({e.strerror or e})") from None
     if clash := [name for name in OUTPUTS if (out / name).is_dir()]:
         raise ToolkitError(f"--out {out}: {clash[0]} is a folder; expected a file to write")

@@ -121,7 +121,7 @@ def test_output_places_and_memory_are_checked_before_any_work(tiny_run, tmp_path
     blocker = tmp_path / "blocker"
     blocker.write_text("a file")
     assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", blocker / "sub", *FAST],
-                   r"--out .*blocker/sub: cannot write here", inputs=[tiny_run, blocker], seconds=20)
+                   r"--out .*blocker/sub: .*blocker is a file, not a folder", inputs=[tiny_run, blocker], seconds=20)
     taken = tmp_path / "taken"
     (taken / "augment.png").mkdir(parents=True)
     assert_refused("train.run", ["augment", "--run-dir", tiny_run, "--out", taken, *FAST],
