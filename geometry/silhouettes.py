@@ -23,7 +23,10 @@ def mask_signed_distance(mask: np.ndarray) -> np.ndarray:
     if not m.any():
         raise ToolkitError("mask_signed_distance: a head mask is empty")
     d_out = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    d_in = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    if m.all():  # no boundary inside the image: the nearest one known is just beyond the image's edge
+        d_in = cv2.distanceTransform(np.pad(m, 1), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    else:
+        d_in = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     # The boundary lies half a pixel between the last inside and the first outside pixel centre.
     return np.where(m > 0, 0.5 - d_in, d_out - 0.5).astype(np.float32)
 

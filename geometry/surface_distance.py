@@ -18,13 +18,18 @@ def mesh_signed_distance(verts: torch.Tensor, faces: torch.Tensor, points: torch
         import open3d as o3d
     except ImportError as e:  # pragma: no cover - open3d is a dependency
         raise ToolkitError(f"open3d is needed for mesh signed distances ({e})") from None
+    # open3d works in float32: in the mesh's own unit frame (centred, extent 1) neither a huge nor a tiny mesh
+    # overflows or loses its sign; the distances are scaled back in float64.
+    v, p = verts.detach().cpu().double().numpy(), points.detach().cpu().double().numpy()
+    centre, extent = (v.max(0) + v.min(0)) / 2, float((v.max(0) - v.min(0)).max())
+    extent = extent if extent > 0 else 1.0
     scene = o3d.t.geometry.RaycastingScene()
     mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor(verts.detach().cpu().numpy().astype(np.float32))
+    mesh.vertex.positions = o3d.core.Tensor(((v - centre) / extent).astype(np.float32))
     mesh.triangle.indices = o3d.core.Tensor(faces.cpu().numpy().astype(np.int32))
     scene.add_triangles(mesh)
-    q = o3d.core.Tensor(points.detach().cpu().numpy().astype(np.float32))
-    return torch.from_numpy(scene.compute_signed_distance(q).numpy()).float()
+    q = o3d.core.Tensor(((p - centre) / extent).astype(np.float32))
+    return torch.from_numpy(scene.compute_signed_distance(q).numpy().astype(np.float64) * extent).float()
 
 
 def point_cloud_signed_distance(points: torch.Tensor, normals: torch.Tensor, queries: torch.Tensor,
@@ -47,7 +52,11 @@ def estimate_normals(points: torch.Tensor, k: int = 16) -> torch.Tensor:
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.detach().cpu().double().numpy()))
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
-    pc.orient_normals_consistent_tangent_plane(k)
+    try:
+        pc.orient_normals_consistent_tangent_plane(k)
+    except RuntimeError:  # qhull's triangulation of points that span no volume (a plane, a line)
+        raise ToolkitError("estimate_normals: the points lie on a plane or a line, not around a closed surface; "
+                           "give points of a closed surface, or their outward normals") from None
     n = torch.from_numpy(np.asarray(pc.normals)).float()
     # Consistent but maybe globally inward: flip if most normals point towards the centroid.
     if float(((points - points.mean(0)) * n).sum(-1).mean()) < 0:
@@ -58,7 +67,10 @@ def estimate_normals(points: torch.Tensor, k: int = 16) -> torch.Tensor:
 def surface_samples(verts: torch.Tensor, faces: torch.Tensor, n: int, g: torch.Generator) -> torch.Tensor:
     """[n, 3] points uniform by area on the mesh verts [V, 3] / faces [F, 3] (drawn from ``g``)."""
     a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
-    area = torch.linalg.cross(b - a, c - a).norm(dim=-1)
+    # Relative areas in float64 on edges divided by the mesh's extent: float32 areas of a mesh in units of 1e12 (or
+    # 1e-12) overflow (underflow) and leave no distribution to draw from.
+    extent = (verts.max(0).values - verts.min(0).values).max().double().clamp_min(torch.finfo(torch.float64).tiny)
+    area = torch.linalg.cross((b - a).double() / extent, (c - a).double() / extent).norm(dim=-1)
     if not bool(area.sum() > 0):
         raise ToolkitError("fit_mesh: the mesh has zero surface area")
     f = torch.multinomial(area, n, replacement=True, generator=g)

@@ -211,11 +211,13 @@ def demo_head_scene(
 
     Args:
         n_gaussians: total count (face + both eyes), >= 64.
-        eye_fraction: share of the Gaussians placed on the two eyeballs.
+        eye_fraction: share of the Gaussians placed on the two eyeballs, in [0, 0.9] (the face keeps the rest).
         flatness: face disc thickness relative to its in-plane scale.
     """
     if n_gaussians < 64:
         raise ToolkitError(f"demo_head_scene: n_gaussians must be >= 64, got {n_gaussians}")
+    if not 0 <= eye_fraction <= 0.9:
+        raise ToolkitError(f"demo_head_scene: eye_fraction must be in [0, 0.9], got {eye_fraction}")
     shape = shape or DemoHeadShape(eye_opening=DEMO_EYE_OPENING)
     g = torch.Generator().manual_seed(seed)
     n_eye_each = max(8, int(n_gaussians * eye_fraction / 2))

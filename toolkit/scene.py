@@ -158,10 +158,12 @@ class GaussianScene:
         # 1 - eps must differ from 1 in the opacities' own precision, or an opacity of 1 inverts to +inf.
         e = max(eps, torch.finfo(opacities.dtype).eps) if opacities.is_floating_point() else eps
         o = opacities.clamp(e, 1 - e)
+        # The floor must be a positive number in the scales' precision (float16 rounds 1e-8 to 0: log gives -inf).
+        floor = max(eps, torch.finfo(scales.dtype).tiny) if scales.is_floating_point() else eps
         return cls(
             means=means,
             quats=quats,
-            log_scales=torch.log(scales.clamp_min(eps)),
+            log_scales=torch.log(scales.clamp_min(floor)),
             opacity_logits=torch.log(o) - torch.log1p(-o),
             features=features,
             part=part.to(torch.int8) if part is not None else None,
