@@ -181,6 +181,9 @@ def marching_tets(verts: torch.Tensor, tets: torch.Tensor, sdf: torch.Tensor, fe
     check_sdf(sdf, V)
     if features is not None and (features.dim() != 2 or features.shape[0] != V):
         raise ToolkitError(f"marching_tets: features must have shape [V={V}, C], got {list(features.shape)}")
+    for name, t in (("verts", verts), ("features", features)):
+        if t is not None and not bool(torch.isfinite(t.detach()).all()):
+            raise ToolkitError(f"marching_tets: {name} contain NaN/inf")
 
     with torch.no_grad():
         idx, o = _crossing_tets(sdf < 0, tets, V)

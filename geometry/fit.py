@@ -33,9 +33,11 @@ from typing import Callable
 import torch
 
 from geometry.dmtet import grid_bytes
+from geometry.mesh_files import check_mesh
 from geometry.sdf import SDFNet, SDFNetConfig, SphereInit, extract_mesh, pretrain_sphere
 from geometry.silhouettes import Views, hull_bounds, visual_hull_sdf
 from geometry.surface_distance import (
+    check_normals,
     check_points,
     estimate_normals,
     mesh_signed_distance,
@@ -268,7 +270,8 @@ def fit_mesh(verts: torch.Tensor, faces: torch.Tensor, cfg: FitConfig | None = N
     """Fit the SDF network to a closed triangle mesh (signed distances from open3d)."""
     cfg = cfg or FitConfig(w_eikonal=0.0)
     check_fit_config(cfg)
-    check_points(verts, "mesh vertices")
+    verts = check_points(verts, "mesh vertices")
+    check_mesh(verts, faces, "fit_mesh")
     lo, hi = verts.min(0).values, verts.max(0).values
     cfg = _box_config(cfg, lo, hi)
     g = torch.Generator().manual_seed(cfg.seed)
@@ -286,9 +289,8 @@ def fit_points(points: torch.Tensor, normals: torch.Tensor | None = None, cfg: F
     """Fit to a point cloud [P, 3]; normals [P, 3] (outward) are estimated with open3d when absent."""
     cfg = cfg or FitConfig()
     check_fit_config(cfg)
-    check_points(points, "point cloud")
-    if normals is None:
-        normals = estimate_normals(points)
+    points = check_points(points, "point cloud")
+    normals = estimate_normals(points) if normals is None else check_normals(normals, points)
     lo, hi = points.min(0).values, points.max(0).values
     cfg = _box_config(cfg, lo, hi)
     g = torch.Generator().manual_seed(cfg.seed)

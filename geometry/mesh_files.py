@@ -18,6 +18,8 @@ MESH_EXTENSIONS = (".ply", ".obj", ".stl", ".off", ".glb")
 
 def check_mesh(verts: torch.Tensor, faces: torch.Tensor, name: str = "mesh") -> None:
     """Raise a ToolkitError for wrong shapes, an empty mesh, NaN/inf vertices or out-of-range faces."""
+    if faces.is_floating_point() or faces.dtype == torch.bool:
+        raise ToolkitError(f"{name}: faces must be integer vertex indices, got {faces.dtype}")
     if verts.dim() != 2 or verts.shape[1] != 3 or faces.dim() != 2 or faces.shape[1] != 3:
         raise ToolkitError(f"{name}: expected verts [V, 3] and faces [F, 3], got {list(verts.shape)} and {list(faces.shape)}")
     if verts.shape[0] == 0 or faces.shape[0] == 0:

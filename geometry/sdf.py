@@ -55,8 +55,11 @@ class SDFNetConfig:
         lo, hi = torch.tensor(self.box_min), torch.tensor(self.box_max)
         if lo.shape != (3,) or hi.shape != (3,) or not bool((hi > lo).all()):
             raise ToolkitError(f"SDFNetConfig: box_min < box_max expected on every axis, got {self.box_min} {self.box_max}")
-        if self.n_layers < 2 or not 0 < self.skip_at < self.n_layers or self.hidden < 1 or self.grid_res < 1:
+        if (self.n_layers < 2 or not 0 < self.skip_at < self.n_layers or self.hidden < 1 or self.grid_res < 1
+                or self.n_freqs < 0 or self.feature_dim < 1):
             raise ToolkitError(f"SDFNetConfig: bad architecture {asdict(self)}")
+        if not 0 < self.softplus_beta < math.inf:  # NaN too; beta 0 divides by zero in the softplus
+            raise ToolkitError(f"SDFNetConfig.softplus_beta: expected a finite value > 0, got {self.softplus_beta}")
         return self
 
 
@@ -167,8 +170,11 @@ class SphereInit:
 def pretrain_sphere(net: SDFNet, init: SphereInit | None = None) -> float:
     """Regress the SDF to a sphere and the offsets to zero; returns the final mean |sdf error| (world)."""
     init = init or SphereInit()
-    if not init.radius > 0:
-        raise ToolkitError(f"pretrain_sphere: radius must be > 0, got {init.radius}")
+    if not 0 < init.radius < math.inf or not all(math.isfinite(v) for v in init.center):
+        raise ToolkitError(f"pretrain_sphere: expected a finite centre and a radius > 0, got {init.center}, "
+                           f"{init.radius}")
+    if init.steps < 1 or init.batch < 1:
+        raise ToolkitError(f"pretrain_sphere: expected steps >= 1 and batch >= 1, got {init.steps} and {init.batch}")
     g = torch.Generator().manual_seed(init.seed)
     c = torch.tensor(init.center, dtype=torch.float32)
     opt = torch.optim.Adam(net.parameters(), lr=init.lr)

@@ -39,7 +39,10 @@ def point_cloud_signed_distance(points: torch.Tensor, normals: torch.Tensor, que
     from scipy.spatial import cKDTree
 
     tree = cKDTree(points.detach().cpu().double().numpy())
-    d, idx = tree.query(queries.detach().cpu().double().numpy(), k=k)
+    if k < 1:
+        raise ToolkitError(f"point_cloud_signed_distance: k must be >= 1 neighbour, got {k}")
+    k = min(k, points.shape[0])  # a cloud of fewer points than k: cKDTree would answer missing neighbours with N
+    d, idx = tree.query(queries.detach().cpu().double().numpy(), k=[*range(1, k + 1)])  # a list: [Q, k] at k = 1 too
     idx = torch.from_numpy(idx)
     diff = queries[:, None, :].double() - points.double()[idx]
     side = (diff * normals.double()[idx]).sum(-1).mean(1)
@@ -47,8 +50,13 @@ def point_cloud_signed_distance(points: torch.Tensor, normals: torch.Tensor, que
 
 
 def estimate_normals(points: torch.Tensor, k: int = 16) -> torch.Tensor:
-    """Outward unit normals of a closed-surface point cloud (open3d PCA + consistent orientation)."""
+    """Outward unit normals of a closed-surface point cloud (open3d PCA + consistent orientation), from the ``k``
+    nearest neighbours of each point, k in [3, 1000]."""
     import open3d as o3d
+
+    if not 3 <= k <= 1000:  # below 3 neighbours no plane is defined (and open3d crashes the process at 0)
+        raise ToolkitError(f"estimate_normals: k must be in [3, 1000] neighbours, got {k}")
+    points = check_points(points, "points")
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.detach().cpu().double().numpy()))
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(k))
@@ -80,11 +88,29 @@ def surface_samples(verts: torch.Tensor, faces: torch.Tensor, n: int, g: torch.G
     return a[f] + u * (b[f] - a[f]) + v * (c[f] - a[f])
 
 
-def check_points(p: torch.Tensor, what: str) -> None:
-    """``p`` is [N >= 4, 3], finite, with a non-zero extent; else a ToolkitError naming ``what``."""
+def check_points(p: torch.Tensor, what: str) -> torch.Tensor:
+    """``p`` as float32, once it is a floating-point tensor [N >= 4, 3], finite, with a non-zero extent; else a
+    ToolkitError naming ``what`` (numpy and trimesh give float64: it is converted, not refused)."""
+    if not isinstance(p, torch.Tensor) or not p.is_floating_point():
+        got = f"a {p.dtype} tensor" if isinstance(p, torch.Tensor) else f"a {type(p).__name__}"
+        raise ToolkitError(f"fit: {what} must be a floating-point torch tensor [N, 3] (torch.from_numpy for a numpy "
+                           f"array), got {got}")
     if p.dim() != 2 or p.shape[1] != 3 or p.shape[0] < 4:
         raise ToolkitError(f"fit: {what} must be [N >= 4, 3], got {list(p.shape)}")
     if not bool(torch.isfinite(p).all()):
         raise ToolkitError(f"fit: {what} contain NaN/inf")
     if float((p.max(0).values - p.min(0).values).max()) <= 0:
         raise ToolkitError(f"fit: {what} have zero extent")
+    return p.float()
+
+
+def check_normals(normals: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """``normals`` as float32, once they are a floating-point tensor shaped like ``points``, finite and non-zero
+    (a zero normal has no side, so the signed distance near it would have no sign); else a ToolkitError."""
+    if not isinstance(normals, torch.Tensor) or not normals.is_floating_point() or normals.shape != points.shape:
+        got = list(normals.shape) if isinstance(normals, torch.Tensor) else type(normals).__name__
+        raise ToolkitError(f"fit: normals must be a floating-point tensor {list(points.shape)} like the points, got "
+                           f"{got}")
+    if not bool(torch.isfinite(normals).all()) or not bool((normals.norm(dim=-1) > 0).all()):
+        raise ToolkitError("fit: normals must be finite and non-zero (outward directions, one per point)")
+    return normals.float()
