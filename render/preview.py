@@ -370,6 +370,8 @@ class PreviewSplatter:
                   may_change=may_change)
         rgba = self.read()
         bg = np.zeros(3, np.float32) if background is None else as_float32(background, "background", (3,))
+        if not np.isfinite(bg).all():  # it is blended into every pixel
+            raise ToolkitError(f"render_preview: background must be finite, got {bg.tolist()}")
         rgb = rgba[..., :3] + (1.0 - rgba[..., 3:4]) * bg
         return (rgb, rgba[..., 3:4].copy()) if return_alpha else rgb
 

@@ -19,6 +19,7 @@ Conventions (gsplat >= 1.6 / the original 3DGS rasterizer):
 
 from __future__ import annotations
 
+import math
 from typing import Any, Sequence
 
 import torch
@@ -110,7 +111,8 @@ def rasterize(
         sweep that renders every camera's tiles together).
     """
     per_camera, backgrounds = _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width, height,
-                                            backgrounds, sh_degree, tile_size, chunk, alpha_min, t_min, check_finite)
+                                            backgrounds, sh_degree, tile_size, chunk, alpha_min, t_min, check_finite,
+                                            (eps2d, near_plane, far_plane))
     width, height = int(width), int(height)
     C, D = viewmats.shape[0], features.shape[-1]
     dtype = means.dtype
@@ -145,11 +147,13 @@ def rasterize(
 
 
 def _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width, height, backgrounds, sh_degree,
-                  tile_size, chunk, alpha_min, t_min, check_finite) -> tuple[bool, torch.Tensor | None]:
+                  tile_size, chunk, alpha_min, t_min, check_finite, planes) -> tuple[bool, torch.Tensor | None]:
     """Shapes, dtypes and settings of a :func:`rasterize` call, and (``check_finite``) finite inputs ->
     (per-camera Gaussians?, backgrounds [C, D])."""
     _check_shape("viewmats", viewmats, (None, 4, 4))
     C = viewmats.shape[0]
+    if C < 1:
+        raise ToolkitError("rasterize: viewmats expected at least one camera [C >= 1, 4, 4], got 0")
     _check_shape("Ks", Ks, (C, 3, 3))
     per_camera = isinstance(means, torch.Tensor) and means.dim() == 3
     lead = (C,) if per_camera else ()
@@ -158,6 +162,8 @@ def _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width
     _check_shape("quats", quats, (*lead, n, 4))
     _check_shape("scales", scales, (*lead, n, 3))
     _check_shape("opacities", opacities, (*lead, n))
+    if means.dtype == torch.float16:  # its range (65504) overflows the footprints' pixel radii
+        raise ToolkitError("rasterize: means expected float32, float64 or bfloat16, got float16; pass .float()")
     if per_camera and sh_degree is not None:
         raise ToolkitError("rasterize: sh_degree needs one Gaussian set for all cameras (means [N, 3]); with "
                            "per-camera means [C, N, 3] pass per-camera features [C, N, D]")
@@ -171,7 +177,7 @@ def _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width
         _check_shape("features", features, (n, None))
     D = features.shape[-1]
     if backgrounds is not None:
-        if backgrounds.dim() == 1:
+        if isinstance(backgrounds, torch.Tensor) and backgrounds.dim() == 1:
             _check_shape("backgrounds", backgrounds, (D,))
             backgrounds = backgrounds.expand(C, D)
         _check_shape("backgrounds", backgrounds, (C, D))
@@ -181,6 +187,10 @@ def _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width
         raise ToolkitError(f"rasterize: tile_size and chunk must be >= 1, got {tile_size}, {chunk}")
     if not 0 < alpha_min < ALPHA_MAX or not 0 <= t_min < 1:
         raise ToolkitError(f"rasterize: need 0 < alpha_min < {ALPHA_MAX} and 0 <= t_min < 1")
+    eps2d, near_plane, far_plane = planes
+    if not 0 <= eps2d < math.inf or not 0 <= near_plane < far_plane:  # NaN fails every comparison
+        raise ToolkitError(f"rasterize: need a finite eps2d >= 0 and 0 <= near_plane < far_plane, got eps2d={eps2d}, "
+                           f"near_plane={near_plane}, far_plane={far_plane}")
     if check_finite:
         named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
                  "viewmats": viewmats, "Ks": Ks, **({} if backgrounds is None else {"backgrounds": backgrounds})}

@@ -136,6 +136,9 @@ def redirect_eyes(scene, pitchyaw: torch.Tensor | tuple[float, float], info=None
     if not info:
         raise ToolkitError("scene has no eye Gaussians (part 1 or 2); gaze cannot be changed")
     py = torch.as_tensor(pitchyaw, dtype=scene.means.dtype, device=scene.device)
+    if py.shape != (2,) or not bool(torch.isfinite(py).all()):
+        raise ToolkitError(f"redirect_eyes: pitchyaw expected two finite angles (pitch, yaw) in radians, got "
+                           f"{pitchyaw!r}")
     R = gaze_rotation(py)
     out = scene.clone()
     for name, eye in info.items():

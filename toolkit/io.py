@@ -178,6 +178,22 @@ def check_output_folder(folder: str | os.PathLike, what: str) -> Path:
     return folder
 
 
+def check_device(device: str | torch.device, what: str = "device") -> torch.device:
+    """``device`` as a ``torch.device`` this process can use: cpu, or cuda[:N] with CUDA present and GPU N among
+    its GPUs; else a ToolkitError naming ``what``."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ToolkitError(f"{what}: expected cpu, cuda or cuda:N, got {device!r}") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ToolkitError(f"{what}: expected cpu, cuda or cuda:N, got {device!r}")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ToolkitError(f"{what} {device}: CUDA is not available here (no GPU, or a CPU build of torch); use cpu")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ToolkitError(f"{what} {device}: this machine has {torch.cuda.device_count()} GPU(s)")
+    return dev
+
+
 def check_not_an_input(output: str | os.PathLike, inputs: list[str | os.PathLike], flag: str = "output",
                        kind: str = "file") -> None:
     """A ToolkitError, before any work, when writing ``output`` would replace what the command reads: ``inputs``
@@ -195,7 +211,11 @@ def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], meta
     from safetensors.torch import save as st_save
 
     clean = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
-    meta = {"json": json.dumps(metadata or {}, sort_keys=True)}
+    try:
+        meta = {"json": json.dumps(metadata or {}, sort_keys=True)}
+    except (TypeError, ValueError) as e:  # a tensor or other object among the values, a circular reference
+        raise ToolkitError(f"{path}: metadata must hold JSON values only ({one_line(e)}); nothing was written") \
+            from None
     atomic_write_bytes(path, st_save(clean, metadata=meta))
 
 
@@ -255,6 +275,7 @@ def _read(path, device, tensors: bool) -> tuple[dict[str, torch.Tensor], dict[st
     errors is wrapped here into one line naming the file (and the tensor, when one fails to load)."""
     from safetensors import safe_open
 
+    check_device(device)
     path = check_readable_file(path, "safetensors file")
     if tensors:  # the tensors' bytes lie in the file (checked by the library), so the file's size bounds them
         check_allocation(path.stat().st_size, f"{path}: reading its tensors")

@@ -26,7 +26,7 @@ import torch
 
 from toolkit.errors import ToolkitError
 from toolkit.eyes import check_eyes_metadata
-from toolkit.io import MAX_JSON_DEPTH, json_depth, load_tensors, save_tensors
+from toolkit.io import MAX_JSON_DEPTH, check_device, json_depth, load_tensors, save_tensors
 from toolkit.ply import read_gaussian_ply, write_gaussian_ply
 from toolkit.rotations import normalize_quat
 
@@ -55,6 +55,10 @@ class GaussianScene:
     metadata: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        for name in _FLOAT_FIELDS:  # shapes and values are validate()'s; an array or list fails here, by name
+            if not isinstance(getattr(self, name), torch.Tensor):
+                raise ToolkitError(f"GaussianScene: {name} must be a torch tensor, got {type(getattr(self, name)).__name__}"
+                                   " (torch.as_tensor converts arrays)")
         if self.part is None:
             self.part = torch.zeros(self.means.shape[0] if self.means.dim() else 0, dtype=torch.int8,
                                     device=self.means.device)
@@ -277,6 +281,7 @@ class GaussianScene:
     @classmethod
     def from_ply(cls, path: str | os.PathLike, device: str | torch.device = "cpu") -> "GaussianScene":
         """Read a 3DGS PLY written by this toolkit or by other 3DGS tools."""
+        check_device(device)
         tensors, meta = read_gaussian_ply(path)
         return cls(**tensors, metadata=meta)._validated_from(path).to(device)
 
