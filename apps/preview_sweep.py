@@ -44,6 +44,8 @@ def parse_range(text: str, what: str) -> list[float]:
             angles = [lo] if n == 1 else list(np.linspace(lo, hi, n))
     if not all(math.isfinite(a) for a in angles):
         raise ToolkitError(f"--{what}: expected finite degrees, got {text!r}")
+    if not all(-90 <= a <= 90 for a in angles):  # an eye turned further would look into the head
+        raise ToolkitError(f"--{what}: expected degrees in [-90, 90], got {text!r}")
     return angles
 
 

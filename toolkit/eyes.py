@@ -29,6 +29,8 @@ def fit_sphere(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """
     if points.shape[0] < 4:
         raise ToolkitError(f"fit_sphere: need at least 4 points, got {points.shape[0]}")
+    if not bool(torch.isfinite(points).all()):  # the SVD below would raise LinAlgError on them
+        raise ToolkitError("fit_sphere: the points contain NaN/inf")
     p = points.detach().to(torch.float64)
     mu = p.mean(0)
     q = p - mu  # centring keeps the normal equations well conditioned far from the origin

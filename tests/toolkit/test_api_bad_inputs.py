@@ -52,6 +52,15 @@ def test_metadata_that_is_not_json_writes_nothing(tmp_path, scene):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_sphere_through_nan_points_is_named():
+    from toolkit.eyes import fit_sphere
+
+    points = torch.randn(10, 3, generator=torch.Generator().manual_seed(0))
+    points[3, 1] = float("nan")
+    with pytest.raises(ToolkitError, match=r"^fit_sphere: the points contain NaN/inf$"):
+        fit_sphere(points)
+
+
 @pytest.mark.parametrize("gaze", [(float("nan"), 0.0), (0.1, 0.2, 0.3), 0.5, [[0.1, 0.2], [0.0, 0.0]]])
 def test_redirected_eyes_need_two_finite_angles(scene, gaze):
     with pytest.raises(ToolkitError, match=r"redirect_eyes: pitchyaw expected two finite angles"):
