@@ -238,6 +238,10 @@ def read_ply_vertices(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], l
     # The body's bytes (a binary vertex element's only: other elements may follow), ASCII's parse, and a
     # float64 copy per property.
     size = n * row if fmt != "ascii" else Path(path).stat().st_size - offset
+    extra = Path(path).stat().st_size - offset - size
+    if fmt != "ascii" and len(elements) == 1 and extra >= row > 0:  # a stray newline is no row; a whole row is
+        raise ToolkitError(f"{path}: {extra} bytes follow the {n} vertices the header declares ({row} bytes each) "
+                           "and no other element: the header's vertex count is wrong, or the file is damaged")
     check_allocation(size + 2 * 8 * n * len(props), f"{path}: reading {n} vertices of {len(props)} properties")
     with open(path, "rb") as f:
         f.seek(offset)

@@ -104,6 +104,17 @@ def test_wrong_count(tmp_path):
         GaussianScene.from_ply(p)
 
 
+def test_a_count_below_the_rows_is_refused_not_cut(tmp_path):
+    """Binary rows past the declared count, with no other element to hold them: the count is wrong (19 of 20
+    would load silently); a stray newline after the last row is no row and still loads."""
+    p = _good_ply(tmp_path)
+    p.write_bytes(p.read_bytes() + b"\n")
+    assert len(GaussianScene.from_ply(p)) == 20
+    p.write_bytes(p.read_bytes()[:-1].replace(b"element vertex 20", b"element vertex 19"))
+    with pytest.raises(ToolkitError, match=r"bytes follow the 19 vertices the header declares"):
+        GaussianScene.from_ply(p)
+
+
 def test_nan_field(tmp_path):
     s = random_scene(5)
     s.to_ply(tmp_path / "n.ply")
