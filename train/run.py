@@ -16,7 +16,8 @@ The resolved config is written to ``config.yaml``; a config with an unknown key 
 before any work. Without ``--preset`` or ``--config`` an existing run directory continues its own
 ``config.yaml`` (``--run-dir out/run --stages eval eval.tta_steps=20`` re-runs one stage of that run); a run
 refused because an unselected upstream stage (direct or read through others) is missing or was made under another
-config, a stage record it reads is unreadable, or an eval output cannot be written leaves it untouched.
+config, a stage record it reads is unreadable, an eval output cannot be written, or the pairing misses a held-out
+subject of the run's current data leaves it untouched.
 Launch with ``torchrun --nproc_per_node N -m train.run ...`` for DDP in stage gaussian: each process takes 1/N
 of ``gaussian.batch`` (the same rows of every random draw) and the gradients are averaged, so the weights equal
 one process's on the whole batch up to float sums (tested); rank 0 logs and writes the checkpoints.
@@ -46,7 +47,7 @@ from train.presets import PRESETS, preset  # noqa: E402
 from train.run_config import RunConfig  # noqa: E402
 from train.stages import STAGE_NAMES, STAGES  # noqa: E402
 from train.stages.artifacts import resolve_device  # noqa: E402
-from train.stages.checks import check_config  # noqa: E402
+from train.stages.checks import check_config, check_run_pairing  # noqa: E402
 from train.stages.pipeline import RunContext, check_run, run_stages  # noqa: E402
 
 
@@ -122,7 +123,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     resolve_device(cfg)  # fail early on an impossible device
     run_dir = Path(args.run_dir)
     ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True))
-    check_run(STAGES, stages, ctx, force)  # a refused run leaves the run's config.yaml as it was
+    will_run = check_run(STAGES, stages, ctx, force)  # a refused run leaves the run's config.yaml as it was
+    check_run_pairing(ctx, will_run)
     if "eval" in stages:  # its outputs too: not after the stages before it have run (the stage checks again)
         from train.evaluation.report import check_eval_outputs
 

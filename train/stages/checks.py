@@ -203,6 +203,18 @@ def _check_layout(root: str, layout: str, key: str) -> None:
         check_layout(layout, keys, shapes, str(f))
 
 
+def check_run_pairing(ctx, will_run: set[str]) -> None:
+    """The eval stage's pairing against the run's own held-out files, when that stage will run and the data stage
+    will not (its files are the current ones): before ``config.yaml`` is written, so that a refused pairing
+    file leaves it as it was. The config check covers the files of ``data.root`` and ``eval.data_root``."""
+    cfg = ctx.config
+    if "eval" not in will_run or "data" in will_run or "data" not in ctx.outputs or cfg.data.root or cfg.eval.data_root:
+        return
+    from train.stages.artifacts import RunArtifacts
+
+    check_eval_pairing(cfg, RunArtifacts(ctx).eval_files())
+
+
 def check_eval_pairing(cfg: RunConfig, test_files: list[Path]) -> None:
     """Every held-out subject has pairs inside its rows (``train.data.pairing.check_pairing_rows``): one line
     before any work, from the config check (``data.root`` names the files) or the eval stage's start."""

@@ -159,19 +159,20 @@ def run_stages(stages: list[Stage], selected: list[str], ctx: RunContext, force:
     return status
 
 
-def check_run(stages: list[Stage], selected: list[str], ctx: RunContext, force: list[str] = ()) -> None:
+def check_run(stages: list[Stage], selected: list[str], ctx: RunContext, force: list[str] = ()) -> set[str]:
     """Every check :func:`run_stages` makes before any stage runs (upstream stages present and current, every
     stage record it reads readable, nothing made stale half-way); ``train.run`` calls it before writing the
-    run's ``config.yaml``, so a refused run leaves the directory as it was."""
+    run's ``config.yaml``, so a refused run leaves the directory as it was. Returns the stages that will run;
+    the outputs of the current ones are in ``ctx.outputs``."""
     check_dependencies(stages, selected, ctx)
-    _check_nothing_goes_stale_midway(stages, selected, ctx, force)
+    return _check_nothing_goes_stale_midway(stages, selected, ctx, force)
 
 
 def _check_nothing_goes_stale_midway(stages: list[Stage], selected: list[str], ctx: RunContext,
-                                     force: list[str]) -> None:
+                                     force: list[str]) -> set[str]:
     """Refuse, before anything runs, a selection where a stage that will run feeds a stage left out of the
     selection that a selected stage reads: running the first drops the second's record (its outputs are
-    stale), and the third would fail half-way through the run."""
+    stale), and the third would fail half-way through the run. Returns the stages that will run."""
     prints: dict[str, str] = {}
     will_run: set[str] = set()
     stale: dict[str, str] = {}  # unselected stage -> the stage whose re-run makes it stale
@@ -181,8 +182,9 @@ def _check_nothing_goes_stale_midway(stages: list[Stage], selected: list[str], c
         if stage.name not in selected:
             if cause is not None:
                 stale[stage.name] = cause
-            else:  # run_stages reads this record too (one a re-run drops is gone by then): refuse a bad one now
-                _finished_record(ctx.run_dir, stage.name)
+            # run_stages reads this record too (one a re-run drops is gone by then): refuse a bad one now
+            elif (record := _finished_record(ctx.run_dir, stage.name)) and record.get("fingerprint") == fp:
+                ctx.outputs[stage.name] = record["outputs"]
             continue
         for d in stage.depends:
             if d in stale:
@@ -191,6 +193,9 @@ def _check_nothing_goes_stale_midway(stages: list[Stage], selected: list[str], c
         record = _finished_record(ctx.run_dir, stage.name)
         if cause is not None or stage.name in force or record is None or record.get("fingerprint") != fp:
             will_run.add(stage.name)
+        else:
+            ctx.outputs[stage.name] = record["outputs"]
+    return will_run
 
 
 def _dependents(stages: list[Stage], name: str) -> list[str]:

@@ -84,6 +84,20 @@ def test_the_eval_stage_reads_a_pairing_file(tiny_run, tmp_path):
         run.main(["--run-dir", str(d), "--stages", "eval", f"eval.pairing_file={pairs}"])
 
 
+def test_a_pairing_that_misses_a_held_out_subject_leaves_the_config_as_it_was(tiny_run, tmp_path):
+    """A pairing file naming none of a held-out subject's rows is refused against the run's own held-out files
+    before config.yaml is written (it was refused only at the eval stage's start, the override already saved)."""
+    d = tmp_path / "run"
+    shutil.copytree(tiny_run, d)
+    split = json.loads((d / "data" / "split.json").read_text())
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{Path(split['train'][0]).stem} 0 20\n")  # a training subject's rows only
+    before = (d / "config.yaml").read_bytes()
+    with pytest.raises(ToolkitError, match=r"'eval.pairing_file': .*no pairs for .*" + Path(split["test"][0]).stem):
+        run.main(["--run-dir", str(d), "--stages", "eval", f"eval.pairing_file={pairs}"])
+    assert (d / "config.yaml").read_bytes() == before
+
+
 def test_the_reports_ablation_command_runs(tiny_run, tmp_path):
     """The report's command for a Table 3 switch works as printed: on a copy of the run, only the Gaussian and
     eval stages run again, and the new report names the flipped switch."""
