@@ -26,7 +26,7 @@ import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
 from train.model.dit_conditioning import saturate_codes
-from train.model.renderer_interface import RenderOutput, check_render_inputs
+from train.model.renderer_interface import RenderOutput, check_finite_inputs, check_render_inputs
 
 
 @dataclass
@@ -113,6 +113,8 @@ class BaselineRenderer(nn.Module):
 
     def render(self, feats: torch.Tensor, shape_code: torch.Tensor, *, gaze: torch.Tensor | None = None,
                pose: torch.Tensor | None = None, steps: int | None = None, seed: int = 0) -> torch.Tensor:
+        check_render_inputs(feats, shape_code, self.config.feature_channels, self.config.shape_dim)
+        check_finite_inputs(feats=feats, shape_code=shape_code)
         return self.forward(feats, shape_code)
 
     def training_forward(self, feats: torch.Tensor, shape_code: torch.Tensor, target: torch.Tensor, *,

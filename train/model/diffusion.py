@@ -19,6 +19,7 @@ decoded by the codec: the "decoded x0 estimate" of the method.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Callable, Literal
 
@@ -28,6 +29,9 @@ import torch.nn.functional as F
 from toolkit.errors import ToolkitError
 
 EPS = 1e-12  # floor under square roots and divisions by sqrt(abar)
+
+BETA_DEFAULTS = {"linear": (1e-4, 2e-2), "scaled_linear": (0.00085, 0.012)}
+"""(beta_start, beta_end) of the (scaled) linear schedules when the config leaves them None."""
 
 ModelFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``model_fn(x_t [B, C, H, W], t [B] long) -> network output [B, C, H, W]`` (conditioning bound in)."""
@@ -49,14 +53,20 @@ class DiffusionConfig:
     """Rescale the schedule so abar at the last step is exactly 0 (needs prediction 'v')."""
 
     def validate(self) -> None:
-        if self.num_timesteps < 2:
-            raise ToolkitError(f"DiffusionConfig.num_timesteps: expected >= 2, got {self.num_timesteps}")
+        T = self.num_timesteps
+        if not isinstance(T, numbers.Integral) or isinstance(T, bool) or T < 2:
+            raise ToolkitError(f"DiffusionConfig.num_timesteps: expected an integer >= 2, got {T!r}")
         if self.schedule not in ("linear", "scaled_linear", "cosine"):
             raise ToolkitError(f"DiffusionConfig.schedule: expected linear, scaled_linear or cosine, got {self.schedule!r}")
         for name in ("beta_start", "beta_end"):
             b = getattr(self, name)
             if b is not None and not 0.0 <= b < 1.0:
                 raise ToolkitError(f"DiffusionConfig.{name}: expected a beta in [0, 1), got {b}")
+        if self.schedule in BETA_DEFAULTS:
+            b0, b1 = (_or(b, d) for b, d in zip((self.beta_start, self.beta_end), BETA_DEFAULTS[self.schedule]))
+            if b0 > b1:
+                raise ToolkitError(f"DiffusionConfig: need beta_start <= beta_end (a non-decreasing {self.schedule} "
+                                   f"schedule), got beta_start={b0}, beta_end={b1}")
         if self.prediction not in ("eps", "v"):
             raise ToolkitError(f"DiffusionConfig.prediction: expected 'eps' or 'v', got {self.prediction!r}")
         if self.zero_terminal_snr and self.prediction == "eps":
@@ -71,10 +81,11 @@ def make_betas(config: DiffusionConfig) -> torch.Tensor:
     """The schedule's ``beta [T]`` in float64."""
     T = config.num_timesteps
     if config.schedule == "linear":
-        b0, b1 = _or(config.beta_start, 1e-4), _or(config.beta_end, 2e-2)
+        b0, b1 = _or(config.beta_start, BETA_DEFAULTS["linear"][0]), _or(config.beta_end, BETA_DEFAULTS["linear"][1])
         betas = torch.linspace(b0, b1, T, dtype=torch.float64)
     elif config.schedule == "scaled_linear":
-        b0, b1 = _or(config.beta_start, 0.00085), _or(config.beta_end, 0.012)
+        b0, b1 = (_or(config.beta_start, BETA_DEFAULTS["scaled_linear"][0]),
+                  _or(config.beta_end, BETA_DEFAULTS["scaled_linear"][1]))
         betas = torch.linspace(b0**0.5, b1**0.5, T, dtype=torch.float64) ** 2
     else:
         s = 0.008
@@ -193,6 +204,12 @@ class GaussianDiffusion:
         ``generator``. ``clip_x0`` clamps the intermediate x0 estimates to ``[-clip_x0, clip_x0]``. The
         last step lands on x0 (``abar = 1``), so ``steps = 1`` returns ``predict_x0(model(noise, T - 1))``.
         """
+        try:
+            finite = math.isfinite(eta)
+        except (TypeError, ValueError, RuntimeError):
+            finite = False
+        if not finite:
+            raise ToolkitError(f"DDIM eta: expected a finite number (0: deterministic), got {eta!r}")
         ts = ddim_timesteps(self.num_timesteps, steps).to(noise.device)
         x = noise
         B = noise.shape[0]

@@ -30,6 +30,7 @@ two DiT-Gaze-specific embedders (codes, feature maps) live in :mod:`train.model.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass
 from typing import Callable
 
@@ -79,6 +80,11 @@ class DiTConfig:
     """6 to condition the adaLN vector on the head pose, 0 to leave it out."""
 
     def validate(self) -> None:
+        for name in ("input_size", "hidden_size", "patch_size", "latent_channels", "feature_channels",
+                     "feature_hidden", "depth", "num_heads", "shape_dim"):
+            v = getattr(self, name)
+            if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 1:
+                raise ToolkitError(f"DiTConfig.{name}: expected a positive integer, got {v!r}")
         if self.hidden_size % self.num_heads:
             raise ToolkitError(f"DiTConfig.hidden_size: {self.hidden_size} is not divisible by num_heads={self.num_heads}")
         if (self.hidden_size // self.num_heads) % 2 or self.hidden_size % 4:
@@ -87,12 +93,15 @@ class DiTConfig:
             raise ToolkitError(f"DiTConfig.input_size: {self.input_size} is not divisible by patch_size={self.patch_size}")
         if self.gaze_dim not in (0, 2):
             raise ToolkitError(f"DiTConfig.gaze_dim: expected 0 or 2 (pitch, yaw), got {self.gaze_dim}")
-        if self.base_channels < 0:
-            raise ToolkitError(f"DiTConfig.base_channels: expected >= 0, got {self.base_channels}")
-        for name in ("patch_size", "latent_channels", "feature_channels", "feature_hidden", "depth", "num_heads",
-                     "shape_dim"):
-            if getattr(self, name) < 1:
-                raise ToolkitError(f"DiTConfig.{name}: expected a positive integer, got {getattr(self, name)}")
+        if self.pose_dim not in (0, 6):
+            raise ToolkitError(f"DiTConfig.pose_dim: expected 0 or 6 (axis-angle + translation), got {self.pose_dim}")
+        for name in ("base_channels", "feature_embed_channels"):
+            if getattr(self, name) < 0:
+                raise ToolkitError(f"DiTConfig.{name}: expected >= 0, got {getattr(self, name)}")
+        r = self.mlp_ratio
+        if not (isinstance(r, numbers.Real) and math.isfinite(r) and r > 0 and int(self.hidden_size * r) >= 1):
+            raise ToolkitError(f"DiTConfig.mlp_ratio: expected a number > 0 (an MLP width hidden_size * mlp_ratio >= 1), "
+                               f"got {self.mlp_ratio!r}")
 
 
 #################################################################################

@@ -3,6 +3,8 @@ sizes of its fields, bounds of their outputs, the optional eye features, and the
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 
 from toolkit.errors import ToolkitError
@@ -89,6 +91,25 @@ class GaussianModelConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ToolkitError(f"GaussianModelConfig.{name}: expected a code width >= 1, got {v!r}")
+        for name, low, what in (("feature_dim", 3, "a channel count >= 3 (the first three are RGB)"),
+                                ("hidden", 1, "a layer width >= 1"), ("depth", 1, "a layer count >= 1"),
+                                ("pos_freqs", 0, "a frequency count >= 0"), ("pose_freqs", 0, "a frequency count >= 0"),
+                                ("gaze_freqs", 0, "a frequency count >= 0"),
+                                ("num_images", 0, "an image count >= 0 (0: no per-image codes)")):
+            v = getattr(self, name)
+            if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < low:
+                raise ToolkitError(f"GaussianModelConfig.{name}: expected {what}, got {v!r}")
+        if self.pose_dim != 6 or isinstance(self.pose_dim, bool):
+            raise ToolkitError(f"GaussianModelConfig.pose_dim: expected 6 (axis-angle 3 + translation 3), "
+                               f"got {self.pose_dim!r}")
+        for name in ("near_m", "far_m", "socket_sigma_m", "max_offset", "max_log_scale_delta", "max_opacity_delta",
+                     "max_feature_delta", "max_eye_residual"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not _finite(v):
+                raise ToolkitError(f"GaussianModelConfig.{name}: expected a finite number, got {v!r}")
+        for name in ("max_offset", "max_log_scale_delta", "max_opacity_delta", "max_feature_delta", "max_eye_residual"):
+            if getattr(self, name) < 0:
+                raise ToolkitError(f"GaussianModelConfig.{name}: expected a bound >= 0, got {getattr(self, name)!r}")
         if self.near_m < 0 or self.far_m <= self.near_m:
             raise ToolkitError(f"GaussianModelConfig: need 0 <= near_m < far_m, got near_m={self.near_m}, far_m={self.far_m}")
         if not 0 < self.render_scale <= 1:
@@ -101,3 +122,11 @@ class GaussianModelConfig:
         if self.eyeball_colours and self.eye_appearance:
             raise ToolkitError("GaussianModelConfig: eyeball_colours and eye_appearance both set the eye Gaussians' "
                                "colours; enable one of them")
+
+
+def _finite(v) -> bool:
+    """Whether ``v`` is a finite real number."""
+    try:
+        return math.isfinite(v)
+    except TypeError:
+        return False

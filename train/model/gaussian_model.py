@@ -127,6 +127,7 @@ class GaussianModel(nn.Module):
         expression-driven; pass landmarks for brows/mouth).
         """
         cfg = config or GaussianModelConfig()
+        cfg.validate()  # before the streams are built at its sizes
         return cls(cfg, *streams_from_scene(scene, cfg, landmarks), rasterizer)
 
     # ------------------------------------------------------------------ helpers
@@ -154,6 +155,20 @@ class GaussianModel(nn.Module):
         if self.image_codes is None:
             raise ToolkitError("image_index given but the model has no per-image codes (config.num_images = 0)")
         return code + self.image_codes(image_index.long())
+
+    def _check_image_index(self, image_index: torch.Tensor | None, B: int) -> None:
+        """ToolkitError unless ``image_index`` is None or [B] indices of this model's per-image codes."""
+        if image_index is None:
+            return
+        if self.image_codes is None:
+            raise ToolkitError("image_index given but the model has no per-image codes (config.num_images = 0)")
+        n = self.config.num_images
+        if image_index.shape != (B,):
+            raise ToolkitError(f"image_index: expected [B={B}] training-image indices, got {list(image_index.shape)}")
+        bad = (image_index < 0) | (image_index >= n)
+        if bool(bad.any()):
+            raise ToolkitError(f"image_index: expected indices in [0, {n}) (config.num_images = {n}), got "
+                               f"{image_index[bad].tolist()[:8]}")
 
     def clear_cache(self) -> None:
         self._face_cache = None
@@ -268,6 +283,7 @@ class GaussianModel(nn.Module):
                   image_index: torch.Tensor | None = None) -> dict[str, dict[str, torch.Tensor]]:
         """Both streams after the rigid head transform (world frame): {"face": {...}, "eyes": {...}}."""
         self._check_inputs(code, pose, gaze)
+        self._check_image_index(image_index, code.shape[0])
         code = self.effective_code(code, image_index)
         face = self.face_stream(code, pose)
         return {"face": self._posed(face, pose), "eyes": self._posed(self._eyes(code, gaze, face), pose)}
@@ -316,6 +332,11 @@ class GaussianModel(nn.Module):
         B = code.shape[0]
         if viewmats.shape != (B, 4, 4) or Ks.shape != (B, 3, 3):
             raise ToolkitError(f"viewmats/Ks: expected [B={B}, 4, 4] and [B, 3, 3], got {list(viewmats.shape)} and {list(Ks.shape)}")
+        if B < 1 and renders:
+            raise ToolkitError(f"code: expected at least one camera to render (B >= 1), got {list(code.shape)}")
+        if not (width >= 1 and height >= 1):
+            raise ToolkitError(f"width/height: expected an output size >= 1 pixel each, got {width!r} x {height!r}")
+        self._check_image_index(image_index, B)
         w = max(1, round(width * self.config.render_scale))
         h = max(1, round(height * self.config.render_scale))
         Ks_r = resize_intrinsics(Ks.float(), width, height, w, h)

@@ -24,6 +24,9 @@ learns the correction. The DiT also sees ``z_base`` as extra input channels when
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -33,7 +36,7 @@ from train.model.baseline_renderer import BaselineConfig, BaselineRenderer
 from train.model.codec import LatentCodec
 from train.model.diffusion import DiffusionConfig, GaussianDiffusion
 from train.model.dit import DiT, make_dit
-from train.model.renderer_interface import RenderOutput, check_render_inputs
+from train.model.renderer_interface import RenderOutput, check_finite_inputs, check_render_inputs
 
 
 class DiTRenderer(nn.Module):
@@ -52,6 +55,9 @@ class DiTRenderer(nn.Module):
         if dit.config.latent_channels != codec.latent_channels:
             raise ToolkitError(f"DiTRenderer: DiT latent_channels={dit.config.latent_channels} but the codec "
                                f"has {codec.latent_channels}")
+        if not isinstance(upscale, numbers.Integral) or isinstance(upscale, bool) or upscale < 1:
+            raise ToolkitError(f"DiTRenderer upscale: expected an integer >= 1 (output size / feature-map size), "
+                               f"got {upscale!r}")
         self.dit = dit
         self.codec = codec.freeze()
         self.diffusion = diffusion or GaussianDiffusion(DiffusionConfig())
@@ -112,6 +118,9 @@ class DiTRenderer(nn.Module):
                noise: torch.Tensor | None = None, eta: float = 0.0) -> torch.Tensor:
         """DDIM with ``steps`` (default ``default_steps``) from ``noise`` or from noise drawn with ``seed``."""
         check_render_inputs(feats, shape_code, self.dit.config.feature_channels, self.dit.config.shape_dim)
+        if not _finite_number(eta):
+            raise ToolkitError(f"DiTRenderer eta: expected a finite number (0: deterministic DDIM), got {eta!r}")
+        check_finite_inputs(feats=feats, shape_code=shape_code, gaze=gaze, pose=pose, noise=noise)
         shape = self.latent_shape(feats)
         g = torch.Generator().manual_seed(seed)
         if noise is None:
@@ -131,6 +140,13 @@ class DiTRenderer(nn.Module):
         return self.render(feats, shape_code, gaze=gaze, pose=pose)
 
 
+def _finite_number(v) -> bool:
+    try:
+        return math.isfinite(v)
+    except (TypeError, ValueError, RuntimeError):
+        return False
+
+
 def make_renderer(kind: str, codec: LatentCodec | None = None, *, model: str = "DiT-Gaze-tiny",
                   output_size: int = 128, upscale: int = 4, diffusion: DiffusionConfig | None = None,
                   residual: bool = True, **model_kw) -> nn.Module:
@@ -141,6 +157,9 @@ def make_renderer(kind: str, codec: LatentCodec | None = None, *, model: str = "
     if kind == "dit":
         if codec is None:
             raise ToolkitError("make_renderer('dit'): a latent codec is required (see train.model.codec.load_codec)")
+        if not isinstance(output_size, numbers.Integral) or output_size < codec.downsample:
+            raise ToolkitError(f"make_renderer output_size: expected an image size >= the codec's downsample factor "
+                               f"{codec.downsample}, got {output_size!r}")
         grid = output_size // codec.downsample
         if residual:
             model_kw.setdefault("base_channels", codec.latent_channels)

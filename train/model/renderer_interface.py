@@ -56,3 +56,17 @@ def check_render_inputs(feats: torch.Tensor, shape_code: torch.Tensor, feature_c
         raise ToolkitError(f"renderer feats: expected [B, {feature_channels}, h, w], got {list(feats.shape)}")
     if shape_code.dim() != 2 or shape_code.shape != (feats.shape[0], shape_dim):
         raise ToolkitError(f"renderer shape_code: expected [{feats.shape[0]}, {shape_dim}], got {list(shape_code.shape)}")
+
+
+def check_finite_inputs(**tensors: torch.Tensor | None) -> None:
+    """ToolkitError naming the first of ``tensors`` (name=tensor; None skipped) that holds NaN or inf values;
+    one device sync for all of them."""
+    given = {k: v for k, v in tensors.items() if v is not None and v.is_floating_point()}
+    if not given:
+        return
+    device = next(iter(given.values())).device
+    flags = torch.stack([torch.isfinite(v).all().to(device) for v in given.values()])
+    if bool(flags.all()):
+        return
+    bad = next(k for k, ok in zip(given, flags.tolist()) if not ok)
+    raise ToolkitError(f"renderer {bad}: expected finite values, found NaN or inf")

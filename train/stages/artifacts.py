@@ -8,7 +8,7 @@ benchmarks open a finished run with) is the same class with a way to open a run 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Mapping
 
 import torch
 
@@ -23,11 +23,27 @@ CODE_WIDTHS_KEY = "code_widths"
 
 def resolve_device(cfg: RunConfig) -> torch.device:
     """The device ``cfg.device`` names ("auto": CUDA when available); a ToolkitError for CUDA without one."""
-    if cfg.device == "auto":
+    return device_named(cfg.device)
+
+
+def device_named(device) -> torch.device:
+    """The device ``device`` (a name or a ``torch.device``) names: "auto" is CUDA when available, else the CPU; a
+    ToolkitError for a name torch does not know and for CUDA without one."""
+    if isinstance(device, str) and device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise ToolkitError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
         raise ToolkitError("device=cuda but CUDA is not available; use device=cpu or device=auto")
-    return torch.device(cfg.device)
+    return dev
+
+
+def usable_device(device):
+    """``device`` as given once :func:`device_named` accepts it ("auto": the device it picks)."""
+    dev = device_named(device)
+    return str(dev) if isinstance(device, str) and device == "auto" else device
 
 
 class RunArtifacts:
@@ -108,6 +124,7 @@ class RunArtifacts:
         GazeNeRF's checkpoint in the project's ResNet-50, reading [B, 4] (gaze, head pose) as the run's do."""
         from train.estimator.network import GazeEstimator
 
+        device = usable_device(device)
         peer = self.config.eval.estimator_path
         if role == "eval" and peer:
             from train.estimator.peer import PeerGazeEstimator, load_gazenerf_estimator
@@ -144,6 +161,7 @@ class RunArtifacts:
         ``code_widths`` (identity, expression; default: the training files', :meth:`training_code_widths`)."""
         from train.training.trainer import build_model
 
+        device = usable_device(device)
         widths = code_widths or self.training_code_widths()
         return (build_model(self.context.path("geometry", "scene"), self.config.gaussian, device, widths),
                 self.renderer(device, sum(widths)))
@@ -162,6 +180,7 @@ class RunArtifacts:
         ToolkitError when the checkpoint does not fit the config)."""
         from train.training.checkpoint import load_training_checkpoint
 
+        device = usable_device(device)
         path = self.context.path("gaussian", "checkpoint")
         model, renderer = self.build_model(device, checkpoint_code_widths(path))
         modules = {"model": model, "renderer": renderer}
@@ -203,13 +222,23 @@ class RunArtifacts:
         from train.evaluation.fitting import face_only_mask, test_time_fit
         from train.presets import NATURAL_EYES_FIT
 
+        if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
+            raise ToolkitError(f"row_fitter steps: expected an integer >= 0 (Adam steps of the code), got {steps!r}")
+        device = usable_device(device)
         e = self.config.eval
         weights = NATURAL_EYES_FIT["weights"] if natural_eyes else tuple(e.tta_weights)
         natural = {k: v for k, v in NATURAL_EYES_FIT.items() if k != "weights"} if natural_eyes else {}
         gaze = self.fit_gaze_term(device, **natural) if gaze_term else None
         res = self.config.data.res
+        cfg = getattr(model, "config", None)
+        shapes = {"image": (3, res, res), "head_mask": (1, res, res), "latent_code": (getattr(cfg, "code_dim", None),),
+                  "pose": (getattr(cfg, "pose_dim", None),), "pitchyaw_head": (2,), "viewmat": (4, 4), "K": (3, 3),
+                  "landmarks": (None, 2)}
+        if e.tta_region != "head":
+            shapes |= {"left_eye_mask": (1, res, res), "right_eye_mask": (1, res, res)}
 
         def fit(it: dict, gazes: torch.Tensor) -> torch.Tensor:
+            gazes = _checked_fit_inputs(it, gazes, shapes, res, device)
             t = lambda k: torch.as_tensor(it[k]).float()[None].to(device)  # noqa: E731
             head = t("head_mask")
             mask = head if e.tta_region == "head" else face_only_mask(head, (t("left_eye_mask") + t("right_eye_mask")).clamp(0, 1))
@@ -221,6 +250,42 @@ class RunArtifacts:
                                      renderer_lr=e.tta_renderer_lr, gaze=gaze)
 
         return fit
+
+
+def _checked_fit_inputs(item, gazes, shapes: dict[str, tuple], res: int, device) -> torch.Tensor:
+    """The target gazes [G, 2] as float32 on ``device``, once the row ``item`` holds every key of ``shapes`` at
+    its shape (None: any size) with finite values and ``gazes`` is a finite floating [G >= 1, 2]; else a
+    ToolkitError naming the key or argument."""
+    if not isinstance(item, Mapping):
+        raise ToolkitError(f"row fit item: expected a dataset row (a mapping of tensors), got {type(item).__name__}")
+    missing = [k for k in shapes if k not in item]
+    if missing:
+        raise ToolkitError(f"row fit item: missing key(s) {missing}; expected a dataset row (train.data.dataset."
+                           f"GazeDataset) with {list(shapes)}")
+    for key, shape in shapes.items():
+        try:
+            v = torch.as_tensor(item[key])
+        except (TypeError, ValueError, RuntimeError):
+            raise ToolkitError(f"row fit item['{key}']: expected a tensor {list(shape)}, got "
+                               f"{type(item[key]).__name__}") from None
+        if v.dim() != len(shape) or any(n is not None and v.shape[i] != n for i, n in enumerate(shape)):
+            want = ", ".join("N" if n is None else str(n) for n in shape)
+            note = f" (the run's data.res = {res})" if len(shape) == 3 else ""
+            raise ToolkitError(f"row fit item['{key}']: expected shape [{want}]{note}, got {list(v.shape)}")
+        if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+            raise ToolkitError(f"row fit item['{key}']: expected finite values, found NaN or inf")
+    if not isinstance(gazes, torch.Tensor):
+        try:
+            gazes = torch.as_tensor(gazes)
+        except (TypeError, ValueError, RuntimeError):
+            raise ToolkitError(f"row fit gazes: expected a tensor [G, 2] (pitch, yaw), got {type(gazes).__name__}") from None
+    if gazes.dim() != 2 or gazes.shape[1] != 2 or gazes.shape[0] < 1:
+        raise ToolkitError(f"row fit gazes: expected [G >= 1, 2] (pitch, yaw), got {list(gazes.shape)}")
+    if not gazes.is_floating_point():
+        raise ToolkitError(f"row fit gazes: expected a floating-point tensor (radians), got {gazes.dtype}")
+    if not bool(torch.isfinite(gazes).all()):
+        raise ToolkitError("row fit gazes: expected finite values, found NaN or inf")
+    return gazes.to(device=device, dtype=torch.float32)
 
 
 def _dataset_name(root: str, layout: str) -> str:

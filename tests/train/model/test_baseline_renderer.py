@@ -91,3 +91,5 @@ def test_interface():
         r.render(f, torch.randn(2, 144))
     with pytest.raises(ToolkitError, match="upscale"):
         BaselineRenderer(BaselineConfig(upscale=3))
+    with pytest.raises(ToolkitError, match=r"renderer feats: expected finite values, found NaN or inf"):
+        r.render(torch.full_like(f, float("nan")), c)

@@ -138,10 +138,23 @@ def test_sample_timesteps_range():
                                        (dict(schedule="quadratic"), "schedule"),
                                        (dict(num_timesteps=1), "num_timesteps"),
                                        (dict(prediction="x0"), "prediction"),
-                                       (dict(beta_end=1.0), "beta_end: expected a beta in")])
+                                       (dict(beta_end=1.0), "beta_end: expected a beta in"),
+                                       (dict(num_timesteps=2.5), r"num_timesteps: expected an integer >= 2, got 2.5"),
+                                       (dict(beta_start=0.5, beta_end=0.1),
+                                        r"DiffusionConfig: need beta_start <= beta_end .*got beta_start=0.5, beta_end=0.1"),
+                                       (dict(schedule="linear", beta_start=0.05),
+                                        r"need beta_start <= beta_end .*got beta_start=0.05, beta_end=0.02")])
 def test_bad_config(bad, match):
     with pytest.raises(ToolkitError, match=match):
         GaussianDiffusion(DiffusionConfig(**bad))
+
+
+def test_ddim_refuses_a_non_finite_eta():
+    d = GaussianDiffusion()
+    noise = torch.randn(1, 2, 2, 2)
+    for eta in (float("nan"), float("inf")):
+        with pytest.raises(ToolkitError, match=r"DDIM eta: expected a finite number"):
+            d.ddim_sample(lambda x, t: torch.zeros_like(x), noise, 2, eta=eta)
 
 
 def test_an_explicit_zero_beta_is_used_not_replaced_by_the_default():

@@ -120,6 +120,21 @@ def test_bad_config(bad):
         DiT(DiTConfig(**{**dict(hidden_size=64, num_heads=4, depth=1, input_size=8), **bad}))
 
 
+@pytest.mark.parametrize("bad, match", [
+    (dict(hidden_size=0), r"DiTConfig.hidden_size: expected a positive integer, got 0"),
+    (dict(input_size=-4), r"DiTConfig.input_size: expected a positive integer, got -4"),
+    (dict(num_heads=0), r"DiTConfig.num_heads: expected a positive integer, got 0"),
+    (dict(mlp_ratio=-1), r"DiTConfig.mlp_ratio: expected a number > 0"),
+    (dict(mlp_ratio=float("nan")), r"DiTConfig.mlp_ratio: expected a number > 0"),
+    (dict(pose_dim=5), r"DiTConfig.pose_dim: expected 0 or 6 \(axis-angle \+ translation\), got 5"),
+    (dict(feature_embed_channels=-1), r"DiTConfig.feature_embed_channels: expected >= 0, got -1")])
+def test_bad_config_values_are_named_before_any_layer_is_built(bad, match):
+    """Not a ZeroDivisionError or a negative-dimension error from torch's layers, nor (pose_dim) a matmul shape
+    error at the first render."""
+    with pytest.raises(ToolkitError, match=match):
+        DiT(DiTConfig(**{**dict(hidden_size=64, num_heads=4, depth=1, input_size=8), **bad}))
+
+
 def test_bad_inputs():
     model = tiny()
     x, t, f, s = inputs()

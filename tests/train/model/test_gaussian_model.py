@@ -282,6 +282,48 @@ def test_input_shapes_are_checked():
         model(code, pose, gaze, viewmats[:1], Ks, 64, 64)
 
 
+@pytest.mark.parametrize("field, value, match", [
+    ("max_offset", float("nan"), r"GaussianModelConfig.max_offset: expected a finite number, got nan"),
+    ("near_m", float("nan"), r"GaussianModelConfig.near_m: expected a finite number, got nan"),
+    ("max_eye_residual", float("nan"), r"GaussianModelConfig.max_eye_residual: expected a finite number"),
+    ("max_opacity_delta", float("nan"), r"GaussianModelConfig.max_opacity_delta: expected a finite number"),
+    ("max_offset", -1.0, r"GaussianModelConfig.max_offset: expected a bound >= 0, got -1.0"),
+    ("pose_dim", 3, r"GaussianModelConfig.pose_dim: expected 6 \(axis-angle 3 \+ translation 3\), got 3"),
+    ("depth", -1, r"GaussianModelConfig.depth: expected a layer count >= 1, got -1"),
+    ("hidden", 0, r"GaussianModelConfig.hidden: expected a layer width >= 1, got 0"),
+    ("pos_freqs", -1, r"GaussianModelConfig.pos_freqs: expected a frequency count >= 0, got -1"),
+    ("num_images", -1, r"GaussianModelConfig.num_images: expected an image count >= 0"),
+    ("feature_dim", -1, r"GaussianModelConfig.feature_dim: expected a channel count >= 3")])
+def test_config_values_no_model_can_use_are_refused_by_name(field, value, match):
+    """Each is one line naming the field, when the model is built: not a splatter error at the first render
+    (NaN bounds), a shape error there (pose_dim), or a model built silently (negative sizes)."""
+    with pytest.raises(ToolkitError, match=match):
+        GaussianModelConfig(**{"hidden": 16, field: value}).validate()
+    with pytest.raises(ToolkitError, match=match):
+        GaussianModel.from_scene(demo_head_scene(300), GaussianModelConfig(**{"hidden": 16, field: value}))
+
+
+def test_render_calls_without_a_camera_size_or_image_are_refused_by_name():
+    """B = 0 cameras, an empty or negative output size and bad auto-decoder indices name the argument, instead of a
+    division by zero in the splatter or the intrinsics, an 8x1 map, or an embedding's IndexError."""
+    scene = demo_head_scene(300)
+    model = small_model(scene, num_images=2)
+    code, pose, gaze, viewmats, Ks = model_inputs(1, width=16, height=16)
+    with pytest.raises(ToolkitError, match=r"code: expected at least one camera to render \(B >= 1\), got \[0, 144\]"):
+        model(code[:0], pose[:0], gaze[:0], viewmats[:0], Ks[:0], 16, 16)
+    for w, h in ((0, 16), (-8, 16), (16, 0)):
+        with pytest.raises(ToolkitError, match=r"width/height: expected an output size >= 1 pixel each"):
+            model(code, pose, gaze, viewmats, Ks, w, h)
+    with pytest.raises(ToolkitError, match=r"image_index: expected indices in \[0, 2\) \(config.num_images = 2\), got \[5\]"):
+        model(code, pose, gaze, viewmats, Ks, 16, 16, image_index=torch.tensor([5]))
+    with pytest.raises(ToolkitError, match=r"image_index: expected indices in \[0, 2\).*got \[-1\]"):
+        model.gaussians(code, pose, gaze, image_index=torch.tensor([-1]))
+    with pytest.raises(ToolkitError, match=r"image_index: expected \[B=1\] training-image indices, got \[2\]"):
+        model(code, pose, gaze, viewmats, Ks, 16, 16, image_index=torch.tensor([0, 1]))
+    assert model(code, pose, gaze, viewmats, Ks, 16, 16, image_index=torch.tensor([1]))["head"].shape == (1, 32, 4, 4)
+    assert model(code[:0], pose[:0], gaze[:0], viewmats[:0], Ks[:0], 16, 16, renders=()) == {}
+
+
 def test_export_scene_round_trips_through_the_scene_format(tmp_path):
     from toolkit.scene import GaussianScene
 

@@ -77,3 +77,33 @@ def test_errors():
         make_renderer("dit")
     with pytest.raises(ToolkitError, match="renderer kind"):
         make_renderer("unet")
+
+
+def test_renderer_arguments_no_render_can_use_are_named_when_it_is_built():
+    """Not an interpolate error at the first render (upscale 0) or a DiT config error about input_size."""
+    with pytest.raises(ToolkitError, match=r"DiTRenderer upscale: expected an integer >= 1 .*got 0"):
+        make_renderer("dit", PixelCodec(), upscale=0)
+    with pytest.raises(ToolkitError, match=r"make_renderer output_size: expected an image size >= the codec's "
+                                           r"downsample factor 4, got -32"):
+        make_renderer("dit", KLAutoencoder(AutoencoderConfig(downsample=4, base_channels=8, max_channels=16)),
+                      output_size=-32)
+
+
+def test_render_refuses_non_finite_conditioning_and_eta():
+    """A NaN in the features or codes, or eta = NaN, is named instead of returning a NaN image."""
+    r = latent_renderer(gaze_dim=2, pose_dim=6)
+    f, c, gaze, pose = torch.rand(1, 32, 4, 4), torch.randn(1, 144), torch.zeros(1, 2), torch.zeros(1, 6)
+    nan = float("nan")
+    with torch.no_grad():
+        good = r.render(f, c, gaze=gaze, pose=pose)
+    assert torch.isfinite(good).all()
+    for name, kw in (("feats", dict(feats=f.index_fill(2, torch.tensor([1]), nan))),
+                     ("shape_code", dict(shape_code=torch.full_like(c, nan))),
+                     ("gaze", dict(gaze=torch.full_like(gaze, nan))),
+                     ("pose", dict(pose=pose.index_fill(1, torch.tensor([4]), float("inf")))),
+                     ("noise", dict(noise=torch.full((1, 4, 4, 4), nan)))):
+        args = {"feats": f, "shape_code": c, "gaze": gaze, "pose": pose, **kw}
+        with pytest.raises(ToolkitError, match=rf"renderer {name}: expected finite values, found NaN or inf"):
+            r.render(args.pop("feats"), args.pop("shape_code"), **args)
+    with pytest.raises(ToolkitError, match=r"DiTRenderer eta: expected a finite number"):
+        r.render(f, c, gaze=gaze, pose=pose, steps=2, eta=nan)

@@ -94,3 +94,53 @@ def test_a_trained_model_holding_nan_is_named_with_its_file_and_tensor(tiny_run,
     with pytest.raises(ToolkitError, match=r"final.safetensors: tensor 'renderer\..*' holds NaN or inf values: the "
                                            r"checkpoint is damaged"):
         run.load_model("cpu")
+
+
+def test_load_model_names_a_device_torch_cannot_use(tiny_run):
+    """The device argument is checked as the run's own ``device`` key is: one line, not torch's list of device
+    types or an assertion from torch.cuda."""
+    run = TrainedRun.open(tiny_run)
+    with pytest.raises(ToolkitError, match=r"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'bogus'"):
+        run.load_model("bogus")
+    if not torch.cuda.is_available():
+        with pytest.raises(ToolkitError, match=r"device=cuda but CUDA is not available; use device=cpu or device=auto"):
+            run.load_model("cuda")
+
+
+def test_row_fitter_checks_the_row_the_gazes_and_the_steps(tiny_run):
+    """A row at another resolution, holding NaN or lacking keys, gazes of the wrong shape, dtype or values, and a
+    negative step count are named up front, instead of a size mismatch deep in the loss, a NaN code, a splatter
+    error or the unfitted code returned."""
+    from train.data.dataset import GazeDataset
+    from train.evaluation.fitting import restored_weights
+
+    run = TrainedRun.open(tiny_run)
+    model, renderer = run.load_model("cpu")
+    res = run.config.data.res
+    item = GazeDataset(run.split("test"), res=res)[0]
+    with pytest.raises(ToolkitError, match=r"row_fitter steps: expected an integer >= 0 .*got -1"):
+        run.row_fitter(model, renderer, "cpu", steps=-1)
+    fit = run.row_fitter(model, renderer, "cpu", steps=0, gaze_term=False)
+    gazes = torch.zeros(1, 2)
+    small = {**item, "image": item["image"][:, : res // 2, : res // 2]}
+    with pytest.raises(ToolkitError, match=rf"row fit item\['image'\]: expected shape \[3, {res}, {res}\] \(the run's "
+                                           rf"data.res = {res}\), got \[3, {res // 2}, {res // 2}\]"):
+        fit(small, gazes)
+    with pytest.raises(ToolkitError, match=r"row fit item\['image'\]: expected finite values, found NaN or inf"):
+        fit({**item, "image": torch.full_like(item["image"], float("nan"))}, gazes)
+    with pytest.raises(ToolkitError, match=r"row fit item: missing key\(s\) \['head_mask'"):
+        fit({k: v for k, v in item.items() if k != "head_mask"}, gazes)
+    for bad, match in ((torch.zeros(2), r"expected \[G >= 1, 2\] \(pitch, yaw\), got \[2\]"),
+                       (torch.zeros(1, 2, dtype=torch.long), r"expected a floating-point tensor"),
+                       (torch.full((1, 2), float("nan")), r"expected finite values, found NaN or inf")):
+        with pytest.raises(ToolkitError, match=r"row fit gazes: " + match):
+            fit(item, bad)
+    # float64 gazes are read as float32 (the gaze term's estimator compares them with its float32 output)
+    assert run.fit_gaze_term("cpu") is not None
+    fit = run.row_fitter(model, renderer, "cpu", steps=1)
+    with restored_weights(model, renderer):
+        torch.manual_seed(0)
+        wide = fit(item, torch.tensor([[0.1, -0.2]], dtype=torch.float64))
+    with restored_weights(model, renderer):
+        torch.manual_seed(0)
+        assert torch.equal(wide, fit(item, torch.tensor([[0.1, -0.2]])))
