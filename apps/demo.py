@@ -26,23 +26,49 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from apps.preview import DEMO_BYTES_PER_GAUSSIAN, DEMO_MAX
 from toolkit.errors import ToolkitError, run_cli
+from toolkit.io import check_output_folder
+from toolkit.limits import check_allocation, check_count
 from toolkit.procedural import demo_head_scene
 from toolkit.scene import GaussianScene
+
+DEFAULT_PRESET = "demo"
+MIN_GAUSSIANS = 64
+"""Fewest Gaussians of the demo head, as ``apps.preview``'s ``demo:N``."""
+SEED_LIMIT = 2**32
+"""--seed is below this, as every seed of the run config (``train.run_config.SEED``); torch's generator
+overflows past 2^64 with a traceback."""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m apps.demo", description="Run the DiT-Gaze demo pipeline.")
     ap.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
-    ap.add_argument("--gaussians", type=int, default=20000, help="Gaussians in the demo head (default: 20000)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--skip-training", action="store_true", help="only the procedural head and its preview sweep")
-    ap.add_argument("--preset", default="demo", help="train/run.py preset for the pipeline (default: demo)")
+    ap.add_argument("--gaussians", type=int, default=20000,
+                    help=f"Gaussians in the demo head, {MIN_GAUSSIANS} to {DEMO_MAX} (default: 20000)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the demo head, in [0, 2^32) (default: 0)")
+    ap.add_argument("--skip-training", action="store_true",
+                    help="only the procedural head and its preview sweep (takes no --preset or overrides: "
+                         "they configure the training)")
+    ap.add_argument("--preset", default=None, help=f"train/run.py preset for the pipeline (default: {DEFAULT_PRESET})")
     ap.add_argument("overrides", nargs="*", help="train/run.py config overrides, e.g. gaussian.steps=100")
     args = ap.parse_args(argv)
-    if args.gaussians < 64:
-        raise ToolkitError(f"--gaussians must be >= 64, got {args.gaussians}")
-    out = Path(args.out)
+    # Every flag is checked before the head is built or any file written: the pipeline's config included,
+    # so a typo in an override is not found only after the head and both sweeps.
+    check_count(args.gaussians, "--gaussians", MIN_GAUSSIANS, DEMO_MAX, "a number of demo Gaussians")
+    check_allocation(args.gaussians * DEMO_BYTES_PER_GAUSSIAN, f"--gaussians {args.gaussians}",
+                     "ask for fewer Gaussians")
+    check_count(args.seed, "--seed", 0, SEED_LIMIT - 1, "a seed")
+    if not args.out.strip():  # an empty path is the current folder: the demo's files would land among the user's
+        raise ToolkitError("--out: expected an output folder, got an empty path")
+    out = check_output_folder(args.out, "--out")
+    if args.skip_training:
+        if args.preset is not None or args.overrides:
+            given = " ".join(([f"--preset {args.preset}"] if args.preset is not None else []) + args.overrides)
+            raise ToolkitError(f"--skip-training runs no training, so {given} would be ignored: drop "
+                               f"--skip-training, or drop --preset and the overrides")
+    else:
+        check_pipeline_config(args.preset or DEFAULT_PRESET, args.overrides)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
 
@@ -67,9 +93,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         info = render_gaze_sweep(scene, out / name, pitches, yaws, 256, 256)
         print(f"wrote {info['path']} ({len(info['gazes'])} gazes: pitch {pitches} x yaw {yaws} degrees)")
     if not args.skip_training:
-        run_pipeline(out, args.preset, args.overrides)
+        run_pipeline(out, args.preset or DEFAULT_PRESET, args.overrides)
     print(f"done in {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def check_pipeline_config(preset_name: str, overrides: list[str]) -> None:
+    """The run config the pipeline will train with, checked as ``train.run`` checks it (the same preset, the
+    same overrides, the same checks), so a bad preset or override is one line before the demo writes anything."""
+    from train.config import apply_overrides
+    from train.presets import PRESETS, preset
+    from train.stages.artifacts import resolve_device
+    from train.stages.checks import check_config
+
+    if preset_name not in PRESETS:  # named here: train.run would print its own usage first
+        raise ToolkitError(f"--preset: expected one of {sorted(PRESETS)}, got {preset_name!r}")
+    cfg = apply_overrides(preset(preset_name), overrides)
+    check_config(cfg)
+    resolve_device(cfg)
 
 
 def most_frontal(head_poses) -> int:

@@ -19,8 +19,20 @@ import torch
 
 from toolkit.errors import ToolkitError
 from toolkit.io import atomic_write_bytes
+from toolkit.limits import check_allocation
 
 OUT_DIR = Path(os.environ.get("DITGAZE_BENCH_OUT", "out/benchmarks"))
+
+MODEL_GAUSSIAN_BYTES = 4 << 10
+MODEL_ITEM_BYTES = 1 << 10
+MODEL_HIDDEN_BYTES = 16
+"""Peak memory per Gaussian of one ``GaussianModel`` in a forward + backward: 4 KB, plus for each batch item 1 KB
+and 16 bytes per hidden unit of the field MLPs. Fitted to the peak resident memory of benchmarks.field_switches
+(its four models of 40,000 Gaussians, hidden 64 and 128, batch 1 and 4, measured ~3.1 KB, ~0.8 KB and ~10 bytes)
+and rounded up."""
+MODEL_PIXEL_BYTES = 1024
+"""Peak memory per rendered pixel and batch item, generously: 32 float32 feature channels of the head, face and
+eye renders, their alphas and their gradients."""
 
 
 def count(flag: str, least: int = 1) -> Callable[[str], int]:
@@ -58,6 +70,15 @@ def check_device(device: str) -> torch.device:
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise ToolkitError(f"--device {device}: CUDA is not available here; use --device cpu")
     return torch.device(device)
+
+
+def check_model_memory(what: str, gaussians: int, hidden: int, batch: int, size: int, models: int = 1,
+                       hint: str = "") -> None:
+    """Refuse, before any model is built, a ``GaussianModel`` scale whose forward + backward would not fit the
+    memory budget (``toolkit.limits``): ``models`` models of ``gaussians`` Gaussians with ``hidden``-wide fields,
+    rendering ``batch`` images of ``size`` x ``size``. ``what`` names the flag."""
+    per_gaussian = MODEL_GAUSSIAN_BYTES + batch * (MODEL_ITEM_BYTES + MODEL_HIDDEN_BYTES * hidden)
+    check_allocation(models * gaussians * per_gaussian + models * batch * size * size * MODEL_PIXEL_BYTES, what, hint)
 
 
 def machine_info() -> str:

@@ -22,8 +22,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot  # noqa: E402
+from apps.preview import DEMO_MAX, MAX_SIDE  # noqa: E402
+from benchmarks.common import OUT_DIR, check_model_memory, count, format_table, machine_info, save_plot  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.limits import check_count  # noqa: E402
 from toolkit.procedural import demo_camera, demo_head_scene  # noqa: E402
 from train.model.gaussian_config import GaussianModelConfig  # noqa: E402
 from train.model.gaussian_model import GaussianModel  # noqa: E402
@@ -34,13 +36,20 @@ SETTINGS = {"position (default)": {}, "field_input=feature": {"field_input": "fe
 
 
 def _scales(text: str) -> list[tuple[int, int, int, int]]:
-    """``N:hidden:size:batch`` comma list, or a one-line error naming ``--scales``."""
+    """``N:hidden:size:batch`` comma list, or a one-line error naming ``--scales``; each scale bounded before
+    any head is built (N as ``apps.preview``'s ``demo:N``, the splat side as its ``--size``) and its models'
+    memory checked (all four settings' models are alive at once)."""
     try:
         out = [tuple(int(v) for v in item.split(":")) for item in text.split(",") if item.strip()]
     except ValueError:
         out = []
     if not out or any(len(s) != 4 or min(s) < 1 or s[0] < 16 or s[2] < 16 for s in out):
         raise ToolkitError(f"--scales: expected a comma list of N:hidden:size:batch (N, size >= 16), got {text!r}")
+    for n, hidden, size, batch in out:
+        check_count(n, "--scales N", 16, DEMO_MAX, "a number of demo Gaussians")
+        check_count(size, "--scales size", 16, MAX_SIDE, "pixels per side")
+        check_model_memory(f"--scales {n}:{hidden}:{size}:{batch}", n, hidden, batch, size, models=len(SETTINGS),
+                           hint="ask for a smaller scale")
     return out
 
 

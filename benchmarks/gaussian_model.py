@@ -21,21 +21,30 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot, timeit  # noqa: E402
+from apps.preview import DEMO_MAX, MAX_SIDE  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    OUT_DIR,
+    check_model_memory,
+    count,
+    format_table,
+    machine_info,
+    save_plot,
+    timeit,
+)
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.procedural import demo_camera, demo_head_scene  # noqa: E402
 from train.model.gaussian_config import GaussianModelConfig  # noqa: E402
 from train.model.gaussian_model import GaussianModel  # noqa: E402
 
 
-def _counts(flag: str, text: str, least: int) -> list[int]:
-    """A comma list of integers >= ``least``, or a one-line error naming ``flag``."""
+def _counts(flag: str, text: str, least: int, most: int) -> list[int]:
+    """A comma list of integers in [``least``, ``most``], or a one-line error naming ``flag``."""
     try:
         values = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
         values = []
-    if not values or min(values) < least:
-        raise ToolkitError(f"{flag}: expected a comma list of integers >= {least}, got {text!r}")
+    if not values or min(values) < least or max(values) > most:
+        raise ToolkitError(f"{flag}: expected a comma list of integers in [{least}, {most}], got {text!r}")
     return values
 
 
@@ -47,7 +56,10 @@ def main(argv=None) -> int:
     ap.add_argument("--hidden", type=count("--hidden", 1), default=128)
     ap.add_argument("--repeats", type=count("--repeats", 1), default=3)
     a = ap.parse_args(argv)
-    gaussians, sizes = _counts("--gaussians", a.gaussians, 1), _counts("--sizes", a.sizes, 16)
+    # Bounded before any head is built: the Gaussians as apps.preview's demo:N, the output side as its --size.
+    gaussians, sizes = _counts("--gaussians", a.gaussians, 1, DEMO_MAX), _counts("--sizes", a.sizes, 16, MAX_SIDE)
+    check_model_memory(f"--gaussians {max(gaussians)} --sizes {max(sizes)} --batch {a.batch} --hidden {a.hidden}",
+                       max(gaussians), a.hidden, a.batch, max(sizes), hint="lower --gaussians, --sizes or --batch")
     print(machine_info())
     dev = "cuda" if torch.cuda.is_available() else "cpu"
     rows, series = [], {}

@@ -41,7 +41,7 @@ from benchmarks.common import (  # noqa: E402
     timeit,
 )
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
-from toolkit.io import load_tensors, save_tensors  # noqa: E402
+from toolkit.io import check_output_folder, load_tensors, save_tensors  # noqa: E402
 from toolkit.rotations import angular_error_deg  # noqa: E402
 from train.estimator.config import GazeEstimatorConfig, GazeEstimatorTrainConfig, eye_config  # noqa: E402
 from train.estimator.network import GazeEstimator  # noqa: E402
@@ -203,14 +203,30 @@ def _modes_and_channels(a: argparse.Namespace) -> tuple[list[str], tuple[int, ..
     return modes, channels
 
 
-def _datasets(a: argparse.Namespace):
+def _check_flags(a: argparse.Namespace) -> None:
+    """The flags the training reads only after the sets are rendered, and the folders written only after it:
+    checked first, so a typo costs neither the rendering nor a trained model."""
+    # The trainer's own checks (GazeEstimatorTrainConfig.validate) run after the sets are made, and a NaN jitter
+    # passes them and poisons the first step's loss instead.
+    if not 0.0 <= a.mirror <= 1.0:  # NaN fails too
+        raise ToolkitError(f"--mirror: expected a probability in [0, 1], got {a.mirror}")
+    if not 0.0 <= a.landmark_noise <= a.res:  # a jitter beyond the crop moves the eye patches off the image
+        raise ToolkitError(f"--landmark-noise: expected a jitter in [0, {a.res}] pixels (--res), got {a.landmark_noise}")
+    for flag, folder in (("--save", a.save), ("--cache", a.cache)):
+        if folder is not None:
+            if not folder.strip():  # an empty path is the current folder
+                raise ToolkitError(f"{flag}: expected a folder, got an empty path")
+            check_output_folder(folder, flag)
+
+
+def _datasets(a: argparse.Namespace, data_test):
     """(training set, test set, a description of the test set's source, the test images' visible iris pixels
-    or None), the training set on ``--device``."""
+    or None), the training set on ``--device``; ``data_test``: ``--data``'s held-out split, read already."""
     t0 = time.perf_counter()
     train = procedural_set(range(TRAIN_SEEDS, TRAIN_SEEDS + a.subjects), n_frames=a.frames, seed=0, res=a.res,
                            workers=a.workers, iris=False, cache=a.cache)
-    if a.data:
-        test, source, iris = load_split(a.data, "test"), f"held-out split of {a.data}", None
+    if data_test is not None:
+        test, source, iris = data_test, f"held-out split of {a.data}", None
     else:
         *test, iris = procedural_set(range(TEST_SEEDS, TEST_SEEDS + a.test_subjects), n_frames=30, seed=1,
                                      res=a.res, workers=a.workers, iris=True, cache=a.cache)
@@ -283,8 +299,16 @@ def main(argv=None) -> int:
         init = GazeEstimator.load(a.init, frozen=False)
         a.modes = "eyes" if init.config.eyes else "face"
     modes, channels = _modes_and_channels(a)
+    _check_flags(a)
+    # --data's held-out split is read before the training set is rendered: a wrong --data costs no rendering.
+    data_test = None
+    if a.data:
+        try:
+            data_test = load_split(a.data, "test")
+        except ToolkitError as e:  # the dataset's message names its file, not the flag that chose it
+            raise ToolkitError(f"--data: {e}") from None
     print(machine_info())
-    train, test, source, iris = _datasets(a)
+    train, test, source, iris = _datasets(a, data_test)
     rows, series = [], {}
     for mode in modes:
         model, tc, hist, stamps = _train_mode(a, mode, _design(a, mode, init, channels), train, test, init)

@@ -40,8 +40,9 @@ from benchmarks.common import (  # noqa: E402
     save_plot,
     timeit,
 )
-from toolkit.errors import run_cli  # noqa: E402
+from toolkit.errors import ToolkitError, run_cli  # noqa: E402
 from toolkit.io import atomic_write_json  # noqa: E402
+from toolkit.limits import check_allocation  # noqa: E402
 from train.model.baseline_renderer import BaselineConfig, BaselineRenderer  # noqa: E402
 from train.model.codec import AutoencoderConfig, KLAutoencoder, train_autoencoder  # noqa: E402
 from train.model.diffusion import GaussianDiffusion  # noqa: E402
@@ -49,6 +50,11 @@ from train.model.dit import make_dit  # noqa: E402
 from train.model.renderer import DiTRenderer  # noqa: E402
 
 STEPS = (1, 2, 4, 8, 25, 50)
+CODEC_DOWNSAMPLE = 8
+"""The KL autoencoders' downsampling (``fit_renderers``, ``speed_table``): the DiT's latent grid is 1/8 of the image."""
+DATA_BYTES_PER_PIXEL = 64
+"""Peak memory of ``make_dataset`` per pixel of an image, generously: the RGB image (12 bytes), the 32 feature
+channels at 1/4 resolution (8) and ``scene_images``' single-channel masks and their temporaries."""
 
 
 # ----------------------------------------------------------------------------- procedural data
@@ -229,6 +235,18 @@ def speed_table(args, device):
     return rows
 
 
+def check_training_set(args) -> None:
+    """``--train-size`` and the sets' memory, before the speed table: the trained codec makes a latent grid of
+    1/8 of the image and the DiT cuts it into patches, so the size must be a multiple of 8 x the patch size."""
+    step = CODEC_DOWNSAMPLE * make_dit(args.model, input_size=8).config.patch_size
+    if args.train_size % step:
+        raise ToolkitError(f"--train-size: expected a multiple of {step} ({args.model}: the codec downsamples "
+                           f"{CODEC_DOWNSAMPLE}x, then patches of {step // CODEC_DOWNSAMPLE}), got {args.train_size}")
+    pixels = (args.train_images + args.test_images) * args.train_size**2
+    check_allocation(pixels * DATA_BYTES_PER_PIXEL, f"--train-images {args.train_images} --test-images "
+                     f"{args.test_images} at --train-size {args.train_size}", "lower them")
+
+
 def uptime() -> str:
     try:
         return subprocess.run(["uptime"], capture_output=True, text=True, timeout=5).stdout.strip()
@@ -263,6 +281,8 @@ def main(argv=None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     make_dit(args.model, input_size=8)  # an unknown --model fails here, not after the speed table
+    if not args.skip_training:
+        check_training_set(args)
     device = check_device(args.device)
     print(machine_info())
     print(f"load before: {uptime()}\n", flush=True)

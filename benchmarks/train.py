@@ -311,6 +311,7 @@ def time_to_quality(trained, device, overrides: list[str], args, test_files) -> 
 
     def on_log(step: int, values: dict) -> None:
         clock["train"] += now() - clock["since"]
+        clock["step"] = step
         if clock["train"] >= clock["next_eval"] or clock["train"] >= args.budget_s:
             measure(step)
         if clock["train"] >= args.budget_s:
@@ -327,18 +328,45 @@ def time_to_quality(trained, device, overrides: list[str], args, test_files) -> 
                        lr_factor=lr_factor(g))  # as the stage (and the sampler): over gaussian.steps, then its last rate
         except _BudgetReached:
             pass
+    if points[-1]["step"] != clock.get("step", 0):  # stopped by --max-steps between two measurements
+        measure(clock["step"])
     data.close()
     return points
 
 
+RENDERERS = ("dit", "unet")
+"""The values of ``gaussian.renderer``: the variant names that need no overrides."""
+
+
+def check_overrides(overrides: list[str], flag: str = "") -> None:
+    """The overrides' keys and values against the config's fields, before the prerequisite stages run: a typo
+    would otherwise surface minutes later, after the breakdown. ``flag`` prefixes the error line."""
+    from train.config import apply_overrides
+    from train.run_config import RunConfig
+
+    try:
+        apply_overrides(RunConfig(), overrides)
+    except ToolkitError as e:
+        raise ToolkitError(f"{flag}: {e}" if flag else str(e)) from None
+
+
 def parse_variants(spec: str) -> list[tuple[str, list[str]]]:
-    """``"dit:gaussian.renderer=dit,unet:gaussian.renderer=unet"``; a bare name X means gaussian.renderer=X."""
+    """``"dit:gaussian.renderer=dit,unet:gaussian.renderer=unet"``; a bare name X (or ``X:``) means
+    gaussian.renderer=X, so it must be one of :data:`RENDERERS`: anything else would silently measure the run
+    config under a made-up name. Each variant's overrides are checked against the config's keys and types now,
+    before the prerequisite stages and the breakdown run."""
     out = []
     for part in spec.split(","):
         name, _, ov = part.partition(":")
         if not name:
             raise ToolkitError(f"--variants: empty name in {spec!r}")
-        ovs = [o for o in ov.split(";") if o] if ov else ([f"gaussian.renderer={name}"] if name in ("dit", "unet") else [])
+        ovs = [o for o in ov.split(";") if o]
+        if not ovs:
+            if name not in RENDERERS:
+                raise ToolkitError(f"--variants: unknown variant {name!r}; a name without overrides is a renderer, "
+                                   f"one of {list(RENDERERS)} (else give NAME:section.key=value;...)")
+            ovs = [f"gaussian.renderer={name}"]
+        check_overrides(ovs, f"--variants {name}")
         out.append((name, ovs))
     return out
 
@@ -357,7 +385,8 @@ def main(argv=None) -> int:
     ap.add_argument("--pairs", type=count("--pairs", 1), default=12, help="evaluation pairs per held-out subject")
     ap.add_argument("--max-steps", type=count("--max-steps", 1), default=100_000, help="stop a variant earlier at this many steps")
     ap.add_argument("--variants", default="dit,unet",
-                    help="comma-separated NAME[:override;override...] (default dit,unet = gaussian.renderer=...)")
+                    help="comma-separated NAME[:override;override...]; a NAME without overrides is a renderer, dit "
+                         "or unet (gaussian.renderer=NAME; default dit,unet)")
     ap.add_argument("--breakdown-renderers", default="dit,unet")
     ap.add_argument("--paper-gaussians", type=count("--paper-gaussians", 1), default=20000)
     ap.add_argument("--paper-batch", type=count("--paper-batch", 1), default=1)
@@ -379,6 +408,7 @@ def main(argv=None) -> int:
     if args.clock == "cpu" and args.threads != 1:
         print("note: --clock cpu with several threads counts the CPU time of all of them")
     variants = parse_variants(args.variants)  # before any measurement: a typo should not cost the breakdown
+    check_overrides(args.overrides)
     trained = open_prereqs(Path(args.run_dir), args.overrides)
     if not args.skip_breakdown:
         rows = breakdown(trained, device, args)

@@ -55,3 +55,53 @@ def run_config_of(run_dir):
     from train.trained_run import TrainedRun
 
     return TrainedRun.open(run_dir).config
+
+
+# (id, argv after --out, regex the error line matches): each refused before the head is built or a file written.
+BAD_DEMO_ARGS = [
+    ("unknown preset", ["--preset", "bogus"], r"--preset: expected one of \['demo', 'paper', 'tiny'\], got 'bogus'"),
+    ("override not a section", ["x.y=1"], r"unknown config key 'x'"),
+    ("override without =", ["notanoverride"], r"override 'notanoverride': expected KEY=VALUE"),
+    ("negative steps", ["gaussian.steps=-5"], r"'gaussian.steps': expected a count >= 1, got -5"),
+    ("bad override on another preset", ["--preset", "tiny", "seed=4294967296"], r"'seed': expected a seed below 2\^32"),
+    ("1e10 Gaussians", ["--skip-training", "--gaussians", "10000000000"],
+     r"--gaussians: expected a number of demo Gaussians in \[64, 2000000\], got 10000000000"),
+    ("too few Gaussians", ["--skip-training", "--gaussians", "3"], r"--gaussians: expected .* got 3"),
+    ("seed 2^64", ["--skip-training", "--seed", "18446744073709551616"],
+     r"--seed: expected a seed in \[0, 4294967295\], got 18446744073709551616"),
+    ("negative seed", ["--skip-training", "--seed", "-1"], r"--seed: expected a seed in .* got -1"),
+    ("overrides without training", ["--skip-training", "gaussian.steps=3"],
+     r"--skip-training runs no training, so gaussian.steps=3 would be ignored"),
+    ("preset without training", ["--skip-training", "--preset", "tiny"],
+     r"--skip-training runs no training, so --preset tiny would be ignored"),
+    ("out under a file", ["--skip-training", "--out", "{tmp}/file.txt/demo"], r"--out: .*file\.txt is a file"),
+]
+
+
+@pytest.fixture
+def demo_does_no_work(monkeypatch):
+    """Building the demo head fails the test: a refusal that came after it would show as that failure, at once."""
+    import apps.demo
+
+    def built(*a, **k):
+        raise AssertionError("the demo head was built before the arguments were refused")
+
+    monkeypatch.setattr(apps.demo, "demo_head_scene", built)
+
+
+@pytest.mark.parametrize("argv, match", [pytest.param(a, m, id=i) for i, a, m in BAD_DEMO_ARGS])
+def test_demo_refuses_bad_arguments_before_writing(tmp_path, demo_does_no_work, argv, match):
+    from tests.fuzz.cli import assert_refused
+
+    (tmp_path / "file.txt").write_text("a file, not a folder\n")
+    args = ["--out", tmp_path / "demo", *(a.format(tmp=tmp_path) for a in argv)]
+    assert_refused("apps.demo", args, match, inputs=[tmp_path / "file.txt"], out_dir=tmp_path, seconds=20)
+
+
+def test_demo_refuses_an_empty_out(tmp_path, monkeypatch, demo_does_no_work):
+    """An empty --out is the current folder: refused, nothing written there."""
+    from tests.fuzz.cli import assert_refused
+
+    monkeypatch.chdir(tmp_path)
+    assert_refused("apps.demo", ["--out", "", "--skip-training", "--gaussians", "64"],
+                   r"--out: expected an output folder, got an empty path", out_dir=tmp_path, seconds=20)

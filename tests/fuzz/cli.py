@@ -22,7 +22,9 @@ from toolkit.errors import run_cli
 
 CLIS = {"toolkit": "toolkit.__main__", "geometry": "geometry.__main__", "train.data": "train.data.__main__",
         "train.run": "train.run", "apps.redirect": "apps.redirect", "apps.preview": "apps.preview",
-        "apps.prepare": "apps.prepare"}
+        "apps.prepare": "apps.prepare", "apps.demo": "apps.demo",
+        **{f"benchmarks.{b}": f"benchmarks.{b}" for b in ("field_switches", "gaussian_model", "gaze_estimator",
+                                                           "renderer", "train")}}
 
 
 class Hang(Exception):
