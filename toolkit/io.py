@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import math
 import os
 import socket
 import tempfile
@@ -149,8 +150,23 @@ def atomic_h5(path: str | os.PathLike) -> Iterator[Any]:
     atomic_write_bytes(path, image)
 
 
-def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+def atomic_write_json(path: str | os.PathLike, obj: Any, *, strict: bool = False) -> None:
+    """``obj`` as indented JSON; ``strict``: NaN and ±inf written as null (Python's JSON writes them as the
+    non-standard NaN / Infinity, which strict parsers refuse)."""
+    if strict:
+        obj = finite_json(obj)
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, allow_nan=not strict) + "\n")
+
+
+def finite_json(obj: Any) -> Any:
+    """``obj`` (JSON values: dicts, lists, tuples, numbers, strings) with every NaN or ±inf float as None."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    return obj
 
 
 def check_readable_file(path: str | os.PathLike, what: str = "file") -> Path:

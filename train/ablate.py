@@ -75,7 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     table = summarize_rows(results)
     atomic_write_json(root / "ablation.json", {"rows": table, "raw": results, "seeds": args.seeds,
                                                "preset": args.preset, "overrides": args.overrides,
-                                               "row_overrides": {name: list(switch) for name, switch in rows}})
+                                               "row_overrides": {name: list(switch) for name, switch in rows}},
+                      strict=True)  # one seed: no interval (inf), written as null
     atomic_write_text(root / "ablation.md", ablation_markdown(table, args))
     ablation_figure(table, root / "ablation.png")
     print(json.dumps({"table": str(root / "ablation.md")}))

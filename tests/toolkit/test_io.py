@@ -41,6 +41,22 @@ def test_an_output_folder_is_checked_before_it_is_made(tmp_path):
             check_output_folder(folder, "--out x")
 
 
+def test_strict_json_writes_nan_and_infinity_as_null(tmp_path):
+    """One repetition's interval is infinite: strict JSON parsers refuse Python's Infinity, so it becomes null."""
+    import json
+    import math
+
+    def refuse(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    obj = {"lo": -math.inf, "hi": math.inf, "x": [1.5, math.nan, (2, "a")], "n": 1}
+    atomic_write_json(tmp_path / "s.json", obj, strict=True)
+    assert json.loads((tmp_path / "s.json").read_text(), parse_constant=refuse) == {
+        "lo": None, "hi": None, "x": [1.5, None, [2, "a"]], "n": 1}
+    atomic_write_json(tmp_path / "loose.json", obj)  # the default keeps Python's constants
+    assert "Infinity" in (tmp_path / "loose.json").read_text()
+
+
 def test_metadata_that_is_not_an_object_is_refused(tmp_path):
     from safetensors.torch import save_file
 

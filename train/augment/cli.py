@@ -41,7 +41,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             "units": {"A": "repetition x held-out person", "B": "repetition"}, "config": _as_json(cfg)}
     figure(summary, out / "augment.png")
     atomic_write_text(out / "augment.md", markdown(summary, meta))
-    atomic_write_json(out / "augment.json", {**summary, "meta": meta, "raw": raw})  # last: it marks a finished run
+    # Last: it marks a finished run. Strict JSON: one repetition has no interval (inf), written as null.
+    atomic_write_json(out / "augment.json", {**summary, "meta": meta, "raw": raw}, strict=True)
     print(json.dumps({"out": str(out), "seconds": meta["seconds"]}))
     return 0
 
