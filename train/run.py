@@ -49,6 +49,7 @@ from train.stages import STAGE_NAMES, STAGES  # noqa: E402
 from train.stages.artifacts import resolve_device  # noqa: E402
 from train.stages.checks import check_config, check_run_pairing  # noqa: E402
 from train.stages.pipeline import RunContext, check_run, run_stages  # noqa: E402
+from train.training.distributed import is_main_process  # noqa: E402
 
 
 def resolve_config(args: argparse.Namespace) -> RunConfig:
@@ -122,7 +123,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     check_config(cfg)
     resolve_device(cfg)  # fail early on an impossible device
     run_dir = Path(args.run_dir)
-    ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True))
+    main_process = is_main_process()  # under torchrun rank 0 alone logs: N copies of each line say nothing more
+    ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True) if main_process else None)
     will_run = check_run(STAGES, stages, ctx, force)  # a refused run leaves the run's config.yaml as it was
     check_run_pairing(ctx, will_run)
     if "eval" in stages:  # its outputs too: not after the stages before it have run (the stage checks again)
@@ -139,7 +141,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TrainingInterrupted as e:
         print(f"stopped: {e}", file=sys.stderr)
         return 130
-    print(json.dumps({"stages": status, "seconds": round(time.perf_counter() - t0, 1), "run_dir": str(run_dir)}))
+    if main_process:
+        print(json.dumps({"stages": status, "seconds": round(time.perf_counter() - t0, 1), "run_dir": str(run_dir)}))
     return 0
 
 

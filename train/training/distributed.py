@@ -45,6 +45,11 @@ def world_size() -> int:
     return env_count("WORLD_SIZE", 1, 1, 65536)
 
 
+def is_main_process() -> bool:
+    """Whether this is torchrun's rank 0 (or a single process): the one that logs and writes."""
+    return env_count("RANK", 0, 0, world_size() - 1) == 0
+
+
 def init_distributed(device: str = "auto") -> DistInfo:
     """Initialise the process group when launched by torchrun (WORLD_SIZE > 1); else a single process."""
     world = world_size()

@@ -192,6 +192,8 @@ def test_gaussian_stage_in_two_torchrun_processes_equals_one_process(tiny_run, t
         if r.returncode != 0 and "terminate called without an active exception" in r.stderr:
             r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)  # gloo teardown race
         assert r.returncode == 0, r.stderr[-3000:]
+        # rank 0 alone logs: one "running" line and one closing JSON line, whatever the process count
+        assert r.stdout.count("[gaussian] running") == 1 and r.stdout.count('"run_dir"') == 1, r.stdout[-2000:]
         runs[name] = _gaussian_weights(d)
     from safetensors.torch import load_file
 
