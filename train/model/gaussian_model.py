@@ -128,6 +128,8 @@ class GaussianModel(nn.Module):
         """
         cfg = config or GaussianModelConfig()
         cfg.validate()  # before the streams are built at its sizes
+        if landmarks is not None and not bool(torch.isfinite(torch.as_tensor(landmarks)).all()):
+            raise ToolkitError("GaussianModel.from_scene: landmarks contain NaN/inf")
         return cls(cfg, *streams_from_scene(scene, cfg, landmarks), rasterizer)
 
     # ------------------------------------------------------------------ helpers

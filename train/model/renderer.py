@@ -161,6 +161,8 @@ def make_renderer(kind: str, codec: LatentCodec | None = None, *, model: str = "
             raise ToolkitError(f"make_renderer output_size: expected an image size >= the codec's downsample factor "
                                f"{codec.downsample}, got {output_size!r}")
         grid = output_size // codec.downsample
+        if fixed := sorted({"input_size", "latent_channels"} & set(model_kw)):  # the codec and output_size set them
+            raise ToolkitError(f"make_renderer: {fixed} follow from the codec and output_size; pass output_size")
         if residual:
             model_kw.setdefault("base_channels", codec.latent_channels)
         dit = make_dit(model, input_size=grid, latent_channels=codec.latent_channels, **model_kw)

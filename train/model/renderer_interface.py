@@ -52,8 +52,8 @@ class Renderer(Protocol):
 
 def check_render_inputs(feats: torch.Tensor, shape_code: torch.Tensor, feature_channels: int, shape_dim: int) -> None:
     """ToolkitError unless ``feats [B, F, h, w]`` and ``shape_code [B, S]`` have the expected sizes."""
-    if feats.dim() != 4 or feats.shape[1] != feature_channels:
-        raise ToolkitError(f"renderer feats: expected [B, {feature_channels}, h, w], got {list(feats.shape)}")
+    if feats.dim() != 4 or feats.shape[1] != feature_channels or feats.shape[2] < 1 or feats.shape[3] < 1:
+        raise ToolkitError(f"renderer feats: expected [B, {feature_channels}, h >= 1, w >= 1], got {list(feats.shape)}")
     if shape_code.dim() != 2 or shape_code.shape != (feats.shape[0], shape_dim):
         raise ToolkitError(f"renderer shape_code: expected [{feats.shape[0]}, {shape_dim}], got {list(shape_code.shape)}")
 

@@ -42,6 +42,8 @@ def test_from_scene_rejects_bad_scenes():
         GaussianModel.from_scene(bad)
     with pytest.raises(ToolkitError, match="near_m"):
         GaussianModel.from_scene(scene, GaussianModelConfig(near_m=0.05, far_m=0.01))
+    with pytest.raises(ToolkitError, match="from_scene: landmarks contain NaN/inf"):
+        GaussianModel.from_scene(scene, GaussianModelConfig(hidden=16), landmarks=torch.full((5, 3), float("nan")))
 
 
 def test_eyes_rotate_rigidly_about_their_own_centres():

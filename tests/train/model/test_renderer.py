@@ -87,6 +87,11 @@ def test_renderer_arguments_no_render_can_use_are_named_when_it_is_built():
                                            r"downsample factor 4, got -32"):
         make_renderer("dit", KLAutoencoder(AutoencoderConfig(downsample=4, base_channels=8, max_channels=16)),
                       output_size=-32)
+    with pytest.raises(ToolkitError, match=r"make_renderer: \['input_size'\] follow from the codec and output_size"):
+        make_renderer("dit", PixelCodec(), input_size=8)  # was a duplicate-keyword TypeError
+    r = make_renderer("dit", PixelCodec(), output_size=16)
+    with pytest.raises(ToolkitError, match=r"renderer feats: expected \[B, \d+, h >= 1, w >= 1\], got \[1, \d+, 0, 0\]"):
+        r.render(torch.zeros(1, r.dit.config.feature_channels, 0, 0), torch.zeros(1, r.dit.config.shape_dim))
 
 
 def test_render_refuses_non_finite_conditioning_and_eta():
