@@ -110,6 +110,8 @@ class SDFNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """[N, 3] world points -> (sdf [N] world units, offset [N, 3] world units, feature [N, F])."""
+        if x.dim() != 2 or x.shape[1] != 3:
+            raise ToolkitError(f"SDFNet: points expected [N, 3], got {list(x.shape)}")
         pe = positional_encoding(self.normalize(x), self.config.n_freqs)
         h = pe
         for i, lin in enumerate(self.layers):

@@ -10,6 +10,7 @@ are flat discs in the tangent plane, eye Gaussians isotropic.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -214,8 +215,8 @@ def demo_head_scene(
         eye_fraction: share of the Gaussians placed on the two eyeballs, in [0, 0.9] (the face keeps the rest).
         flatness: face disc thickness relative to its in-plane scale.
     """
-    if n_gaussians < 64:
-        raise ToolkitError(f"demo_head_scene: n_gaussians must be >= 64, got {n_gaussians}")
+    if not isinstance(n_gaussians, numbers.Integral) or n_gaussians < 64:
+        raise ToolkitError(f"demo_head_scene: n_gaussians must be an integer >= 64, got {n_gaussians!r}")
     if not 0 <= eye_fraction <= 0.9:
         raise ToolkitError(f"demo_head_scene: eye_fraction must be in [0, 0.9], got {eye_fraction}")
     shape = shape or DemoHeadShape(eye_opening=DEMO_EYE_OPENING)

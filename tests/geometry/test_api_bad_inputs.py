@@ -83,6 +83,11 @@ def test_sdf_network_config_ranges(field, value, message):
         SDFNet(SDFNetConfig(**{field: value}))
 
 
+def test_sdf_network_names_points_of_the_wrong_shape():
+    with pytest.raises(ToolkitError, match=r"SDFNet: points expected \[N, 3\], got \[5, 2\]"):
+        SDFNet(SDFNetConfig(hidden=8))(torch.zeros(5, 2))
+
+
 @pytest.mark.parametrize("init, message", [
     (SphereInit((float("nan"), 0.0, 0.0), 0.5), "finite centre"),
     (SphereInit(radius=float("inf")), "finite centre and a radius > 0"),

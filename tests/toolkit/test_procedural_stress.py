@@ -50,6 +50,12 @@ def test_demo_scene_with_no_room_for_a_face_is_one_clear_error(fraction):
         demo_head_scene(64, eye_fraction=fraction)
 
 
+@pytest.mark.parametrize("n", [63, 100.5, "100"])
+def test_demo_scene_counts_are_integers_of_at_least_64(n):
+    with pytest.raises(ToolkitError, match=r"n_gaussians must be an integer >= 64"):
+        demo_head_scene(n)
+
+
 def test_demo_scene_at_the_largest_eye_fraction():
     assert demo_head_scene(64, eye_fraction=0.9).validate() is not None
 
