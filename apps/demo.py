@@ -36,9 +36,9 @@ from toolkit.scene import GaussianScene
 DEFAULT_PRESET = "demo"
 MIN_GAUSSIANS = 64
 """Fewest Gaussians of the demo head, as ``apps.preview``'s ``demo:N``."""
-SEED_LIMIT = 2**32
-"""--seed is below this, as every seed of the run config (``train.run_config.SEED``); torch's generator
-overflows past 2^64 with a traceback."""
+SEED_RANGE = (-(2**63), 2**64 - 1)
+"""--seed seeds torch's generators alone (the pipeline's own seed is the config key ``seed``): what they take;
+past 2^64 they overflow with a traceback."""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -46,7 +46,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     ap.add_argument("--gaussians", type=int, default=20000,
                     help=f"Gaussians in the demo head, {MIN_GAUSSIANS} to {DEMO_MAX} (default: 20000)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the demo head, in [0, 2^32) (default: 0)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the demo head, in [-2^63, 2^64) (default: 0)")
     ap.add_argument("--skip-training", action="store_true",
                     help="only the procedural head and its preview sweep (takes no --preset or overrides: "
                          "they configure the training)")
@@ -58,7 +58,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     check_count(args.gaussians, "--gaussians", MIN_GAUSSIANS, DEMO_MAX, "a number of demo Gaussians")
     check_allocation(args.gaussians * DEMO_BYTES_PER_GAUSSIAN, f"--gaussians {args.gaussians}",
                      "ask for fewer Gaussians")
-    check_count(args.seed, "--seed", 0, SEED_LIMIT - 1, "a seed")
+    check_count(args.seed, "--seed", *SEED_RANGE, "a seed")
     if not args.out.strip():  # an empty path is the current folder: the demo's files would land among the user's
         raise ToolkitError("--out: expected an output folder, got an empty path")
     out = check_output_folder(args.out, "--out")

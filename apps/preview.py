@@ -137,7 +137,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.sweep and not args.headless:
         raise ToolkitError("--sweep is the headless output: add --headless (without it the window opens)")
     if not args.headless:
-        check_output_folder(args.screenshot_dir, f"--screenshot-dir {args.screenshot_dir}")
+        # Not a file in the way; whether it can be written is found when a screenshot is taken (most never are).
+        check_output_folder(args.screenshot_dir, f"--screenshot-dir {args.screenshot_dir}", writable=False)
     if args.sweep:
         # Everything about the sweep is refused before the scene is loaded or built.
         pitches, yaws = parse_range(args.pitch, "pitch"), parse_range(args.yaw, "yaw")

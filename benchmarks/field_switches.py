@@ -43,10 +43,10 @@ def _scales(text: str) -> list[tuple[int, int, int, int]]:
         out = [tuple(int(v) for v in item.split(":")) for item in text.split(",") if item.strip()]
     except ValueError:
         out = []
-    if not out or any(len(s) != 4 or min(s) < 1 or s[0] < 16 or s[2] < 16 for s in out):
-        raise ToolkitError(f"--scales: expected a comma list of N:hidden:size:batch (N, size >= 16), got {text!r}")
+    if not out or any(len(s) != 4 or min(s) < 1 or s[0] < 64 or s[2] < 16 for s in out):
+        raise ToolkitError(f"--scales: expected a comma list of N:hidden:size:batch (N >= 64, size >= 16), got {text!r}")
     for n, hidden, size, batch in out:
-        check_count(n, "--scales N", 16, DEMO_MAX, "a number of demo Gaussians")
+        check_count(n, "--scales N", 64, DEMO_MAX, "a number of demo Gaussians")
         check_count(size, "--scales size", 16, MAX_SIDE, "pixels per side")
         check_model_memory(f"--scales {n}:{hidden}:{size}:{batch}", n, hidden, batch, size, models=len(SETTINGS),
                            hint="ask for a smaller scale")

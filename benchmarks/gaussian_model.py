@@ -57,7 +57,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=count("--repeats", 1), default=3)
     a = ap.parse_args(argv)
     # Bounded before any head is built: the Gaussians as apps.preview's demo:N, the output side as its --size.
-    gaussians, sizes = _counts("--gaussians", a.gaussians, 1, DEMO_MAX), _counts("--sizes", a.sizes, 16, MAX_SIDE)
+    gaussians, sizes = _counts("--gaussians", a.gaussians, 64, DEMO_MAX), _counts("--sizes", a.sizes, 16, MAX_SIDE)
     check_model_memory(f"--gaussians {max(gaussians)} --sizes {max(sizes)} --batch {a.batch} --hidden {a.hidden}",
                        max(gaussians), a.hidden, a.batch, max(sizes), hint="lower --gaussians, --sizes or --batch")
     print(machine_info())

@@ -181,9 +181,10 @@ def marching_tets(verts: torch.Tensor, tets: torch.Tensor, sdf: torch.Tensor, fe
     check_sdf(sdf, V)
     if features is not None and (features.dim() != 2 or features.shape[0] != V):
         raise ToolkitError(f"marching_tets: features must have shape [V={V}, C], got {list(features.shape)}")
-    for name, t in (("verts", verts), ("features", features)):
-        if t is not None and not bool(torch.isfinite(t.detach()).all()):
-            raise ToolkitError(f"marching_tets: {name} contain NaN/inf")
+    given = {name: t.detach() for name, t in (("verts", verts), ("features", features)) if t is not None and t.numel()}
+    if given and not bool(torch.stack([torch.isfinite(t).all() for t in given.values()]).all()):  # one sync
+        bad = next(name for name, t in given.items() if not bool(torch.isfinite(t).all()))
+        raise ToolkitError(f"marching_tets: {bad} contain NaN/inf")
 
     with torch.no_grad():
         idx, o = _crossing_tets(sdf < 0, tets, V)

@@ -157,7 +157,7 @@ def fit_dataset(dataset: str | os.PathLike, out_dir: str | os.PathLike, cfg: Fit
 
     cfg = cfg or FitConfig()
     out = Path(out_dir)
-    check_output_folder(out, str(out))
+    check_output_folder(out, f"output folder {out}")
     t0 = time.perf_counter()
     data = views if views is not None else read_subject(dataset)
     train, test = split_views(data, holdout_cams)

@@ -55,9 +55,11 @@ class SDFNetConfig:
         lo, hi = torch.tensor(self.box_min), torch.tensor(self.box_max)
         if lo.shape != (3,) or hi.shape != (3,) or not bool((hi > lo).all()):
             raise ToolkitError(f"SDFNetConfig: box_min < box_max expected on every axis, got {self.box_min} {self.box_max}")
-        if (self.n_layers < 2 or not 0 < self.skip_at < self.n_layers or self.hidden < 1 or self.grid_res < 1
-                or self.n_freqs < 0 or self.feature_dim < 1):
+        if self.n_layers < 2 or not 0 < self.skip_at < self.n_layers or self.hidden < 1 or self.grid_res < 1:
             raise ToolkitError(f"SDFNetConfig: bad architecture {asdict(self)}")
+        for name in ("n_freqs", "feature_dim"):  # 0 is legal: no encoding frequencies, no feature head
+            if getattr(self, name) < 0:
+                raise ToolkitError(f"SDFNetConfig.{name}: expected >= 0, got {getattr(self, name)}")
         if not 0 < self.softplus_beta < math.inf:  # NaN too; beta 0 divides by zero in the softplus
             raise ToolkitError(f"SDFNetConfig.softplus_beta: expected a finite value > 0, got {self.softplus_beta}")
         return self

@@ -11,6 +11,9 @@ import torch
 
 from toolkit.errors import ToolkitError
 
+UNIT_RANGE = (1e-6, 1e6)
+"""Mesh extents (world units) measured as given; outside, in the mesh's unit frame (float32's range)."""
+
 
 def mesh_signed_distance(verts: torch.Tensor, faces: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Signed distance of [P, 3] points to a closed mesh (open3d RaycastingScene; negative inside)."""
@@ -18,18 +21,20 @@ def mesh_signed_distance(verts: torch.Tensor, faces: torch.Tensor, points: torch
         import open3d as o3d
     except ImportError as e:  # pragma: no cover - open3d is a dependency
         raise ToolkitError(f"open3d is needed for mesh signed distances ({e})") from None
-    # open3d works in float32: in the mesh's own unit frame (centred, extent 1) neither a huge nor a tiny mesh
-    # overflows or loses its sign; the distances are scaled back in float64.
     v, p = verts.detach().cpu().double().numpy(), points.detach().cpu().double().numpy()
-    centre, extent = (v.max(0) + v.min(0)) / 2, float((v.max(0) - v.min(0)).max())
-    extent = extent if extent > 0 else 1.0
+    extent = float((v.max(0) - v.min(0)).max()) if len(v) else 1.0
+    # open3d works in float32: a mesh far from unit size (its squared distances overflow past ~1e19, its signs get
+    # lost near 1e-30) is measured in its own unit frame, the distances scaled back in float64; others as given.
+    centre, scale = ((v.max(0) + v.min(0)) / 2, extent) if not UNIT_RANGE[0] <= extent <= UNIT_RANGE[1] else (0.0, 1.0)
+    scale = scale if scale > 0 else 1.0
     scene = o3d.t.geometry.RaycastingScene()
     mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor(((v - centre) / extent).astype(np.float32))
+    mesh.vertex.positions = o3d.core.Tensor(((v - centre) / scale).astype(np.float32))
     mesh.triangle.indices = o3d.core.Tensor(faces.cpu().numpy().astype(np.int32))
     scene.add_triangles(mesh)
-    q = o3d.core.Tensor(((p - centre) / extent).astype(np.float32))
-    return torch.from_numpy(scene.compute_signed_distance(q).numpy().astype(np.float64) * extent).float()
+    q = o3d.core.Tensor(((p - centre) / scale).astype(np.float32))
+    d = scene.compute_signed_distance(q).numpy()
+    return torch.from_numpy(d if scale == 1.0 else d.astype(np.float64) * scale).float()
 
 
 def point_cloud_signed_distance(points: torch.Tensor, normals: torch.Tensor, queries: torch.Tensor,
@@ -75,10 +80,12 @@ def estimate_normals(points: torch.Tensor, k: int = 16) -> torch.Tensor:
 def surface_samples(verts: torch.Tensor, faces: torch.Tensor, n: int, g: torch.Generator) -> torch.Tensor:
     """[n, 3] points uniform by area on the mesh verts [V, 3] / faces [F, 3] (drawn from ``g``)."""
     a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
-    # Relative areas in float64 on edges divided by the mesh's extent: float32 areas of a mesh in units of 1e12 (or
-    # 1e-12) overflow (underflow) and leave no distribution to draw from.
-    extent = (verts.max(0).values - verts.min(0).values).max().double().clamp_min(torch.finfo(torch.float64).tiny)
-    area = torch.linalg.cross((b - a).double() / extent, (c - a).double() / extent).norm(dim=-1)
+    area = torch.linalg.cross(b - a, c - a).norm(dim=-1)
+    if not (bool(torch.isfinite(area).all()) and bool(area.sum() > 0)) and bool(verts.abs().max() > 0):
+        # float32 areas of a mesh in units of 1e12 (1e-12) overflow (underflow) and leave no distribution to
+        # draw from: relative areas in float64, on edges divided by the mesh's extent.
+        extent = (verts.max(0).values - verts.min(0).values).max().double().clamp_min(torch.finfo(torch.float64).tiny)
+        area = torch.linalg.cross((b - a).double() / extent, (c - a).double() / extent).norm(dim=-1)
     if not bool(area.sum() > 0):
         raise ToolkitError("fit_mesh: the mesh has zero surface area")
     f = torch.multinomial(area, n, replacement=True, generator=g)
@@ -105,12 +112,14 @@ def check_points(p: torch.Tensor, what: str) -> torch.Tensor:
 
 
 def check_normals(normals: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """``normals`` as float32, once they are a floating-point tensor shaped like ``points``, finite and non-zero
-    (a zero normal has no side, so the signed distance near it would have no sign); else a ToolkitError."""
+    """``normals`` as float32, once they are a floating-point tensor shaped like ``points``, finite and not all
+    zero; else a ToolkitError."""
     if not isinstance(normals, torch.Tensor) or not normals.is_floating_point() or normals.shape != points.shape:
         got = list(normals.shape) if isinstance(normals, torch.Tensor) else type(normals).__name__
         raise ToolkitError(f"fit: normals must be a floating-point tensor {list(points.shape)} like the points, got "
                            f"{got}")
-    if not bool(torch.isfinite(normals).all()) or not bool((normals.norm(dim=-1) > 0).all()):
-        raise ToolkitError("fit: normals must be finite and non-zero (outward directions, one per point)")
+    # A zero normal among others is harmless (a query's side is the mean over its neighbours; trimesh gives
+    # unreferenced vertices zero normals); all zero, no side is defined.
+    if not bool(torch.isfinite(normals).all()) or not bool((normals.norm(dim=-1) > 0).any()):
+        raise ToolkitError("fit: normals must be finite and not all zero (outward directions, one per point)")
     return normals.float()

@@ -27,14 +27,14 @@ def test_plot_into_an_unwritable_place_is_a_clear_error(tmp_path):
 # before anything is written. (id, benchmark, argv with a {tmp} placeholder, regex the error line matches, env)
 BAD_BENCH_ARGS = [
     ("scales 1e12 Gaussians", "field_switches", ["--scales", "1000000000000:16:64:2"],
-     r"--scales N: expected a number of demo Gaussians in \[16, 2000000\], got 1000000000000", {}),
+     r"--scales N: expected a number of demo Gaussians in \[64, 2000000\], got 1000000000000", {}),
     ("scales huge side", "field_switches", ["--scales", "800:16:100000:2"], r"--scales size: expected pixels", {}),
     ("scales over the memory budget", "field_switches", ["--scales", "2000000:4096:64:64"],
      r"--scales 2000000:4096:64:64 would allocate .* memory budget", {}),
     ("default scales under a tiny budget", "field_switches", [], r"--scales 12000:64:128:4 would allocate",
      {"DITGAZE_MEMORY_GB": "0.5"}),
     ("1e12 Gaussians", "gaussian_model", ["--gaussians", "1000000000000"],
-     r"--gaussians: expected a comma list of integers in \[1, 2000000\], got '1000000000000'", {}),
+     r"--gaussians: expected a comma list of integers in \[64, 2000000\], got '1000000000000'", {}),
     ("1e9 pixel side", "gaussian_model", ["--sizes", "1000000000"],
      r"--sizes: expected a comma list of integers in \[16, 8192\], got '1000000000'", {}),
     ("huge batch", "gaussian_model", ["--batch", "100000"], r"--batch 100000 .* would allocate .* memory budget", {}),

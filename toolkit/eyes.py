@@ -140,7 +140,7 @@ def redirect_eyes(scene, pitchyaw: torch.Tensor | tuple[float, float], info=None
     py = torch.as_tensor(pitchyaw, dtype=scene.means.dtype, device=scene.device)
     if py.shape != (2,) or not bool(torch.isfinite(py).all()):
         raise ToolkitError(f"redirect_eyes: pitchyaw expected two finite angles (pitch, yaw) in radians, got "
-                           f"{pitchyaw!r}")
+                           f"{py.tolist() if py.numel() <= 4 else f'shape {list(py.shape)}'}")
     R = gaze_rotation(py)
     out = scene.clone()
     for name, eye in info.items():

@@ -181,28 +181,26 @@ def check_readable_file(path: str | os.PathLike, what: str = "file") -> Path:
     return path
 
 
-def check_output_folder(folder: str | os.PathLike, what: str) -> Path:
+def check_output_folder(folder: str | os.PathLike, what: str, *, writable: bool = True) -> Path:
     """``folder``, an output folder a command makes later, once it is a folder or can be made: its nearest existing
-    ancestor is a folder this process may write in. A ToolkitError naming ``what`` (the flag) otherwise, before
-    any work rather than at the first write, after the inputs were read."""
+    ancestor is a folder (``writable``: one this process may write in). A ToolkitError naming ``what`` (the flag)
+    otherwise, before any work rather than at the first write, after the inputs were read."""
     folder = Path(folder)
     up = next((q for q in (folder, *folder.parents) if q.exists()), None)
     if up is not None and not up.is_dir():
         raise ToolkitError(f"{what}: {up} is a file, not a folder")
-    if up is not None and not os.access(up, os.W_OK | os.X_OK):
+    if writable and up is not None and not os.access(up, os.W_OK | os.X_OK):
         raise ToolkitError(f"{what}: cannot write in the folder {up} (no permission)")
     return folder
 
 
 def check_device(device: str | torch.device, what: str = "device") -> torch.device:
-    """``device`` as a ``torch.device`` this process can use: cpu, or cuda[:N] with CUDA present and GPU N among
-    its GPUs; else a ToolkitError naming ``what``."""
+    """``device`` as a ``torch.device``: a name torch knows, and for cuda[:N] CUDA present with GPU N among its
+    GPUs; else a ToolkitError naming ``what``."""
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
         raise ToolkitError(f"{what}: expected cpu, cuda or cuda:N, got {device!r}") from None
-    if dev.type not in ("cpu", "cuda"):
-        raise ToolkitError(f"{what}: expected cpu, cuda or cuda:N, got {device!r}")
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ToolkitError(f"{what} {device}: CUDA is not available here (no GPU, or a CPU build of torch); use cpu")
     if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():

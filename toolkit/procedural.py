@@ -212,17 +212,20 @@ def demo_head_scene(
 
     Args:
         n_gaussians: total count (face + both eyes), >= 64.
-        eye_fraction: share of the Gaussians placed on the two eyeballs, in [0, 0.9] (the face keeps the rest).
+        eye_fraction: share of the Gaussians placed on the two eyeballs, in [0, 1); the face keeps at least 8.
         flatness: face disc thickness relative to its in-plane scale.
     """
     if not isinstance(n_gaussians, numbers.Integral) or n_gaussians < 64:
         raise ToolkitError(f"demo_head_scene: n_gaussians must be an integer >= 64, got {n_gaussians!r}")
-    if not 0 <= eye_fraction <= 0.9:
-        raise ToolkitError(f"demo_head_scene: eye_fraction must be in [0, 0.9], got {eye_fraction}")
+    if not 0 <= eye_fraction < 1:
+        raise ToolkitError(f"demo_head_scene: eye_fraction must be in [0, 1), got {eye_fraction}")
     shape = shape or DemoHeadShape(eye_opening=DEMO_EYE_OPENING)
     g = torch.Generator().manual_seed(seed)
     n_eye_each = max(8, int(n_gaussians * eye_fraction / 2))
     n_face = n_gaussians - 2 * n_eye_each
+    if n_face < 8:  # the face's spacing needs a few neighbours of each point
+        raise ToolkitError(f"demo_head_scene: eye_fraction {eye_fraction} leaves {n_face} of {n_gaussians} Gaussians "
+                           "to the face; expected at least 8")
     centers = shape.eye_centers()
     r_eye = shape.eye_radius
     face_pts, face_n = _face_points(shape, n_face, g)

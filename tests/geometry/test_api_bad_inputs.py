@@ -56,6 +56,16 @@ def test_fit_points_refuses_bad_normals(sphere, bad):
         fit_points(p, normals, CFG)
 
 
+def test_one_zero_normal_among_others_is_taken(sphere):
+    """trimesh gives unreferenced vertices zero normals: harmless, a query's side is its neighbours' mean."""
+    from geometry.surface_distance import check_normals
+
+    p = sphere[0].float()
+    n = p / p.norm(dim=-1, keepdim=True)
+    n[0] = 0
+    assert check_normals(n, p) is n
+
+
 def test_cloud_distance_with_fewer_points_than_neighbours(sphere):
     """Five points and k = 8: every query reads the five (cKDTree would answer the missing three with index 5)."""
     p = sphere[0].float()[:5]
@@ -74,7 +84,8 @@ def test_normal_estimation_neighbour_count_is_bounded(sphere, k):
 
 
 @pytest.mark.parametrize("field, value, message", [
-    ("n_freqs", -1, "bad architecture"), ("feature_dim", -1, "bad architecture"),
+    ("n_freqs", -1, r"SDFNetConfig.n_freqs: expected >= 0, got -1"),
+    ("feature_dim", -1, r"SDFNetConfig.feature_dim: expected >= 0, got -1"),
     ("softplus_beta", 0.0, r"softplus_beta: expected a finite value > 0"),
     ("softplus_beta", float("nan"), r"softplus_beta: expected a finite value > 0"),
 ])

@@ -44,10 +44,14 @@ def test_smallest_demo_scene_with_flat_or_saturated_gaussians(kw):
     assert torch.isfinite(scene.scales).all() and torch.isfinite(scene.unit_quats).all()
 
 
-@pytest.mark.parametrize("fraction", [0.95, 1.0, -0.1, float("nan")])
-def test_demo_scene_with_no_room_for_a_face_is_one_clear_error(fraction):
-    with pytest.raises(ToolkitError, match=r"eye_fraction must be in \[0, 0.9\]"):
-        demo_head_scene(64, eye_fraction=fraction)
+@pytest.mark.parametrize("n, fraction, match", [
+    (64, 1.0, r"eye_fraction must be in \[0, 1\)"), (64, -0.1, r"eye_fraction must be in \[0, 1\)"),
+    (64, float("nan"), r"eye_fraction must be in \[0, 1\)"),
+    (64, 0.95, r"eye_fraction 0.95 leaves 4 of 64 Gaussians to the face; expected at least 8"),
+])
+def test_demo_scene_with_no_room_for_a_face_is_one_clear_error(n, fraction, match):
+    with pytest.raises(ToolkitError, match=match):
+        demo_head_scene(n, eye_fraction=fraction)
 
 
 @pytest.mark.parametrize("n", [63, 100.5, "100"])
@@ -56,8 +60,10 @@ def test_demo_scene_counts_are_integers_of_at_least_64(n):
         demo_head_scene(n)
 
 
-def test_demo_scene_at_the_largest_eye_fraction():
+def test_demo_scenes_of_mostly_eyes():
+    """A large head keeps a face at 0.99 (198 face Gaussians of 20000), the smallest at 0.9 (8 of 64)."""
     assert demo_head_scene(64, eye_fraction=0.9).validate() is not None
+    assert demo_head_scene(20000, eye_fraction=0.99).validate() is not None
 
 
 @pytest.mark.parametrize("scale", [0.0, 1e-30, 1.0, 1e30])

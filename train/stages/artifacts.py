@@ -7,6 +7,7 @@ benchmarks open a finished run with) is the same class with a way to open a run 
 
 from __future__ import annotations
 
+import numbers
 from pathlib import Path
 from typing import Callable, Mapping
 
@@ -222,7 +223,7 @@ class RunArtifacts:
         from train.evaluation.fitting import face_only_mask, test_time_fit
         from train.presets import NATURAL_EYES_FIT
 
-        if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
+        if not isinstance(steps, numbers.Integral) or isinstance(steps, bool) or steps < 0:
             raise ToolkitError(f"row_fitter steps: expected an integer >= 0 (Adam steps of the code), got {steps!r}")
         device = usable_device(device)
         e = self.config.eval

@@ -47,7 +47,8 @@ def world_size() -> int:
 
 def is_main_process() -> bool:
     """Whether this is torchrun's rank 0 (or a single process): the one that logs and writes."""
-    return env_count("RANK", 0, 0, world_size() - 1) == 0
+    world = world_size()
+    return world == 1 or env_count("RANK", 0, 0, world - 1) == 0  # RANK means nothing outside torchrun
 
 
 def init_distributed(device: str = "auto") -> DistInfo:

@@ -57,3 +57,16 @@ def test_two_process_gloo_matches_single_process(tmp_path):
     for rank in ranks:
         for x, y in zip(one["weights"], rank["weights"]):
             assert torch.allclose(x, y, atol=1e-6), (x - y).abs().max()
+
+
+def test_rank_outside_torchrun_means_the_main_process(monkeypatch):
+    """A stray RANK without torchrun's WORLD_SIZE is no rank: this process logs (it used to fail a data-stage run)."""
+    from train.training.distributed import is_main_process
+
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    monkeypatch.setenv("RANK", "2")
+    assert is_main_process()
+    monkeypatch.setenv("WORLD_SIZE", "4")
+    assert not is_main_process()
+    monkeypatch.setenv("RANK", "0")
+    assert is_main_process()
