@@ -126,11 +126,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     main_process = is_main_process()  # under torchrun rank 0 alone logs: N copies of each line say nothing more
     ctx = RunContext(run_dir, cfg, resume=args.resume, log=lambda m: print(m, flush=True) if main_process else None)
     will_run = check_run(STAGES, stages, ctx, force)  # a refused run leaves the run's config.yaml as it was
-    check_run_pairing(ctx, will_run)
     if "eval" in stages:  # its outputs too: not after the stages before it have run (the stage checks again)
         from train.evaluation.report import check_eval_outputs
 
         check_eval_outputs(run_dir)
+    check_run_pairing(ctx, will_run)
     run_dir.mkdir(parents=True, exist_ok=True)
     save_yaml_config(cfg, run_dir / "config.yaml")
     t0 = time.perf_counter()

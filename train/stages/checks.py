@@ -212,7 +212,11 @@ def check_run_pairing(ctx, will_run: set[str]) -> None:
         return
     from train.stages.artifacts import RunArtifacts
 
-    check_eval_pairing(cfg, RunArtifacts(ctx).eval_files())
+    try:
+        files = RunArtifacts(ctx).eval_files()
+    except ToolkitError:
+        return  # a data folder the stages cannot read or split: the eval stage names what is wrong
+    check_eval_pairing(cfg, files)
 
 
 def check_eval_pairing(cfg: RunConfig, test_files: list[Path]) -> None:
