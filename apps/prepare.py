@@ -3,18 +3,19 @@
     python -m apps.prepare PHOTOS... --out OUT_DIR [--like RUN_DIR] [--size 512] [--largest-face]
                            [--labels labels.csv] [--focal F] [--scale S]
 
-Every face of every photo (JPEG/PNG files, or folders of them) is found and fitted (mediapipe's face mesh as
-iBUG-68 landmarks and iris centres, apps.photo), its head pose solved by PnP against the project's head model,
-normalized as ETH-XGaze normalizes (the camera turned to the face centre, a crop of ``--size`` pixels covering
-``--crop`` metres from ``--distance``), masked and labelled, and written as one row: one file
+Every face of every photo (JPEG, PNG, WebP, TIFF, ... files, or folders of them) is found and fitted (mediapipe's
+face mesh as iBUG-68 landmarks and iris centres, apps.photo), its head pose solved by PnP against the project's
+head model, normalized as ETH-XGaze normalizes (the camera turned to the face centre, a crop of ``--size`` pixels
+covering ``--crop`` metres from ``--distance``), masked and labelled, and written as one row: one file
 ``OUT_DIR/<name>.h5`` per photo given as a file (its stem) and per folder (its name, one row per face of each of
 its photos), readable by ``GazeDataset`` and ``python -m apps.redirect``. The gaze is estimated from the irises
 (attribute ``gaze_source`` "iris-geometry") or read from ``--labels`` ("labels-csv"). ``OUT_DIR/contact_sheet.png``
 shows what was found.
 
-A photo that cannot be used (not an image, truncated, no face, a face under 64 pixels, a face the landmarker or
-the head model cannot fit) is one line naming it and the reason; the others go on. Exit status 2 only when no
-photo gave a face. Every file is written atomically. Needs the optional extra ``photos`` (mediapipe).
+A photo that cannot be used (not an image, truncated, no face, a face under 64 pixels, a face cut off through an
+eye, a face the landmarker or the head model cannot fit) is one line naming it and the reason; the others go
+on. Exit status 2 only when no photo gave a face. Every file is written atomically. Needs the optional extra
+``photos`` (mediapipe).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ SIZE_RANGE = (32, 2048)
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m apps.prepare", description=__doc__.split("\n")[0])
-    ap.add_argument("photos", nargs="+", help="photo files (JPEG, PNG) and/or folders of them")
+    ap.add_argument("photos", nargs="+", help="photo files (JPEG, PNG, WebP, TIFF, ...) and/or folders of them")
     ap.add_argument("--out", required=True, help="output folder: one <name>.h5 per photo file or folder")
     ap.add_argument("--like", default=None, help="a trained run directory: its head geometry, normalization "
                                                  "distance and crop, and data.res (the frame the model was trained in)")

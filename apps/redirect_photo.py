@@ -3,8 +3,9 @@
 
     python -m apps.redirect RUN_DIR photo.jpg [more.png folder/ ...] OUT_DIR --gazes grid:3x3:20 [--paste-back]
 
-INPUT is one or more JPEG/PNG files and/or folders of them (a folder holding no ``labels.csv`` and no HDF5
-file; its ``*.jpg``, ``*.jpeg``, ``*.png``, not recursive). Every face is found and normalized as
+INPUT is one or more photo files (JPEG, PNG, WebP, TIFF, BMP, ...: any picture Pillow reads, whatever its name)
+and/or folders of them (a folder holding no ``labels.csv`` and no HDF5 file; its files named as photos,
+``apps.photo.images.PHOTO_SUFFIXES``, not recursive). Every face is found and normalized as
 ``apps.prepare`` does it, in the run's frame (``apps.photo.face_model.run_target``: its head geometry,
 normalization and ``data.res``), into a temporary subject file; each face is then fitted as ``--fit-weights``
 fits a row (the default for photos: the run never saw the face) and rendered at every target gaze. OUT_DIR
@@ -57,15 +58,22 @@ def _photos_in(folder: Path) -> list[Path]:
     return sorted(q for q in folder.iterdir() if q.is_file() and q.suffix.lower() in PHOTO_SUFFIXES)
 
 
+DATASET_SUFFIXES = (".h5", ".hdf5", ".csv")
+"""INPUT files that are datasets whatever their content; any other existing file that is a picture is a photo."""
+
+
 def is_photo_input(path: str | os.PathLike) -> bool:
-    """Whether an INPUT argument names photos: a ``.jpg``/``.jpeg``/``.png`` file (existing or not: a missing
-    one is refused as such later), or a folder of them holding no ``labels.csv`` and no HDF5 file."""
+    """Whether an INPUT argument names photos: a file named as one (``apps.photo.images.PHOTO_SUFFIXES``; existing
+    or not: a missing one is refused as such later) or, whatever its name, a picture by its content (not named as
+    a dataset: :data:`DATASET_SUFFIXES`), or a folder of photos holding no ``labels.csv`` and no HDF5 file."""
     from apps.labels_table import is_labels_csv
     from apps.photo.images import PHOTO_SUFFIXES
+    from toolkit.images import is_picture
 
     p = Path(path)
     if not p.is_dir():
-        return p.suffix.lower() in PHOTO_SUFFIXES
+        suffix = p.suffix.lower()
+        return suffix in PHOTO_SUFFIXES or (suffix not in DATASET_SUFFIXES and is_picture(p))
     if is_labels_csv(p) or any(p.glob("*.h5")) or any(p.glob("*.hdf5")):
         return False
     return bool(_photos_in(p))
@@ -102,20 +110,20 @@ def resolve_inputs(args: argparse.Namespace) -> None:
     args.photos = []
     if any(kinds):
         if not all(kinds):
-            raise ToolkitError(f"{given[kinds.index(False)]}: not a photo (JPEG/PNG) or a folder of photos; photo "
-                               "input cannot be mixed with an HDF5 file or a labels CSV")
+            raise ToolkitError(f"{given[kinds.index(False)]}: not a photo (JPEG, PNG, ...) or a folder of photos; "
+                               "photo input cannot be mixed with an HDF5 file or a labels CSV")
         args.photos = photo_files(given)
         args.fit_weights = True  # the run never saw these faces
         args.dataset = given[0]
         return
     if len(given) > 1:
-        raise ToolkitError(f"{len(given)} inputs given: only photos (JPEG/PNG files, folders of them) may be several; "
-                           "give one HDF5 file, labels CSV or folder")
+        raise ToolkitError(f"{len(given)} inputs given: only photos (JPEG, PNG, ... files, folders of them) may be "
+                           "several; give one HDF5 file, labels CSV or folder")
     args.dataset = given[0]
     for flag, on, why in (("--paste-back", args.paste_back, "pastes the redirected faces into their photos"),
                           ("--largest-face", args.largest_face, "picks a face of each photo")):
         if on:
-            raise ToolkitError(f"{flag} {why}: it needs photo input (JPEG/PNG files or folders of them), not "
+            raise ToolkitError(f"{flag} {why}: it needs photo input (JPEG, PNG, ... files or folders of them), not "
                                f"{given[0]}")
 
 

@@ -1,13 +1,19 @@
-"""Bounded image reading: a file's pixel size is read from its header before anything is decoded.
+"""Bounded image reading: a file's pixel size is read from its header before anything is decoded, and every
+image the project reads is decoded one way (:func:`decode_image`).
 
 A small PNG can declare 20000 x 20000 pixels (a 389 KB file decoding to 1.2 GB); :func:`image_size` reads the
-header alone (Pillow opens lazily) and :func:`read_image` refuses, before decoding, an image above
-:data:`MAX_IMAGE_PIXELS` or what :func:`toolkit.limits.check_allocation` allows.
+header alone (Pillow opens lazily) and :func:`decode_image` / :func:`read_image` refuse, before decoding, an image
+above :data:`MAX_IMAGE_PIXELS` or what :func:`toolkit.limits.check_allocation` allows.
+
+Decoding (Pillow): the EXIF orientation applied (``ImageOps.exif_transpose``: a phone photo stored sideways comes
+out upright); grey, 16-bit (scaled by 255/65535), palette, CMYK and YCbCr become 8-bit RGB; alpha is composited
+on white (on black for a grey mask, :func:`read_image` with ``gray``); a multi-frame file gives its first frame.
 """
 
 from __future__ import annotations
 
 import os
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -18,10 +24,37 @@ from toolkit.limits import check_allocation
 MAX_IMAGE_PIXELS = 64 * 1024 * 1024
 """Largest image read, in pixels (a 8192 x 8192 photo): above that an input is a mistake or a decompression bomb."""
 
+EXIF_IFD = 0x8769
+"""The EXIF sub-IFD (exposure, focal length, ...) of an image's EXIF data."""
+
+HEIF_BRANDS = {b"heic": "HEIC", b"heix": "HEIC", b"hevc": "HEIC", b"heim": "HEIC", b"heis": "HEIC",
+               b"mif1": "HEIF", b"msf1": "HEIF", b"avif": "AVIF", b"avis": "AVIF"}
+"""ISO base media file brands (bytes 8-12 after ``ftyp``) of still-image formats Pillow may lack a decoder for:
+such a file is named as what it is, with the way out (convert it), rather than as "not an image"."""
+
+
+def _heif_kind(path: Path) -> str | None:
+    """"HEIC" / "HEIF" / "AVIF" when the file starts as one (an ``ftyp`` box of those brands), else None."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(12)
+    except OSError:
+        return None
+    return HEIF_BRANDS.get(head[8:12]) if len(head) == 12 and head[4:8] == b"ftyp" else None
+
+
+def _unreadable(what: str, path: Path, why: str) -> ToolkitError:
+    kind = _heif_kind(path)
+    if kind is not None:
+        return ToolkitError(f"{what} {path}: a {kind} image, which the installed Pillow cannot decode; convert it to "
+                            "JPEG or PNG (e.g. `heif-convert` or any photo viewer's export)")
+    return ToolkitError(f"{what} {path}: not a readable image ({why})")
+
 
 def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:
-    """(height, width) of an image file from its header, nothing decoded; a one-line ``ToolkitError`` naming
-    ``what`` and the file when it is missing, unreadable or larger than :data:`MAX_IMAGE_PIXELS`."""
+    """(height, width) of an image file from its header, nothing decoded, as stored (before any EXIF turn); a
+    one-line ``ToolkitError`` naming ``what`` and the file when it is missing, unreadable or larger than
+    :data:`MAX_IMAGE_PIXELS`."""
     import warnings
 
     from PIL import Image
@@ -36,23 +69,121 @@ def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:
             with Image.open(path) as im:
                 w, h = im.size
     except (OSError, ValueError, SyntaxError) as e:
-        raise ToolkitError(f"{what} {path}: not a readable image ({e.__class__.__name__})") from None
+        raise _unreadable(what, path, e.__class__.__name__) from None
     finally:
         Image.MAX_IMAGE_PIXELS = limit
     if w < 1 or h < 1 or w * h > MAX_IMAGE_PIXELS:
         raise ToolkitError(f"{what} {path}: {w}x{h} pixels (width x height); expected at most {MAX_IMAGE_PIXELS} "
-                           f"pixels")
+                           f"pixels" + ("; downscale it (e.g. to 8000 pixels on the longer side)" if w and h else ""))
     return h, w
 
 
+def _check_not_a_stub(path: Path, what: str) -> None:
+    """Pillow recognizes some data formats by their signature (HDF5, GRIB, BUFR) as "stub" images of 0x0 pixels
+    it cannot decode: such a file is refused as not an image, not by the size check as an empty one."""
+    import warnings
+
+    from PIL import Image, ImageFile
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(path) as im:
+                fmt, stub = im.format, isinstance(im, ImageFile.StubImageFile) or 0 in im.size
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+        return  # missing, unreadable, not an image at all or too large: image_size words each
+    if stub:
+        raise ToolkitError(f"{what} {path}: not a readable image ({fmt} data, not a picture)")
+
+
+def is_picture(path: str | os.PathLike) -> bool:
+    """Whether a file is a picture by its content (whatever its name): Pillow identifies it as an image with
+    pixels, or it is a HEIC / HEIF / AVIF file (:data:`HEIF_BRANDS`). Nothing is decoded."""
+    import warnings
+
+    from PIL import Image, ImageFile
+
+    path = Path(path)
+    if not path.is_file():
+        return False
+    if _heif_kind(path) is not None:
+        return True
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(path) as im:
+                return not isinstance(im, ImageFile.StubImageFile) and 0 not in im.size
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+        return False
+
+
+def to_rgb8(im, what: str = "image", path: str | os.PathLike = "", *, background: int = 255) -> np.ndarray:
+    """A decoded Pillow image of any common mode -> [H, W, 3] uint8 RGB: 16-bit and 32-bit integer grey scaled to
+    8 bits (by 255/65535, or by 255/max for 32-bit values above 65535), alpha composited on grey level
+    ``background`` (white by default), palette / CMYK / YCbCr / LAB converted; a floating-point image refused."""
+    from PIL import Image
+
+    if im.mode in ("I;16", "I;16B", "I;16L", "I;16N", "I"):  # 16-bit grey (PNG, TIFF) or 32-bit integer grey
+        a = np.asarray(im, np.float64)
+        top = 255.0 if im.mode == "I" and a.max(initial=0) <= 255 else max(65535.0, a.max(initial=0))
+        g = np.clip(np.rint(a * 255.0 / top), 0, 255).astype(np.uint8)
+        return np.repeat(g[..., None], 3, -1)
+    if im.mode == "F":
+        raise ToolkitError(f"{what} {path}: a floating-point image; expected a photo (8- or 16-bit): save it as an "
+                           "8-bit JPEG or PNG")
+    if im.mode in ("RGBA", "LA", "PA", "RGBa", "La") or (im.mode in ("P", "L", "RGB") and "transparency" in im.info):
+        rgba = im.convert("RGBA")
+        under = Image.new("RGBA", rgba.size, (background, background, background, 255))
+        return np.asarray(Image.alpha_composite(under, rgba).convert("RGB"))
+    if im.mode == "LAB":  # Pillow converts LAB to RGB only through a colour profile
+        from PIL import ImageCms
+
+        lab, srgb = ImageCms.createProfile("LAB"), ImageCms.createProfile("sRGB")
+        return np.asarray(ImageCms.applyTransform(im, ImageCms.buildTransform(lab, srgb, "LAB", "RGB")))
+    return np.asarray(im.convert("RGB"))
+
+
+def decode_image(path: str | os.PathLike, what: str = "image", *, background: int = 255):
+    """An image file decoded upright -> ([H, W, 3] uint8 RGB, its EXIF data as Pillow reads it, before the turn).
+
+    The size is checked from the header first (:func:`image_size`); the EXIF orientation is applied, every mode
+    becomes 8-bit RGB and alpha is composited on grey level ``background`` (:func:`to_rgb8`). Not an image, a
+    truncated or corrupt file, a HEIC the installed Pillow cannot decode, an image too large: a one-line
+    ``ToolkitError`` naming ``what`` and the file."""
+    import warnings
+
+    from PIL import Image, ImageOps
+
+    path = Path(path)
+    _check_not_a_stub(path, what)
+    h, w = image_size(path, what)  # the header alone: a decompression bomb is refused before decoding
+    check_allocation(h * w * 12, f"{what} {path} ({w}x{h} pixels)")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # Pillow's warnings about odd EXIF data: the image itself is fine
+            with Image.open(path) as im:
+                im.load()  # a truncated file fails here, not later
+                exif = im.getexif()
+                try:  # the Exif IFD (focal length, ...) read now, while the file is open
+                    exif.get_ifd(EXIF_IFD)
+                except (KeyError, ValueError, TypeError, OSError, SyntaxError, struct.error):
+                    pass
+                upright = ImageOps.exif_transpose(im)
+                rgb = to_rgb8(upright, what, path, background=background)
+    except ToolkitError:
+        raise
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:
+        why = "truncated or corrupt" if "truncated" in str(e) or isinstance(e, SyntaxError) else e.__class__.__name__
+        raise _unreadable(what, path, f"{why}: {str(e)[:80]}") from None
+    return np.ascontiguousarray(rgb), exif
+
+
 def read_image(path: str | os.PathLike, what: str = "image", *, gray: bool = False) -> np.ndarray:
-    """An image file decoded by OpenCV ([H, W, 3] BGR uint8, or [H, W] with ``gray``), its size checked from the
-    header first (:func:`image_size`)."""
+    """An image file decoded upright by :func:`decode_image` -> [H, W, 3] uint8 BGR, or with ``gray`` [H, W] uint8
+    luma (ITU-R 601, as OpenCV's) with alpha composited on black: a mask's transparent part is not the mask."""
     import cv2
 
-    h, w = image_size(path, what)
-    check_allocation(h * w * 3 * 2, f"{what} {path} ({w}x{h} pixels)")  # 16-bit files decode to 2 bytes a channel
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-    if img is None or img.size == 0:
-        raise ToolkitError(f"{what} {path}: not a readable image")
-    return img
+    rgb, _ = decode_image(path, what, background=0 if gray else 255)
+    if gray:
+        return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    return np.ascontiguousarray(rgb[..., ::-1])

@@ -34,6 +34,14 @@ CROP_MARGIN = 2.0
 """Side of that crop / the detector's box side: the mesh's own short-range detector wants the face at ~half."""
 MIN_DETECTION = 0.5
 """Detector and mesh confidence thresholds."""
+TILE_SIDE = 768
+"""Side of the tiles a photo where the whole-photo detector finds no face is searched in: the detector finds a
+face down to ~6% of the longer side of what it sees (a 92-pixel face in a 1600² image, not in an 1800² or a
+2000 × 512 one), so a face of the pipeline's least width (64 pixels) is ~8% of a tile. Faces in a panorama or
+a large group photo (each a few per cent of the photo's width) are found this way."""
+TILE_OVERLAP_NMS = 0.3
+"""Two detections (of overlapping tiles) are one face when their boxes overlap by this IoU, or the smaller lies
+this much inside the larger."""
 
 
 @contextlib.contextmanager
@@ -111,6 +119,22 @@ def _square_crop(rgb: np.ndarray, center: np.ndarray, side: float, roll: float,
     return crop, A, b
 
 
+def _tile_starts(n: int, side: int) -> list[int]:
+    """Offsets of tiles of ``side`` along ``n`` pixels at half-tile strides, the last flush with the end."""
+    if n <= side:
+        return [0]
+    return list(range(0, n - side, side // 2)) + [n - side]
+
+
+def _overlap(a: np.ndarray, b: np.ndarray) -> float:
+    """max(IoU, intersection / the smaller area) of two boxes (x0, y0, x1, y1)."""
+    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = iw * ih
+    area = lambda q: max(1e-9, (q[2] - q[0]) * (q[3] - q[1]))  # noqa: E731
+    return max(inter / (area(a) + area(b) - inter), inter / min(area(a), area(b)))
+
+
 class FaceFinder:
     """mediapipe's detector, face mesh and selfie segmenter, built once and reused for every photo (a context
     manager: ``with FaceFinder() as ff: faces = ff.faces(rgb)``)."""
@@ -169,6 +193,32 @@ class FaceFinder:
         boxes.sort(key=lambda bs: -(bs[0][2] - bs[0][0]) * (bs[0][3] - bs[0][1]))
         return boxes[: self.max_faces]
 
+    def detect_tiled(self, rgb: np.ndarray, side: int = TILE_SIDE) -> list[tuple[np.ndarray, float, float]]:
+        """As :meth:`detect`, on overlapping tiles: squares of ``side``, ``2 side``, ... (while smaller than the
+        photo's longer side) at half-tile strides, so that every face up to half a tile lies whole in one tile at
+        some level. A detection touching a tile's edge inside the photo is left to the tile that holds it whole;
+        the same face seen in several tiles is kept once (its best score)."""
+        H, W = rgb.shape[:2]
+        found = []
+        while side < max(H, W):
+            margin = 0.02 * side
+            for y0 in _tile_starts(H, side):
+                for x0 in _tile_starts(W, side):
+                    tile = np.ascontiguousarray(rgb[y0:y0 + side, x0:x0 + side])
+                    th, tw = tile.shape[:2]
+                    for box, score, roll in self.detect(tile):
+                        if ((x0 > 0 and box[0] < margin) or (y0 > 0 and box[1] < margin)
+                                or (x0 + tw < W and box[2] > tw - margin) or (y0 + th < H and box[3] > th - margin)):
+                            continue  # cut by the tile: whole in an overlapping one
+                        found.append((box + np.array([x0, y0, x0, y0], np.float64), score, roll))
+            side *= 2
+        kept: list[tuple[np.ndarray, float, float]] = []
+        for d in sorted(found, key=lambda d: -d[1]):
+            if all(_overlap(d[0], k[0]) < TILE_OVERLAP_NMS for k in kept):
+                kept.append(d)
+        kept.sort(key=lambda bs: -(bs[0][2] - bs[0][0]) * (bs[0][3] - bs[0][1]))
+        return kept[: self.max_faces]
+
     def mesh(self, rgb: np.ndarray, box: np.ndarray, roll: float = 0.0) -> np.ndarray | None:
         """The 478 mesh points [478, 3] (photo pixels; z mediapipe's relative depth) of the face in ``box``, cut
         out turned upright by ``roll``; None when the mesh finds no face there (a profile, an occluded face)."""
@@ -185,22 +235,29 @@ class FaceFinder:
     def faces(self, rgb: np.ndarray) -> tuple[list[MeshFace], int]:
         """Every face of a photo ([H, W, 3] uint8 RGB) with its mesh, largest first, and how many detected faces
         the mesh could not fit. Each face's crop is turned upright by the roll of its eyes. A photo where the
-        detector finds none is tried turned by 90°, 270° and 180°; a face seen by the mesh but not the detector (a
-        close-up filling the photo) by a last try on the whole photo."""
+        detector finds none is tried turned by 90°, 270° and 180°, then in tiles (:meth:`detect_tiled`: faces too
+        small for the whole photo's detector, as in a panorama or a group photo); a face seen by the mesh but not
+        the detector (a close-up filling the photo) by a last try on the whole photo."""
         found, unfitted = [], 0
         boxes = self.detect(rgb)
         for turns in (1, 3, 2):  # a photo on its side (no or a wrong EXIF orientation): the detector wants upright
             boxes = boxes or self.detect(rgb, turns)
-        if not boxes:
-            H, W = rgb.shape[:2]
-            boxes = [(np.array([W / 2 - 0.25 * max(W, H), H / 2 - 0.25 * max(W, H),
-                                W / 2 + 0.25 * max(W, H), H / 2 + 0.25 * max(W, H)]), 0.0, 0.0)]
+        tiled = not boxes
+        if tiled:
+            boxes = self.detect_tiled(rgb)
         for box, score, roll in boxes:
             pts = self.mesh(rgb, box, roll)
             if pts is None:
                 unfitted += score > 0
                 continue
             found.append(MeshFace(pts, box, score))
+        if not found and (not boxes or tiled):  # no detection, or only tiles' ones none of which fitted
+            H, W = rgb.shape[:2]
+            box = np.array([W / 2 - 0.25 * max(W, H), H / 2 - 0.25 * max(W, H),
+                            W / 2 + 0.25 * max(W, H), H / 2 + 0.25 * max(W, H)])
+            pts = self.mesh(rgb, box)
+            if pts is not None:
+                found = [MeshFace(pts, box, 0.0)]
         return found, unfitted
 
     def person(self, rgb: np.ndarray) -> np.ndarray:

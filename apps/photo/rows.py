@@ -100,6 +100,18 @@ def _face_center(obs: FaceObservation, K: np.ndarray, pose, model) -> np.ndarray
     return ray / ray[2] * center[2]
 
 
+def _check_eyes_in_photo(obs: FaceObservation, width: int, height: int) -> None:
+    """A face cut by the photo's edge through an eye is refused: the landmarker places the eye beyond the edge
+    all the same (it fits a whole face), but its iris, gaze and mask would be guesses on black."""
+    for side, sl in (("image-left", slice(36, 42)), ("image-right", slice(42, 48))):
+        p = obs.landmarks68[sl]
+        if obs.iris_centers is not None:
+            p = np.concatenate([p, obs.iris_centers[:1] if side == "image-left" else obs.iris_centers[1:]])
+        if (p < 0).any() or (p[:, 0] > width).any() or (p[:, 1] > height).any():
+            raise ToolkitError(f"the face is cut off by the photo's edge (its {side} eye is outside the photo): use a "
+                               "photo showing the whole face")
+
+
 def prepare_face(bgr: np.ndarray, obs: FaceObservation, K: np.ndarray, target, *, frame_index: int = 0,
                  gaze_photo: np.ndarray | None = None, scale: float | None = None, person=None) -> FaceRow:
     """Fit, normalize and label one face: ``bgr`` [H, W, 3] uint8 the photo, ``obs`` the face, ``K`` [3, 3] the
@@ -113,6 +125,7 @@ def prepare_face(bgr: np.ndarray, obs: FaceObservation, K: np.ndarray, target, *
     from apps.photo.normalize import normalize, warp_image, warp_points
 
     model, size = target.model, target.size
+    _check_eyes_in_photo(obs, bgr.shape[1], bgr.shape[0])
     pose = head_pose(obs.landmarks68, K, model, iris_diameters_px=obs.iris_diameters, scale=scale)
     turn = face_direction_deg(pose.R, pose.t, model.face_center, pose.scale)
     if turn > MAX_TURN_DEG:
@@ -159,11 +172,13 @@ def photo_rows(photo, finder, target, *, frame_index: int = 0, largest_face: boo
     faces = [f for f in faces if f.width >= MIN_FACE_PX]
     if not faces:
         if small:
-            raise ToolkitError(f"the face found is {small[0].width:.0f} px wide, under {MIN_FACE_PX} px")
+            raise ToolkitError(f"the face found is {small[0].width:.0f} px wide, under {MIN_FACE_PX} px: use a larger "
+                               "photo (the original, not a thumbnail) or one taken closer")
         if unfitted:
             raise ToolkitError("a face was detected but the landmarker could not fit it (a profile or an occluded "
                                "face?)")
-        raise ToolkitError("no face found")
+        raise ToolkitError(f"no face found (expected a face at least {MIN_FACE_PX} px wide, whole in the photo and "
+                           f"turned less than {MAX_TURN_DEG:.0f}° from the camera)")
     K = photo_intrinsics(*photo.size, photo_focal(photo, focal)[0])
     rows, problems = [], []
     for k, face in enumerate(faces):

@@ -173,10 +173,10 @@ def test_several_inputs_skip_the_bad_ones_with_one_line_each(photos, tmp_path, c
 
 
 @pytest.mark.parametrize("name, match", [
-    ("coffee.png", r"coffee\.png: no face found"),
+    ("coffee.png", r"coffee\.png: no face found \(expected a face at least 64 px wide, whole in the photo"),
     ("truncated.jpg", r"truncated\.jpg: not a readable image \(truncated"),
     ("notes.jpg", r"notes\.jpg: not a readable image"),
-    ("small_face.png", r"small_face\.png: the face found is \d+ px wide, under 64 px"),
+    ("small_face.png", r"small_face\.png: the face found is \d+ px wide, under 64 px: use a larger photo"),
 ])
 def test_a_single_bad_photo_is_one_error_line_and_nothing_written(photos, tmp_path, name, match):
     from tests.fuzz.cli import assert_refused

@@ -1,0 +1,171 @@
+"""Unusual but valid photos (apps.photo, toolkit.images.decode_image): EXIF orientations, every common pixel mode,
+formats beyond JPEG/PNG, panoramas and faces cut by the photo's edge. Each is read as it looks, or refused in
+one line saying what to do."""
+
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from toolkit.errors import ToolkitError
+from toolkit.images import decode_image, read_image
+
+# ----------------------------------------------------------------------------------------------------------------
+# Decoding (no face detection)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _picture(h=48, w=64):
+    """[h, w, 3] uint8 RGB: smooth gradients, no two corners alike (a wrong turn or flip shows)."""
+    y, x = np.mgrid[0:h, 0:w]
+    return np.stack([x * 255 // (w - 1), y * 255 // (h - 1), (x + 2 * y) * 255 // (w + 2 * h - 3)], -1).astype(np.uint8)
+
+
+def _exif(orientation):
+    ex = Image.Exif()
+    ex[0x0112] = orientation
+    return ex.tobytes()
+
+
+# Orientation tag -> the transpose a camera stored the upright picture with (the viewer undoes it)
+STORED = {3: Image.Transpose.ROTATE_180, 6: Image.Transpose.ROTATE_90, 8: Image.Transpose.ROTATE_270,
+          5: Image.Transpose.TRANSPOSE}
+
+
+@pytest.mark.parametrize("orientation", sorted(STORED))
+@pytest.mark.parametrize("fmt", ["PNG", "WEBP", "TIFF"])
+def test_the_exif_orientation_is_applied(tmp_path, orientation, fmt):
+    up = _picture()
+    path = tmp_path / f"p.{fmt.lower()}"
+    Image.fromarray(up).transpose(STORED[orientation]).save(path, fmt, exif=_exif(orientation), lossless=True)
+    rgb, _ = decode_image(path)
+    assert rgb.shape == up.shape and np.abs(rgb.astype(int) - up).max() <= 1
+    assert np.array_equal(read_image(path), rgb[..., ::-1])
+
+
+def test_modes_become_8_bit_rgb(tmp_path):
+    up = _picture()
+    grey = np.asarray(Image.fromarray(up).convert("L"))
+    cases = {
+        "l.png": (Image.fromarray(grey), np.repeat(grey[..., None], 3, -1)),
+        "i16.png": (Image.fromarray(grey.astype(np.uint16) * 257), np.repeat(grey[..., None], 3, -1)),
+        "p.png": (Image.fromarray(up).quantize(256), None),
+        "cmyk.jpg": (Image.fromarray(up).convert("CMYK"), up),
+        "bmp.bmp": (Image.fromarray(up), up),
+    }
+    for name, (im, want) in cases.items():
+        im.save(tmp_path / name, **({"quality": 100} if name.endswith(".jpg") else {}))
+        rgb, _ = decode_image(tmp_path / name)
+        want = np.asarray(im.convert("RGB")) if want is None else want
+        assert rgb.dtype == np.uint8 and rgb.shape == up.shape, name
+        assert np.abs(rgb.astype(int) - want).mean() < 3, name  # CMYK: JPEG's loss only
+
+
+def test_alpha_is_white_for_pictures_and_not_a_mask_in_grey(tmp_path):
+    """A transparent band: white in colour (as load_photo always composited it; cv2.imread showed the black
+    stored under it), 0 in a grey mask; opaque pixels untouched."""
+    rgba = np.dstack([_picture(), np.full((48, 64), 255, np.uint8)])
+    rgba[:10] = (0, 0, 0, 0)
+    Image.fromarray(rgba).save(tmp_path / "a.png")
+    bgr = read_image(tmp_path / "a.png")
+    assert (bgr[:10] == 255).all() and np.array_equal(bgr[10:], rgba[10:, :, 2::-1])
+    grey = read_image(tmp_path / "a.png", gray=True)
+    assert (grey[:10] == 0).all() and grey[10:].mean() > 50
+    pal = Image.fromarray(rgba[..., :3]).quantize(255)  # palette with a transparent index
+    pal.save(tmp_path / "pt.png", transparency=int(np.asarray(pal)[0, 0]))
+    assert (read_image(tmp_path / "pt.png")[:10] == 255).all()
+
+
+def test_a_floating_point_image_and_a_heic_are_one_line_saying_what_to_do(tmp_path):
+    from apps.photo.images import load_photo
+
+    Image.fromarray(np.zeros((8, 8), np.float32)).save(tmp_path / "f.tiff")
+    with pytest.raises(ToolkitError, match=r"^photo \S*f\.tiff: a floating-point image.*save it as an 8-bit"):
+        load_photo(tmp_path / "f.tiff")
+    heic = tmp_path / "IMG_0001.HEIC"  # an iPhone photo's start: an ftyp box of brand heic
+    heic.write_bytes(b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic" + bytes(64))
+    with pytest.raises(ToolkitError, match=r"^photo \S*IMG_0001\.HEIC: a HEIC image, .*convert it to JPEG or PNG"):
+        load_photo(heic)
+
+
+def test_photo_files_of_other_formats_and_names_are_photo_input(tmp_path):
+    """apps.redirect took a WebP, TIFF or BMP photo (which apps.prepare reads) for a dataset and refused its
+    output folder; any picture not named as a dataset is photo input now, and folders list those formats."""
+    from apps.photo.images import photo_groups
+    from apps.redirect_photo import is_photo_input
+
+    for name, fmt in (("a.webp", "WEBP"), ("b.TIFF", "TIFF"), ("c.bmp", "BMP"), ("d.jfif", "JPEG"), ("e", "PNG")):
+        Image.fromarray(_picture()).save(tmp_path / name, fmt)
+        assert is_photo_input(tmp_path / name), name
+    (tmp_path / "notes.txt").write_text("not a picture")
+    assert not is_photo_input(tmp_path / "notes.txt") and not is_photo_input(tmp_path / "x.h5")
+    assert [p.name for p in photo_groups([tmp_path])[0][1]] == ["a.webp", "b.TIFF", "c.bmp"]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Faces (mediapipe)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def finder():
+    pytest.importorskip("mediapipe")
+    from apps.photo.faces import FaceFinder
+
+    with FaceFinder() as ff:
+        yield ff
+
+
+@pytest.fixture(scope="module")
+def astronaut():
+    return pytest.importorskip("skimage.data").astronaut()
+
+
+def _rows(rgb, finder, tmp_path, name="p.png", **save):
+    from apps.photo.face_model import default_target
+    from apps.photo.images import load_photo
+    from apps.photo.rows import photo_rows
+
+    im = rgb if isinstance(rgb, Image.Image) else Image.fromarray(rgb)
+    im.save(tmp_path / name, **save)
+    return photo_rows(load_photo(tmp_path / name), finder, default_target(64))[0]
+
+
+def test_a_sideways_phone_photo_is_found_upright_where_the_upright_one_is(astronaut, finder, tmp_path):
+    wide = np.pad(astronaut, ((0, 0), (300, 100), (0, 0)), mode="edge")  # not square: a turn would show
+    want = _rows(wide, finder, tmp_path)[0].arrays
+    for o in (6, 8):
+        stored = Image.fromarray(wide).transpose(STORED[o])
+        got = _rows(stored, finder, tmp_path, f"exif{o}.jpg", exif=_exif(o), quality=95)[0].arrays
+        assert tuple(got["source_size"]) == (912, 512)
+        assert np.abs(got["face_box"] - want["face_box"]).max() < 3
+        assert np.abs(got["warp"] @ [500, 100, 1] / (got["warp"] @ [500, 100, 1])[2]
+                      - want["warp"] @ [500, 100, 1] / (want["warp"] @ [500, 100, 1])[2]).max() < 2
+
+
+@pytest.mark.parametrize("shape, at", [((600, 6000), (2744, 44)), ((6000, 600), (44, 2744))], ids=["wide", "tall"])
+def test_a_face_in_a_panorama_is_found(astronaut, finder, tmp_path, shape, at):
+    """The whole 6000-pixel panorama shows the detector its 92-pixel face at 3 pixels: it is found in tiles."""
+    pano = np.full((*shape, 3), 120, np.uint8)
+    pano[at[1]:at[1] + 512, at[0]:at[0] + 512] = astronaut
+    ref = _rows(astronaut, finder, tmp_path)[0].arrays["face_box"]
+    rows = _rows(pano, finder, tmp_path, "pano.jpg", quality=95)
+    assert len(rows) == 1 and np.abs(rows[0].arrays["face_box"] - ref - [*at, *at]).max() < 3
+
+
+def test_every_face_of_a_group_strip_is_found_once(astronaut, finder, tmp_path):
+    strip = np.concatenate([astronaut if i % 2 == 0 else astronaut[:, ::-1] for i in range(5)], 1)  # 2560 x 512
+    boxes = sorted(r.arrays["face_box"][0] for r in _rows(strip, finder, tmp_path))
+    assert len(boxes) == 5 and all(b - a > 400 for a, b in zip(boxes, boxes[1:]))
+
+
+def test_a_face_cut_through_an_eye_is_refused_and_one_cut_beside_it_kept(astronaut, finder, tmp_path):
+    from tests.fuzz.cli import assert_refused
+
+    assert len(_rows(astronaut[:, 182:], finder, tmp_path)) == 1  # the face's outline cut, both eyes whole
+    Image.fromarray(astronaut[:, 200:]).save(tmp_path / "cut.png")
+    out = tmp_path / "out"
+    out.mkdir()
+    assert_refused("apps.prepare", [tmp_path / "cut.png", "--out", out],
+                   r"cut\.png: face 1 of 1: the face is cut off by the photo's edge \(its image-left eye is outside "
+                   r"the photo\): use a photo showing the whole face", inputs=[tmp_path / "cut.png"], out_dir=out)
