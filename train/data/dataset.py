@@ -25,14 +25,30 @@ from train.data.layouts import DITGAZE, agreed_code_widths
 SPLITS = ("all", "train", "test")
 
 
+APPLEDOUBLE_MAGIC = b"\x00\x05\x16\x07"
+"""The first bytes of a macOS AppleDouble file (``._NAME``), which macOS writes beside every file it copies to a
+non-Mac volume or share: ``._subject0000.h5`` holds Finder metadata, not HDF5."""
+
+
+def _appledouble(p: Path) -> bool:
+    if not p.name.startswith("._"):
+        return False
+    try:
+        with open(p, "rb") as fh:
+            return fh.read(4) == APPLEDOUBLE_MAGIC
+    except OSError:
+        return False
+
+
 def find_subject_files(paths: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
-    """Files from a list of files and/or folders (a folder contributes its ``*.h5``, sorted)."""
+    """Files from a list of files and/or folders (a folder contributes its ``*.h5``, sorted, but for the
+    AppleDouble ``._*.h5`` files macOS leaves beside them)."""
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
     files: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            found = sorted(p.glob("*.h5"))
+            found = sorted(q for q in p.glob("*.h5") if not _appledouble(q))
             if not found:
                 raise ToolkitError(f"{p}: no *.h5 subject files in this folder")
             files += found
