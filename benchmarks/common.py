@@ -65,11 +65,11 @@ def positive(flag: str) -> Callable[[str], float]:
 
 def check_device(device: str) -> torch.device:
     """The ``--device`` flag's value as a device: cpu, cuda or cuda:N, the CUDA ones only where CUDA is."""
+    from toolkit.io import check_device as usable
+
     if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
         raise ToolkitError(f"--device: expected cpu, cuda or cuda:N, got {device!r}")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ToolkitError(f"--device {device}: CUDA is not available here; use --device cpu")
-    return torch.device(device)
+    return usable(device, "--device")  # CUDA present, GPU N among its GPUs
 
 
 def check_model_memory(what: str, gaussians: int, hidden: int, batch: int, size: int, models: int = 1,

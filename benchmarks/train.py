@@ -40,6 +40,7 @@ import statistics
 import sys
 import tempfile
 import time
+import typing
 from dataclasses import replace
 from pathlib import Path
 
@@ -49,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import OUT_DIR, count, format_table, machine_info, positive, save_plot  # noqa: E402
 from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from train.run_config import GaussianStageConfig  # noqa: E402
 
 PARTS = ("fields", "splat", "renderer", "losses")
 
@@ -334,7 +336,7 @@ def time_to_quality(trained, device, overrides: list[str], args, test_files) -> 
     return points
 
 
-RENDERERS = ("dit", "unet")
+RENDERERS = typing.get_args(typing.get_type_hints(GaussianStageConfig)["renderer"])
 """The values of ``gaussian.renderer``: the variant names that need no overrides."""
 
 

@@ -53,6 +53,15 @@ def check_allocation(nbytes: float, what: str, hint: str = "") -> None:
                            f"(half the machine's memory, or DITGAZE_MEMORY_GB){more}")
 
 
+def is_finite_number(value: object) -> bool:
+    """Whether ``value`` is a finite real number (a Python or numpy scalar, a one-element tensor); False for
+    anything ``math.isfinite`` cannot read."""
+    try:
+        return math.isfinite(value)
+    except (TypeError, ValueError, RuntimeError):
+        return False
+
+
 def check_count(value: object, name: str, low: int, high: int, what: str = "a count") -> int:
     """``value`` as an int in ``[low, high]``, else "{name}: expected {what} in [low, high], got {value}".
     Accepts ints and integral floats (``1e3``); refuses bools, NaN, infinities and fractions."""

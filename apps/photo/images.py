@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.errors import ToolkitError
+from toolkit.images import EXIF_IFD
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp", ".tif", ".tiff", ".bmp", ".heic", ".heif", ".avif")
 """The photo files a folder contributes (any case); a file named on the command line is read whatever its name.
@@ -23,7 +24,7 @@ DIAGONAL_35MM = math.hypot(36.0, 24.0)
 """mm: the diagonal of a 35 mm film frame, the reference of EXIF's FocalLengthIn35mmFilm (CIPA DC-008: the
 35 mm equivalent is defined by the diagonal)."""
 
-EXIF_IFD, FOCAL_35MM_TAG = 0x8769, 0xA405
+FOCAL_35MM_TAG = 0xA405
 
 
 @dataclass

@@ -4,12 +4,12 @@ evaluation (``train.evaluation.summary.summarize_evaluation``'s result)."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import torch
 
 from toolkit.errors import ToolkitError
+from toolkit.io import check_output_folder
 from train.run_config import EvalConfig, RunConfig, eval_sampling_steps
 
 LABEL_ROW = "*reference: the target read against its labels*"
@@ -263,9 +263,7 @@ def check_eval_outputs(run_dir: Path) -> None:
         if (run_dir / name).is_dir():
             raise ToolkitError(f"{run_dir / name}: is a directory, expected a file path to write (the eval stage's "
                                f"{name})")
-    if run_dir.is_dir() and not os.access(run_dir, os.W_OK | os.X_OK):
-        raise ToolkitError(f"{run_dir}: not writable, expected a folder the eval stage can write "
-                           f"{', '.join(EVAL_OUTPUTS)} into")
+    check_output_folder(run_dir, f"the eval stage's outputs ({', '.join(EVAL_OUTPUTS)}) in {run_dir}")
 
 
 def figure_pngs(res: dict, sweep: torch.Tensor) -> dict[str, tuple[str, bytes]]:

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
+from toolkit.limits import is_finite_number
 
 EPS = 1e-12  # floor under square roots and divisions by sqrt(abar)
 
@@ -204,11 +205,7 @@ class GaussianDiffusion:
         ``generator``. ``clip_x0`` clamps the intermediate x0 estimates to ``[-clip_x0, clip_x0]``. The
         last step lands on x0 (``abar = 1``), so ``steps = 1`` returns ``predict_x0(model(noise, T - 1))``.
         """
-        try:
-            finite = math.isfinite(eta)
-        except (TypeError, ValueError, RuntimeError):
-            finite = False
-        if not finite:
+        if not is_finite_number(eta):
             raise ToolkitError(f"DDIM eta: expected a finite number (0: deterministic), got {eta!r}")
         ts = ddim_timesteps(self.num_timesteps, steps).to(noise.device)
         x = noise

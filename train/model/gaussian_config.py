@@ -3,11 +3,11 @@ sizes of its fields, bounds of their outputs, the optional eye features, and the
 
 from __future__ import annotations
 
-import math
 import numbers
 from dataclasses import dataclass
 
 from toolkit.errors import ToolkitError
+from toolkit.limits import is_finite_number
 
 UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
 """Scene units (``scene.metadata["units"]``) per metre: the config's distances are in metres."""
@@ -105,7 +105,7 @@ class GaussianModelConfig:
         for name in ("near_m", "far_m", "socket_sigma_m", "max_offset", "max_log_scale_delta", "max_opacity_delta",
                      "max_feature_delta", "max_eye_residual"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not _finite(v):
+            if isinstance(v, bool) or not is_finite_number(v):
                 raise ToolkitError(f"GaussianModelConfig.{name}: expected a finite number, got {v!r}")
         for name in ("max_offset", "max_log_scale_delta", "max_opacity_delta", "max_feature_delta", "max_eye_residual"):
             if getattr(self, name) < 0:
@@ -122,11 +122,3 @@ class GaussianModelConfig:
         if self.eyeball_colours and self.eye_appearance:
             raise ToolkitError("GaussianModelConfig: eyeball_colours and eye_appearance both set the eye Gaussians' "
                                "colours; enable one of them")
-
-
-def _finite(v) -> bool:
-    """Whether ``v`` is a finite real number."""
-    try:
-        return math.isfinite(v)
-    except TypeError:
-        return False

@@ -24,7 +24,6 @@ learns the correction. The DiT also sees ``z_base`` as extra input channels when
 
 from __future__ import annotations
 
-import math
 import numbers
 
 import torch
@@ -32,6 +31,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
+from toolkit.limits import is_finite_number
 from train.model.baseline_renderer import BaselineConfig, BaselineRenderer
 from train.model.codec import LatentCodec
 from train.model.diffusion import DiffusionConfig, GaussianDiffusion
@@ -118,7 +118,7 @@ class DiTRenderer(nn.Module):
                noise: torch.Tensor | None = None, eta: float = 0.0) -> torch.Tensor:
         """DDIM with ``steps`` (default ``default_steps``) from ``noise`` or from noise drawn with ``seed``."""
         check_render_inputs(feats, shape_code, self.dit.config.feature_channels, self.dit.config.shape_dim)
-        if not _finite_number(eta):
+        if not is_finite_number(eta):
             raise ToolkitError(f"DiTRenderer eta: expected a finite number (0: deterministic DDIM), got {eta!r}")
         check_finite_inputs(feats=feats, shape_code=shape_code, gaze=gaze, pose=pose, noise=noise)
         shape = self.latent_shape(feats)
@@ -138,13 +138,6 @@ class DiTRenderer(nn.Module):
     def forward(self, feats: torch.Tensor, shape_code: torch.Tensor, gaze: torch.Tensor | None = None,
                 pose: torch.Tensor | None = None) -> torch.Tensor:
         return self.render(feats, shape_code, gaze=gaze, pose=pose)
-
-
-def _finite_number(v) -> bool:
-    try:
-        return math.isfinite(v)
-    except (TypeError, ValueError, RuntimeError):
-        return False
 
 
 def make_renderer(kind: str, codec: LatentCodec | None = None, *, model: str = "DiT-Gaze-tiny",

@@ -162,17 +162,9 @@ def _check_files(cfg: RunConfig) -> None:
     if e.data_root:
         _check_layout(e.data_root, e.data_layout, "eval.data_layout")
     if e.data_root or (cfg.data.root and Path(cfg.data.root).exists()):  # the held-out files are known before training
-        from train.data.patches import release_layout
-        from train.stages.artifacts import RunArtifacts
         from train.stages.pipeline import RunContext
 
-        try:
-            test = RunArtifacts(RunContext(Path("."), cfg)).eval_files()
-        except ToolkitError:
-            test = []  # a folder the stages cannot split: the stage that reads it names what is wrong
-        # ETH-XGaze release files feed the estimator stage alone; the eval stage refuses them in one line
-        if not (test and release_layout(test, e.data_layout if e.data_root else cfg.data.layout)):
-            check_eval_pairing(cfg, test)
+        _check_held_out_pairing(RunContext(Path("."), cfg))
     lp = {"eval.lpips_vgg_path": e.lpips_vgg_path, "eval.lpips_lin_path": e.lpips_lin_path}
     if any(lp.values()) and not all(lp.values()):
         raise ToolkitError(f"config keys {list(lp)}: LPIPS needs both files (the VGG16 weights and the linear "
@@ -210,13 +202,23 @@ def check_run_pairing(ctx, will_run: set[str]) -> None:
     cfg = ctx.config
     if "eval" not in will_run or "data" in will_run or "data" not in ctx.outputs or cfg.data.root or cfg.eval.data_root:
         return
+    _check_held_out_pairing(ctx)
+
+
+def _check_held_out_pairing(ctx) -> None:
+    """:func:`check_eval_pairing` on the held-out files ``ctx`` names; a folder the stages cannot read or split is
+    left to the stage that reads it (it names what is wrong), and ETH-XGaze release files, which feed the
+    estimator stage alone, to the eval stage's own one-line refusal."""
+    from train.data.patches import release_layout
     from train.stages.artifacts import RunArtifacts
 
+    cfg, e = ctx.config, ctx.config.eval
     try:
-        files = RunArtifacts(ctx).eval_files()
+        test = RunArtifacts(ctx).eval_files()
     except ToolkitError:
-        return  # a data folder the stages cannot read or split: the eval stage names what is wrong
-    check_eval_pairing(cfg, files)
+        return
+    if not (test and release_layout(test, e.data_layout if e.data_root else cfg.data.layout)):
+        check_eval_pairing(cfg, test)
 
 
 def check_eval_pairing(cfg: RunConfig, test_files: list[Path]) -> None:
