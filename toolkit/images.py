@@ -53,11 +53,12 @@ def _unreadable(what: str, path: Path, why: str) -> ToolkitError:
 
 def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:
     """(height, width) of an image file from its header, nothing decoded, as stored (before any EXIF turn); a
-    one-line ``ToolkitError`` naming ``what`` and the file when it is missing, unreadable or larger than
+    one-line ``ToolkitError`` naming ``what`` and the file when it is missing, unreadable, a data format Pillow
+    recognizes by its signature but cannot decode (a "stub" image of 0x0 pixels: HDF5, GRIB, BUFR) or larger than
     :data:`MAX_IMAGE_PIXELS`."""
     import warnings
 
-    from PIL import Image
+    from PIL import Image, ImageFile
 
     path = Path(path)
     if not path.is_file():
@@ -67,33 +68,17 @@ def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             with Image.open(path) as im:
-                w, h = im.size
+                (w, h), fmt, stub = im.size, im.format, isinstance(im, ImageFile.StubImageFile)
     except (OSError, ValueError, SyntaxError) as e:
         raise _unreadable(what, path, e.__class__.__name__) from None
     finally:
         Image.MAX_IMAGE_PIXELS = limit
+    if stub or 0 in (w, h):
+        raise ToolkitError(f"{what} {path}: not a readable image ({fmt} data, not a picture)")
     if w < 1 or h < 1 or w * h > MAX_IMAGE_PIXELS:
         raise ToolkitError(f"{what} {path}: {w}x{h} pixels (width x height); expected at most {MAX_IMAGE_PIXELS} "
                            f"pixels" + ("; downscale it (e.g. to 8000 pixels on the longer side)" if w and h else ""))
     return h, w
-
-
-def _check_not_a_stub(path: Path, what: str) -> None:
-    """Pillow recognizes some data formats by their signature (HDF5, GRIB, BUFR) as "stub" images of 0x0 pixels
-    it cannot decode: such a file is refused as not an image, not by the size check as an empty one."""
-    import warnings
-
-    from PIL import Image, ImageFile
-
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            with Image.open(path) as im:
-                fmt, stub = im.format, isinstance(im, ImageFile.StubImageFile) or 0 in im.size
-    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
-        return  # missing, unreadable, not an image at all or too large: image_size words each
-    if stub:
-        raise ToolkitError(f"{what} {path}: not a readable image ({fmt} data, not a picture)")
 
 
 def is_picture(path: str | os.PathLike) -> bool:
@@ -155,7 +140,6 @@ def decode_image(path: str | os.PathLike, what: str = "image", *, background: in
     from PIL import Image, ImageOps
 
     path = Path(path)
-    _check_not_a_stub(path, what)
     h, w = image_size(path, what)  # the header alone: a decompression bomb is refused before decoding
     check_allocation(h * w * 12, f"{what} {path} ({w}x{h} pixels)")
     try:

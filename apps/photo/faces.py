@@ -251,7 +251,7 @@ class FaceFinder:
                 unfitted += score > 0
                 continue
             found.append(MeshFace(pts, box, score))
-        if not found and (not boxes or tiled):  # no detection, or only tiles' ones none of which fitted
+        if not found and tiled:  # nothing on the whole photo: no tile's detection fitted either (or there was none)
             H, W = rgb.shape[:2]
             box = np.array([W / 2 - 0.25 * max(W, H), H / 2 - 0.25 * max(W, H),
                             W / 2 + 0.25 * max(W, H), H / 2 + 0.25 * max(W, H)])

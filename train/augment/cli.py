@@ -52,9 +52,10 @@ def _check_splits(run, cfg) -> None:
     would not fit in memory."""
     from toolkit.limits import check_allocation
 
-    if not run.split("test"):
+    test_files = run.split("test")
+    if not test_files:
         raise ToolkitError(f"{run.run_dir}: the run has no held-out subjects to calibrate on")
-    held_out, train = ([_frames(f, run) for f in run.split(s)] for s in ("test", "train"))
+    held_out, train = [_frames(f, run) for f in test_files], [_frames(f, run) for f in run.split("train")]
     copies, image = 0, 3 * run.config.data.res ** 2  # uint8 RGB rows
     if "A" in cfg.protocols:
         if min(cfg.ks) >= (most := max(n for n, _ in held_out)):

@@ -113,8 +113,7 @@ class BaselineRenderer(nn.Module):
 
     def render(self, feats: torch.Tensor, shape_code: torch.Tensor, *, gaze: torch.Tensor | None = None,
                pose: torch.Tensor | None = None, steps: int | None = None, seed: int = 0) -> torch.Tensor:
-        check_render_inputs(feats, shape_code, self.config.feature_channels, self.config.shape_dim)
-        check_finite_inputs(feats=feats, shape_code=shape_code)
+        check_finite_inputs(feats=feats, shape_code=shape_code)  # the shapes: forward's check
         return self.forward(feats, shape_code)
 
     def training_forward(self, feats: torch.Tensor, shape_code: torch.Tensor, target: torch.Tensor, *,
