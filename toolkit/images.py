@@ -6,8 +6,10 @@ header alone (Pillow opens lazily) and :func:`decode_image` / :func:`read_image`
 above :data:`MAX_IMAGE_PIXELS` or what :func:`toolkit.limits.check_allocation` allows.
 
 Decoding (Pillow): the EXIF orientation applied (``ImageOps.exif_transpose``: a phone photo stored sideways comes
-out upright); grey, 16-bit (scaled by 255/65535), palette, CMYK and YCbCr become 8-bit RGB; alpha is composited
-on white (on black for a grey mask, :func:`read_image` with ``gray``); a multi-frame file gives its first frame.
+out upright); an RGB photo tagged with an ICC colour profile other than sRGB (a phone's Display P3, Adobe RGB)
+converted to sRGB; grey, 16-bit (scaled by 255/65535), palette, CMYK and YCbCr become 8-bit RGB; alpha is
+composited on white (on black for a grey mask, :func:`read_image` with ``gray``); a multi-frame file gives its
+first frame. HEIC / HEIF photos (an iPhone's default) decode through pillow-heif, part of the ``photos`` extra.
 """
 
 from __future__ import annotations
@@ -43,12 +45,59 @@ def _heif_kind(path: Path) -> str | None:
     return HEIF_BRANDS.get(head[8:12]) if len(head) == 12 and head[4:8] == b"ftyp" else None
 
 
+_heif_opener_registered = False
+
+
+def _open_heif_with_pillow_heif(path: Path) -> None:
+    """Teach Pillow HEIC / HEIF through pillow-heif (the ``photos`` extra) when ``path`` is one and pillow-heif is
+    installed; imported here, on the first such file, so that nothing else pays for it."""
+    global _heif_opener_registered
+    if _heif_opener_registered or _heif_kind(path) not in ("HEIC", "HEIF"):
+        return
+    try:
+        import pillow_heif
+    except ImportError:
+        return  # the file is then named as a HEIC Pillow cannot decode, with the extra to install
+    pillow_heif.register_heif_opener()
+    _heif_opener_registered = True
+
+
+def _has_decoder(kind: str) -> bool:
+    """Whether this Pillow decodes ``kind`` ("HEIC" / "HEIF" / "AVIF"): a file of it that fails is then damaged."""
+    from PIL import features
+
+    return _heif_opener_registered if kind != "AVIF" else bool(features.check("avif"))
+
+
 def _unreadable(what: str, path: Path, why: str) -> ToolkitError:
     kind = _heif_kind(path)
-    if kind is not None:
-        return ToolkitError(f"{what} {path}: a {kind} image, which the installed Pillow cannot decode; convert it to "
+    if kind is not None and not _has_decoder(kind):
+        way = ("install the 'photos' extra (pip install -e '.[photos]', which brings pillow-heif) or convert it"
+               if kind != "AVIF" else "upgrade Pillow (>= 11.2 reads AVIF) or convert it")
+        return ToolkitError(f"{what} {path}: a {kind} image, which the installed Pillow cannot decode; {way} to "
                             "JPEG or PNG (e.g. `heif-convert` or any photo viewer's export)")
-    return ToolkitError(f"{what} {path}: not a readable image ({why})")
+    return ToolkitError(f"{what} {path}: not a readable {kind + ' ' if kind else ''}image ({why})")
+
+
+def to_srgb(im):
+    """A Pillow RGB / RGBA image tagged with an ICC colour profile (``info["icc_profile"]``) converted to sRGB
+    (littlecms through ``PIL.ImageCms``, perceptual intent): a Display P3 or Adobe RGB photo read as if it were
+    sRGB looks dull and its written-out redirections would too. Untagged, sRGB-tagged (the profile's name says
+    sRGB), other modes, or a profile littlecms cannot use: ``im`` itself, its pixels untouched."""
+    import io
+
+    from PIL import ImageCms
+
+    icc = im.info.get("icc_profile")
+    if not icc or im.mode not in ("RGB", "RGBA"):
+        return im
+    try:
+        source = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+        if "srgb" in ImageCms.getProfileDescription(source).lower().replace(" ", ""):
+            return im
+        return ImageCms.profileToProfile(im, source, ImageCms.createProfile("sRGB"), outputMode=im.mode)
+    except (OSError, ValueError, TypeError, ImageCms.PyCMSError):
+        return im  # a broken or non-RGB profile: the pixels as stored, as any viewer without colour management
 
 
 def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:
@@ -63,6 +112,7 @@ def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:
     path = Path(path)
     if not path.is_file():
         raise ToolkitError(f"{what} {path}: no such file")
+    _open_heif_with_pillow_heif(path)
     limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None  # Pillow's own bomb check: the one below words it
     try:
         with warnings.catch_warnings():
@@ -131,9 +181,10 @@ def to_rgb8(im, what: str = "image", path: str | os.PathLike = "", *, background
 def decode_image(path: str | os.PathLike, what: str = "image", *, background: int = 255):
     """An image file decoded upright -> ([H, W, 3] uint8 RGB, its EXIF data as Pillow reads it, before the turn).
 
-    The size is checked from the header first (:func:`image_size`); the EXIF orientation is applied, every mode
-    becomes 8-bit RGB and alpha is composited on grey level ``background`` (:func:`to_rgb8`). Not an image, a
-    truncated or corrupt file, a HEIC the installed Pillow cannot decode, an image too large: a one-line
+    The size is checked from the header first (:func:`image_size`); the EXIF orientation is applied, a colour
+    profile converted to sRGB (:func:`to_srgb`), every mode becomes 8-bit RGB and alpha is composited on grey
+    level ``background`` (:func:`to_rgb8`). Not an image, a
+    truncated or corrupt file, a HEIC without pillow-heif (the ``photos`` extra), an image too large: a one-line
     ``ToolkitError`` naming ``what`` and the file."""
     import warnings
 
@@ -152,7 +203,7 @@ def decode_image(path: str | os.PathLike, what: str = "image", *, background: in
                     exif.get_ifd(EXIF_IFD)
                 except (KeyError, ValueError, TypeError, OSError, SyntaxError, struct.error):
                     pass
-                upright = ImageOps.exif_transpose(im)
+                upright = to_srgb(ImageOps.exif_transpose(im))  # the turn first: a conversion drops the EXIF
                 rgb = to_rgb8(upright, what, path, background=background)
     except ToolkitError:
         raise

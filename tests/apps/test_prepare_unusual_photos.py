@@ -76,15 +76,22 @@ def test_alpha_is_white_for_pictures_and_not_a_mask_in_grey(tmp_path):
     assert (read_image(tmp_path / "pt.png")[:10] == 255).all()
 
 
-def test_a_floating_point_image_and_a_heic_are_one_line_saying_what_to_do(tmp_path):
+def test_a_floating_point_image_and_a_heic_are_one_line_saying_what_to_do(tmp_path, monkeypatch):
+    import sys
+
+    import toolkit.images
     from apps.photo.images import load_photo
+
+    monkeypatch.setitem(sys.modules, "pillow_heif", None)  # its import fails, as where the 'photos' extra is absent
+    monkeypatch.setattr(toolkit.images, "_heif_opener_registered", False)
 
     Image.fromarray(np.zeros((8, 8), np.float32)).save(tmp_path / "f.tiff")
     with pytest.raises(ToolkitError, match=r"^photo \S*f\.tiff: a floating-point image.*save it as an 8-bit"):
         load_photo(tmp_path / "f.tiff")
     heic = tmp_path / "IMG_0001.HEIC"  # an iPhone photo's start: an ftyp box of brand heic
     heic.write_bytes(b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic" + bytes(64))
-    with pytest.raises(ToolkitError, match=r"^photo \S*IMG_0001\.HEIC: a HEIC image, .*convert it to JPEG or PNG"):
+    with pytest.raises(ToolkitError, match=r"^photo \S*IMG_0001\.HEIC: a HEIC image, .*install the 'photos' extra .*pillow-heif.* or convert it to "
+                       r"JPEG or PNG"):
         load_photo(heic)
 
 

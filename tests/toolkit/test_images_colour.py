@@ -1,0 +1,116 @@
+"""Photos as phones and cameras write them: ICC colour profiles other than sRGB, and HEIC files.
+
+The wide-gamut profiles are built byte by byte from the ICC v2 specification (``benchmarks.images.matrix_profile``
+cites its sections); the expected sRGB values come from the colour-science definitions alone (``expected_srgb``: the
+primaries' matrices and IEC 61966-2-1's sRGB curve), independently of littlecms.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from benchmarks.images import P3, SRGB, d65_to_d50, expected_srgb, matrix_profile, srgb_encode
+from toolkit.errors import ToolkitError
+from toolkit.images import decode_image
+
+# Colours inside both gamuts (no clipping), a grey ramp and the corners' neighbours.
+COLOURS = np.array([[200, 100, 50], [60, 140, 90], [128, 128, 128], [30, 30, 200], [240, 220, 180], [90, 40, 120]],
+                   np.uint8)
+
+
+@pytest.mark.parametrize("fmt", ["jpeg", "png", "tiff", "webp"])
+def test_a_display_p3_photo_is_converted_to_srgb(tmp_path, fmt):
+    icc = matrix_profile(d65_to_d50() @ P3, 2.2, "Display P3 (test)")
+    pixels = np.repeat(COLOURS[None], 4, 0)
+    path = tmp_path / f"p3.{fmt}"
+    Image.fromarray(pixels).save(path, icc_profile=icc, **({"quality": 100} if fmt in ("jpeg", "webp") else {}))
+    stored = np.asarray(Image.open(path).convert("RGB"))[0].astype(float)  # a lossy format's own rounding
+    rgb, _ = decode_image(path)
+    assert rgb.dtype == np.uint8
+    np.testing.assert_allclose(rgb[0], expected_srgb(stored, 2.2, P3), atol=2)
+    assert np.abs(rgb[0].astype(float) - stored).max() > 8  # a wide-gamut photo read as sRGB would be this far off
+
+
+def test_a_linear_srgb_profile_is_encoded_with_the_srgb_curve(tmp_path):
+    icc = matrix_profile(d65_to_d50() @ SRGB, 1.0, "linear primaries (test)")
+    path = tmp_path / "linear.png"
+    Image.fromarray(np.repeat(COLOURS[None], 2, 0)).save(path, icc_profile=icc)
+    rgb, _ = decode_image(path)
+    np.testing.assert_allclose(rgb[0], np.rint(srgb_encode(COLOURS / 255.0) * 255.0), atol=2)
+
+
+def test_untagged_srgb_tagged_and_broken_profiles_leave_the_pixels_as_stored(tmp_path):
+    from PIL import ImageCms
+
+    pixels = np.random.default_rng(0).integers(0, 256, (16, 16, 3), dtype=np.uint8)
+    srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+    for name, icc in [("none", None), ("srgb", srgb), ("broken", b"not a profile" * 20)]:
+        path = tmp_path / f"{name}.png"
+        Image.fromarray(pixels).save(path, **({"icc_profile": icc} if icc else {}))
+        rgb, _ = decode_image(path)
+        np.testing.assert_array_equal(rgb, pixels, err_msg=name)
+
+
+def test_an_exif_turned_p3_photo_is_turned_and_converted(tmp_path):
+    icc = matrix_profile(d65_to_d50() @ P3, 2.2, "Display P3 (test)")
+    pixels = np.zeros((4, 6, 3), np.uint8)
+    pixels[:, :] = COLOURS[0]
+    pixels[0, 0] = COLOURS[1]
+    exif = Image.Exif()
+    exif[0x0112] = 6  # stored turned: shown turned 90 degrees clockwise
+    path = tmp_path / "turned.png"
+    Image.fromarray(pixels).save(path, icc_profile=icc, exif=exif.tobytes())
+    rgb, _ = decode_image(path)
+    assert rgb.shape == (6, 4, 3)
+    np.testing.assert_allclose(rgb[0, -1], expected_srgb(COLOURS[1].astype(float), 2.2, P3), atol=2)
+
+
+@pytest.fixture
+def heic_writer():
+    pillow_heif = pytest.importorskip("pillow_heif", reason="pillow-heif (the 'photos' extra) is not installed")
+    return pillow_heif
+
+
+def test_a_heic_photo_decodes_upright(tmp_path, heic_writer):
+    from PIL import ImageOps
+
+    pixels = np.full((40, 60, 3), 30, np.uint8)
+    pixels[:10, :20] = 230  # a bright block at the top left as stored
+    image = Image.fromarray(pixels)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    path = tmp_path / "IMG_0001.HEIC"
+    heic_writer.from_pillow(image).save(path, quality=-1, exif=exif.tobytes())  # lossless, turned like a phone's
+    rgb, _ = decode_image(path, "photo")
+    want = np.asarray(ImageOps.exif_transpose(_with_orientation(image, 6)))
+    assert rgb.shape == want.shape == (60, 40, 3)
+    assert np.abs(rgb.astype(int) - want).max() <= 6  # HEVC's chroma rounding
+    assert rgb[:5, -5:].min() > 200 and rgb[-5:, :5].max() < 60
+
+
+def _with_orientation(image: Image.Image, orientation: int) -> Image.Image:
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    copy = image.copy()
+    copy.info["exif"] = exif.tobytes()
+    return copy
+
+
+def test_a_damaged_heic_is_named_as_one_when_pillow_heif_reads_heic(tmp_path, heic_writer):
+    path = tmp_path / "IMG_0002.HEIC"
+    heic_writer.from_pillow(Image.new("RGB", (32, 24), (90, 120, 30))).save(path, quality=-1)
+    path.write_bytes(path.read_bytes()[:-40])  # cut short, as an interrupted copy
+    with pytest.raises(ToolkitError, match=r"^photo \S*IMG_0002\.HEIC: not a readable HEIC image \("):
+        decode_image(path, "photo")
+
+
+def test_a_display_p3_heic_is_converted_to_srgb(tmp_path, heic_writer):
+    icc = matrix_profile(d65_to_d50() @ P3, 2.2, "Display P3 (test)")
+    path = tmp_path / "IMG_0003.HEIC"
+    heic_writer.from_pillow(Image.fromarray(np.repeat(COLOURS[None], 16, 0).repeat(4, 1))).save(
+        path, quality=-1, icc_profile=icc)
+    rgb, _ = decode_image(path, "photo")
+    stored = np.asarray(Image.open(path).convert("RGB"))[8, 2::4].astype(float)  # HEVC's own rounding
+    np.testing.assert_allclose(rgb[8, 2::4], expected_srgb(stored, 2.2, P3), atol=2)
