@@ -26,16 +26,14 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from apps.preview import DEMO_BYTES_PER_GAUSSIAN, DEMO_MAX
+from apps.preview import DEMO_MAX, DEMO_MIN, check_demo_gaussians
 from toolkit.errors import ToolkitError, run_cli
 from toolkit.io import check_output_folder
-from toolkit.limits import check_allocation, check_count
+from toolkit.limits import check_count
 from toolkit.procedural import demo_head_scene
 from toolkit.scene import GaussianScene
 
 DEFAULT_PRESET = "demo"
-MIN_GAUSSIANS = 64
-"""Fewest Gaussians of the demo head, as ``apps.preview``'s ``demo:N``."""
 SEED_RANGE = (-(2**63), 2**64 - 1)
 """--seed seeds torch's generators alone (the pipeline's own seed is the config key ``seed``): what they take;
 past 2^64 they overflow with a traceback."""
@@ -45,7 +43,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m apps.demo", description="Run the DiT-Gaze demo pipeline.")
     ap.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     ap.add_argument("--gaussians", type=int, default=20000,
-                    help=f"Gaussians in the demo head, {MIN_GAUSSIANS} to {DEMO_MAX} (default: 20000)")
+                    help=f"Gaussians in the demo head, {DEMO_MIN} to {DEMO_MAX} (default: 20000)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the demo head, in [-2^63, 2^64) (default: 0)")
     ap.add_argument("--skip-training", action="store_true",
                     help="only the procedural head and its preview sweep (takes no --preset or overrides: "
@@ -55,9 +53,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     # Every flag is checked before the head is built or any file written: the pipeline's config included,
     # so a typo in an override is not found only after the head and both sweeps.
-    check_count(args.gaussians, "--gaussians", MIN_GAUSSIANS, DEMO_MAX, "a number of demo Gaussians")
-    check_allocation(args.gaussians * DEMO_BYTES_PER_GAUSSIAN, f"--gaussians {args.gaussians}",
-                     "ask for fewer Gaussians")
+    check_demo_gaussians(args.gaussians, "--gaussians", sized=f"--gaussians {args.gaussians}")
     check_count(args.seed, "--seed", *SEED_RANGE, "a seed")
     if not args.out.strip():  # an empty path is the current folder: the demo's files would land among the user's
         raise ToolkitError("--out: expected an output folder, got an empty path")
@@ -101,14 +97,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 def check_pipeline_config(preset_name: str, overrides: list[str]) -> None:
     """The run config the pipeline will train with, checked as ``train.run`` checks it (the same preset, the
     same overrides, the same checks), so a bad preset or override is one line before the demo writes anything."""
-    from train.config import apply_overrides
-    from train.presets import PRESETS, preset
+    from train.presets import PRESETS
+    from train.run import resolve_config
     from train.stages.artifacts import resolve_device
     from train.stages.checks import check_config
 
     if preset_name not in PRESETS:  # named here: train.run would print its own usage first
         raise ToolkitError(f"--preset: expected one of {sorted(PRESETS)}, got {preset_name!r}")
-    cfg = apply_overrides(preset(preset_name), overrides)
+    # train.run's own resolution; with a --preset (run_pipeline always passes one) no config file is read.
+    cfg = resolve_config(argparse.Namespace(config=None, preset=preset_name, run_dir=None, overrides=overrides))
     check_config(cfg)
     resolve_device(cfg)
 

@@ -32,6 +32,8 @@ from toolkit.errors import ToolkitError, run_cli
 from toolkit.io import check_not_an_input, check_output_folder
 from toolkit.limits import check_allocation, check_count
 
+DEMO_MIN = 64
+"""Fewest Gaussians of the procedural demo head (``demo:N``, ``apps.demo --gaussians``)."""
 DEMO_MAX = 2_000_000
 """Most Gaussians of the procedural demo head (``demo:N``): ~15 us each to build (a 2 M head takes half a
 minute), and a full preview frame of a few million already takes seconds on a software GL."""
@@ -50,6 +52,15 @@ WINDOW_HELP = """window controls:
 
 
 # ---------------------------------------------------------------------------------------------- scenes
+def check_demo_gaussians(n: object, name: str, sized: str | None = None, how: str = "") -> int:
+    """``n`` as the Gaussian count of a demo head, refused outside [DEMO_MIN, DEMO_MAX] or past the memory budget.
+    ``name`` (and ``sized``, default ``name``) name the count in the range (and the memory) error; ``how`` says
+    how it was given (" (demo:N)"). Shared by ``demo:N`` here and ``apps.demo --gaussians``: one rule for both."""
+    n = check_count(n, name, DEMO_MIN, DEMO_MAX, f"a number of demo Gaussians{how}")
+    check_allocation(n * DEMO_BYTES_PER_GAUSSIAN, sized or name, f"ask for fewer Gaussians{how}")
+    return n
+
+
 def load_trained_scene(run_dir: str):
     """A trained run directory (train/run.py) -> the model's Gaussians as an RGB scene.
 
@@ -81,8 +92,7 @@ def load_scene(spec: str):
             n = int(spec.split(":", 1)[1]) if ":" in spec else 20000
         except ValueError:
             raise ToolkitError(f"scene {spec!r}: expected demo or demo:N with an integer N") from None
-        check_count(n, f"scene {spec}", 64, DEMO_MAX, "a number of demo Gaussians (demo:N)")
-        check_allocation(n * DEMO_BYTES_PER_GAUSSIAN, f"scene {spec}", "ask for fewer Gaussians (demo:N)")
+        check_demo_gaussians(n, f"scene {spec}", how=" (demo:N)")
         return demo_head_scene(n)
     if os.path.isdir(spec) and os.path.isfile(os.path.join(spec, "config.yaml")):
         return load_trained_scene(spec)
@@ -103,7 +113,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "(train/run.py: its Gaussians' RGB channels, posed with a training subject's code), or demo[:N] for the "
         "procedural head. The eye Gaussians are rotated rigidly about their eyeball centres.")
     ap.add_argument("scene", help="scene file (.safetensors / .ply), a trained run directory, or demo[:N] "
-                    f"(N in [64, {DEMO_MAX}], default 20000)")
+                    f"(N in [{DEMO_MIN}, {DEMO_MAX}], default 20000)")
     ap.add_argument("--headless", action="store_true", help="no window: render --sweep through EGL")
     ap.add_argument("--sweep", help="headless output: .mp4 video or .png contact sheet of the gaze grid")
     ap.add_argument("--pitch", default="20:-20:3", help="pitch grid in degrees, MIN:MAX:N or a,b,c; the first is the "

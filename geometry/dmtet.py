@@ -144,18 +144,20 @@ def grid_bytes(kind: str, res: int, feature_dim: int = 0) -> int:
     return 160 * T + (64 + 4 * feature_dim) * V
 
 
-def check_sdf(sdf: torch.Tensor, n_verts: int, name: str = "sdf") -> None:
-    """Raise a ToolkitError for a wrong shape or NaN/inf values (with a count)."""
+def _check_sdf_shape(sdf: torch.Tensor, n_verts: int, name: str) -> None:
+    """Raise a ToolkitError for a wrong shape or a non-float dtype (host-side only: no sync)."""
     if sdf.dim() != 1 or sdf.shape[0] != n_verts:
         raise ToolkitError(f"marching_tets: {name} must have shape [V={n_verts}], got {list(sdf.shape)}")
     if not sdf.is_floating_point():
         raise ToolkitError(f"marching_tets: {name} must be floating point, got {sdf.dtype}")
-    bad = ~torch.isfinite(sdf)
-    if bool(bad.any()):
-        raise ToolkitError(
-            f"marching_tets: {name} has {int(bad.sum())} NaN/inf value(s) of {n_verts}; "
-            "the SDF network or its inputs diverged"
-        )
+
+
+def _non_finite_sdf_error(sdf: torch.Tensor, n_verts: int, name: str) -> ToolkitError:
+    """The NaN/inf error for an ``sdf`` already known to hold some (with a count)."""
+    return ToolkitError(
+        f"marching_tets: {name} has {int((~torch.isfinite(sdf)).sum())} NaN/inf value(s) of {n_verts}; "
+        "the SDF network or its inputs diverged"
+    )
 
 
 def marching_tets(verts: torch.Tensor, tets: torch.Tensor, sdf: torch.Tensor, features: torch.Tensor | None = None
@@ -178,12 +180,16 @@ def marching_tets(verts: torch.Tensor, tets: torch.Tensor, sdf: torch.Tensor, fe
     if tets.dim() != 2 or tets.shape[1] != 4 or tets.is_floating_point():
         raise ToolkitError(f"marching_tets: tets must be integer [T, 4], got {list(tets.shape)} {tets.dtype}")
     V = verts.shape[0]
-    check_sdf(sdf, V)
+    _check_sdf_shape(sdf, V, "sdf")
+    # Every finiteness flag is computed on device and read back in one host sync; the errors keep their
+    # order (the SDF's first, then the features' shape, then the positions' and features' values).
+    given = {name: t.detach() for name, t in (("verts", verts), ("features", features)) if t is not None and t.numel()}
+    sdf_ok, *given_ok = torch.stack([torch.isfinite(t).all() for t in (sdf.detach(), *given.values())]).tolist()
+    if not sdf_ok:
+        raise _non_finite_sdf_error(sdf, V, "sdf")
     if features is not None and (features.dim() != 2 or features.shape[0] != V):
         raise ToolkitError(f"marching_tets: features must have shape [V={V}, C], got {list(features.shape)}")
-    given = {name: t.detach() for name, t in (("verts", verts), ("features", features)) if t is not None and t.numel()}
-    if given and not bool(torch.stack([torch.isfinite(t).all() for t in given.values()]).all()):  # one sync
-        bad = next(name for name, t in given.items() if not bool(torch.isfinite(t).all()))
+    if bad := next((name for name, ok in zip(given, given_ok) if not ok), None):
         raise ToolkitError(f"marching_tets: {bad} contain NaN/inf")
 
     with torch.no_grad():

@@ -119,3 +119,14 @@ def test_marching_tets_refuses_non_finite_positions_and_features(name):
     args[name] = args[name] * float("nan")
     with pytest.raises(ToolkitError, match=rf"marching_tets: {name} contain NaN/inf"):
         marching_tets(args["verts"], tets, sdf, args["features"])
+
+
+def test_marching_tets_names_a_non_finite_sdf_before_the_features():
+    """The finiteness flags are read together, yet a NaN SDF is still named first: before a features tensor
+    of the wrong shape or with NaN/inf values."""
+    verts, tets = tet_grid("kuhn", 4)
+    sdf = verts.norm(dim=-1) - 0.5
+    sdf[0] = float("nan")
+    for feats in (torch.zeros(3, 2), torch.full((verts.shape[0], 2), float("inf"))):
+        with pytest.raises(ToolkitError, match=r"marching_tets: sdf has 1 NaN/inf value\(s\) of 125"):
+            marching_tets(verts, tets, sdf, feats)
