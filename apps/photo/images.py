@@ -18,7 +18,8 @@ from toolkit.images import EXIF_IFD
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp", ".tif", ".tiff", ".bmp", ".heic", ".heif", ".avif")
 """The photo files a folder contributes (any case); a file named on the command line is read whatever its name.
-HEIC / HEIF / AVIF files are listed so that one Pillow cannot decode is named (convert it), not passed over."""
+HEIC / HEIF decode through pillow-heif (the ``photos`` extra), AVIF through Pillow; without a decoder such a file is
+named (install the extra, or convert it), not passed over."""
 
 DIAGONAL_35MM = math.hypot(36.0, 24.0)
 """mm: the diagonal of a 35 mm film frame, the reference of EXIF's FocalLengthIn35mmFilm (CIPA DC-008: the

@@ -176,3 +176,23 @@ def test_a_face_cut_through_an_eye_is_refused_and_one_cut_beside_it_kept(astrona
     assert_refused("apps.prepare", [tmp_path / "cut.png", "--out", out],
                    r"cut\.png: face 1 of 1: the face is cut off by the photo's edge \(its image-left eye is outside "
                    r"the photo\): use a photo showing the whole face", inputs=[tmp_path / "cut.png"], out_dir=out)
+
+
+def test_an_iphone_style_heic_tagged_display_p3_gives_the_jpegs_face(astronaut, finder, tmp_path):
+    """A phone's photo as it comes off the phone: HEIC, stored sideways (the turn in the file), tagged Display P3:
+    read upright and in sRGB, its face is where the plain photo's is."""
+    pillow_heif = pytest.importorskip("pillow_heif", reason="pillow-heif (the 'photos' extra) is not installed")
+    from benchmarks.images import display_p3_profile
+
+    wide = np.pad(astronaut, ((0, 0), (300, 100), (0, 0)), mode="edge")
+    want = _rows(wide, finder, tmp_path)[0].arrays
+    path = tmp_path / "IMG_0004.HEIC"
+    pillow_heif.from_pillow(Image.fromarray(wide).transpose(STORED[6])).save(
+        path, quality=95, exif=_exif(6), icc_profile=display_p3_profile())
+    from apps.photo.face_model import default_target
+    from apps.photo.images import load_photo
+    from apps.photo.rows import photo_rows
+
+    got = photo_rows(load_photo(path), finder, default_target(64))[0][0].arrays
+    assert tuple(got["source_size"]) == (912, 512)
+    assert np.abs(got["face_box"] - want["face_box"]).max() < 3
