@@ -18,7 +18,7 @@ import socket
 import tempfile
 import warnings
 from pathlib import Path
-from typing import IO, Any, Iterator
+from typing import IO, Any, Iterator, Mapping
 
 import torch
 
@@ -194,18 +194,30 @@ def check_output_folder(folder: str | os.PathLike, what: str, *, writable: bool 
     return folder
 
 
-def check_device(device: str | torch.device, what: str = "device") -> torch.device:
+def check_device(device: str | torch.device, what: str = "device", *, auto: bool = False) -> torch.device:
     """``device`` as a ``torch.device``: a name torch knows, and for cuda[:N] CUDA present with GPU N among its
-    GPUs; else a ToolkitError naming ``what``."""
+    GPUs; else a ToolkitError naming ``what``. ``auto``: "auto" is accepted too (CUDA when available, else the
+    CPU), and the messages offer it, in the words of a run config's ``device`` key."""
+    if auto and isinstance(device, str) and device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
         dev = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise ToolkitError(f"{what}: expected cpu, cuda or cuda:N, got {device!r}") from None
+    except (RuntimeError, TypeError, ValueError):
+        names = "'auto', 'cpu', 'cuda' or 'cuda:N'" if auto else "cpu, cuda or cuda:N"
+        raise ToolkitError(f"{what}: expected {names}, got {device!r}") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
+        if auto:
+            raise ToolkitError(f"{what}=cuda but CUDA is not available; use {what}=cpu or {what}=auto")
         raise ToolkitError(f"{what} {device}: CUDA is not available here (no GPU, or a CPU build of torch); use cpu")
     if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
         raise ToolkitError(f"{what} {device}: this machine has {torch.cuda.device_count()} GPU(s)")
     return dev
+
+
+def nonfinite_tensors(state: Mapping[str, torch.Tensor]) -> list[str]:
+    """The names, in order, of the floating-point tensors of ``state`` holding NaN or inf: loaded weights are
+    scanned with it so that a damaged file is named when read, not later as a diverged result."""
+    return [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
 
 
 def check_not_an_input(output: str | os.PathLike, inputs: list[str | os.PathLike], flag: str = "output",

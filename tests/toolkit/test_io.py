@@ -5,10 +5,12 @@ from toolkit import ToolkitError
 from toolkit.io import (
     atomic_write,
     atomic_write_json,
+    check_device,
     check_output_folder,
     load_checkpoint,
     load_foreign_torch_checkpoint,
     load_state_dict_file,
+    nonfinite_tensors,
     save_checkpoint,
 )
 
@@ -22,6 +24,23 @@ def test_atomic_write_cleans_up_on_error(tmp_path):
             raise RuntimeError("crash mid-write")
     assert target.read_bytes() == b"old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.bin"]
+
+
+def test_nonfinite_tensors_names_the_floating_tensors_with_nan_or_inf_in_order():
+    state = {"ok": torch.ones(3), "nan": torch.tensor([1.0, float("nan")]), "steps": torch.tensor([7]),
+             "inf": torch.tensor([float("-inf")], dtype=torch.float64), "empty": torch.zeros(0)}
+    assert nonfinite_tensors(state) == ["nan", "inf"]
+    assert nonfinite_tensors({}) == []
+
+
+def test_a_run_configs_device_may_be_auto():
+    """``auto=True`` (a run's ``device`` key) takes "auto" and offers it in its messages; plain names are kept."""
+    assert check_device("auto", auto=True) == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    assert check_device("cpu", auto=True) == torch.device("cpu")
+    with pytest.raises(ToolkitError, match=r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'auto!'$"):
+        check_device("auto!", auto=True)
+    with pytest.raises(ToolkitError, match=r"^device: expected cpu, cuda or cuda:N, got 'auto'$"):
+        check_device("auto")
 
 
 def test_atomic_write_under_a_file_is_one_clear_error(tmp_path):

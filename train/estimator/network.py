@@ -21,7 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
-from toolkit.io import load_checkpoint, save_checkpoint
+from toolkit.io import load_checkpoint, nonfinite_tensors, save_checkpoint
 from toolkit.rotations import head_to_camera_gaze
 from train.estimator.config import GazeEstimatorConfig
 from train.estimator.crops import MIRROR_SIGNS, eye_patches, mirror_faces
@@ -199,8 +199,7 @@ class GazeEstimator(nn.Module):
         extra = sorted(set(state) - set(own))
         if extra:
             raise ToolkitError(f"{path}: unexpected tensor(s) {extra[:3]} for a gaze estimator")
-        broken = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
-        if broken:
+        if broken := nonfinite_tensors(state):
             raise ToolkitError(f"{path}: tensor {broken[0]!r} holds NaN or inf (a diverged training?)")
         model.load_state_dict(state)
         model.to(device)

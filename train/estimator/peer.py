@@ -43,7 +43,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
-from toolkit.io import load_foreign_torch_checkpoint
+from toolkit.io import load_foreign_torch_checkpoint, nonfinite_tensors
 from train.estimator.resnet50 import RESNET50_FEATURES, XGazeGazeNetwork
 
 PEER_SIZE = 224
@@ -114,8 +114,8 @@ def _check_state(net: nn.Module, state: dict[str, torch.Tensor], path: str | os.
         if tuple(v.shape) != tuple(own[k].shape):
             raise _fail(path, f"tensor {k!r} has shape {list(v.shape)}, expected {list(own[k].shape)} "
                               "(GazeNeRF's ETH-XGaze ResNet-50 gaze estimator)")
-        if v.is_floating_point() and not bool(torch.isfinite(v).all()):
-            raise _fail(path, f"tensor {k!r} holds NaN or inf")
+    if broken := nonfinite_tensors(state):
+        raise _fail(path, f"tensor {broken[0]!r} holds NaN or inf")
 
 
 def load_gazenerf_estimator(path: str | os.PathLike, device: str | torch.device = "cpu") -> XGazeGazeNetwork:

@@ -16,7 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from toolkit.errors import ToolkitError
-from toolkit.io import check_readable_file, load_foreign_torch_checkpoint, load_tensors
+from toolkit.io import check_readable_file, load_foreign_torch_checkpoint, load_tensors, nonfinite_tensors
 
 # torchvision's configuration "D": channel counts, "M" = 2x2 max-pool.
 VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M")
@@ -78,10 +78,11 @@ class VGG16Features(nn.Module):
             if not isinstance(src, torch.Tensor) or tuple(src.shape) != tuple(v.shape):
                 shape = list(src.shape) if isinstance(src, torch.Tensor) else type(src).__name__
                 raise ToolkitError(f"{source}: tensor {name!r} has shape {shape}, expected {list(v.shape)} (VGG16)")
-            if not bool(torch.isfinite(src).all()):
-                raise ToolkitError(f"{source}: tensor {name!r} contains NaN or inf")
-            picked[k] = src.to(torch.float32)
-        self.features.load_state_dict(picked)
+            picked[k] = src
+        # Scanned before the float32 cast, which would turn a float64 value past its range into inf.
+        if broken := nonfinite_tensors(picked):
+            raise ToolkitError(f"{source}: tensor 'features.{broken[0]}' contains NaN or inf")
+        self.features.load_state_dict({k: v.to(torch.float32) for k, v in picked.items()})
 
 
 def load_vgg16(path: str | os.PathLike) -> VGG16Features:

@@ -14,7 +14,7 @@ from typing import Callable, Mapping
 import torch
 
 from toolkit.errors import ToolkitError
-from toolkit.io import load_metadata
+from toolkit.io import check_device, load_metadata, nonfinite_tensors
 from train.run_config import RunConfig
 from train.stages.pipeline import RunContext
 
@@ -24,26 +24,13 @@ CODE_WIDTHS_KEY = "code_widths"
 
 def resolve_device(cfg: RunConfig) -> torch.device:
     """The device ``cfg.device`` names ("auto": CUDA when available); a ToolkitError for CUDA without one."""
-    return device_named(cfg.device)
-
-
-def device_named(device) -> torch.device:
-    """The device ``device`` (a name or a ``torch.device``) names: "auto" is CUDA when available, else the CPU; a
-    ToolkitError for a name torch does not know and for CUDA without one."""
-    if isinstance(device, str) and device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError, ValueError):
-        raise ToolkitError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ToolkitError("device=cuda but CUDA is not available; use device=cpu or device=auto")
-    return dev
+    return check_device(cfg.device, auto=True)
 
 
 def usable_device(device):
-    """``device`` as given once :func:`device_named` accepts it ("auto": the device it picks)."""
-    dev = device_named(device)
+    """``device`` as given once ``toolkit.io.check_device`` accepts it as a run's ``device`` key ("auto": the
+    device it picks)."""
+    dev = check_device(device, auto=True)
     return str(dev) if isinstance(device, str) and device == "auto" else device
 
 
@@ -187,11 +174,11 @@ class RunArtifacts:
         modules = {"model": model, "renderer": renderer}
         load_training_checkpoint(path, modules=modules, restore_rng=False)
         # A damaged file is named here, not later by the splatter or the renderer as a diverged fit.
-        for prefix, module in modules.items():
-            for name, t in module.state_dict().items():
-                if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-                    raise ToolkitError(f"{path}: tensor '{prefix}.{name}' holds NaN or inf values: the checkpoint is "
-                                       "damaged (re-run stage gaussian)")
+        state = {f"{prefix}.{name}": t for prefix, module in modules.items()
+                 for name, t in module.state_dict().items()}
+        if broken := nonfinite_tensors(state):
+            raise ToolkitError(f"{path}: tensor '{broken[0]}' holds NaN or inf values: the checkpoint is damaged "
+                               "(re-run stage gaussian)")
         return model.eval(), renderer.eval()
 
     # ----------------------------------------------------------------------------- test-time fitting

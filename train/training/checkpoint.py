@@ -216,7 +216,7 @@ class CheckpointManager:
         self.folder = Path(folder)
         self.keep = max(1, keep)
         self.skipped: list[Path] = []
-        """the unreadable checkpoints the last :meth:`latest` passed over"""
+        """the unreadable checkpoints the last :meth:`newest` passed over"""
         self.reasons: dict[Path, str] = {}
         """why each of :attr:`skipped` could not be read"""
 
@@ -238,17 +238,12 @@ class CheckpointManager:
                 raise ToolkitError(f"{p}: is {kind}, expected a checkpoint file (the training saves its checkpoints "
                                    "under this name); move it out of the checkpoint folder")
 
-    def latest(self) -> Path | None:
-        """The newest checkpoint whose header and metadata read (writes are atomic, so an unreadable one was
-        damaged afterwards: the one before it is the one to resume from)."""
-        found = self.newest()
-        return found[0] if found is not None else None
-
     def newest(self) -> tuple[Path, dict[str, Any]] | None:
-        """``(path, checked metadata)`` of :meth:`latest`. A checkpoint whose recorded step is not the one its name
-        says (a copy under another name) is refused: resuming it would start at one step and replay the
-        data of the other, and its name would keep it the newest however long the run trained. Callers that
-        resume check the folder first (:meth:`check_files`)."""
+        """``(path, checked metadata)`` of the newest checkpoint whose header and metadata read (writes are
+        atomic, so an unreadable one was damaged afterwards: the one before it is the one to resume from). A
+        checkpoint whose recorded step is not the one its name says (a copy under another name) is refused:
+        resuming it would start at one step and replay the data of the other, and its name would keep it the
+        newest however long the run trained. Callers that resume check the folder first (:meth:`check_files`)."""
         self.skipped, self.reasons = [], {}
         for p in reversed(self.all()):
             try:

@@ -155,7 +155,8 @@ def test_manager_keeps_newest(tmp_path):
     assert [p.name for p in mgr.all()] == ["ckpt_00000002.safetensors", "ckpt_00000003.safetensors"]
     # A newest checkpoint damaged after it was written: resume from the one before it.
     mgr.path_for(3).write_bytes(b"")
-    assert mgr.latest() == mgr.path_for(2)
+    assert mgr.newest()[0] == mgr.path_for(2)
+    assert mgr.skipped == [mgr.path_for(3)]
 
 
 _SCRIPT = textwrap.dedent(
@@ -250,7 +251,7 @@ def test_a_stop_on_any_rank_stops_every_rank_at_the_same_step(tmp_path, monkeypa
         train_loop("s", step_fn, modules={"m": model}, optimizers={"o": opt}, steps=10, run_dir=tmp_path,
                    ckpt_every=100, progress=False, dist_info=DistInfo(rank=0, world_size=2))
     assert votes[4] is True  # this rank voted to go on
-    assert CheckpointManager(tmp_path / "checkpoints").latest().name[5:13] == "00000002"
+    assert CheckpointManager(tmp_path / "checkpoints").newest()[0].name[5:13] == "00000002"
 
 
 def test_a_checkpoint_of_another_training_is_refused_and_a_fresh_run_clears_the_folder(tmp_path):
