@@ -97,15 +97,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 def check_pipeline_config(preset_name: str, overrides: list[str]) -> None:
     """The run config the pipeline will train with, checked as ``train.run`` checks it (the same preset, the
     same overrides, the same checks), so a bad preset or override is one line before the demo writes anything."""
-    from train.presets import PRESETS
-    from train.run import resolve_config
+    from train.config import apply_overrides
+    from train.presets import PRESETS, preset
     from train.stages.artifacts import resolve_device
     from train.stages.checks import check_config
 
     if preset_name not in PRESETS:  # named here: train.run would print its own usage first
         raise ToolkitError(f"--preset: expected one of {sorted(PRESETS)}, got {preset_name!r}")
-    # train.run's own resolution; with a --preset (run_pipeline always passes one) no config file is read.
-    cfg = resolve_config(argparse.Namespace(config=None, preset=preset_name, run_dir=None, overrides=overrides))
+    cfg = apply_overrides(preset(preset_name), overrides)  # train.run's resolution when given a --preset
     check_config(cfg)
     resolve_device(cfg)
 

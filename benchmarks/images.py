@@ -1,6 +1,7 @@
 """Photo decoding (``toolkit.images.decode_image``): milliseconds per photo against colour error, for the files
-phones and cameras write: JPEG untagged, JPEG tagged Display P3 (converted to sRGB), PNG tagged Display P3, and HEIC
-(through pillow-heif, the ``photos`` extra; left out with a note when absent) at 1 and 12 megapixels.
+phones and cameras write: JPEG untagged, tagged sRGB (recognized as sRGB, kept as stored) and tagged Display P3
+(converted to sRGB), PNG tagged Display P3, and HEIC (through pillow-heif, the ``photos`` extra; left out with a note
+when absent) at 1 and 12 megapixels.
 
     .venv/bin/python benchmarks/images.py                 # 5 repeats
     .venv/bin/python benchmarks/images.py --repeats 2
@@ -32,7 +33,8 @@ from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_p
 from toolkit.errors import run_cli  # noqa: E402
 
 D65 = np.array([0.95047, 1.0, 1.08883])
-D50 = np.array([0.96422, 1.0, 0.82521])
+D50 = np.array([0.9642, 1.0, 0.8249])
+"""The ICC profile connection space's illuminant (the header's illuminant field), the white colorants are adapted to."""
 BRADFORD = np.array([[0.8951, 0.2664, -0.1614], [-0.7502, 1.7135, 0.0367], [0.0389, -0.0685, 1.0296]])
 
 
@@ -105,12 +107,15 @@ def smooth_photo(megapixels: float, seed: int = 0) -> np.ndarray:
 
 def write_variants(pixels: np.ndarray, folder: Path) -> dict[str, tuple[Path, np.ndarray]]:
     """{variant: (file, the sRGB pixels it should decode to)}; HEIC only with pillow-heif."""
-    from PIL import Image
+    from PIL import Image, ImageCms
 
     image, p3 = Image.fromarray(pixels), display_p3_profile()
+    srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
     out = {}
-    for name, suffix, kw in [("JPEG q95", "jpg", {"quality": 95}), ("JPEG q95, Display P3", "p3.jpg",
-                             {"quality": 95, "icc_profile": p3}), ("PNG, Display P3", "p3.png", {"icc_profile": p3})]:
+    for name, suffix, kw in [("JPEG q95", "jpg", {"quality": 95}),
+                             ("JPEG q95, sRGB", "srgb.jpg", {"quality": 95, "icc_profile": srgb}),
+                             ("JPEG q95, Display P3", "p3.jpg", {"quality": 95, "icc_profile": p3}),
+                             ("PNG, Display P3", "p3.png", {"icc_profile": p3})]:
         path = folder / f"photo.{suffix}"
         image.save(path, **kw)
         stored = np.asarray(Image.open(path).convert("RGB"))  # the codec's loss is not the decoder's

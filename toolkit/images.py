@@ -6,7 +6,7 @@ header alone (Pillow opens lazily) and :func:`decode_image` / :func:`read_image`
 above :data:`MAX_IMAGE_PIXELS` or what :func:`toolkit.limits.check_allocation` allows.
 
 Decoding (Pillow): the EXIF orientation applied (``ImageOps.exif_transpose``: a phone photo stored sideways comes
-out upright); an RGB photo tagged with an ICC colour profile other than sRGB (a phone's Display P3, Adobe RGB)
+out upright); an RGB or palette photo tagged with an ICC colour profile other than sRGB (Display P3, Adobe RGB)
 converted to sRGB; grey, 16-bit (scaled by 255/65535), palette, CMYK and YCbCr become 8-bit RGB; alpha is
 composited on white (on black for a grey mask, :func:`read_image` with ``gray``); a multi-frame file gives its
 first frame. HEIC / HEIF photos (an iPhone's default) decode through pillow-heif, part of the ``photos`` extra.
@@ -79,25 +79,50 @@ def _unreadable(what: str, path: Path, why: str) -> ToolkitError:
     return ToolkitError(f"{what} {path}: not a readable {kind + ' ' if kind else ''}image ({why})")
 
 
+def _srgb_probe() -> "np.ndarray":
+    """[1, 1024 + 729, 3] uint8: every grey level, each primary's 256 levels, and a 9-level grid of every channel."""
+    ramp = np.arange(256, dtype=np.uint8)
+    zero = np.zeros_like(ramp)
+    ramps = [np.stack(c, -1) for c in ((ramp, ramp, ramp), (ramp, zero, zero), (zero, ramp, zero), (zero, zero, ramp))]
+    grid = np.stack(np.meshgrid(*[np.linspace(0, 255, 9).astype(np.uint8)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    return np.concatenate([*ramps, grid])[None]
+
+
+SRGB_TOLERANCE = 1
+"""A profile whose conversion to sRGB moves no colour of :func:`_srgb_probe` by more than this many 8-bit levels is
+sRGB (one of its many variants): the pixels are kept as stored."""
+
+
 def to_srgb(im):
-    """A Pillow RGB / RGBA image tagged with an ICC colour profile (``info["icc_profile"]``) converted to sRGB
-    (littlecms through ``PIL.ImageCms``, perceptual intent): a Display P3 or Adobe RGB photo read as if it were
-    sRGB looks dull and its written-out redirections would too. Untagged, sRGB-tagged (the profile's name says
-    sRGB), other modes, or a profile littlecms cannot use: ``im`` itself, its pixels untouched."""
+    """A Pillow RGB / RGBA / palette image tagged with an RGB ICC colour profile (``info["icc_profile"]``) converted
+    to sRGB (littlecms through ``PIL.ImageCms``, perceptual intent; a palette or a transparent colour becomes RGB /
+    RGBA first): a Display P3 or Adobe RGB photo read as if it were sRGB looks dull and its written-out redirections
+    would too. Untagged, sRGB by content (:data:`SRGB_TOLERANCE`, whatever the profile's name), other modes, or a
+    profile littlecms cannot use (grey, CMYK, broken): ``im`` itself, its pixels untouched."""
     import io
 
-    from PIL import ImageCms
+    from PIL import Image, ImageCms
 
     icc = im.info.get("icc_profile")
-    if not icc or im.mode not in ("RGB", "RGBA"):
+    if not icc or im.mode not in ("RGB", "RGBA", "P", "PA"):
         return im
     try:
-        source = ImageCms.ImageCmsProfile(io.BytesIO(icc))
-        if "srgb" in ImageCms.getProfileDescription(source).lower().replace(" ", ""):
+        to_srgb = ImageCms.buildTransform(ImageCms.ImageCmsProfile(io.BytesIO(icc)), ImageCms.createProfile("sRGB"),
+                                          "RGB", "RGB")
+        probe = _srgb_probe()
+        moved = np.asarray(ImageCms.applyTransform(Image.fromarray(probe), to_srgb), np.int16) - probe
+        if np.abs(moved).max() <= SRGB_TOLERANCE:
             return im
-        return ImageCms.profileToProfile(im, source, ImageCms.createProfile("sRGB"), outputMode=im.mode)
+        # A palette or a transparent colour: to RGB(A) first, since the conversion would change the key colour.
+        alpha = im.mode in ("RGBA", "PA") or "transparency" in im.info
+        rgb = im.convert("RGBA" if alpha else "RGB")
+        if not alpha:
+            return ImageCms.applyTransform(rgb, to_srgb)
+        out = ImageCms.applyTransform(rgb.convert("RGB"), to_srgb).convert("RGBA")
+        out.putalpha(rgb.getchannel("A"))
+        return out
     except (OSError, ValueError, TypeError, ImageCms.PyCMSError):
-        return im  # a broken or non-RGB profile: the pixels as stored, as any viewer without colour management
+        return im  # a profile littlecms cannot use: the pixels as stored, as any viewer without colour management
 
 
 def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:

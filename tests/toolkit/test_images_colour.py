@@ -53,6 +53,49 @@ def test_untagged_srgb_tagged_and_broken_profiles_leave_the_pixels_as_stored(tmp
         np.testing.assert_array_equal(rgb, pixels, err_msg=name)
 
 
+def test_srgb_is_known_by_its_colours_not_its_name(tmp_path):
+    """littlecms's own sRGB profile renamed keeps the pixels as stored; a linear profile named sRGB is converted."""
+    from PIL import ImageCms
+
+    srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+    renamed = srgb.replace("sRGB built-in".encode("utf-16-be"), "c2 (a web tool)".encode("utf-16-be")[:26])
+    assert renamed != srgb
+    linear = matrix_profile(d65_to_d50() @ SRGB, 1.0, "sRGB linear")
+    pixels = np.repeat(COLOURS[None], 2, 0)
+    for name, icc in [("renamed", renamed), ("linear", linear)]:
+        Image.fromarray(pixels).save(tmp_path / f"{name}.png", icc_profile=icc)
+    np.testing.assert_array_equal(decode_image(tmp_path / "renamed.png")[0], pixels)
+    np.testing.assert_allclose(decode_image(tmp_path / "linear.png")[0][0],
+                               np.rint(srgb_encode(COLOURS / 255.0) * 255.0), atol=2)
+
+
+def test_alpha_palette_and_a_transparent_colour_survive_the_conversion(tmp_path):
+    icc = matrix_profile(d65_to_d50() @ P3, 2.2, "Display P3 (test)")
+    want = expected_srgb(COLOURS.astype(float), 2.2, P3)
+    rgba = np.concatenate([np.repeat(COLOURS[None], 2, 0), np.full((2, len(COLOURS), 1), 255, np.uint8)], -1)
+    rgba[1, 0, 3] = 0  # one transparent pixel: white once composited
+    Image.fromarray(rgba).save(tmp_path / "rgba.png", icc_profile=icc)
+    got = decode_image(tmp_path / "rgba.png")[0]
+    np.testing.assert_allclose(got[0], want, atol=2)
+    assert (got[1, 0] == 255).all()
+    Image.fromarray(np.repeat(COLOURS[None], 2, 0)).quantize(8).save(tmp_path / "palette.png", icc_profile=icc)
+    np.testing.assert_allclose(decode_image(tmp_path / "palette.png")[0][0], want, atol=2)
+    key = np.repeat(COLOURS[None], 2, 0)
+    key[1, 0] = (1, 2, 3)
+    Image.fromarray(key).save(tmp_path / "trns.png", icc_profile=icc, transparency=(1, 2, 3))  # a tRNS colour
+    got = decode_image(tmp_path / "trns.png")[0]
+    assert (got[1, 0] == 255).all()
+    np.testing.assert_allclose(got[0], want, atol=2)
+
+
+def test_the_test_colour_spaces_are_the_published_ones():
+    """The fixtures' matrices against published values, so that an error they share cannot cancel out: Display
+    P3's RGB -> XYZ (D65) and its D50-adapted colorants as Apple's profile stores them (rXYZ, gXYZ, bXYZ)."""
+    np.testing.assert_allclose(P3[0], [0.48657, 0.26567, 0.19822], atol=2e-4)
+    np.testing.assert_allclose(SRGB[0], [0.41239, 0.35758, 0.18048], atol=2e-4)
+    np.testing.assert_allclose((d65_to_d50() @ P3)[:, 0], [0.5151, 0.2412, -0.0011], atol=2e-3)
+
+
 def test_an_exif_turned_p3_photo_is_turned_and_converted(tmp_path):
     icc = matrix_profile(d65_to_d50() @ P3, 2.2, "Display P3 (test)")
     pixels = np.zeros((4, 6, 3), np.uint8)
