@@ -181,6 +181,9 @@ def marching_tets(verts: torch.Tensor, tets: torch.Tensor, sdf: torch.Tensor, fe
         raise ToolkitError(f"marching_tets: tets must be integer [T, 4], got {list(tets.shape)} {tets.dtype}")
     V = verts.shape[0]
     _check_sdf_shape(sdf, V, "sdf")
+    for name, t in (("tets", tets), ("sdf", sdf), ("features", features)):
+        if t is not None and t.device != verts.device:
+            raise ToolkitError(f"marching_tets: {name} is on {t.device} and verts on {verts.device}; expected one device")
     # Every finiteness flag is computed on device and read back in one host sync; the errors keep their
     # order (the SDF's first, then the features' shape, then the positions' and features' values).
     given = {name: t.detach() for name, t in (("verts", verts), ("features", features)) if t is not None and t.numel()}

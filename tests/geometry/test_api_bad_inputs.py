@@ -130,3 +130,14 @@ def test_marching_tets_names_a_non_finite_sdf_before_the_features():
     for feats in (torch.zeros(3, 2), torch.full((verts.shape[0], 2), float("inf"))):
         with pytest.raises(ToolkitError, match=r"marching_tets: sdf has 1 NaN/inf value\(s\) of 125"):
             marching_tets(verts, tets, sdf, feats)
+
+
+def test_marching_tets_names_tensors_on_another_device():
+    """The finiteness flags are stacked on one device: a tensor elsewhere is named, not a torch RuntimeError (the
+    meta device stands in for a GPU)."""
+    verts, tets = tet_grid("kuhn", 4)
+    sdf = verts.norm(dim=-1) - 0.5
+    with pytest.raises(ToolkitError, match=r"^marching_tets: sdf is on meta and verts on cpu; expected one device$"):
+        marching_tets(verts, tets, sdf.to("meta"))
+    with pytest.raises(ToolkitError, match=r"^marching_tets: features is on meta"):
+        marching_tets(verts, tets, sdf, torch.zeros(verts.shape[0], 2, device="meta"))
