@@ -3,9 +3,10 @@
 #   libusb-1.0-0      open3d's native module links it
 #   libegl1, libgl1, libgl1-mesa-dri   headless OpenGL through EGL (Mesa llvmpipe) for moderngl
 #   xvfb, xauth       a virtual X server for the preview window test
+#   icc-profiles-free real-world ICC profiles (Adobe RGB-compatible, a v4 sRGB) the photo decoder's tests read
 # As root it installs what is missing with apt; otherwise it prints the exact command and fails.
 set -euo pipefail
-pkgs=(libusb-1.0-0 libegl1 libgl1 libgl1-mesa-dri xvfb xauth)
+pkgs=(libusb-1.0-0 libegl1 libgl1 libgl1-mesa-dri xvfb xauth icc-profiles-free)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

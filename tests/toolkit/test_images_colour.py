@@ -7,11 +7,13 @@ primaries' matrices and IEC 61966-2-1's sRGB curve), independently of littlecms.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from PIL import Image
 
-from benchmarks.images import P3, SRGB, d65_to_d50, expected_srgb, matrix_profile, srgb_encode
+from benchmarks.images import P3, SRGB, d65_to_d50, expected_srgb, matrix_profile, rgb_to_xyz, srgb_encode
 from toolkit.errors import ToolkitError
 from toolkit.images import decode_image
 
@@ -86,6 +88,30 @@ def test_alpha_palette_and_a_transparent_colour_survive_the_conversion(tmp_path)
     got = decode_image(tmp_path / "trns.png")[0]
     assert (got[1, 0] == 255).all()
     np.testing.assert_allclose(got[0], want, atol=2)
+
+
+ICC_DIR = Path("/usr/share/color/icc")  # Debian's icc-profiles-free, which `make setup` installs
+
+
+@pytest.mark.parametrize("name", ["compatibleWithAdobeRGB1998.icc", "sRGB.icc"])
+def test_profiles_as_distributed_are_read(tmp_path, name):
+    """Profiles as cameras and editors embed them, not built here: Adobe RGB (1998) (primaries (0.64, 0.33),
+    (0.21, 0.71), (0.15, 0.06), D65, gamma 563/256, its specification) is converted to the formulas' sRGB; a v4
+    sRGB profile is known as sRGB and leaves the pixels as stored."""
+    if not (ICC_DIR / name).is_file():
+        pytest.skip(f"{ICC_DIR / name} is not installed (Debian package icc-profiles-free)")
+    pixels = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(tmp_path / "photo.png", icc_profile=(ICC_DIR / name).read_bytes())
+    rgb, _ = decode_image(tmp_path / "photo.png")
+    if name == "sRGB.icc":
+        np.testing.assert_array_equal(rgb, pixels)
+        return
+    adobe = rgb_to_xyz([(0.64, 0.33), (0.21, 0.71), (0.15, 0.06)])
+    linear = (pixels / 255.0) ** (563 / 256) @ (np.linalg.inv(SRGB) @ adobe).T
+    inside = ((linear >= 0) & (linear <= 1)).all(-1)  # out of sRGB's gamut the intent decides: not compared
+    assert inside.mean() > 0.3
+    want = expected_srgb(pixels.astype(float), 563 / 256, adobe)
+    assert np.abs(rgb.astype(float) - want)[inside].max() <= 2
 
 
 def test_the_test_colour_spaces_are_the_published_ones():
