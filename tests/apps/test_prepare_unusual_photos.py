@@ -187,12 +187,17 @@ def test_an_iphone_style_heic_tagged_display_p3_gives_the_jpegs_face(astronaut, 
     wide = np.pad(astronaut, ((0, 0), (300, 100), (0, 0)), mode="edge")
     want = _rows(wide, finder, tmp_path)[0].arrays
     path = tmp_path / "IMG_0004.HEIC"
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    exif.get_ifd(0x8769)[0xA405] = 26  # FocalLengthIn35mmFilm, as an iPhone's main camera writes it
     pillow_heif.from_pillow(Image.fromarray(wide).transpose(STORED[6])).save(
-        path, quality=95, exif=_exif(6), icc_profile=display_p3_profile())
+        path, quality=95, exif=exif.tobytes(), icc_profile=display_p3_profile())
     from apps.photo.face_model import default_target
     from apps.photo.images import load_photo
     from apps.photo.rows import photo_rows
 
-    got = photo_rows(load_photo(path), finder, default_target(64))[0][0].arrays
+    photo = load_photo(path)
+    assert photo.focal_35mm == 26.0
+    got = photo_rows(photo, finder, default_target(64))[0][0].arrays
     assert tuple(got["source_size"]) == (912, 512)
     assert np.abs(got["face_box"] - want["face_box"]).max() < 3
