@@ -68,12 +68,12 @@ def is_photo_input(path: str | os.PathLike) -> bool:
     a dataset: :data:`DATASET_SUFFIXES`), or a folder of photos holding no ``labels.csv`` and no HDF5 file."""
     from apps.labels_table import is_labels_csv
     from apps.photo.images import PHOTO_SUFFIXES
-    from toolkit.images import is_picture
+    from toolkit.images import is_picture, video_kind
 
     p = Path(path)
-    if not p.is_dir():
+    if not p.is_dir():  # a video too: the photo reader names it, with the way to its frames
         suffix = p.suffix.lower()
-        return suffix in PHOTO_SUFFIXES or (suffix not in DATASET_SUFFIXES and is_picture(p))
+        return suffix in PHOTO_SUFFIXES or (suffix not in DATASET_SUFFIXES and (is_picture(p) or bool(video_kind(p))))
     if is_labels_csv(p) or any(p.glob("*.h5")) or any(p.glob("*.hdf5")):
         return False
     return bool(_photos_in(p))

@@ -35,14 +35,34 @@ HEIF_BRANDS = {b"heic": "HEIC", b"heix": "HEIC", b"hevc": "HEIC", b"heim": "HEIC
 such a file is named as what it is, with the way out (convert it), rather than as "not an image"."""
 
 
-def _heif_kind(path: Path) -> str | None:
-    """"HEIC" / "HEIF" / "AVIF" when the file starts as one (an ``ftyp`` box of those brands), else None."""
+VIDEO_BRANDS = {b"isom", b"iso2", b"iso4", b"iso5", b"iso6", b"mp41", b"mp42", b"avc1", b"qt  ", b"M4V ", b"M4VH",
+                b"M4VP", b"3gp4", b"3gp5", b"3gp6", b"3g2a", b"mmp4", b"MSNV", b"dash", b"f4v "}
+"""ISO base media file brands of videos (MP4, MOV, 3GP): such a file is named as a video, with the way to its frames."""
+
+
+def _head(path: Path) -> bytes:
     try:
         with open(path, "rb") as f:
-            head = f.read(12)
+            return f.read(12)
     except OSError:
-        return None
+        return b""
+
+
+def _heif_kind(path: Path) -> str | None:
+    """"HEIC" / "HEIF" / "AVIF" when the file starts as one (an ``ftyp`` box of those brands), else None."""
+    head = _head(path)
     return HEIF_BRANDS.get(head[8:12]) if len(head) == 12 and head[4:8] == b"ftyp" else None
+
+
+def video_kind(path: str | os.PathLike) -> str | None:
+    """"an MP4 / MOV video", "an AVI video" or "a Matroska / WebM video" when the file starts as one (by its
+    signature, whatever its name), else None."""
+    head = _head(Path(path))
+    if head[4:8] == b"ftyp" and head[8:12] in VIDEO_BRANDS:
+        return "an MP4 / MOV video"
+    if head[:4] == b"RIFF" and head[8:12] == b"AVI ":
+        return "an AVI video"
+    return "a Matroska / WebM video" if head[:4] == b"\x1aE\xdf\xa3" else None
 
 
 _heif_opener_registered = False
@@ -76,6 +96,9 @@ def _unreadable(what: str, path: Path, why: str) -> ToolkitError:
                if kind != "AVIF" else "upgrade Pillow (>= 11.2 reads AVIF) or convert it")
         return ToolkitError(f"{what} {path}: a {kind} image, which the installed Pillow cannot decode; {way} to "
                             "JPEG or PNG (e.g. `heif-convert` or any photo viewer's export)")
+    if (video := video_kind(path)) is not None:
+        return ToolkitError(f"{what} {path}: {video}, not a picture; extract its frames first (e.g. `ffmpeg -i "
+                            f"{path.name} -vf fps=2 frames/%05d.png`) and give the folder of frames")
     return ToolkitError(f"{what} {path}: not a readable {kind + ' ' if kind else ''}image ({why})")
 
 

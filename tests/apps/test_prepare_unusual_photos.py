@@ -109,6 +109,50 @@ def test_photo_files_of_other_formats_and_names_are_photo_input(tmp_path):
     assert [p.name for p in photo_groups([tmp_path])[0][1]] == ["a.webp", "b.TIFF", "c.bmp"]
 
 
+def _videos(folder):
+    """Real containers written by OpenCV's FFmpeg: MP4 and MOV (an ``ftyp`` box, ISO/IEC 14496-12 section 4.3),
+    AVI (``RIFF....AVI ``) and Matroska (the EBML magic 1A 45 DF A3)."""
+    import cv2
+
+    written = {}
+    for name, codec in (("clip.mp4", "mp4v"), ("clip2.MOV", "mp4v"), ("clip3.avi", "MJPG"), ("clip4.mkv", "MJPG")):
+        w = cv2.VideoWriter(str(folder / name), cv2.VideoWriter_fourcc(*codec), 10, (64, 48))
+        for i in range(3):
+            w.write(np.full((48, 64, 3), 60 * i, np.uint8))
+        w.release()
+        written[name] = folder / name
+    return written
+
+
+def test_a_video_is_named_as_one_with_the_way_to_its_frames(tmp_path):
+    from apps.photo.images import load_photo
+    from apps.redirect_photo import is_photo_input
+    from toolkit.images import video_kind
+
+    kinds = {"clip.mp4": "an MP4 / MOV video", "clip2.MOV": "an MP4 / MOV video", "clip3.avi": "an AVI video",
+             "clip4.mkv": "a Matroska / WebM video"}
+    for name, path in _videos(tmp_path).items():
+        assert video_kind(path) == kinds[name]
+        renamed = path.with_name(f"{name}.data")  # known by content, whatever its name
+        renamed.write_bytes(path.read_bytes())
+        assert video_kind(renamed) == kinds[name] and is_photo_input(renamed)  # the photo reader then names it
+        with pytest.raises(ToolkitError, match=rf"^photo \S*{name}: {kinds[name]}, not a picture; extract its frames "
+                                               rf"first \(e\.g\. `ffmpeg -i {name} -vf fps=2 frames/%05d\.png`\)"):
+            load_photo(path)
+    Image.fromarray(_picture()).save(tmp_path / "p.png")
+    heic = tmp_path / "IMG.HEIC"
+    heic.write_bytes(b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic" + bytes(64))
+    assert video_kind(tmp_path / "p.png") is None and video_kind(heic) is None and video_kind(tmp_path / "no") is None
+
+
+def test_apps_prepare_refuses_a_video_in_one_line(tmp_path):
+    from tests.fuzz.cli import assert_refused
+
+    video = _videos(tmp_path)["clip.mp4"]
+    assert_refused("apps.prepare", [video, "--out", tmp_path / "out"], r"clip\.mp4: an MP4 / MOV video, not a picture",
+                   inputs=[video], out_dir=tmp_path / "out")
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Faces (mediapipe)
 # ----------------------------------------------------------------------------------------------------------------
