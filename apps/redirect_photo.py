@@ -68,7 +68,8 @@ def is_photo_input(path: str | os.PathLike) -> bool:
     a dataset: :data:`DATASET_SUFFIXES`), or a folder of photos holding no ``labels.csv`` and no HDF5 file."""
     from apps.labels_table import is_labels_csv
     from apps.photo.images import PHOTO_SUFFIXES
-    from toolkit.images import is_picture, video_kind
+    from toolkit.file_kinds import video_kind
+    from toolkit.images import is_picture
 
     p = Path(path)
     if not p.is_dir():  # a video too: the photo reader names it, with the way to its frames

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.errors import ToolkitError
+from toolkit.file_kinds import heif_kind, raw_kind, video_kind
 from toolkit.limits import check_allocation
 
 MAX_IMAGE_PIXELS = 64 * 1024 * 1024
@@ -29,42 +30,6 @@ MAX_IMAGE_PIXELS = 64 * 1024 * 1024
 EXIF_IFD = 0x8769
 """The EXIF sub-IFD (exposure, focal length, ...) of an image's EXIF data."""
 
-HEIF_BRANDS = {b"heic": "HEIC", b"heix": "HEIC", b"hevc": "HEIC", b"heim": "HEIC", b"heis": "HEIC",
-               b"mif1": "HEIF", b"msf1": "HEIF", b"avif": "AVIF", b"avis": "AVIF"}
-"""ISO base media file brands (bytes 8-12 after ``ftyp``) of still-image formats Pillow may lack a decoder for:
-such a file is named as what it is, with the way out (convert it), rather than as "not an image"."""
-
-
-VIDEO_BRANDS = {b"isom", b"iso2", b"iso4", b"iso5", b"iso6", b"mp41", b"mp42", b"avc1", b"qt  ", b"M4V ", b"M4VH",
-                b"M4VP", b"3gp4", b"3gp5", b"3gp6", b"3g2a", b"mmp4", b"MSNV", b"dash", b"f4v "}
-"""ISO base media file brands of videos (MP4, MOV, 3GP): such a file is named as a video, with the way to its frames."""
-
-
-def _head(path: Path) -> bytes:
-    try:
-        with open(path, "rb") as f:
-            return f.read(12)
-    except OSError:
-        return b""
-
-
-def _heif_kind(path: Path) -> str | None:
-    """"HEIC" / "HEIF" / "AVIF" when the file starts as one (an ``ftyp`` box of those brands), else None."""
-    head = _head(path)
-    return HEIF_BRANDS.get(head[8:12]) if len(head) == 12 and head[4:8] == b"ftyp" else None
-
-
-def video_kind(path: str | os.PathLike) -> str | None:
-    """"an MP4 / MOV video", "an AVI video" or "a Matroska / WebM video" when the file starts as one (by its
-    signature, whatever its name), else None."""
-    head = _head(Path(path))
-    if head[4:8] == b"ftyp" and head[8:12] in VIDEO_BRANDS:
-        return "an MP4 / MOV video"
-    if head[:4] == b"RIFF" and head[8:12] == b"AVI ":
-        return "an AVI video"
-    return "a Matroska / WebM video" if head[:4] == b"\x1aE\xdf\xa3" else None
-
-
 _heif_opener_registered = False
 
 
@@ -72,7 +37,7 @@ def _open_heif_with_pillow_heif(path: Path) -> None:
     """Teach Pillow HEIC / HEIF through pillow-heif (the ``photos`` extra) when ``path`` is one and pillow-heif is
     installed; imported here, on the first such file, so that nothing else pays for it."""
     global _heif_opener_registered
-    if _heif_opener_registered or _heif_kind(path) not in ("HEIC", "HEIF"):
+    if _heif_opener_registered or heif_kind(path) not in ("HEIC", "HEIF"):
         return
     try:
         import pillow_heif
@@ -90,16 +55,24 @@ def _has_decoder(kind: str) -> bool:
 
 
 def _unreadable(what: str, path: Path, why: str) -> ToolkitError:
-    kind = _heif_kind(path)
+    kind = heif_kind(path)
     if kind is not None and not _has_decoder(kind):
         way = ("install the 'photos' extra (pip install -e '.[photos]', which brings pillow-heif) or convert it"
                if kind != "AVIF" else "upgrade Pillow (>= 11.2 reads AVIF) or convert it")
         return ToolkitError(f"{what} {path}: a {kind} image, which the installed Pillow cannot decode; {way} to "
                             "JPEG or PNG (e.g. `heif-convert` or any photo viewer's export)")
+    if (raw := raw_kind(path)) is not None:
+        return _raw_error(what, path, raw)
     if (video := video_kind(path)) is not None:
         return ToolkitError(f"{what} {path}: {video}, not a picture; extract its frames first (e.g. `ffmpeg -i "
                             f"{path.name} -vf fps=2 frames/%05d.png`) and give the folder of frames")
     return ToolkitError(f"{what} {path}: not a readable {kind + ' ' if kind else ''}image ({why})")
+
+
+def _raw_error(what: str, path: Path, raw: str) -> ToolkitError:
+    return ToolkitError(f"{what} {path}: a camera raw file ({raw}), whose first image is at most a preview; develop it "
+                        "to JPEG, PNG or 16-bit TIFF first (e.g. `darktable-cli`, `rawtherapee-cli` or the camera "
+                        "maker's software)")
 
 
 def _srgb_probe() -> "np.ndarray":
@@ -167,10 +140,13 @@ def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             with Image.open(path) as im:
                 (w, h), fmt, stub = im.size, im.format, isinstance(im, ImageFile.StubImageFile)
+                raw = raw_kind(path, im.tag_v2) if fmt == "TIFF" else None  # a TIFF-based raw: its preview
     except (OSError, ValueError, SyntaxError) as e:
         raise _unreadable(what, path, e.__class__.__name__) from None
     finally:
         Image.MAX_IMAGE_PIXELS = limit
+    if raw is not None:
+        raise _raw_error(what, path, raw)
     if stub or 0 in (w, h):
         raise ToolkitError(f"{what} {path}: not a readable image ({fmt} data, not a picture)")
     if w < 1 or h < 1 or w * h > MAX_IMAGE_PIXELS:
@@ -181,7 +157,8 @@ def image_size(path: str | os.PathLike, what: str = "image") -> tuple[int, int]:
 
 def is_picture(path: str | os.PathLike) -> bool:
     """Whether a file is a picture by its content (whatever its name): Pillow identifies it as an image with
-    pixels, or it is a HEIC / HEIF / AVIF file (:data:`HEIF_BRANDS`). Nothing is decoded."""
+    pixels, or it is a HEIC / HEIF / AVIF file or a camera raw file (``toolkit.file_kinds``: the reader names
+    those). Nothing is decoded."""
     import warnings
 
     from PIL import Image, ImageFile
@@ -189,7 +166,7 @@ def is_picture(path: str | os.PathLike) -> bool:
     path = Path(path)
     if not path.is_file():
         return False
-    if _heif_kind(path) is not None:
+    if heif_kind(path) is not None or raw_kind(path) is not None:
         return True
     try:
         with warnings.catch_warnings():

@@ -127,7 +127,7 @@ def _videos(folder):
 def test_a_video_is_named_as_one_with_the_way_to_its_frames(tmp_path):
     from apps.photo.images import load_photo
     from apps.redirect_photo import is_photo_input
-    from toolkit.images import video_kind
+    from toolkit.file_kinds import video_kind
 
     kinds = {"clip.mp4": "an MP4 / MOV video", "clip2.MOV": "an MP4 / MOV video", "clip3.avi": "an AVI video",
              "clip4.mkv": "a Matroska / WebM video"}
@@ -143,6 +143,8 @@ def test_a_video_is_named_as_one_with_the_way_to_its_frames(tmp_path):
     heic = tmp_path / "IMG.HEIC"
     heic.write_bytes(b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic" + bytes(64))
     assert video_kind(tmp_path / "p.png") is None and video_kind(heic) is None and video_kind(tmp_path / "no") is None
+    Image.fromarray(_picture()).save(tmp_path / "DSC_0001.NEF", format="TIFF")  # a camera raw: its reader names it
+    assert is_photo_input(tmp_path / "DSC_0001.NEF")
 
 
 def test_apps_prepare_refuses_a_video_in_one_line(tmp_path):
