@@ -52,12 +52,6 @@ UNDO_KEYS = ("warp", "face_box", "source_size")
 """The input rows' keys copied to every output row: what pastes an output row back into its photo."""
 
 
-def _photos_in(folder: Path) -> list[Path]:
-    from apps.photo.images import PHOTO_SUFFIXES
-
-    return sorted(q for q in folder.iterdir() if q.is_file() and q.suffix.lower() in PHOTO_SUFFIXES)
-
-
 DATASET_SUFFIXES = (".h5", ".hdf5", ".csv")
 """INPUT files that are datasets whatever their content; any other existing file that is a picture is a photo."""
 
@@ -77,19 +71,22 @@ def is_photo_input(path: str | os.PathLike) -> bool:
         return suffix in PHOTO_SUFFIXES or (suffix not in DATASET_SUFFIXES and (is_picture(p) or bool(video_kind(p))))
     if is_labels_csv(p) or any(p.glob("*.h5")) or any(p.glob("*.hdf5")):
         return False
-    return bool(_photos_in(p))
+    from apps.photo.images import other_media, photos_in
+
+    return bool(photos_in(p)) or other_media(p) is not None  # raw files or videos: the photo reader names them
 
 
 def photo_files(given: list[str]) -> list[Path]:
     """The photos of the INPUT arguments, in order (a folder's sorted); one ToolkitError for a missing file or
     two photos of one name (their outputs would collide)."""
+    from apps.photo.images import folder_photos
     from apps.prepare import MAX_SOURCE_NAMES_BYTES
 
     files: list[Path] = []
     for g in map(Path, given):
         if not g.exists():
             raise ToolkitError(f"{g}: no such file or folder")
-        files += _photos_in(g) if g.is_dir() else [g]
+        files += folder_photos(g) if g.is_dir() else [g]
     seen: dict[str, Path] = {}
     for p in files:
         if p.stem in seen:

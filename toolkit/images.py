@@ -10,6 +10,7 @@ out upright); an RGB or palette photo tagged with an ICC colour profile other th
 converted to sRGB; grey, 16-bit (scaled by 255/65535), palette, CMYK and YCbCr become 8-bit RGB; alpha is
 composited on white (on black for a grey mask, :func:`read_image` with ``gray``); a multi-frame file gives its
 first frame. HEIC / HEIF photos (an iPhone's default) decode through pillow-heif, part of the ``photos`` extra.
+Camera raw files and videos are refused, named as what they are (``toolkit.file_kinds``).
 """
 
 from __future__ import annotations
@@ -64,12 +65,13 @@ def _unreadable(what: str, path: Path, why: str) -> ToolkitError:
     if (raw := raw_kind(path)) is not None:
         return _raw_error(what, path, raw)
     if (video := video_kind(path)) is not None:
-        return ToolkitError(f"{what} {path}: {video}, not a picture; extract its frames first (e.g. `ffmpeg -i "
-                            f"{path.name} -vf fps=2 frames/%05d.png`) and give the folder of frames")
+        return ToolkitError(f"{what} {path}: {video}, not a picture; extract its frames first (e.g. `mkdir frames && "
+                            f"ffmpeg -i '{path.name}' -vf fps=2 frames/%05d.png`) and give the folder of frames")
     return ToolkitError(f"{what} {path}: not a readable {kind + ' ' if kind else ''}image ({why})")
 
 
 def _raw_error(what: str, path: Path, raw: str) -> ToolkitError:
+    """A camera raw file: refused, since what Pillow reads of it is at most its preview."""
     return ToolkitError(f"{what} {path}: a camera raw file ({raw}), whose first image is at most a preview; develop it "
                         "to JPEG, PNG or 16-bit TIFF first (e.g. `darktable-cli`, `rawtherapee-cli` or the camera "
                         "maker's software)")
@@ -103,18 +105,18 @@ def to_srgb(im):
     if not icc or im.mode not in ("RGB", "RGBA", "P", "PA"):
         return im
     try:
-        to_srgb = ImageCms.buildTransform(ImageCms.ImageCmsProfile(io.BytesIO(icc)), ImageCms.createProfile("sRGB"),
+        transform = ImageCms.buildTransform(ImageCms.ImageCmsProfile(io.BytesIO(icc)), ImageCms.createProfile("sRGB"),
                                           "RGB", "RGB")
         probe = _srgb_probe()
-        moved = np.asarray(ImageCms.applyTransform(Image.fromarray(probe), to_srgb), np.int16) - probe
+        moved = np.asarray(ImageCms.applyTransform(Image.fromarray(probe), transform), np.int16) - probe
         if np.abs(moved).max() <= SRGB_TOLERANCE:
             return im
         # A palette or a transparent colour: to RGB(A) first, since the conversion would change the key colour.
         alpha = im.mode in ("RGBA", "PA") or "transparency" in im.info
         rgb = im.convert("RGBA" if alpha else "RGB")
         if not alpha:
-            return ImageCms.applyTransform(rgb, to_srgb)
-        out = ImageCms.applyTransform(rgb.convert("RGB"), to_srgb).convert("RGBA")
+            return ImageCms.applyTransform(rgb, transform)
+        out = ImageCms.applyTransform(rgb.convert("RGB"), transform).convert("RGBA")
         out.putalpha(rgb.getchannel("A"))
         return out
     except (OSError, ValueError, TypeError, ImageCms.PyCMSError):

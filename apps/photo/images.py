@@ -43,6 +43,35 @@ class Photo:
         return self.bgr.shape[1], self.bgr.shape[0]
 
 
+def photos_in(folder: Path) -> list[Path]:
+    """A folder's photos: its files named as one (:data:`PHOTO_SUFFIXES`, any case), sorted, not recursive."""
+    return sorted(q for q in folder.iterdir() if q.is_file() and q.suffix.lower() in PHOTO_SUFFIXES)
+
+
+def other_media(folder: Path) -> str | None:
+    """What a folder holds that is meant as photos but is not: "3 camera raw files (NEF): develop them first",
+    videos; None when it holds neither (``toolkit.file_kinds``)."""
+    from toolkit.file_kinds import raw_kind, video_kind
+
+    files = [q for q in folder.iterdir() if q.is_file()]
+    raws = [kind for q in files if (kind := raw_kind(q))]
+    videos = sum(video_kind(q) is not None for q in files)
+    said = [f"{len(raws)} camera raw file(s) ({', '.join(sorted(set(raws)))}): develop them to JPEG or PNG first"
+            ] if raws else []
+    said += [f"{videos} video(s): extract their frames first (e.g. with ffmpeg)"] if videos else []
+    return "; ".join(said) or None
+
+
+def folder_photos(folder: Path) -> list[Path]:
+    """:func:`photos_in`, or a ToolkitError for a folder without photos, naming the raw files or videos it holds."""
+    found = photos_in(folder)
+    if not found:
+        other = other_media(folder)
+        raise ToolkitError(f"{folder}: no photos in this folder (expected {', '.join(PHOTO_SUFFIXES)} files)"
+                           + (f"; it holds {other}" if other else ""))
+    return found
+
+
 def photo_groups(inputs: list[str | os.PathLike]) -> list[tuple[str, list[Path]]]:
     """The inputs as (name, photos) groups, one output file each: a file is a group of its own named by its stem,
     a folder one group of its photos (:data:`PHOTO_SUFFIXES`, sorted, not recursive) named by the folder. A
@@ -51,10 +80,7 @@ def photo_groups(inputs: list[str | os.PathLike]) -> list[tuple[str, list[Path]]
     groups: list[tuple[str, list[Path]]] = []
     for p in map(Path, inputs):
         if p.is_dir():
-            found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in PHOTO_SUFFIXES)
-            if not found:
-                raise ToolkitError(f"{p}: no photos in this folder (expected {', '.join(PHOTO_SUFFIXES)} files)")
-            groups.append((p.resolve().name or "photos", found))
+            groups.append((p.resolve().name or "photos", folder_photos(p)))
         elif p.is_file():
             groups.append((p.stem, [p]))
         else:
@@ -80,8 +106,8 @@ def _focal_35mm(exif) -> float | None:
 def load_photo(path: str | os.PathLike) -> Photo:
     """Decode a photo (JPEG, PNG or anything Pillow reads) upright as 8-bit BGR (``toolkit.images.decode_image``:
     the EXIF orientation applied, every mode as 8-bit RGB, alpha on white). Not an image, a truncated or corrupt
-    file, a HEIC Pillow cannot decode, an image over ``toolkit.images.MAX_IMAGE_PIXELS``: a ToolkitError naming
-    the file."""
+    file, a HEIC Pillow cannot decode, a camera raw file or a video (named as such), an image over
+    ``toolkit.images.MAX_IMAGE_PIXELS``: a ToolkitError naming the file."""
     from toolkit.images import decode_image
 
     path = Path(path)

@@ -137,7 +137,8 @@ def test_a_video_is_named_as_one_with_the_way_to_its_frames(tmp_path):
         renamed.write_bytes(path.read_bytes())
         assert video_kind(renamed) == kinds[name] and is_photo_input(renamed)  # the photo reader then names it
         with pytest.raises(ToolkitError, match=rf"^photo \S*{name}: {kinds[name]}, not a picture; extract its frames "
-                                               rf"first \(e\.g\. `ffmpeg -i {name} -vf fps=2 frames/%05d\.png`\)"):
+                                               rf"first \(e\.g\. `mkdir frames && ffmpeg -i '{name}' -vf fps=2 "
+                                               rf"frames/%05d\.png`\)"):
             load_photo(path)
     Image.fromarray(_picture()).save(tmp_path / "p.png")
     heic = tmp_path / "IMG.HEIC"
@@ -145,6 +146,25 @@ def test_a_video_is_named_as_one_with_the_way_to_its_frames(tmp_path):
     assert video_kind(tmp_path / "p.png") is None and video_kind(heic) is None and video_kind(tmp_path / "no") is None
     Image.fromarray(_picture()).save(tmp_path / "DSC_0001.NEF", format="TIFF")  # a camera raw: its reader names it
     assert is_photo_input(tmp_path / "DSC_0001.NEF")
+
+
+def test_a_folder_of_raw_files_or_videos_names_them_and_a_pipe_is_not_read(tmp_path):
+    import os
+
+    from apps.photo.images import photo_groups
+    from apps.redirect_photo import is_photo_input
+
+    raws = tmp_path / "raws"
+    raws.mkdir()
+    for name in ("DSC_0001.NEF", "DSC_0002.NEF", "IMG_0003.CR2"):
+        Image.fromarray(_picture()).save(raws / name, format="TIFF")
+    _videos(raws)
+    assert is_photo_input(raws)  # the photo reader's line, not a dataset reader's
+    with pytest.raises(ToolkitError, match=r"raws: no photos in this folder \(expected .*\); it holds 3 camera raw "
+                                           r"file\(s\) \(CR2, NEF\): develop them to JPEG or PNG first; 4 video\(s\)"):
+        photo_groups([raws])
+    os.mkfifo(tmp_path / "pipe")  # no writer: reading it would block
+    assert not is_photo_input(tmp_path / "pipe")
 
 
 def test_apps_prepare_refuses_a_video_in_one_line(tmp_path):

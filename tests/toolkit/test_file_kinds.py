@@ -54,3 +54,15 @@ def test_a_plain_tiff_is_a_photo(tmp_path):
     Image.fromarray(pixels).save(tmp_path / "scan.tif")
     assert raw_kind(tmp_path / "scan.tif") is None
     np.testing.assert_array_equal(decode_image(tmp_path / "scan.tif")[0], pixels)
+
+
+def test_a_libtiff_tiff_whose_pixels_start_cr_is_a_photo(tmp_path, monkeypatch):
+    """libtiff writes the pixels before the IFD: an uncompressed TIFF's bytes 8-9 are its first pixel, here "CR"
+    (67, 82); only the whole CR2 header (first IFD at 16, "CR", version 2) marks a Canon raw."""
+    monkeypatch.setattr(TiffImagePlugin, "WRITE_LIBTIFF", True)
+    pixels = np.full((4, 4, 3), 9, np.uint8)
+    pixels[0, 0] = (67, 82, 0)
+    Image.fromarray(pixels).save(tmp_path / "scan.tif", compression="raw")
+    assert (tmp_path / "scan.tif").read_bytes()[8:10] == b"CR"
+    assert raw_kind(tmp_path / "scan.tif") is None
+    np.testing.assert_array_equal(decode_image(tmp_path / "scan.tif")[0], pixels)
