@@ -27,6 +27,11 @@ DNG_VERSION_TAG = 0xC612
 """TIFF tag DNGVersion (Adobe's DNG specification 1.4, section "DNGVersion"): present in every DNG's first IFD."""
 
 
+NEW_SUBFILE_TYPE_TAG, SUB_IFDS_TAG = 0x00FE, 0x014A
+"""TIFF tags NewSubfileType (bit 0: a reduced-resolution version of another image) and SubIFDs (TIFF 6.0 and its
+Technical Note 1): a first image that is a reduced version, with the others in sub-IFDs, is a raw file's preview."""
+
+
 def file_head(path: str | os.PathLike, n: int = 12) -> bytes:
     """The first ``n`` bytes of a regular file (fewer for a shorter one; none for one that cannot be read, or a pipe
     or device, whose reading could block or consume what its real reader needs)."""
@@ -58,8 +63,9 @@ def video_kind(path: str | os.PathLike) -> str | None:
 
 def raw_kind(path: str | os.PathLike, tiff_tags: Mapping[int, object] | None = None) -> str | None:
     """The camera raw format of a file ("CR3", "CR2", "DNG", "NEF", ...) by its signature (CR3's ``ftyp crx``,
-    CR2's header: a TIFF header, its first IFD at 16, then "CR" and major version 2), the DNGVersion tag among
-    ``tiff_tags`` (a TIFF's first IFD, when the caller has it open) or its name (:data:`RAW_SUFFIXES`), else None."""
+    CR2's header: a TIFF header, its first IFD at 16, then "CR" and major version 2), the tags of a TIFF's first
+    IFD when the caller has it open (``tiff_tags``: DNGVersion, or a preview with sub-IFDs) or its name
+    (:data:`RAW_SUFFIXES`), else None."""
     head = file_head(path)
     if head[4:12] == b"ftypcrx ":
         return "CR3"
@@ -67,4 +73,6 @@ def raw_kind(path: str | os.PathLike, tiff_tags: Mapping[int, object] | None = N
         return "CR2"
     if tiff_tags is not None and DNG_VERSION_TAG in tiff_tags:
         return "DNG"
+    if tiff_tags is not None and int(tiff_tags.get(NEW_SUBFILE_TYPE_TAG, 0)) & 1 and SUB_IFDS_TAG in tiff_tags:
+        return "a preview first, the image in a sub-IFD"  # a NEF, ARW, PEF ... under another name
     return RAW_SUFFIXES.get(Path(path).suffix.lower())

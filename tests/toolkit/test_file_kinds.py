@@ -66,3 +66,16 @@ def test_a_libtiff_tiff_whose_pixels_start_cr_is_a_photo(tmp_path, monkeypatch):
     assert (tmp_path / "scan.tif").read_bytes()[8:10] == b"CR"
     assert raw_kind(tmp_path / "scan.tif") is None
     np.testing.assert_array_equal(decode_image(tmp_path / "scan.tif")[0], pixels)
+
+
+def test_a_raw_under_a_tiff_name_is_known_by_its_preview_and_sub_ifds(tmp_path):
+    """A NEF renamed .tif: its first image is flagged a reduced-resolution version (NewSubfileType bit 0) and the
+    others hang off SubIFDs (TIFF 6.0 Technical Note 1), as Nikon's and Sony's raws are laid out."""
+    tags = TiffImagePlugin.ImageFileDirectory_v2()
+    tags[0x00FE] = 1
+    tags[0x014A] = (0,)
+    tags.tagtype[0x014A] = 4  # LONG offsets
+    tags[0x010F] = "NIKON CORPORATION"
+    Image.fromarray(np.zeros((120, 160, 3), np.uint8)).save(tmp_path / "DSC_0001.tif", format="TIFF", tiffinfo=tags)
+    with pytest.raises(ToolkitError, match=r"a camera raw file \(a preview first, the image in a sub-IFD\)"):
+        decode_image(tmp_path / "DSC_0001.tif", "photo")
