@@ -105,8 +105,8 @@ def to_srgb(im):
     if not icc or im.mode not in ("RGB", "RGBA", "P", "PA"):
         return im
     try:
-        transform = ImageCms.buildTransform(ImageCms.ImageCmsProfile(io.BytesIO(icc)), ImageCms.createProfile("sRGB"),
-                                          "RGB", "RGB")
+        source, srgb = ImageCms.ImageCmsProfile(io.BytesIO(icc)), ImageCms.createProfile("sRGB")
+        transform = ImageCms.buildTransform(source, srgb, "RGB", "RGB")
         probe = _srgb_probe()
         moved = np.asarray(ImageCms.applyTransform(Image.fromarray(probe), transform), np.int16) - probe
         if np.abs(moved).max() <= SRGB_TOLERANCE:
