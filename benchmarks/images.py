@@ -30,28 +30,20 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot, timeit  # noqa: E402
+from toolkit.colour import D65_XY, SRGB_PRIMARIES, bradford, rgb_to_xyz, srgb_encode, xy_to_xyz  # noqa: E402
 from toolkit.errors import run_cli  # noqa: E402
 
-D65 = np.array([0.95047, 1.0, 1.08883])
 D50 = np.array([0.9642, 1.0, 0.8249])
 """The ICC profile connection space's illuminant (the header's illuminant field), the white colorants are adapted to."""
-BRADFORD = np.array([[0.8951, 0.2664, -0.1614], [-0.7502, 1.7135, 0.0367], [0.0389, -0.0685, 1.0296]])
-
-
-def rgb_to_xyz(primaries_xy, white=D65) -> np.ndarray:
-    """The 3x3 linear RGB -> XYZ matrix of primaries (x, y) under white point ``white`` (columns = R, G, B)."""
-    xyz = np.array([[x / y, 1.0, (1 - x - y) / y] for x, y in primaries_xy]).T
-    return xyz * np.linalg.solve(xyz, white)
+P3_PRIMARIES = ((0.680, 0.320), (0.265, 0.690), (0.150, 0.060))
+"""Display P3's red, green, blue chromaticities (SMPTE EG 432-1), white D65."""
+P3 = rgb_to_xyz(P3_PRIMARIES)
+SRGB = rgb_to_xyz(SRGB_PRIMARIES)
 
 
 def d65_to_d50() -> np.ndarray:
-    """Bradford's chromatic adaptation from D65 to D50, a 3x3 matrix on XYZ."""
-    cone_src, cone_dst = BRADFORD @ D65, BRADFORD @ D50
-    return np.linalg.inv(BRADFORD) @ np.diag(cone_dst / cone_src) @ BRADFORD
-
-
-P3 = rgb_to_xyz([(0.680, 0.320), (0.265, 0.690), (0.150, 0.060)])
-SRGB = rgb_to_xyz([(0.640, 0.330), (0.300, 0.600), (0.150, 0.060)])
+    """Bradford's chromatic adaptation from D65 to the ICC connection space's D50, a 3x3 matrix on XYZ."""
+    return bradford(xy_to_xyz(D65_XY), D50)
 
 
 def _s15(v: float) -> bytes:
@@ -81,12 +73,6 @@ def matrix_profile(rgb_to_xyz_d50: np.ndarray, gamma: float, name: str) -> bytes
 def display_p3_profile() -> bytes:
     """Display P3's primaries and white, with a pure 2.2 gamma (the real profile's curve is sRGB's)."""
     return matrix_profile(d65_to_d50() @ P3, 2.2, "Display P3 (gamma 2.2)")
-
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1's sRGB transfer curve, [0, 1] linear (clipped) -> [0, 1] encoded."""
-    linear = np.clip(linear, 0.0, 1.0)
-    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
 
 
 def expected_srgb(values: np.ndarray, gamma: float = 2.2, matrix: np.ndarray = P3) -> np.ndarray:

@@ -9,7 +9,8 @@ Decoding (Pillow): the EXIF orientation applied (``ImageOps.exif_transpose``: a 
 out upright); an RGB or palette photo tagged with an ICC colour profile other than sRGB (Display P3, Adobe RGB)
 converted to sRGB; grey, 16-bit (scaled by 255/65535), palette, CMYK and YCbCr become 8-bit RGB; alpha is
 composited on white (on black for a grey mask, :func:`read_image` with ``gray``); a multi-frame file gives its
-first frame. HEIC / HEIF photos (an iPhone's default) decode through pillow-heif, part of the ``photos`` extra.
+first frame. HEIC / HEIF photos (an iPhone's default) decode through pillow-heif, part of the ``photos`` extra; one
+whose colour space is given as ``nclx`` code points is converted by ``toolkit.colour.nclx_to_srgb``.
 Camera raw files and videos are refused, named as what they are (``toolkit.file_kinds``).
 """
 
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.colour import nclx_to_srgb
 from toolkit.errors import ToolkitError
 from toolkit.file_kinds import heif_kind, raw_kind, video_kind
 from toolkit.limits import check_allocation
@@ -232,6 +234,8 @@ def decode_image(path: str | os.PathLike, what: str = "image", *, background: in
                     pass
                 upright = to_srgb(ImageOps.exif_transpose(im))  # the turn first: a conversion drops the EXIF
                 rgb = to_rgb8(upright, what, path, background=background)
+                if "nclx_profile" in upright.info and not upright.info.get("icc_profile"):  # HEIC code points
+                    rgb = nclx_to_srgb(rgb, upright.info["nclx_profile"])
     except ToolkitError:
         raise
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from benchmarks.images import P3, SRGB, d65_to_d50, expected_srgb, matrix_profile, rgb_to_xyz, srgb_encode
+from benchmarks.images import P3, SRGB, d65_to_d50, expected_srgb, matrix_profile
+from toolkit.colour import rgb_to_xyz, srgb_encode
 from toolkit.errors import ToolkitError
 from toolkit.images import decode_image
 
