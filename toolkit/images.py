@@ -16,6 +16,7 @@ Camera raw files and videos are refused, named as what they are (``toolkit.file_
 
 from __future__ import annotations
 
+import functools
 import os
 import struct
 from pathlib import Path
@@ -93,25 +94,35 @@ SRGB_TOLERANCE = 1
 sRGB (one of its many variants): the pixels are kept as stored."""
 
 
+@functools.lru_cache(maxsize=8)
+def _transform_to_srgb(icc: bytes):
+    """littlecms's RGB -> sRGB transform of an ICC profile, or None when the profile is sRGB by content
+    (:data:`SRGB_TOLERANCE`). Cached: a folder of one phone's photos carries one profile, built and probed once."""
+    import io
+
+    from PIL import Image, ImageCms
+
+    transform = ImageCms.buildTransform(ImageCms.ImageCmsProfile(io.BytesIO(icc)), ImageCms.createProfile("sRGB"),
+                                        "RGB", "RGB")
+    probe = _srgb_probe()
+    moved = np.asarray(ImageCms.applyTransform(Image.fromarray(probe), transform), np.int16) - probe
+    return None if np.abs(moved).max() <= SRGB_TOLERANCE else transform
+
+
 def to_srgb(im):
     """A Pillow RGB / RGBA / palette image tagged with an RGB ICC colour profile (``info["icc_profile"]``) converted
     to sRGB (littlecms through ``PIL.ImageCms``, perceptual intent; a palette or a transparent colour becomes RGB /
     RGBA first): a Display P3 or Adobe RGB photo read as if it were sRGB looks dull and its written-out redirections
     would too. Untagged, sRGB by content (:data:`SRGB_TOLERANCE`, whatever the profile's name), other modes, or a
     profile littlecms cannot use (grey, CMYK, broken): ``im`` itself, its pixels untouched."""
-    import io
-
-    from PIL import Image, ImageCms
+    from PIL import ImageCms
 
     icc = im.info.get("icc_profile")
     if not icc or im.mode not in ("RGB", "RGBA", "P", "PA"):
         return im
     try:
-        source, srgb = ImageCms.ImageCmsProfile(io.BytesIO(icc)), ImageCms.createProfile("sRGB")
-        transform = ImageCms.buildTransform(source, srgb, "RGB", "RGB")
-        probe = _srgb_probe()
-        moved = np.asarray(ImageCms.applyTransform(Image.fromarray(probe), transform), np.int16) - probe
-        if np.abs(moved).max() <= SRGB_TOLERANCE:
+        transform = _transform_to_srgb(bytes(icc))
+        if transform is None:
             return im
         # A palette or a transparent colour: to RGB(A) first, since the conversion would change the key colour.
         alpha = im.mode in ("RGBA", "PA") or "transparency" in im.info
