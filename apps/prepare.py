@@ -119,7 +119,7 @@ def file_attrs(photos: list[Path], focals: list, target, gaze_source: str) -> di
 
 def prepare_group(name: str, photos: list[Path], finder, target, args, labels, report) -> tuple[Path | None, list]:
     """One output file from a group of photos; returns (its path or None, sheet strips) and reports each
-    problem through ``report(line)``."""
+    problem through ``report(photo, reason)``."""
     from apps.photo.images import load_photo, photo_focal
     from apps.photo.rows import photo_rows, write_rows
     from apps.photo.sheet import sheet_strip
@@ -131,12 +131,12 @@ def prepare_group(name: str, photos: list[Path], finder, target, args, labels, r
             got, problems = photo_rows(photo, finder, target, frame_index=i, largest_face=args.largest_face,
                                        focal=args.focal, scale=args.scale, gaze=None if labels is None else labels[path])
         except ToolkitError as e:
-            report(f"{path}: {e}" if str(path) not in str(e) else str(e))
+            report(path, str(e))
             focals.append(None)
             continue
         focals.append(list(photo_focal(photo, args.focal)))
         for p in problems:
-            report(f"{path}: {p}")
+            report(path, p)
         rows += got
         strips += [sheet_strip(path.name, photo.bgr, r.source_landmarks, r.arrays) for r in got]
     if not rows:
@@ -149,7 +149,7 @@ def prepare_group(name: str, photos: list[Path], finder, target, args, labels, r
 
 def main(argv: Sequence[str] | None = None) -> int:
     from apps.photo.faces import FaceFinder
-    from apps.photo.images import photo_groups
+    from apps.photo.images import photo_groups, photo_problem
 
     args = build_parser().parse_args(argv)
     check_args(args)
@@ -168,10 +168,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     target = make_target(args)
     problems: list[str] = []
 
-    def report(line: str) -> None:
-        problems.append(line)
+    def report(photo: Path, reason: str) -> None:
+        problems.append(reason if str(photo) in reason else f"{photo}: {reason}")
         if len(every) > 1:  # a single photo's problem is the error line itself
-            print(f"skipped {line}", file=sys.stderr)
+            print(f"skipped {photo_problem(photo, reason)}", file=sys.stderr)
 
     written, strips = [], []
     with FaceFinder() as finder:

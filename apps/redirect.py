@@ -224,6 +224,11 @@ def check_args(args: argparse.Namespace) -> None:
 
         check_photo_out(args)
         return
+    from toolkit.images import is_picture
+
+    if is_picture(args.dataset):  # named as a dataset (.h5), so not read as a photo: the name is the mistake
+        raise ToolkitError(f"dataset {args.dataset}: a picture by its content, named as an HDF5 dataset; give it its "
+                           "image suffix (.jpg, .png) to redirect it as a photo")
     if Path(args.out).suffix.lower() not in (".h5", ".hdf5"):
         raise ToolkitError(f"out {args.out}: expected an HDF5 file name ending in .h5 or .hdf5")
     if Path(args.out).is_dir():  # before any rendering: the file is only written once every chunk is done

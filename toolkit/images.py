@@ -59,6 +59,8 @@ def _has_decoder(kind: str) -> bool:
 
 
 def _unreadable(what: str, path: Path, why: str) -> ToolkitError:
+    if path.is_file() and path.stat().st_size == 0:  # a copy or a download that failed
+        return ToolkitError(f"{what} {path}: an empty file (0 bytes), expected an image (JPEG, PNG, TIFF, WebP, HEIC)")
     kind = heif_kind(path)
     if kind is not None and not _has_decoder(kind):
         way = ("install the 'photos' extra (pip install -e '.[photos]', which brings pillow-heif) or convert it"

@@ -173,11 +173,14 @@ class FaceFinder:
 
         H, W = rgb.shape[:2]
         k = max(1.0, max(H, W) / DETECT_SIDE)
-        small = rgb if k == 1 else cv2.resize(rgb, (round(W / k), round(H / k)), interpolation=cv2.INTER_AREA)
+        size = (max(1, round(W / k)), max(1, round(H / k)))  # a sliver of a photo keeps one pixel across
+        small = rgb if k == 1 else cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
         small = np.ascontiguousarray(np.rot90(small, quarter_turns))
         h, w = small.shape[:2]
-        back = {0: lambda u, v: (u, v), 1: lambda u, v: (w - v, u), 2: lambda u, v: (w - u, h - v),
-                3: lambda u, v: (v, h - u)}[quarter_turns % 4]  # a turned image's point in the photo (scaled)
+        # A turned image's point (u, v) in the unturned one (scaled): np.rot90 by one quarter turn puts the unturned
+        # point (x, y) at (y, width - x), and the turned image's height is the unturned width, so x = h - v.
+        back = {0: lambda u, v: (u, v), 1: lambda u, v: (h - v, u), 2: lambda u, v: (w - u, h - v),
+                3: lambda u, v: (v, w - u)}[quarter_turns % 4]
         sx, sy = W / small.shape[1 - quarter_turns % 2], H / small.shape[quarter_turns % 2]
         photo = lambda u, v: np.array(back(u, v)) * (sx, sy)  # noqa: E731
         with quiet_fd2():
@@ -236,28 +239,34 @@ class FaceFinder:
         """Every face of a photo ([H, W, 3] uint8 RGB) with its mesh, largest first, and how many detected faces
         the mesh could not fit. Each face's crop is turned upright by the roll of its eyes. A photo where the
         detector finds none is tried turned by 90°, 270° and 180°, then in tiles (:meth:`detect_tiled`: faces too
-        small for the whole photo's detector, as in a panorama or a group photo); a face seen by the mesh but not
-        the detector (a close-up filling the photo) by a last try on the whole photo."""
-        found, unfitted = [], 0
+        small for the whole photo's detector, as in a panorama or a group photo; also when the mesh fits none of
+        the whole photo's detections); a face seen by the mesh but not the detector (a close-up filling the photo)
+        by a last try on the whole photo."""
         boxes = self.detect(rgb)
         for turns in (1, 3, 2):  # a photo on its side (no or a wrong EXIF orientation): the detector wants upright
             boxes = boxes or self.detect(rgb, turns)
-        tiled = not boxes
-        if tiled:
-            boxes = self.detect_tiled(rgb)
-        for box, score, roll in boxes:
-            pts = self.mesh(rgb, box, roll)
-            if pts is None:
-                unfitted += score > 0
-                continue
-            found.append(MeshFace(pts, box, score))
-        if not found and tiled:  # nothing on the whole photo: no tile's detection fitted either (or there was none)
+        found, unfitted = self._fitted(rgb, boxes)
+        if not found:  # none, or none the mesh fits (a false detection on a turned pass): the faces may be small
+            found, unfitted_in_tiles = self._fitted(rgb, self.detect_tiled(rgb))
+            unfitted = max(unfitted, unfitted_in_tiles)  # the same face may be detected both ways: counted once
+        if not found and not boxes:  # no detection on the whole photo, no fit in tiles: a close-up, too big for it
             H, W = rgb.shape[:2]
             box = np.array([W / 2 - 0.25 * max(W, H), H / 2 - 0.25 * max(W, H),
                             W / 2 + 0.25 * max(W, H), H / 2 + 0.25 * max(W, H)])
             pts = self.mesh(rgb, box)
             if pts is not None:
                 found = [MeshFace(pts, box, 0.0)]
+        return found, unfitted
+
+    def _fitted(self, rgb: np.ndarray, boxes: list[tuple[np.ndarray, float, float]]) -> tuple[list[MeshFace], int]:
+        """The detections the mesh fits, as faces, and how many scored detections it did not fit."""
+        found, unfitted = [], 0
+        for box, score, roll in boxes:
+            pts = self.mesh(rgb, box, roll)
+            if pts is None:
+                unfitted += score > 0
+                continue
+            found.append(MeshFace(pts, box, score))
         return found, unfitted
 
     def person(self, rgb: np.ndarray) -> np.ndarray:

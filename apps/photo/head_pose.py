@@ -65,7 +65,12 @@ def solve_pnp(landmarks2d: np.ndarray, K: np.ndarray, model_landmarks: np.ndarra
     if not (np.isfinite(img).all() and np.isfinite(K).all()):
         raise ToolkitError("head pose: the landmarks or the camera contain NaN or inf")
     K = np.asarray(K, np.float64)
-    ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        # SQPnP refuses image points whose normalized spread is tiny: a long focal length (a telephoto, a large
+        # --focal) against a small face, nearly an orthographic view. EPnP's control points still hold there.
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_EPNP)
     if not ok:
         raise ToolkitError("head pose: PnP found no pose for these landmarks")
     rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, None, rvec, tvec)

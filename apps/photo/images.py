@@ -115,6 +115,15 @@ def load_photo(path: str | os.PathLike) -> Photo:
     return Photo(path, np.ascontiguousarray(rgb[..., ::-1]), _focal_35mm(exif))
 
 
+def photo_problem(path: Path, text: str) -> str:
+    """"PATH: reason", the line a photo left out is reported with, whether or not ``text`` names the photo (the
+    readers' errors start "photo PATH: ")."""
+    for named in (f"photo {path}: ", f"{path}: "):
+        if text.startswith(named):
+            return f"{path}: {text[len(named):]}"
+    return text if str(path) in text else f"{path}: {text}"
+
+
 def photo_focal(photo: Photo, focal: float | None = None, default_factor: float = 1.2) -> tuple[float, str]:
     """The photo's focal length in pixels and where it came from: ``focal`` when given ("--focal"), else the
     EXIF 35 mm equivalent scaled by the diagonal (f_px = f_35 · diagonal_px / 43.27 mm; "exif"), else

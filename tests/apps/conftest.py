@@ -1,4 +1,4 @@
-"""A tiny trained run (the ``tiny`` preset, ~20 s on one thread) shared by the app tests."""
+"""Shared by the app tests: a tiny trained run (the ``tiny`` preset, ~20 s on one thread), a face finder, a photo."""
 
 import pytest
 import torch
@@ -16,3 +16,19 @@ def tiny_trained_run(tmp_path_factory):
     finally:
         torch.set_num_threads(old)
     return d
+
+
+@pytest.fixture(scope="package")
+def finder():
+    """One ``apps.photo.faces.FaceFinder`` (mediapipe's graphs take a second to load)."""
+    pytest.importorskip("mediapipe")
+    from apps.photo.faces import FaceFinder
+
+    with FaceFinder() as ff:
+        yield ff
+
+
+@pytest.fixture(scope="package")
+def astronaut():
+    """[512, 512, 3] uint8: scikit-image's public-domain portrait (Eileen Collins), her face upright."""
+    return pytest.importorskip("skimage.data").astronaut()

@@ -180,20 +180,6 @@ def test_apps_prepare_refuses_a_video_in_one_line(tmp_path):
 # ----------------------------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def finder():
-    pytest.importorskip("mediapipe")
-    from apps.photo.faces import FaceFinder
-
-    with FaceFinder() as ff:
-        yield ff
-
-
-@pytest.fixture(scope="module")
-def astronaut():
-    return pytest.importorskip("skimage.data").astronaut()
-
-
 def _rows(rgb, finder, tmp_path, name="p.png", **save):
     from apps.photo.face_model import default_target
     from apps.photo.images import load_photo

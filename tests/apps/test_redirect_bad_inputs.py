@@ -15,6 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from PIL import Image
 
 from apps import redirect
 from tests.apps.helpers import interrupt_redirect_before_assembly
@@ -65,6 +66,11 @@ def test_outputs_that_are_inputs_or_not_hdf5(tiny_trained_run, tmp_path):
     assert_refused("apps.redirect", [tiny_trained_run, data, data], r"out", inputs=[data], out_dir=tmp_path)
     assert_refused("apps.redirect", [tiny_trained_run, data, tmp_path / "out.png"], r"ending in .h5",
                    inputs=[data], out_dir=tmp_path)
+    picture = tmp_path / "face.h5"  # a photo under a dataset's name: the name, not the output, is the mistake
+    Image.new("RGB", (8, 8)).save(picture, format="PNG")
+    assert_refused("apps.redirect", [tiny_trained_run, picture, tmp_path / "out"],
+                   rf"^error: dataset {re.escape(str(picture))}: a picture by its content, named as an HDF5 dataset",
+                   inputs=[picture], out_dir=tmp_path)
 
 
 def test_an_output_inside_the_run_neither_replaces_its_files_nor_joins_its_data(tiny_trained_run, tmp_path):
