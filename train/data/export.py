@@ -5,41 +5,45 @@ L276 open ``xgaze_`` + the split entry) with the labels in that layout's convent
 .from_native``: pitch sign, the 3D keys' frame, [N, 1] indices and scale, GazeNeRF's derived camera keys), and
 ``OUT_DIR/train_test_split.json`` in its form ({"train", "val", "val_gaze", "test", "test_specific"}, entries
 ``<stem>.h5``: GazeGaussian configs/dataset/eth_xgaze/train_test_split.json L84-100). Reading the files back
-(``GazeDataset``, layout detected) gives the native labels.
+(``GazeDataset``, layout detected) gives the native labels. ``--layout ditgaze`` writes whole copies in this
+project's current form (subject arrays and attributes kept, [N, 1] indices) with ``split.json``.
+
+All or nothing: every source file is checked before anything is written, the files are written into a staging
+folder inside ``OUT_DIR`` and moved into place once all are written; ``OUT_DIR`` may hold only the files this
+export writes (an earlier export of the same subjects), so that two datasets never mix in it.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from toolkit.errors import ToolkitError
-from toolkit.io import atomic_h5, atomic_write_text, check_not_an_input
+from toolkit.io import atomic_h5, check_not_an_input
 from toolkit.limits import check_allocation
 
 IMAGE_KEYS = ("face_patch", "head_mask", "left_eye_mask", "right_eye_mask")
 
 
-def _native_rows(path: Path) -> dict[str, np.ndarray]:
-    """Every per-row key of a native subject file, read whole through the bounded reader (validated first)."""
+def _native_file(path: Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict]:
+    """(every per-row key, the subject-level arrays, the attributes) of a native subject file, read whole through
+    the bounded reader (validated by :func:`export` first)."""
     from toolkit.h5 import has_key, open_h5, read_array
-    from train.data.format import OPTIONAL, REQUIRED, validate_subject_file
+    from train.data.format import OPTIONAL, REQUIRED, check_subject_arrays, read_attrs
 
-    info = validate_subject_file(path)
     with open_h5(path) as f:
         keys = [k for k in (*REQUIRED, *OPTIONAL) if has_key(path, f, k)]
         check_allocation(sum(f[k].size * f[k].dtype.itemsize for k in keys) * 2, f"exporting {path}",
                          "export fewer rows per file")
-        rows = {k: read_array(path, f, k) for k in keys}
-    if info["n"] != len(rows["face_patch"]):
-        raise ToolkitError(f"{path}: changed while it was read")
-    return rows
+        return {k: read_array(path, f, k) for k in keys}, check_subject_arrays(path, f), read_attrs(path, f)
 
 
-def _write(path: Path, rows: dict[str, np.ndarray]) -> None:
+def _write_peer(path: Path, rows: dict[str, np.ndarray]) -> None:
     """One exported file: images one chunk a row with lzf, as GazeNeRF's pipeline stores them (its
     dataset_pre_processing.py L258-381), labels whole."""
     with atomic_h5(path) as f:
@@ -49,11 +53,48 @@ def _write(path: Path, rows: dict[str, np.ndarray]) -> None:
                              compression="lzf" if big else None)
 
 
+def _write_copy(path: Path, rows: dict[str, np.ndarray], subject: dict[str, np.ndarray], attrs: dict) -> None:
+    """A native file in the current form: [N, 1] indices (files of before 2026-11-27 stored [N])."""
+    from train.data.format import write_subject_h5
+    from train.data.layouts import INDEX_KEYS
+
+    rows = {k: v.reshape(-1, 1) if k in INDEX_KEYS else v for k, v in rows.items()}
+    write_subject_h5(path, rows, subject=subject, attrs={k: v for k, v in attrs.items() if k != "format_version"})
+
+
+def _check_out(out: Path, names: list[str]) -> None:
+    """``out`` holds no subject or split file besides ``names`` (the ones this export replaces)."""
+    from train.data.dataset import SPLIT_FILE_NAMES
+
+    if not out.is_dir():
+        return
+    others = sorted(p.name for p in out.iterdir() if p.name not in names and not p.name.startswith(".")
+                    and (p.suffix.lower() in (".h5", ".hdf5") or p.name in SPLIT_FILE_NAMES))
+    if others:
+        raise ToolkitError(f"OUT_DIR {out}: holds {len(others)} other dataset file(s) ({', '.join(others[:3])}"
+                           f"{', ...' if len(others) > 3 else ''}), which would mix with the export; expected a new or "
+                           "empty folder, or one holding an earlier export of these subjects")
+
+
+def _split(files: list[Path], prefix: str) -> dict[str, list[str]]:
+    """The source split (its ``split.json``, else the last quarter held out) in the target's form; a subject the
+    split file leaves out of both parts stays out of both."""
+    from train.data.dataset import split_files
+
+    if len(files) < 2:
+        train, held = files, []
+    else:
+        train, held = split_files(files, "train"), split_files(files, "test")
+    train, held = [f"{f.stem}.h5" for f in train], [f"{f.stem}.h5" for f in held]
+    return {"train": train, "val": held, "val_gaze": held, "test": [], "test_specific": []} if prefix else \
+        {"train": train, "test": held}
+
+
 def export(src: str | os.PathLike, out: str | os.PathLike, layout: str = "gazegaussian") -> list[Path]:
     """Export the native subject files of ``src`` (a folder, its ``split.json`` deciding train / held out) to
-    ``out`` in ``layout`` (gazegaussian; ditgaze copies); returns the files written."""
-    from train.data.dataset import find_subject_files, split_files
-    from train.data.layout_conversion import from_native
+    ``out`` in ``layout`` (gazegaussian; ditgaze: whole copies in the current form); returns the files written."""
+    from train.data.dataset import find_subject_files
+    from train.data.format import validate_subject_file
     from train.data.layout_files import row_layout
     from train.data.layouts import get_layout
 
@@ -61,19 +102,40 @@ def export(src: str | os.PathLike, out: str | os.PathLike, layout: str = "gazega
     files = find_subject_files(src)
     out = Path(out)
     check_not_an_input(out, [Path(src), *files], "OUT_DIR", "dataset")
-    for f in files:
+    for f in files:  # every source checked before anything is written
         if row_layout(f).name != "ditgaze":
             raise ToolkitError(f"{f}: export reads this project's own files; this one is {row_layout(f).name}")
-    held = set(split_files(files, "test")) if len(files) > 1 else set()
-    prefix = target.split.prefix
-    written = []
-    for f in files:
-        dest = out / f"{prefix}{f.stem}.h5"
-        _write(dest, from_native(target, _native_rows(f)))
-        written.append(dest)
-    entries = {"train": [f"{f.stem}.h5" for f in files if f not in held],
-               "val": [f"{f.stem}.h5" for f in files if f in held]}
-    split = {**entries, "val_gaze": entries["val"], "test": [], "test_specific": []} if prefix else \
-        {"train": entries["train"], "test": entries["val"]}
-    atomic_write_text(out / target.split.file_name, json.dumps(split, indent=2) + "\n")
-    return written
+        validate_subject_file(f)
+    split = _split(files, target.split.prefix)
+    names = [f"{target.split.prefix}{f.stem}.h5" for f in files]
+    _check_out(out, [*names, target.split.file_name])
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=".export.", suffix=".tmp", dir=out))
+    except OSError as e:
+        raise ToolkitError(f"OUT_DIR {out}: cannot write here ({e.strerror or e})") from None
+    try:
+        try:
+            _write_all(files, names, target, staging)
+            (staging / target.split.file_name).write_text(json.dumps(split, indent=2) + "\n", encoding="utf-8")
+        except ToolkitError as e:  # a full disk names the staging file: the user knows OUT_DIR
+            raise ToolkitError(str(e).replace(f"{staging}{os.sep}", f"{out}{os.sep}")) from None
+        except OSError as e:
+            raise ToolkitError(f"OUT_DIR {out}: {e.strerror or e}; nothing was exported") from None
+        for name in [*names, target.split.file_name]:  # the split file last: a folder with it is complete
+            os.replace(staging / name, out / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return [out / name for name in names]
+
+
+def _write_all(files: list[Path], names: list[str], target, staging: Path) -> None:
+    """Each of ``files`` exported under its name in ``names`` into the folder ``staging``."""
+    from train.data.layout_conversion import from_native
+
+    for f, name in zip(files, names, strict=True):
+        rows, subject, attrs = _native_file(f)
+        if target.name == "ditgaze":
+            _write_copy(staging / name, rows, subject, attrs)
+        else:
+            _write_peer(staging / name, from_native(target, rows))
