@@ -107,8 +107,11 @@ def contact_sheet(dataset, indices: Sequence[int], out: Path, *, tile: int = 160
 def cmd_synth(a) -> int:
     import h5py
 
+    from train.data.dataset import check_no_other_dataset
     from train.data.generate import synth_dataset
 
+    check_no_other_dataset(a.out, [*(f"subject{s:04d}.h5" for s in range(a.subjects)), "split.json"], "--out",
+                           "synth")
     t0 = time.perf_counter()
     paths = synth_dataset(a.out, n_subjects=a.subjects, n_frames=a.frames, res=a.res, seed=a.seed,
                           light_jitter=a.light_jitter, test_frames=a.test_frames, scale=a.scale)

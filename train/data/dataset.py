@@ -80,6 +80,21 @@ def subject_key(stem: str) -> str:
     return next((stem[len(p):] for p in DATASET_PREFIXES if stem.startswith(p)), stem)
 
 
+def check_no_other_dataset(out: str | os.PathLike, names: list[str], flag: str, writer: str) -> None:
+    """The folder ``out`` (``flag`` on the command line) holds no subject or split file besides ``names``, the
+    files ``writer`` is about to replace: what else is there would join its dataset (split "all", a folder read
+    whole) unseen."""
+    out = Path(out)
+    if not out.is_dir():
+        return
+    others = sorted(p.name for p in out.iterdir() if p.name not in names and not p.name.startswith(".")
+                    and (p.suffix.lower() in (".h5", ".hdf5") or p.name in SPLIT_FILE_NAMES))
+    if others:
+        raise ToolkitError(f"{flag} {out}: holds {len(others)} other dataset file(s) ({', '.join(others[:3])}"
+                           f"{', ...' if len(others) > 3 else ''}), which would mix with this {writer}; expected a new or "
+                           f"empty folder, or an earlier {writer} of the same subjects")
+
+
 def split_files(files: list[Path], split: str, split_file: str | os.PathLike | None = None,
                 test_fraction: float = 0.25, layout: str = "auto") -> list[Path]:
     """Select a split. A split file decides: ``split_file``, else ``split.json`` or ``train_test_split.json``

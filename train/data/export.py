@@ -62,20 +62,6 @@ def _write_copy(path: Path, rows: dict[str, np.ndarray], subject: dict[str, np.n
     write_subject_h5(path, rows, subject=subject, attrs={k: v for k, v in attrs.items() if k != "format_version"})
 
 
-def _check_out(out: Path, names: list[str]) -> None:
-    """``out`` holds no subject or split file besides ``names`` (the ones this export replaces)."""
-    from train.data.dataset import SPLIT_FILE_NAMES
-
-    if not out.is_dir():
-        return
-    others = sorted(p.name for p in out.iterdir() if p.name not in names and not p.name.startswith(".")
-                    and (p.suffix.lower() in (".h5", ".hdf5") or p.name in SPLIT_FILE_NAMES))
-    if others:
-        raise ToolkitError(f"OUT_DIR {out}: holds {len(others)} other dataset file(s) ({', '.join(others[:3])}"
-                           f"{', ...' if len(others) > 3 else ''}), which would mix with the export; expected a new or "
-                           "empty folder, or one holding an earlier export of these subjects")
-
-
 def _split(files: list[Path], prefix: str) -> dict[str, list[str]]:
     """The source split (its ``split.json``, else the last quarter held out) in the target's form; a subject the
     split file leaves out of both parts stays out of both."""
@@ -93,7 +79,7 @@ def _split(files: list[Path], prefix: str) -> dict[str, list[str]]:
 def export(src: str | os.PathLike, out: str | os.PathLike, layout: str = "gazegaussian") -> list[Path]:
     """Export the native subject files of ``src`` (a folder, its ``split.json`` deciding train / held out) to
     ``out`` in ``layout`` (gazegaussian; ditgaze: whole copies in the current form); returns the files written."""
-    from train.data.dataset import find_subject_files
+    from train.data.dataset import check_no_other_dataset, find_subject_files
     from train.data.format import validate_subject_file
     from train.data.layout_files import row_layout
     from train.data.layouts import get_layout
@@ -108,7 +94,7 @@ def export(src: str | os.PathLike, out: str | os.PathLike, layout: str = "gazega
         validate_subject_file(f)
     split = _split(files, target.split.prefix)
     names = [f"{target.split.prefix}{f.stem}.h5" for f in files]
-    _check_out(out, [*names, target.split.file_name])
+    check_no_other_dataset(out, [*names, target.split.file_name], "OUT_DIR", "export")
     try:
         out.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=".export.", suffix=".tmp", dir=out))

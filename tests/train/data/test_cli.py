@@ -57,3 +57,17 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     r = subprocess.run([sys.executable, "-m", "train.data", "inspect", str(bad)], cwd=ROOT, capture_output=True,
                        text=True)
     assert r.returncode == 2 and r.stderr.startswith(f"error: {bad}") and r.stderr.count("\n") == 1, r.stderr
+
+
+def test_synth_into_a_folder_of_another_dataset_is_refused_and_a_rerun_replaces_its_own(tmp_path, capsys):
+    """Two subjects written into a folder of forty would leave a dataset of both, its split.json naming two."""
+    out = tmp_path / "data"
+    out.mkdir()
+    (out / "subject0039.h5").write_bytes(b"someone's subject")
+    args = ["synth", "--subjects", "2", "--frames", "1", "--res", "32", "--out", str(out)]
+    assert run_cli(main, args) == 2
+    assert capsys.readouterr().err.startswith(f"error: --out {out}: holds 1 other dataset file(s) (subject0039.h5)")
+    assert [p.name for p in out.iterdir()] == ["subject0039.h5"]
+    (out / "subject0039.h5").unlink()
+    assert run_cli(main, args) == 0 and run_cli(main, args) == 0  # its own files again: replaced
+    assert sorted(p.name for p in out.iterdir()) == ["split.json", "subject0000.h5", "subject0001.h5"]

@@ -122,7 +122,7 @@ def test_an_output_folder_holding_another_dataset_is_refused_and_an_earlier_expo
     out.mkdir()
     (out / "subject0042.h5").write_bytes(b"")
     assert_refused("train.data", ["export", src, out], r"OUT_DIR .*out: holds 1 other dataset file\(s\) "
-                   r"\(subject0042\.h5\), which would mix with the export", inputs=[src])
+                   r"\(subject0042\.h5\), which would mix with this export", inputs=[src])
     (out / "subject0042.h5").unlink()
     assert main(["export", str(src), str(out)]) == 0
     first = _tree(out)
