@@ -207,8 +207,9 @@ def check_run_pairing(ctx, will_run: set[str]) -> None:
 
 def _check_held_out_pairing(ctx) -> None:
     """:func:`check_eval_pairing` on the held-out files ``ctx`` names; a folder the stages cannot read or split is
-    left to the stage that reads it (it names what is wrong), and ETH-XGaze release files, which feed the
-    estimator stage alone, to the eval stage's own one-line refusal."""
+    left to the stage that reads it (it names what is wrong), and ETH-XGaze release files under ``data.root``, which
+    feed the estimator stage alone, to the eval stage's own one-line refusal; under ``eval.data_root``, which the
+    eval stage alone reads, they are refused here, before any training."""
     from train.data.patches import release_layout
     from train.stages.artifacts import RunArtifacts
 
@@ -217,6 +218,13 @@ def _check_held_out_pairing(ctx) -> None:
         test = RunArtifacts(ctx).eval_files()
     except ToolkitError:
         return
+    if e.data_root and test:  # only the eval stage reads them: files it cannot score are refused before training
+        from train.data.layout_files import row_layout
+
+        try:
+            row_layout(test[0], e.data_layout)
+        except ToolkitError as err:
+            raise ToolkitError(f"config key 'eval.data_root': {err}") from None
     if not (test and release_layout(test, e.data_layout if e.data_root else cfg.data.layout)):
         check_eval_pairing(cfg, test)
 

@@ -262,6 +262,17 @@ def test_the_other_stages_refuse_release_files_in_one_line(release, tmp_path, st
     assert "subject000" in lines[0] and "head_mask" in lines[0] and "w2c_Rmat" in lines[0]
 
 
+def test_release_files_as_the_eval_data_are_refused_before_any_training(release, tmp_path):
+    """eval.data_root is read by the eval stage alone, which cannot score release files (no masks, cameras or codes):
+    the config check says so before the first stage, not the eval stage after training."""
+    code, err = _cli(["--preset", "tiny", "--run-dir", tmp_path / "run", "--stages", "data",
+                      f"eval.data_root={release['dir']}"])
+    lines = [s for s in err.splitlines() if "error:" in s]
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith("error: config key 'eval.data_root': ") and "head_mask" in lines[0]
+    assert not (tmp_path / "run" / "data").exists()
+
+
 # ------------------------------------------------------------------------------------------------ bad input
 
 def _bad_copy(release, tmp_path, edit):
