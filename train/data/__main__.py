@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -19,7 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from toolkit.errors import ToolkitError, run_cli
-from toolkit.io import check_not_an_input
+from toolkit.io import check_not_an_input, check_output_folder
 from toolkit.limits import check_allocation, check_count
 
 
@@ -129,6 +130,12 @@ def cmd_inspect(a) -> int:
     from train.data.dataset import GazeDataset
     from train.data.layouts import get_layout
 
+    p = Path(a.path)
+    sheet = Path(a.sheet) if a.sheet else (p / "contact_sheet.png" if p.is_dir() else p.with_name(p.stem + "_sheet.png"))
+    if sheet.suffix.lower() != ".png":
+        raise ToolkitError(f"--sheet {sheet}: the contact sheet is a PNG; expected a file name ending in .png")
+    if a.sheet:
+        check_output_folder(sheet.parent, "--sheet")
     ds = GazeDataset(a.path, res=None, layout=a.layout)
     print(_table([summarize(Path(i["path"]), i, lay) for i, lay in zip(ds.info, ds.layouts)],
                  ["file", "layout", "images", "res", "cameras", "frames", "vertices", "gaze pitch (deg)",
@@ -138,11 +145,11 @@ def cmd_inspect(a) -> int:
         print(f"layout {name}: {lay.description}; gaze {lay.gaze_sign} ({lay.gaze_frame} frame, read as native "
               f"pitch = asin(-g_y)); 3D keys: {lay.frame_3d or 'none'}; codes: "
               f"{' + '.join(f'{n} {w}' for n, w in lay.codes) or 'none'}")
-    p = Path(a.path)
-    sheet = Path(a.sheet) if a.sheet else (p / "contact_sheet.png" if p.is_dir() else p.with_name(p.stem + "_sheet.png"))
-    if sheet.suffix.lower() != ".png":
-        raise ToolkitError(f"--sheet {sheet}: the contact sheet is a PNG; expected a file name ending in .png")
     check_not_an_input(sheet, [p, *(Path(i["path"]) for i in ds.info)], "--sheet")
+    if not a.sheet and not os.access(sheet.parent, os.W_OK | os.X_OK):  # a shared, read-only dataset: the table
+        print(f"contact sheet: not written, {sheet.parent} is read-only here (give --sheet PATH to write one)")
+        ds.close()
+        return 0
     n = min(a.n, len(ds))
     idx = np.linspace(0, len(ds) - 1, n).round().astype(int) if n > 0 else []
     contact_sheet(ds, idx, sheet, tile=a.tile)

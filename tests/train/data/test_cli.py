@@ -71,3 +71,24 @@ def test_synth_into_a_folder_of_another_dataset_is_refused_and_a_rerun_replaces_
     (out / "subject0039.h5").unlink()
     assert run_cli(main, args) == 0 and run_cli(main, args) == 0  # its own files again: replaced
     assert sorted(p.name for p in out.iterdir()) == ["split.json", "subject0000.h5", "subject0001.h5"]
+
+
+def test_inspect_of_a_read_only_dataset_prints_its_table_without_a_sheet(tmp_path, capsys, monkeypatch):
+    """A shared, read-only dataset: the default sheet beside it cannot be written, which is no error; a --sheet in
+    a folder that cannot be made is refused before the files are read."""
+    import os
+
+    import train.data.__main__ as cli
+
+    out = tmp_path / "synth"
+    assert run_cli(main, ["synth", "--subjects", "1", "--frames", "1", "--res", "32", "--out", str(out)]) == 0
+    capsys.readouterr()
+    real_access = os.access
+    monkeypatch.setattr(cli.os, "access", lambda path, mode: Path(path) != out and real_access(path, mode))
+    assert run_cli(main, ["inspect", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| subject0000.h5 |" in text and f"contact sheet: not written, {out} is read-only here" in text
+    assert not (out / "contact_sheet.png").exists()
+    (tmp_path / "file").write_text("")
+    assert run_cli(main, ["inspect", str(out), "--sheet", str(tmp_path / "file" / "s.png")]) == 2
+    assert capsys.readouterr().err.startswith(f"error: --sheet: {tmp_path / 'file'} is a file, not a folder")
