@@ -16,7 +16,6 @@ loss estimator; the demo preset's own fit, so both are fitted alike).
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -27,7 +26,7 @@ import numpy as np
 import torch
 
 from apps.preview import DEMO_MAX, DEMO_MIN, check_demo_gaussians
-from toolkit.errors import ToolkitError, run_cli
+from toolkit.errors import CliParser, ToolkitError, run_cli
 from toolkit.io import check_output_folder
 from toolkit.limits import check_count
 from toolkit.procedural import demo_head_scene
@@ -40,7 +39,7 @@ past 2^64 they overflow with a traceback."""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m apps.demo", description="Run the DiT-Gaze demo pipeline.")
+    ap = CliParser(prog="python -m apps.demo", description="Run the DiT-Gaze demo pipeline.")
     ap.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     ap.add_argument("--gaussians", type=int, default=20000,
                     help=f"Gaussians in the demo head, {DEMO_MIN} to {DEMO_MAX} (default: 20000)")

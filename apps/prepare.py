@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from toolkit.errors import ToolkitError, run_cli
+from toolkit.errors import CliParser, ToolkitError, run_cli
 
 MAX_SOURCE_NAMES_BYTES = 60_000
 """The ``source_files`` attribute (the photos' names as JSON) must stay under the format's 64 KiB attributes."""
@@ -35,7 +35,7 @@ SIZE_RANGE = (32, 2048)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m apps.prepare", description=__doc__.split("\n")[0])
+    ap = CliParser(prog="python -m apps.prepare", description=__doc__.split("\n")[0])
     ap.add_argument("photos", nargs="+", help="photo files (JPEG, PNG, WebP, TIFF, ...) and/or folders of them")
     ap.add_argument("--out", required=True, help="output folder: one <name>.h5 per photo file or folder")
     ap.add_argument("--like", default=None, help="a trained run directory: its head geometry, normalization "

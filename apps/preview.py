@@ -28,7 +28,7 @@ import torch
 
 from apps.preview_sweep import MAX_FRAMES, MAX_GAZES, check_sweep, parse_range, render_gaze_sweep
 from apps.preview_window import run_window
-from toolkit.errors import ToolkitError, run_cli
+from toolkit.errors import CliParser, ToolkitError, run_cli
 from toolkit.io import check_not_an_input, check_output_folder
 from toolkit.limits import check_allocation, check_count
 
@@ -106,7 +106,7 @@ def load_scene(spec: str):
 
 # ---------------------------------------------------------------------------------------------- CLI
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
+    ap = CliParser(
         prog="python apps/preview.py", formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Preview a Gaussian head and scrub its gaze live (OpenGL; headless through EGL).",
         epilog=WINDOW_HELP + "\nSCENE is a .safetensors or .ply Gaussian scene, a trained run directory "

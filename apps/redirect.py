@@ -65,7 +65,7 @@ from apps.redirect_parts import (
     sampling_steps,
 )
 from apps.redirect_render import OUTPUT_KEYS, render_chunk
-from toolkit.errors import ToolkitError, run_cli
+from toolkit.errors import CliParser, ToolkitError, run_cli
 from toolkit.host import keep_freed_memory
 from toolkit.io import check_not_an_input
 from toolkit.limits import check_allocation, check_count
@@ -168,7 +168,7 @@ def open_source(run, args):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m apps.redirect", description=__doc__.split("\n")[0])
+    ap = CliParser(prog="python -m apps.redirect", description=__doc__.split("\n")[0])
     ap.add_argument("run_dir", help="a trained run directory (train/run.py)")
     ap.add_argument("dataset", nargs="+", metavar="INPUT",
                     help="an HDF5 subject file (docs/data.md), a labels CSV of face crops (or the folder holding "

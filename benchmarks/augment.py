@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from benchmarks.common import OUT_DIR, count, demo_or_tiny_run, format_table, machine_info, save_plot  # noqa: E402
-from toolkit.errors import run_cli  # noqa: E402
+from toolkit.errors import CliParser, run_cli  # noqa: E402
 
 
 def protocol_a_rows(run_dir: str, cams: int, args) -> list[dict]:
@@ -49,8 +49,8 @@ def protocol_a_rows(run_dir: str, cams: int, args) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = CliParser(description=__doc__.split("\n")[0], epilog=__doc__,
+                   formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run-dir", default=None,
                     help="a trained run on synthetic data (default: out/demo/run when `make demo` made one, else "
                          "the tiny preset is trained into out/benchmarks/augment_tiny_run)")

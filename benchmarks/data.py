@@ -41,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot  # noqa: E402
 from toolkit.cameras import eth_xgaze_rig  # noqa: E402
-from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.errors import CliParser, ToolkitError, run_cli  # noqa: E402
 from train.data.format import write_subject_h5  # noqa: E402
 from train.data.generate import RIG_RADIUS, generate_subject  # noqa: E402
 from train.data.subject_params import SubjectParams  # noqa: E402
@@ -175,7 +175,7 @@ def stream_verdicts(rows: list[dict], res: int) -> list[str]:
 
 
 def _args(argv):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = CliParser(description=__doc__.split("\n")[0])
     ap.add_argument("--subjects", type=count("--subjects", 1), default=8, help="subjects at 128² (512² uses a quarter)")
     ap.add_argument("--frames", type=count("--frames", 1), default=10)
     ap.add_argument("--skip-generation", action="store_true", help="part 1 (generation throughput) not run")

@@ -20,7 +20,6 @@ The closing breakdown times extraction on a Kuhn 128 grid, stage by stage, again
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import sys
@@ -34,7 +33,7 @@ import torch  # noqa: E402
 from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot, timeit  # noqa: E402
 from geometry.dmtet import marching_tets  # noqa: E402
 from geometry.tets import subdivide, tet_grid  # noqa: E402
-from toolkit.errors import run_cli  # noqa: E402
+from toolkit.errors import CliParser, run_cli  # noqa: E402
 
 
 def sphere(p):
@@ -188,7 +187,7 @@ def breakdown(res: int, repeats: int) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = CliParser(description=__doc__.splitlines()[0])
     ap.add_argument("--res", type=count("--res", 4), nargs="+", default=[16, 32, 64, 128])
     ap.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=list(SHAPES))
     ap.add_argument("--repeats", type=count("--repeats", 1), default=3)

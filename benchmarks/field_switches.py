@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from apps.preview import DEMO_MAX, MAX_SIDE  # noqa: E402
 from benchmarks.common import OUT_DIR, check_model_memory, count, format_table, machine_info, save_plot  # noqa: E402
-from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.errors import CliParser, ToolkitError, run_cli  # noqa: E402
 from toolkit.limits import check_count  # noqa: E402
 from toolkit.procedural import demo_camera, demo_head_scene  # noqa: E402
 from train.model.gaussian_config import GaussianModelConfig  # noqa: E402
@@ -81,7 +81,7 @@ def _time_scale(n: int, hidden: int, size: int, batch: int, repeats: int) -> dic
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = CliParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scales", default="800:16:64:2,12000:64:128:4",
                     help="N:hidden:size:batch per scale (default: the tiny preset's, the demo's)")
     ap.add_argument("--repeats", type=count("--repeats", 1), default=5)

@@ -31,7 +31,7 @@ from benchmarks.common import (  # noqa: E402
     save_plot,
     timeit,
 )
-from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.errors import CliParser, ToolkitError, run_cli  # noqa: E402
 from toolkit.procedural import demo_camera, demo_head_scene  # noqa: E402
 from train.model.gaussian_config import GaussianModelConfig  # noqa: E402
 from train.model.gaussian_model import GaussianModel  # noqa: E402
@@ -49,7 +49,7 @@ def _counts(flag: str, text: str, least: int, most: int) -> list[int]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = CliParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--gaussians", default="5000,20000")
     ap.add_argument("--sizes", default="128,512")
     ap.add_argument("--batch", type=count("--batch", 1), default=2)

@@ -40,7 +40,7 @@ from benchmarks.common import (  # noqa: E402
     save_plot,
     timeit,
 )
-from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.errors import CliParser, ToolkitError, run_cli  # noqa: E402
 from toolkit.io import check_output_folder, load_tensors, save_tensors  # noqa: E402
 from toolkit.rotations import angular_error_deg  # noqa: E402
 from train.estimator.config import GazeEstimatorConfig, GazeEstimatorTrainConfig, eye_config  # noqa: E402
@@ -149,7 +149,7 @@ def error_by_iris(pred: torch.Tensor, labels: torch.Tensor, iris: torch.Tensor, 
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = CliParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--subjects", type=count("--subjects", 1), default=32, help="procedural training subjects")
     ap.add_argument("--frames", type=count("--frames", 1), default=120, help="random gazes per training subject (2 cameras each)")
     ap.add_argument("--test-subjects", type=count("--test-subjects", 1), default=8)

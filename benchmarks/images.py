@@ -19,7 +19,6 @@ Display P3's primaries (SMPTE EG 432-1) adapted to the D50 connection space by B
 
 from __future__ import annotations
 
-import argparse
 import struct
 import sys
 import tempfile
@@ -31,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot, timeit  # noqa: E402
 from toolkit.colour import D65_XY, SRGB_PRIMARIES, bradford, rgb_to_xyz, srgb_encode, xy_to_xyz  # noqa: E402
-from toolkit.errors import run_cli  # noqa: E402
+from toolkit.errors import CliParser, run_cli  # noqa: E402
 
 D50 = np.array([0.9642, 1.0, 0.8249])
 """The ICC profile connection space's illuminant (the header's illuminant field), the white colorants are adapted to."""
@@ -135,7 +134,7 @@ def measure(sizes_mp, repeats: int) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = CliParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=count("--repeats"), default=5)
     args = ap.parse_args(argv)
     print(machine_info())

@@ -18,7 +18,6 @@ scale and with ``--scale 1``), the iris-geometry gaze error (°) and the head-ma
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from pathlib import Path
@@ -28,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot  # noqa: E402
-from toolkit.errors import run_cli  # noqa: E402
+from toolkit.errors import CliParser, run_cli  # noqa: E402
 
 
 def synthetic_photo(seed: int, *, width: int = 640, height: int = 480, focal: float | None = None,
@@ -160,7 +159,7 @@ def main(argv=None) -> int:
     from apps.photo.face_model import default_target
     from apps.photo.faces import FaceFinder
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = CliParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=count("--repeats"), default=5)
     ap.add_argument("--subjects", type=count("--subjects"), default=10)
     args = ap.parse_args(argv)

@@ -15,7 +15,6 @@ The scene is the procedural demo head (Gaussians on its surface, scales from 3-N
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import statistics
@@ -29,7 +28,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from benchmarks.common import OUT_DIR, count, format_table, machine_info, save_plot  # noqa: E402
-from toolkit.errors import run_cli  # noqa: E402
+from toolkit.errors import CliParser, run_cli  # noqa: E402
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -129,7 +128,7 @@ def _last_mid(sp) -> np.ndarray:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = CliParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=count("--sizes", 1), nargs="+", default=[10000, 50000, 100000, 300000])
     ap.add_argument("--res", type=count("--res", 1), default=512)
     ap.add_argument("--frames", type=count("--frames", 1), default=8)

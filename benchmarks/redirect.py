@@ -42,7 +42,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from benchmarks.common import OUT_DIR, count, demo_or_tiny_run, format_table, machine_info, save_plot  # noqa: E402
-from toolkit.errors import run_cli  # noqa: E402
+from toolkit.errors import CliParser, run_cli  # noqa: E402
 
 
 def ground_truth(files, rows: dict, gazes: np.ndarray, res: int) -> dict[str, torch.Tensor]:
@@ -89,8 +89,8 @@ def score(images: torch.Tensor, landmarks: torch.Tensor, labels: torch.Tensor, t
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = CliParser(description=__doc__.split("\n")[0], epilog=__doc__,
+                   formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run-dir", default=None,
                     help="a trained run (train/run.py) on synthetic data (default: out/demo/run when `make demo` "
                          "made one, else the tiny preset is trained into out/benchmarks/redirect_tiny_run, ~30 s)")

@@ -17,7 +17,6 @@ renderer.json. ``--quick`` is a smoke run (minutes -> seconds; numbers meaningle
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import subprocess
@@ -40,7 +39,7 @@ from benchmarks.common import (  # noqa: E402
     save_plot,
     timeit,
 )
-from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.errors import CliParser, ToolkitError, run_cli  # noqa: E402
 from toolkit.io import atomic_write_json  # noqa: E402
 from toolkit.limits import check_allocation  # noqa: E402
 from train.model.baseline_renderer import BaselineConfig, BaselineRenderer  # noqa: E402
@@ -255,7 +254,7 @@ def uptime() -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = CliParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smoke run: few steps, small sets")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--threads", type=count("--threads", 1), default=None, help="torch CPU threads (default: torch's choice)")

@@ -39,6 +39,7 @@ from benchmarks.common import (  # noqa: E402
     save_plot,
     timeit,
 )
+from toolkit.errors import CliParser  # noqa: E402
 
 
 def make_scene(kind: str, n: int, res: int, d: int, device: str):
@@ -196,7 +197,7 @@ def run_all(cfgs: list[dict]) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = CliParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small subset (about a minute)")
     ap.add_argument("--threads", type=count("--threads", 1), default=torch.get_num_threads())
     ap.add_argument("--ref-budget", type=positive("--ref-budget"), default=4e8, help="max pixel x Gaussian pairs for the dense ref")

@@ -48,7 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import OUT_DIR, count, format_table, machine_info, positive, save_plot  # noqa: E402
 from benchmarks.step_timing import PARTS, peak_memory_gib, time_steps  # noqa: E402
-from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.errors import CliParser, ToolkitError, run_cli  # noqa: E402
 from train.run_config import GaussianStageConfig  # noqa: E402
 
 
@@ -271,8 +271,8 @@ def parse_variants(spec: str) -> list[tuple[str, list[str]]]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = CliParser(description=__doc__.split("\n")[0], epilog=__doc__,
+                   formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run-dir", default=str(OUT_DIR / "train_run"), help="a demo run with its first four stages")
     ap.add_argument("--threads", type=count("--threads", 1), default=1, help="torch CPU threads (default 1)")
     ap.add_argument("--budget-s", type=positive("--budget-s"), default=180.0, help="training seconds per variant (default 180)")

@@ -11,7 +11,7 @@ import sys
 from typing import Sequence
 
 from geometry.fit import FitConfig
-from toolkit.errors import ToolkitError, run_cli
+from toolkit.errors import CliParser, ToolkitError, run_cli
 from toolkit.io import check_not_an_input
 from toolkit.limits import check_allocation, check_count
 
@@ -155,7 +155,7 @@ def _cmd_render(a) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m geometry", description=__doc__.splitlines()[0])
+    p = CliParser(prog="python -m geometry", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     s = sub.add_parser("inspect", help="topology and geometry statistics of a mesh")
     s.add_argument("mesh")

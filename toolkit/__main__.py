@@ -6,18 +6,17 @@
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from typing import Sequence
 
-from toolkit.errors import ToolkitError, run_cli
+from toolkit.errors import CliParser, ToolkitError, run_cli
 from toolkit.io import check_not_an_input
 from toolkit.scene import GaussianScene
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m toolkit", description=__doc__.split("\n")[0])
+    ap = CliParser(prog="python -m toolkit", description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("info", help="print a summary of a scene file")
     p.add_argument("scene")

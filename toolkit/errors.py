@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import re
@@ -15,6 +16,19 @@ class ToolkitError(Exception):
     The message names the file or field and what was expected; CLIs print it as one line
     (``error: ...``) and exit with status 2.
     """
+
+
+class CliParser(argparse.ArgumentParser):
+    """The commands' argument parser: a usage mistake is one ``error:`` line naming the way to the options (a
+    ``ToolkitError``, exit status 2 through :func:`run_cli`) rather than argparse's usage block, and an option is
+    never taken from a prefix of its name (``--subject 2`` is refused, not read as ``--subjects 2``)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        raise ToolkitError(f"{message} (`{self.prog} --help` lists the options)")
 
 
 def one_line(e: BaseException | str, limit: int | None = 200) -> str:

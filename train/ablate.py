@@ -26,7 +26,7 @@ import tempfile
 from pathlib import Path
 from typing import Sequence
 
-from toolkit.errors import ERROR_FILE_ENV, ToolkitError
+from toolkit.errors import ERROR_FILE_ENV, CliParser, ToolkitError
 
 ROWS = (("full", ()),
         ("w/o DiT renderer", ("gaussian.renderer=unet", "gaussian.feature_upscale=4")),
@@ -42,8 +42,8 @@ AUGMENT_COLUMN = "augment A (iii) − (ii)"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m train.run ablate",
-                                description="Train and evaluate the paper's Table 3 rows over seeds (docs/augment.md). "
+    p = CliParser(prog="python -m train.run ablate",
+                  description="Train and evaluate the paper's Table 3 rows over seeds (docs/augment.md). "
                                             "The demo preset on 2 cores: ~15 min for a seed's full run, then "
                                             "5-7 min for each other row; --augment adds 3-5 min a row and seed.")
     p.add_argument("--preset", default="demo", help="the preset of every row (default: demo)")

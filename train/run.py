@@ -40,7 +40,7 @@ if __package__ in (None, ""):  # `python train/run.py`: make the repository impo
 
 import torch  # noqa: E402
 
-from toolkit.errors import ToolkitError, run_cli  # noqa: E402
+from toolkit.errors import CliParser, ToolkitError, run_cli  # noqa: E402
 from toolkit.host import keep_freed_memory  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.presets import PRESETS, preset  # noqa: E402
@@ -65,8 +65,8 @@ def resolve_config(args: argparse.Namespace) -> RunConfig:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m train.run", description="Staged DiT-Gaze training.",
-                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap = CliParser(prog="python -m train.run", description="Staged DiT-Gaze training.",
+                   formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
                     help="start from this preset (default: the run directory's config.yaml when it has one, else demo)")
     ap.add_argument("--config", help="a config.yaml to start from instead of a preset")

@@ -61,3 +61,25 @@ def test_a_closed_pipe_stops_quietly():
     p.stdout.close()
     err = p.stderr.read().decode()
     assert p.wait(timeout=60) == 1 and err == "", err
+
+
+@pytest.mark.parametrize("argv, text", [
+    ([], "error: the following arguments are required: --count (`tool --help` lists the options)"),
+    (["--count", "x"], "error: argument --count: invalid int value: 'x' (`tool --help` lists the options)"),
+    (["--count", "1", "--coun=2"], "error: unrecognized arguments: --coun=2"),  # a prefix is not the option
+    (["sub", "--size", "9"], "error: argument --size: invalid choice: 9 (choose from 1, 2) (`tool sub --help`"),
+])
+def test_usage_mistakes_are_one_line_naming_the_help(capsys, argv, text):
+    from toolkit.errors import CliParser
+
+    def main(args):
+        ap = CliParser(prog="tool")
+        ap.add_argument("--count", type=int, required=not args or args[0] != "sub")
+        sub = ap.add_subparsers(dest="cmd")
+        sub.add_parser("sub").add_argument("--size", type=int, choices=[1, 2])
+        ap.parse_args(args)
+        return 0
+
+    assert run_cli(main, argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(text) and err.count("\n") == 1, err

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field, fields
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import CliParser, ToolkitError
 from train.config import at_least, check_fields, within
 from train.run_config import DEVICE, SEED, STEP_CAP
 
@@ -63,8 +63,8 @@ class AugmentConfig:
 
 def build_parser() -> argparse.ArgumentParser:
     """``train.run augment``'s parser: ``--run-dir``, ``--out`` and one flag per field."""
-    p = argparse.ArgumentParser(prog="python -m train.run augment",
-                                description="Measure whether redirected data makes a gaze estimator better "
+    p = CliParser(prog="python -m train.run augment",
+                  description="Measure whether redirected data makes a gaze estimator better "
                                             "(docs/augment.md). On the demo run, protocol A with its defaults "
                                             "(3 repetitions) took 12.3 min on an idle 2-core machine.")
     p.add_argument("--run-dir", required=True, help="a finished run directory")

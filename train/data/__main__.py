@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import sys
@@ -19,7 +18,7 @@ from typing import Sequence
 
 import numpy as np
 
-from toolkit.errors import ToolkitError, run_cli
+from toolkit.errors import CliParser, ToolkitError, run_cli
 from toolkit.io import check_not_an_input, check_output_folder
 from toolkit.limits import check_allocation, check_count
 
@@ -160,7 +159,7 @@ def cmd_inspect(a) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m train.data", description=__doc__.split("\n")[0])
+    ap = CliParser(prog="python -m train.data", description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     s = sub.add_parser("synth", help="write synthetic subject files (HDF5) and split.json")
     s.add_argument("--subjects", type=int, default=8)
