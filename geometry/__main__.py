@@ -113,6 +113,8 @@ def _fit_flags(a) -> list[int]:
     check_count(a.steps, "--steps", 1, MAX_STEPS, "a number of optimiser steps")
     _check_res(a.res, "--res", 4, FitConfig.grid_kind, FitConfig().net.feature_dim)
     check_count(a.seed, "--seed", 0, MAX_SEED, "a seed")
+    if a.holdout is None:
+        return None  # the default cameras the file has
     try:
         holdout = [int(c) for c in a.holdout.split(",") if c.strip()]
     except ValueError:
@@ -192,7 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("output", help="output folder (mesh, SDF checkpoint, Gaussians, fit.json)")
     s.add_argument("--steps", type=number, default=FitConfig.steps)
     s.add_argument("--res", type=number, default=FitConfig.extract_res, help="extraction grid resolution")
-    s.add_argument("--holdout", default="2,7,10,15", help="rig cameras held out of the fit for the IoU check")
+    s.add_argument("--holdout", default=None, help="rig cameras held out of the fit for the IoU check, each one the "
+                   "file has ('': none; default: those of 2,7,10,15 the file has)")
     s.add_argument("--seed", type=number, default=0)
     s.add_argument("--threads", type=number, default=0, help="torch CPU threads for the fit (0: torch's default)")
     s.set_defaults(fn=_cmd_fit)

@@ -131,8 +131,16 @@ def subject_views(rows: dict, where: str | os.PathLike = "") -> dict:
             **gt}
 
 
-def split_views(data: dict, holdout_cams=DEFAULT_HOLDOUT) -> tuple[Views, Views | None]:
-    """(training views, held-out views or None) by rig camera index."""
+def split_views(data: dict, holdout_cams=None) -> tuple[Views, Views | None]:
+    """(training views, held-out views or None) by rig camera index: ``holdout_cams`` each one the file has (a
+    camera it lacks would hold nothing out, and the fit would go unscored unseen), None those of
+    :data:`DEFAULT_HOLDOUT` it has."""
+    present = sorted(set(data["cam_index"].tolist()))
+    if holdout_cams is None:
+        holdout_cams = [c for c in DEFAULT_HOLDOUT if c in present]
+    absent = [int(c) for c in holdout_cams if int(c) not in present]
+    if absent:
+        raise ToolkitError(f"fit: --holdout camera(s) {absent} not in the file, whose cameras are {present}")
     hold = torch.zeros(data["masks"].shape[0], dtype=torch.bool)
     for c in holdout_cams:
         hold |= data["cam_index"] == int(c)
@@ -144,7 +152,7 @@ def split_views(data: dict, holdout_cams=DEFAULT_HOLDOUT) -> tuple[Views, Views 
 
 
 def fit_dataset(dataset: str | os.PathLike, out_dir: str | os.PathLike, cfg: FitConfig | None = None, *,
-                holdout_cams=DEFAULT_HOLDOUT, max_eval_views: int = 24, init_scene: bool = True, log=None,
+                holdout_cams=None, max_eval_views: int = 24, init_scene: bool = True, log=None,
                 views: dict | None = None) -> dict:
     """Fit, then write ``neutral_mesh.ply``, ``sdf.safetensors``, ``gaussians.safetensors`` and ``fit.json``.
 

@@ -147,3 +147,29 @@ def test_fit_rejects_rows_of_the_wrong_shape(tmp_path, capsys, key, bad):
     assert run_cli(main, ["fit", str(path), str(tmp_path / "fit")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {path}: {key} has shape {list(bad.shape)}, expected [{n}")
+
+
+def test_a_holdout_camera_the_file_lacks_is_refused_and_the_default_takes_those_it_has(tmp_path, capsys):
+    """A camera the file lacks holds nothing out: the fit would run unscored (no held-out IoU), unseen."""
+    import h5py
+    import torch
+
+    from geometry.fit_dataset import split_views
+
+    n = 6
+    path = tmp_path / "subject.h5"
+    with h5py.File(path, "w") as f:
+        for k, v in {"head_mask": np.zeros((n, 8, 8), np.uint8), "inmat": np.tile(np.eye(3), (n, 1, 1)),
+                     "w2c_Rmat": np.tile(np.eye(3), (n, 1, 1)), "w2c_Tvec": np.zeros((n, 3)), "pose": np.zeros((n, 6)),
+                     "facial_landmarks_3d": np.zeros((n, 68, 3)), "scale": np.ones((n, 1)),
+                     "cam_index": np.arange(n)}.items():
+            f[k] = v
+    assert run_cli(main, ["fit", str(path), str(tmp_path / "fit"), "--holdout", "2,99"]) == 2
+    assert capsys.readouterr().err == ("error: fit: --holdout camera(s) [99] not in the file, whose cameras are "
+                                       "[0, 1, 2, 3, 4, 5]\n")
+    assert not (tmp_path / "fit").exists()
+    views = {"masks": torch.zeros(n, 8, 8), "Ks": torch.zeros(n, 3, 3), "viewmats": torch.zeros(n, 4, 4),
+             "cam_index": torch.arange(n)}
+    train, test = split_views(views)  # 2, 7, 10, 15 by default: camera 2 is the one this file has
+    assert len(train) == 5 and len(test) == 1
+    assert split_views(views, [])[1] is None
