@@ -25,7 +25,7 @@ Inputs:
   gaze columns). The whole CSV and every file it names are checked before any rendering; each problem is
   one error naming the line and column. Output landmarks, mesh and eye masks of CSV rows come from the
   run's geometry and the model's splatted silhouettes (approximate: the crops carry none);
-- photos (JPEG/PNG files and/or folders of them, several allowed): prepared on the fly as ``apps.prepare``
+- photos (photo files and/or folders of them, several allowed): prepared on the fly as ``apps.prepare``
   does, fitted as ``--fit-weights`` fits (always), and written to an output folder with a grid per face and,
   with ``--paste-back``, each redirected face pasted back into its photo (``apps/redirect_photo.py``).
 
@@ -172,7 +172,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("run_dir", help="a trained run directory (train/run.py)")
     ap.add_argument("dataset", nargs="+", metavar="INPUT",
                     help="an HDF5 subject file (docs/data.md), a labels CSV of face crops (or the folder holding "
-                         "labels.csv; columns in docs/redirect.md), or photos: JPEG/PNG files and/or folders of them")
+                         "labels.csv; columns in docs/redirect.md), or photos: photo files (JPEG, PNG, WebP, TIFF, "
+                         "HEIC, ...) and/or folders of them")
     ap.add_argument("out", help="output HDF5 file; for photo input an output folder")
     ap.add_argument("--gazes", default="grid:3x3:25", help=f"target gazes: {GRID_EXAMPLE}")
     ap.add_argument("--rows", type=int, default=0, help="use only the first N input rows (0 = all)")
@@ -182,8 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="seed of random: gazes and of the fitting's diffusion noise (drawn per chunk, so a "
                          "resumed or sharded run writes what an uninterrupted one does)")
     ap.add_argument("--focal", type=float, default=None,
-                    help="CSV input: focal length (pixels of the images) for rows without one "
-                         "(default: the project's normalized camera, size x 0.6 / 0.26)")
+                    help="CSV input: focal length (pixels of the images) for rows without one (default: the "
+                         "project's normalized camera, size x 0.6 / 0.26); photos: their focal length in pixels "
+                         "(default as apps.prepare: EXIF, else 1.2 x the longer side)")
     ap.add_argument("--distance", type=float, default=None,
                     help="CSV input: camera-to-face distance (metres) for rows without one (default 0.6)")
     ap.add_argument("--fit-steps", type=int, default=-1,

@@ -36,6 +36,8 @@ def _number(path: Path, line: int, col: str, text: str, limit: float) -> float:
 def read_labels(path: str | os.PathLike) -> dict[Path, np.ndarray]:
     """The CSV as {resolved image path: (pitch, yaw) radians in the photo camera frame}."""
     path = Path(path)
+    if path.is_dir():
+        raise ToolkitError(f"--labels {path}: is a folder, expected a CSV file with columns {', '.join(COLUMNS)}")
     if not path.is_file():
         raise ToolkitError(f"--labels {path}: no such file")
     if path.stat().st_size > MAX_BYTES:

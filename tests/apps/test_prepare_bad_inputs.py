@@ -114,3 +114,13 @@ def test_an_hdf5_file_given_as_a_photo_is_one_error_line(tmp_path):
     out.mkdir()
     assert_refused("apps.prepare", [path, "--out", out], rf"^error: photo {_q(path)}: not a readable image \(HDF5",
                    inputs=[path], out_dir=out)
+
+
+def test_a_labels_folder_is_named_a_folder(tmp_path):
+    from apps.photo.labels import read_labels
+    from toolkit.errors import ToolkitError
+
+    with pytest.raises(ToolkitError, match=rf"^--labels {_q(tmp_path)}: is a folder, expected a CSV file with columns"):
+        read_labels(tmp_path)
+    with pytest.raises(ToolkitError, match=r"no such file"):
+        read_labels(tmp_path / "labels.csv")
