@@ -257,8 +257,12 @@ def check_sizes(n_rows: int, n_gazes: int, res: int, args: argparse.Namespace) -
 
 def fit_steps_for(args: argparse.Namespace, cfg, src) -> int:
     """The test-time fitting steps (``--fit-steps``, else the run's ``eval.tta_steps`` or 50), checked against
-    ``--fit-weights``, which needs >= 1 step and every CSV row's own gaze."""
+    ``--fit-weights``, which needs >= 1 step and every CSV row's own gaze; ``--fit-steps`` given for HDF5 rows
+    without ``--fit-weights`` (nothing to fit) is refused rather than ignored."""
     fit_steps = args.fit_steps if args.fit_steps >= 0 else (cfg.eval.tta_steps or 50)
+    if args.fit_steps >= 0 and not args.fit_weights and src is not None and not hasattr(src, "items"):
+        raise ToolkitError("--fit-steps sets how long --fit-weights fits each row (and the code fit of CSV rows "
+                           "without a code); HDF5 rows are rendered from their stored codes: give --fit-weights too")
     if args.fit_weights:
         if fit_steps < 1:
             what = "photo input (fitted before it is rendered)" if getattr(args, "photos", None) else "--fit-weights"

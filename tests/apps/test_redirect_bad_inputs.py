@@ -51,6 +51,8 @@ FLAGS = [
     ("no-file", ["--gazes", "file:/nonexistent/g.csv"], r"--gazes file /nonexistent/g.csv: no such file"),
     ("natural-eyes-alone", ["--natural-eyes"], r"--natural-eyes sets how --fit-weights fits"),
     ("fit-weights-0-steps", ["--fit-weights", "--fit-steps", "0"], r"--fit-weights needs --fit-steps >= 1"),
+    ("fit-steps-alone", ["--fit-steps", "3"], r"--fit-steps sets how long --fit-weights fits each row .* give "
+     r"--fit-weights too"),
 ]
 
 
