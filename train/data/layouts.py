@@ -252,7 +252,7 @@ def detect_layout(keys: set[str], shapes: Mapping[str, tuple] | None = None, whe
 def check_layout(layout: str | Layout, keys: set[str], shapes: Mapping[str, tuple] | None = None,
                  where: str = "") -> Layout:
     """The user-named ``layout``, or one ToolkitError saying which of its required keys (or shapes) the file
-    contradicts."""
+    contradicts, or which keys of other layouts it has."""
     layout = get_layout(layout)
     missing = sorted(set(layout.required) - set(keys))
     if missing:
@@ -261,6 +261,11 @@ def check_layout(layout: str | Layout, keys: set[str], shapes: Mapping[str, tupl
     bad = _misfits(layout, shapes or {})
     if bad:
         raise ToolkitError(f"{_where(where)}data.layout={layout.name}: key {bad[0]}")
+    foreign = sorted((set(keys) & KNOWN_KEYS) - layout.keys)
+    if foreign:  # another layout's file: read as this one, its gaze sign or 3D frame would be silently wrong
+        others = [lay.name for lay in LAYOUTS.values() if _fits(lay, set(keys), shapes or {})]
+        raise ToolkitError(f"{_where(where)}data.layout={layout.name}: the file has {foreign}, keys only other "
+                           f"layouts write" + (f" (it is a {others[0]} file)" if len(others) == 1 else ""))
     return layout
 
 

@@ -63,7 +63,7 @@ def test_the_geometry_stage_reads_a_gazegaussian_file_as_the_native_one(native, 
     assert float((naive["landmarks"] - want["landmarks"]).abs().max()) > 0.05
 
 
-def test_a_named_layout_the_keys_contradict_is_refused_before_any_work(native, tmp_path):
+def test_a_named_layout_the_keys_contradict_is_refused_before_any_work(native, gazegaussian, tmp_path):
     run = tmp_path / "run"
     # GazeNeRF dataset_pre_processing.py L258-381 writes c2w_* and inv_inmat, which native files lack
     assert_refused("train.run", ["--preset", "tiny", "--run-dir", run, f"data.root={native}", "data.layout=gazenerf"],
@@ -75,6 +75,11 @@ def test_a_named_layout_the_keys_contradict_is_refused_before_any_work(native, t
                                  "data.layout=gazegaussian"],
                    r"data\.layout=gazegaussian: key 'cam_index' \[6\] \(expected N,1\)", inputs=[native])
     assert not run.exists()
+    # An exported GazeGaussian file keeps GazeNeRF's c2w_* and inv_inmat (train.data.export): named native, its gaze
+    # pitch would be read with the wrong sign
+    assert_refused("train.data", ["inspect", gazegaussian / "xgaze_subject0000.h5", "--layout", "ditgaze"],
+                   r"data\.layout=ditgaze: the file has \['c2w_Rmat', 'c2w_Tvec', 'inv_inmat'\], keys only other "
+                   r"layouts write \(it is a gazegaussian file\)", inputs=[gazegaussian])
     assert_refused("train.run", ["--preset", "tiny", "--run-dir", run, f"data.root={native}",
                                  f"data.split_file={tmp_path / 'none.json'}"],
                    r"data\.split_file.*no such file", inputs=[native])
