@@ -45,7 +45,7 @@ def summarize(path: Path, info: dict, layout: str = "ditgaze") -> dict:
         cov = float(np.mean([read_selection(path, "head_mask", mask, int(i)).mean() / 255 for i in rows]))
     return {
         "file": path.name, "layout": layout, "images": info["n"], "res": f"{info['width']}x{info['height']}", "cameras": cams,
-        "frames": frames, "vertices": info["n_vertices"],
+        "frames": frames, "vertices": "-" if info["n_vertices"] is None else info["n_vertices"],
         "gaze pitch (deg)": f"{g[:, 0].min():.0f}..{g[:, 0].max():.0f}",
         "gaze yaw (deg)": f"{g[:, 1].min():.0f}..{g[:, 1].max():.0f}",
         "head pitch/yaw (deg)": f"{hp[:, 0].min():.0f}..{hp[:, 0].max():.0f} / {hp[:, 1].min():.0f}..{hp[:, 1].max():.0f}",

@@ -280,3 +280,14 @@ def test_a_native_split_file_named_for_a_peer_layout_says_which_form_it_is(tmp_p
     with pytest.raises(ToolkitError) as e:
         read_split_file(path, "gazegaussian")
     assert "pass data.layout=ditgaze" in _one_line(e)
+
+
+def test_inspect_shows_no_mesh_as_a_dash(files):
+    """A GazeNeRF file stores no mesh: its row of the inspect table says '-', not None."""
+    from train.data.__main__ import summarize
+    from train.data.dataset import GazeDataset
+
+    ds = GazeDataset([files["gazenerf"]], res=None)
+    assert summarize(files["gazenerf"], ds.info[0], ds.layouts[0])["vertices"] == "-"
+    ds = GazeDataset([files["ditgaze"]], res=None)
+    assert summarize(files["ditgaze"], ds.info[0], ds.layouts[0])["vertices"] == ds.info[0]["n_vertices"] > 0
