@@ -28,6 +28,8 @@ class CliParser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
 
     def error(self, message: str):
+        if message.endswith("expected one argument"):  # most often a value that starts with '-', read as a flag
+            message += " (a value starting with '-' is written --flag=VALUE, e.g. --yaw=-30:30:5)"
         raise ToolkitError(f"{message} (`{self.prog} --help` lists the options)")
 
 

@@ -68,6 +68,8 @@ def test_a_closed_pipe_stops_quietly():
     (["--count", "x"], "error: argument --count: invalid int value: 'x' (`tool --help` lists the options)"),
     (["--count", "1", "--coun=2"], "error: unrecognized arguments: --coun=2"),  # a prefix is not the option
     (["sub", "--size", "9"], "error: argument --size: invalid choice: 9 (choose from 1, 2) (`tool sub --help`"),
+    (["--count", "-x"], "error: argument --count: expected one argument (a value starting with '-' is written "
+                        "--flag=VALUE"),
 ])
 def test_usage_mistakes_are_one_line_naming_the_help(capsys, argv, text):
     from toolkit.errors import CliParser

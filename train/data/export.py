@@ -88,13 +88,15 @@ def export(src: str | os.PathLike, out: str | os.PathLike, layout: str = "gazega
     files = find_subject_files(src)
     out = Path(out)
     check_not_an_input(out, [Path(src), *files], "OUT_DIR", "dataset")
+    rows_of = {}
     for f in files:  # every source checked before anything is written
         if row_layout(f).name != "ditgaze":
             raise ToolkitError(f"{f}: export reads this project's own files; this one is {row_layout(f).name}")
-        validate_subject_file(f)
+        rows_of[f] = validate_subject_file(f)["n"]
     split = _split(files, target.split.prefix)
     names = [f"{target.split.prefix}{f.stem}.h5" for f in files]
     check_no_other_dataset(out, [*names, target.split.file_name], "OUT_DIR", "export")
+    made = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=".export.", suffix=".tmp", dir=out))
@@ -102,7 +104,7 @@ def export(src: str | os.PathLike, out: str | os.PathLike, layout: str = "gazega
         raise ToolkitError(f"OUT_DIR {out}: cannot write here ({e.strerror or e})") from None
     try:
         try:
-            _write_all(files, names, target, staging)
+            _write_all(files, names, target, staging, rows_of)
             (staging / target.split.file_name).write_text(json.dumps(split, indent=2) + "\n", encoding="utf-8")
         except ToolkitError as e:  # a full disk names the staging file: the user knows OUT_DIR
             raise ToolkitError(str(e).replace(f"{staging}{os.sep}", f"{out}{os.sep}")) from None
@@ -110,17 +112,24 @@ def export(src: str | os.PathLike, out: str | os.PathLike, layout: str = "gazega
             raise ToolkitError(f"OUT_DIR {out}: {e.strerror or e}; nothing was exported") from None
         for name in [*names, target.split.file_name]:  # the split file last: a folder with it is complete
             os.replace(staging / name, out / name)
-    finally:
+    except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
+        if made:  # nothing of this export is left, not even the folder it made
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    shutil.rmtree(staging, ignore_errors=True)
     return [out / name for name in names]
 
 
-def _write_all(files: list[Path], names: list[str], target, staging: Path) -> None:
-    """Each of ``files`` exported under its name in ``names`` into the folder ``staging``."""
+def _write_all(files: list[Path], names: list[str], target, staging: Path, rows_of: dict[Path, int]) -> None:
+    """Each of ``files`` exported under its name in ``names`` into the folder ``staging``; ``rows_of`` each file's
+    row count when it was validated."""
     from train.data.layout_conversion import from_native
 
     for f, name in zip(files, names, strict=True):
         rows, subject, attrs = _native_file(f)
+        if len(rows["face_patch"]) != rows_of[f]:
+            raise ToolkitError(f"{f}: changed while it was read")
         if target.name == "ditgaze":
             _write_copy(staging / name, rows, subject, attrs)
         else:
