@@ -117,6 +117,26 @@ def test_a_failure_mid_export_writes_nothing(src, tmp_path, monkeypatch):
     assert not out.exists()  # the folder it made too
 
 
+def test_ctrl_c_mid_export_leaves_an_earlier_export_whole(src, tmp_path, monkeypatch):
+    from train.data import export as export_module
+
+    out = tmp_path / "out"
+    assert main(["export", str(src), str(out)]) == 0
+    before = _tree(out)
+    real_write, calls = export_module._write_peer, []
+
+    def write_then_interrupt(path, rows):
+        calls.append(path)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        real_write(path, rows)
+
+    monkeypatch.setattr(export_module, "_write_peer", write_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        export_module.export(src, out)
+    assert _tree(out) == before  # no staging folder left, no file replaced
+
+
 def test_an_output_folder_holding_another_dataset_is_refused_and_an_earlier_export_replaced(src, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
