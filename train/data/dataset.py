@@ -49,6 +49,11 @@ def find_subject_files(paths: str | os.PathLike | Sequence[str | os.PathLike]) -
     for p in map(Path, paths):
         if p.is_dir():
             found = sorted(q for q in p.glob("*.h5") if not _appledouble(q))
+            unlisted = sorted(q.name for q in p.iterdir() if q.suffix.lower() in (".h5", ".hdf5")
+                              and q.suffix != ".h5" and not _appledouble(q))
+            if unlisted:  # left out, the dataset would lack these subjects unseen
+                raise ToolkitError(f"{p}: {unlisted[0]}" + (f" (and {len(unlisted) - 1} more)" if unlisted[1:] else "")
+                                   + ": subject files are listed by the suffix .h5 (lower case); rename it")
             if not found:
                 raise ToolkitError(f"{p}: no *.h5 subject files in this folder")
             files += found

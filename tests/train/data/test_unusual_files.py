@@ -46,6 +46,15 @@ def test_a_dot_underscore_file_that_is_not_appledouble_is_still_read(tmp_path):
         GazeDataset([folder])
 
 
+@pytest.mark.parametrize("name", ["subject0001.H5", "subject0001.hdf5"])
+def test_a_subject_file_the_folder_would_not_list_is_named(tmp_path, name):
+    """A folder lists its ``*.h5``: a subject under another suffix would be left out of the dataset unseen."""
+    folder = _folder_with_mac_companions(tmp_path)
+    write_ditgaze(folder / name, native_truth(n_frames=1, n_cams=2, seed=2))
+    with pytest.raises(ToolkitError, match=rf"subjects: {name}: subject files are listed by the suffix \.h5"):
+        find_subject_files(folder)
+
+
 @pytest.mark.parametrize("storage", [dict(chunks=True, compression="gzip", shuffle=True, fletcher32=True),
                                      dict(chunks=True, compression="lzf"), dict(dtype=">f8")])
 def test_other_lossless_storage_reads_the_same(tmp_path, storage):
