@@ -42,6 +42,7 @@ import torch  # noqa: E402
 
 from toolkit.errors import CliParser, ToolkitError, run_cli  # noqa: E402
 from toolkit.host import keep_freed_memory  # noqa: E402
+from toolkit.io import check_output_folder  # noqa: E402
 from train.config import apply_overrides, load_yaml_config, save_yaml_config  # noqa: E402
 from train.presets import PRESETS, preset  # noqa: E402
 from train.run_config import RunConfig  # noqa: E402
@@ -115,6 +116,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return ablate(argv[1:])
     args = build_parser().parse_args(argv)
+    check_output_folder(args.run_dir, f"--run-dir {args.run_dir}")  # a file there: said before the config is read
     cfg = resolve_config(args)
     stages, force = select_stages(args)
     if cfg.threads > 0:

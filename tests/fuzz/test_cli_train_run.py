@@ -86,6 +86,14 @@ def test_a_run_directory_with_a_bad_config_yaml_is_refused_untouched(tmp_path):
                    inputs=[run], out_dir=tmp_path)
 
 
+def test_a_run_directory_that_is_a_file_is_named_as_the_flag(tmp_path):
+    (tmp_path / "run").write_text("notes\n")
+    for run in (tmp_path / "run", tmp_path / "run" / "sub"):
+        assert_refused("train.run", ["--preset", "tiny", "--run-dir", run],
+                       rf"^error: --run-dir {run}: {tmp_path / 'run'} is a file, not a folder", inputs=[tmp_path / "run"],
+                       out_dir=tmp_path)
+
+
 @pytest.mark.parametrize("value", ["abc", "0", "-2", "1e3", "99999999999"])
 def test_a_bad_torchrun_environment_is_one_line(tmp_path, monkeypatch, value):
     monkeypatch.setenv("WORLD_SIZE", value)
