@@ -101,7 +101,10 @@ def load_yaml(text: str, source: str = "YAML") -> Any:
     try:
         return loader.get_single_data()
     except yaml.YAMLError as e:
-        raise YAMLSyntaxError(f"{source}: not valid YAML ({str(e).splitlines()[0]})") from None
+        mark = getattr(e, "problem_mark", None)  # where the parser gave up: line and column, counted from 1
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise YAMLSyntaxError(f"{source}: not valid YAML{where} ({what})") from None
     finally:
         loader.dispose()
 

@@ -53,6 +53,9 @@ def test_what_a_config_holds_still_reads():
 def test_syntax_errors_are_their_own_kind():
     with pytest.raises(YAMLSyntaxError, match="not valid YAML"):
         load_yaml("a: [1, 2", "cfg.yaml")
+    # where the parser gave up, for a hand-edited file: "steps: [4" then the next key on line 3
+    with pytest.raises(YAMLSyntaxError, match=r"^cfg\.yaml: not valid YAML at line 3, column 5 \(expected ',' or ']'"):
+        load_yaml("gaussian:\n  steps: [4\n  lr: 0.01\n", "cfg.yaml")
 
 
 def test_files_must_be_utf8(tmp_path):
