@@ -74,25 +74,39 @@ def draw_tile(sample: dict, size: int) -> np.ndarray:
         col = (255, 200, 0) if 36 <= k <= 47 else (0, 200, 255)
         cv2.circle(img, (int(round(x - 0.5)), int(round(y - 0.5))), max(1, size // 160), col, -1)
     if "pitchyaw_cam" in sample:
-        p, yw = (float(v) for v in sample["pitchyaw_cam"])
-        g = np.array([-math.cos(p) * math.sin(yw), -math.sin(p)])
         for eye in (lm[36:42].mean(0), lm[42:48].mean(0)):
-            end = eye + g * size * 0.12
-            cv2.arrowedLine(img, tuple(int(v) for v in eye), tuple(int(v) for v in end), (255, 255, 0), 1,
-                            tipLength=0.25)
+            gaze_arrow(img, eye, sample["pitchyaw_cam"], size * 0.12)
     return img
 
 
+def gaze_arrow(img: np.ndarray, start: np.ndarray, pitchyaw, length: float) -> None:
+    """Draw the camera-frame gaze (pitch, yaw radians, native conventions) as an arrow from ``start`` (x, y)."""
+    import cv2
+
+    p, yw = (float(v) for v in pitchyaw)
+    end = start + np.array([-math.cos(p) * math.sin(yw), -math.sin(p)]) * length
+    cv2.arrowedLine(img, tuple(int(v) for v in start), tuple(int(v) for v in end), (255, 255, 0), 1, tipLength=0.25)
+
+
 def contact_sheet(dataset, indices: Sequence[int], out: Path, *, tile: int = 160, cols: int = 6) -> Path:
+    """A sheet of :func:`draw_tile` tiles of ``dataset``'s rows ``indices``, written (atomically) to ``out``."""
+    _check_sheet(len(indices), tile, cols)
+    return write_sheet([draw_tile(dataset[int(i)], tile) for i in indices], out, tile=tile, cols=cols)
+
+
+def _check_sheet(n: int, tile: int, cols: int) -> None:
+    # the tiles, the sheet and its PNG encoding: three images of the sheet's size at most
+    check_allocation(3 * math.ceil(n / cols) * cols * tile * tile * 3, f"the contact sheet ({n} images of {tile} "
+                     "pixels)", hint="lower --n or --tile")
+
+
+def write_sheet(tiles: list[np.ndarray], out: Path, *, tile: int, cols: int = 6) -> Path:
+    """[tile, tile, 3] uint8 RGB images, ``cols`` a row on white, as a PNG at ``out`` (atomically)."""
     import cv2
 
     from toolkit.io import atomic_write_bytes
 
-    rows = math.ceil(len(indices) / cols)
-    # the tiles, the sheet and its PNG encoding: three images of the sheet's size at most
-    check_allocation(3 * rows * cols * tile * tile * 3, f"the contact sheet ({len(indices)} images of {tile} pixels)",
-                     hint="lower --n or --tile")
-    tiles = [draw_tile(dataset[int(i)], tile) for i in indices]
+    rows = math.ceil(len(tiles) / cols)
     sheet = np.full((rows * tile, cols * tile, 3), 255, np.uint8)
     for k, t in enumerate(tiles):
         r, c = divmod(k, cols)
@@ -125,9 +139,26 @@ def cmd_synth(a) -> int:
     return 0
 
 
-def cmd_inspect(a) -> int:
-    from train.data.dataset import GazeDataset
+def _layout_line(name: str) -> str:
     from train.data.layouts import get_layout
+
+    lay = get_layout(name)
+    return (f"layout {name}: {lay.description}; gaze {lay.gaze_sign} ({lay.gaze_frame} frame, read as native "
+            f"pitch = asin(-g_y)); 3D keys: {lay.frame_3d or 'none'}; codes: "
+            f"{' + '.join(f'{n} {w}' for n, w in lay.codes) or 'none'}")
+
+
+def _sheet_writable(a, sheet: Path) -> bool:
+    """Whether the sheet goes to ``sheet``: a default one beside a read-only dataset is skipped, and said so."""
+    if not a.sheet and not os.access(sheet.parent, os.W_OK | os.X_OK):  # a shared, read-only dataset: the table
+        print(f"contact sheet: not written, {sheet.parent} is read-only here (give --sheet PATH to write one)")
+        return False
+    return True
+
+
+def cmd_inspect(a) -> int:
+    from train.data.dataset import GazeDataset, find_subject_files
+    from train.data.patches import release_layout
 
     p = Path(a.path)
     sheet = Path(a.sheet) if a.sheet else (p / "contact_sheet.png" if p.is_dir() else p.with_name(p.stem + "_sheet.png"))
@@ -135,26 +166,61 @@ def cmd_inspect(a) -> int:
         raise ToolkitError(f"--sheet {sheet}: the contact sheet is a PNG; expected a file name ending in .png")
     if a.sheet:
         check_output_folder(sheet.parent, "--sheet")
+    files = find_subject_files([a.path])
+    if release_layout(files, a.layout):
+        return inspect_release(a, files, sheet)
     ds = GazeDataset(a.path, res=None, layout=a.layout)
     print(_table([summarize(Path(i["path"]), i, lay) for i, lay in zip(ds.info, ds.layouts)],
                  ["file", "layout", "images", "res", "cameras", "frames", "vertices", "gaze pitch (deg)",
                   "gaze yaw (deg)", "head pitch/yaw (deg)", "head mask", "extra keys"]))
     for name in sorted(set(ds.layouts)):
-        lay = get_layout(name)
-        print(f"layout {name}: {lay.description}; gaze {lay.gaze_sign} ({lay.gaze_frame} frame, read as native "
-              f"pitch = asin(-g_y)); 3D keys: {lay.frame_3d or 'none'}; codes: "
-              f"{' + '.join(f'{n} {w}' for n, w in lay.codes) or 'none'}")
+        print(_layout_line(name))
     check_not_an_input(sheet, [p, *(Path(i["path"]) for i in ds.info)], "--sheet")
-    if not a.sheet and not os.access(sheet.parent, os.W_OK | os.X_OK):  # a shared, read-only dataset: the table
-        print(f"contact sheet: not written, {sheet.parent} is read-only here (give --sheet PATH to write one)")
-        ds.close()
-        return 0
-    n = min(a.n, len(ds))
-    idx = np.linspace(0, len(ds) - 1, n).round().astype(int) if n > 0 else []
-    contact_sheet(ds, idx, sheet, tile=a.tile)
-    print(f"contact sheet: {sheet} ({n} images: eye masks tinted red/blue, head mask outlined green, "
-          "eye landmarks yellow, others cyan, camera-frame gaze arrows)")
+    if _sheet_writable(a, sheet):
+        n = min(a.n, len(ds))
+        idx = np.linspace(0, len(ds) - 1, n).round().astype(int) if n > 0 else []
+        contact_sheet(ds, idx, sheet, tile=a.tile)
+        print(f"contact sheet: {sheet} ({n} images: eye masks tinted red/blue, head mask outlined green, "
+              "eye landmarks yellow, others cyan, camera-frame gaze arrows)")
     ds.close()
+    return 0
+
+
+def inspect_release(a, files: list[Path], sheet: Path) -> int:
+    """``inspect`` of ETH-XGaze release files (``train.data.patches``): their table (gaze and head pose in native
+    conventions; a held-out test subject has no gaze) and a sheet of face patches with their gaze arrows."""
+    import cv2
+
+    from train.data.patches import read_patches, release_summary
+
+    summaries = [release_summary(f) for f in files]  # every file checked before anything is printed or drawn
+    deg = lambda x, i: f"{np.degrees(x[:, i]).min():.0f}..{np.degrees(x[:, i]).max():.0f}"  # noqa: E731
+    print(_table([{"file": f.name, "layout": "xgaze", "images": s["n"], "res": f"{s['size']}x{s['size']}",
+                   "cameras": s["cameras"], "frames": s["frames"],
+                   "gaze pitch (deg)": "-" if s["gaze"] is None else deg(s["gaze"], 0),
+                   "gaze yaw (deg)": "-" if s["gaze"] is None else deg(s["gaze"], 1),
+                   "head pitch/yaw (deg)": f"{deg(s['head_pose'], 0)} / {deg(s['head_pose'], 1)}",
+                   "landmarks": "yes" if s["landmarks"] else "-"} for f, s in zip(files, summaries)],
+                 ["file", "layout", "images", "res", "cameras", "frames", "gaze pitch (deg)", "gaze yaw (deg)",
+                  "head pitch/yaw (deg)", "landmarks"]))
+    print(_layout_line("xgaze"))
+    check_not_an_input(sheet, [Path(a.path), *files], "--sheet")
+    if not _sheet_writable(a, sheet):
+        return 0
+    starts = np.concatenate([[0], np.cumsum([s["n"] for s in summaries])])
+    n = min(a.n, int(starts[-1]))
+    _check_sheet(n, a.tile, 6)
+    tiles = []
+    for i in (np.linspace(0, starts[-1] - 1, n).round().astype(int) if n > 0 else []):
+        k = int(np.searchsorted(starts, i, side="right")) - 1
+        row, s = int(i - starts[k]), summaries[k]
+        rgb = np.ascontiguousarray(read_patches(files[k], [row])[0][..., ::-1])  # stored BGR
+        img = cv2.resize(rgb, (a.tile, a.tile), interpolation=cv2.INTER_AREA if a.tile < s["size"] else cv2.INTER_LINEAR)
+        if s["gaze"] is not None:
+            gaze_arrow(img, np.array([a.tile / 2, a.tile / 2]), s["gaze"][row], a.tile * 0.3)
+        tiles.append(img)
+    write_sheet(tiles, sheet, tile=a.tile)
+    print(f"contact sheet: {sheet} ({n} face patches: normalized-camera gaze arrows from the centre)")
     return 0
 
 

@@ -147,6 +147,37 @@ def _read_file(path: Path, res: int, landmarks: bool) -> tuple[int, np.ndarray, 
     return n, labels, lm
 
 
+def release_summary(path: str | os.PathLike) -> dict[str, Any]:
+    """One release file checked as :class:`ReleasePatches` checks it, a test subject's too, and summarized:
+    ``{"n", "size" (patch side, pixels), "gaze" [N, 2] native ``pitchyaw_cam`` radians or None (a held-out test
+    subject), "head_pose" [N, 2] radians, "cameras", "frames" (distinct indices), "landmarks" (bool)}``."""
+    from toolkit.h5 import read_array
+    from train.data.layout_conversion import to_native
+    from train.data.layouts import check_layout, describe_file
+
+    keys, shapes = describe_file(path)
+    check_layout(XGAZE, keys, shapes, str(path))
+    with open_h5(path) as f:
+        n, size = (int(x) for x in _patch_dataset(path, f).shape[:2])
+        rows = {k: _read_rows(path, f, k, n, (2,)) for k in (LABEL_KEY, "face_head_pose") if has_key(path, f, k)}
+        for k, a in rows.items():
+            _check_angles(path, k, a)
+        distinct = {k: int(np.unique(read_array(path, f, k)).size) for k in ("cam_index", "frame_index")}
+        landmarks = has_key(path, f, "facial_landmarks")
+    native = to_native(XGAZE, rows)  # face_gaze -> pitchyaw_cam (the same sign)
+    return {"n": n, "size": size, "gaze": native.get("pitchyaw_cam"), "head_pose": native["face_head_pose"],
+            "cameras": distinct["cam_index"], "frames": distinct["frame_index"], "landmarks": landmarks}
+
+
+def read_patches(path: str | os.PathLike, rows: Sequence[int]) -> np.ndarray:
+    """Rows of a release file's ``face_patch`` as stored: [len(rows), H, H, 3] uint8 BGR, one bounded read each."""
+    from toolkit.h5 import read_selection
+
+    with open_h5(path) as f:
+        ds = _patch_dataset(path, f)
+        return np.stack([read_selection(path, "face_patch", ds, int(r)) for r in rows])
+
+
 class ReleasePatches(torch.utils.data.Dataset):
     """The rows of ETH-XGaze release files, for the gaze estimator.
 

@@ -273,6 +273,32 @@ def test_release_files_as_the_eval_data_are_refused_before_any_training(release,
     assert not (tmp_path / "run" / "data").exists()
 
 
+def test_inspect_tables_and_draws_release_files_a_test_subject_too(release, tmp_path, capsys):
+    """`python -m train.data inspect` on the release: its own table (gaze in native conventions, from face_gaze;
+    none for a held-out test subject) and a sheet of the patches as RGB, not a refusal for lacking masks."""
+    from train.data.__main__ import main
+
+    folder = tmp_path / "train"
+    shutil.copytree(release["dir"], folder)
+    with h5py.File(folder / "subject0002.h5", "r+") as f:  # a test subject: labels withheld (README.md L45-46)
+        del f["face_gaze"]
+    sheet = tmp_path / "sheet.png"
+    assert run_cli(main, ["inspect", str(folder), "--sheet", str(sheet), "--n", "6", "--tile", "32"]) == 0
+    lines = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[2:-1]]
+             for ln in capsys.readouterr().out.splitlines() if ln.startswith("| subject")}
+    g = np.degrees(release["rows"]["face_gaze"][:ROWS])  # subject0000's rows, as stored (the native pitch sign)
+    assert lines["subject0000.h5"][:5] == ["xgaze", str(ROWS), f"{RES}x{RES}", "6", "1"]
+    assert lines["subject0000.h5"][5] == f"{g[:, 0].min():.0f}..{g[:, 0].max():.0f}"
+    assert lines["subject0002.h5"][5:7] == ["-", "-"]
+    img = cv2.imread(str(sheet))[..., ::-1]
+    assert img.shape == (32, 6 * 32, 3)
+    first = release["rows"]["rgb"][0].astype(int)  # RES = the tile: drawn as stored, but for its arrow
+    coloured = np.abs(first[..., 0] - first[..., 2]) > 30  # where RGB and BGR differ
+    assert coloured.sum() > 20
+    tile = img[:, :32].astype(int)
+    assert np.median(np.abs(tile - first)[coloured]) < 2 < np.median(np.abs(tile - first[..., ::-1])[coloured])
+
+
 # ------------------------------------------------------------------------------------------------ bad input
 
 def _bad_copy(release, tmp_path, edit):
