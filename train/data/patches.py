@@ -120,30 +120,21 @@ def _read_file(path: Path, res: int, landmarks: bool) -> tuple[int, np.ndarray, 
     """One release file checked and its per-row labels read: (rows, labels [N, 4] float32 (camera-frame gaze,
     head pose; native conventions), landmarks [N, 68, 2] float32 pixels of the res x res image or None). Every
     failure is one ToolkitError naming the file and key."""
-    from train.data.layout_conversion import to_native
-    from train.data.layouts import check_layout, describe_file
-
-    keys, shapes = describe_file(path)
-    check_layout(XGAZE, keys, shapes, str(path))
-    with open_h5(path) as f:
-        n, size = (int(x) for x in _patch_dataset(path, f).shape[:2])
-        if not has_key(path, f, LABEL_KEY):
-            raise ToolkitError(f"{path}: no key '{LABEL_KEY}': a held-out subject of the release (its labels are "
-                               f"withheld, ETH-XGaze README.md L45-46) cannot be trained on or scored")
-        rows = {k: _read_rows(path, f, k, n, (2,)) for k in (LABEL_KEY, "face_head_pose")}
-        for k, a in rows.items():
-            _check_angles(path, k, a)
-        lm = None
-        if landmarks:
-            if not has_key(path, f, "facial_landmarks"):
-                raise ToolkitError(f"{path}: no key 'facial_landmarks', which the eye-patch estimator reads")
+    s = release_summary(path)
+    if s["gaze"] is None:
+        raise ToolkitError(f"{path}: no key '{LABEL_KEY}': a held-out subject of the release (its labels are "
+                           f"withheld, ETH-XGaze README.md L45-46) cannot be trained on or scored")
+    n, size, lm = s["n"], s["size"], None
+    if landmarks:
+        if not s["landmarks"]:
+            raise ToolkitError(f"{path}: no key 'facial_landmarks', which the eye-patch estimator reads")
+        with open_h5(path) as f:
             lm = _read_rows(path, f, "facial_landmarks", n, (68, 2))
-            if (lm < -size).any() or (lm > 2 * size).any():
-                raise ToolkitError(f"{path}: key 'facial_landmarks' lies far outside the {size}x{size} patch "
-                                   f"(pixels expected)")
-            lm = lm.astype(np.float32) * np.float32(res / size)
-    native = to_native(XGAZE, rows)  # face_gaze -> pitchyaw_cam (the same sign); float32
-    labels = np.concatenate([native["pitchyaw_cam"], native["face_head_pose"]], 1).astype(np.float32)
+        if (lm < -size).any() or (lm > 2 * size).any():
+            raise ToolkitError(f"{path}: key 'facial_landmarks' lies far outside the {size}x{size} patch "
+                               f"(pixels expected)")
+        lm = lm.astype(np.float32) * np.float32(res / size)
+    labels = np.concatenate([s["gaze"], s["head_pose"]], 1).astype(np.float32)
     return n, labels, lm
 
 
