@@ -104,14 +104,26 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
     header, raw = _read_table(p)
     rows: list[LabelRow] = []
     size: tuple[int, int] | None = None
+    bad: list[tuple[int, str]] = []  # every row is checked: one run of the command names all lines to mend
     for line, r in raw:
-        if None in r:  # cells beyond the header's: csv.DictReader files them under None, and they would be lost
-            raise ToolkitError(f"{p} line {line}: {len(header) + len(r[None])} cells, the header has {len(header)}")
-        cells = _Cells(p, line, {(k or "").strip(): (v or "").strip() if isinstance(v, str) else "" for k, v in r.items()})
-        row, hw = _label_row(cells, size, focal=focal, distance=distance, default_distance=default_distance,
-                             default_crop=default_crop, code_widths=code_widths)
+        try:
+            if None in r:  # cells beyond the header's: csv.DictReader files them under None, and would be lost
+                raise ToolkitError(f"{p} line {line}: {len(header) + len(r[None])} cells, the header has {len(header)}")
+            cells = _Cells(p, line, {(k or "").strip(): (v or "").strip() if isinstance(v, str) else ""
+                                     for k, v in r.items()})
+            row, hw = _label_row(cells, size, focal=focal, distance=distance, default_distance=default_distance,
+                                 default_crop=default_crop, code_widths=code_widths)
+        except ToolkitError as e:
+            if f"line {line}" not in str(e):  # a flag's problem (--focal), not the row's: the same for every row
+                raise
+            bad.append((line, str(e)))
+            continue
         size = size or hw
         rows.append(row)
+    if bad:
+        more = [str(line) for line, _ in bad[1:]]
+        raise ToolkitError(bad[0][1] + (f" (and {len(more)} more line(s) with problems: "
+                                        f"{', '.join(more[:10])}{', ...' if len(more) > 10 else ''})" if more else ""))
     return rows, size[0]
 
 

@@ -151,6 +151,12 @@ def test_labels_csv_bad_rows(tiny_trained_run, tmp_path):
         labels.write_text(HEADER + "\n" + row + "\n")
         assert_refused("apps.redirect", [tiny_trained_run, labels, tmp_path / "out.h5"], match,
                        inputs=[crops], out_dir=tmp_path)
+    rows = [",".join(cells[:3] + ["1e300", cells[4]] + cells[5:]), good, ",".join(["missing.png"] + cells[1:]),
+            ",".join(cells[:3] + ["nan", cells[4]] + cells[5:])]
+    labels.write_text(HEADER + "\n" + "\n".join(rows) + "\n")  # every bad line named in one run
+    assert_refused("apps.redirect", [tiny_trained_run, labels, tmp_path / "out.h5"],
+                   r"line 2, column 'gaze_pitch': expected degrees .* \(and 2 more line\(s\) with problems: 4, 5\)$",
+                   inputs=[crops], out_dir=tmp_path)
     labels.write_text(HEADER + ",focal\n" + good + ",1e300\n")
     assert_refused("apps.redirect", [tiny_trained_run, labels, tmp_path / "out.h5"],
                    r"line 2, column 'focal': expected pixels in \[0, ", inputs=[crops], out_dir=tmp_path)
