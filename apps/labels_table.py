@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, bad_rows_error
 from toolkit.images import read_image
 
 REQUIRED_COLUMNS = ("image", "head_pitch", "head_yaw")
@@ -121,9 +121,7 @@ def read_labels(csv_path: str | os.PathLike, *, focal: float | None = None, dist
         size = size or hw
         rows.append(row)
     if bad:
-        more = [str(line) for line, _ in bad[1:]]
-        raise ToolkitError(bad[0][1] + (f" (and {len(more)} more line(s) with problems: "
-                                        f"{', '.join(more[:10])}{', ...' if len(more) > 10 else ''})" if more else ""))
+        raise bad_rows_error(bad)
     return rows, size[0]
 
 

@@ -33,6 +33,14 @@ class CliParser(argparse.ArgumentParser):
         raise ToolkitError(f"{message} (`{self.prog} --help` lists the options)")
 
 
+def bad_rows_error(problems: list[tuple[int, str]]) -> ToolkitError:
+    """One error for a table's bad rows, ``(line, message)`` each, every row checked: the first row's message,
+    then the other lines with problems, so one run shows all that needs mending."""
+    more = [str(line) for line, _ in problems[1:]]
+    tail = f" (and {len(more)} more line(s) with problems: {', '.join(more[:10])}{', ...' if len(more) > 10 else ''})"
+    return ToolkitError(problems[0][1] + (tail if more else ""))
+
+
 def one_line(e: BaseException | str, limit: int | None = 200) -> str:
     """A library's message as one plain line, to quote in a ``ToolkitError``: terminal colour codes dropped, line
     breaks and runs of blanks made single spaces, cut at ``limit`` characters (None: whole). torch's state-dict

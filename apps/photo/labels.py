@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.errors import ToolkitError
+from toolkit.errors import ToolkitError, bad_rows_error
 
 COLUMNS = ("image", "gaze_pitch", "gaze_yaw")
 MAX_BYTES = 64 * 1024 * 1024
@@ -52,23 +52,35 @@ def read_labels(path: str | os.PathLike) -> dict[Path, np.ndarray]:
                            f"{','.join(rows[0]) if rows else 'an empty file'}")
     header = rows[0]
     out: dict[Path, np.ndarray] = {}
+    bad: list[tuple[int, str]] = []
     for line, row in enumerate(rows[1:], start=2):
-        if not row or all(not c.strip() for c in row):
-            continue
-        if len(row) != len(header):
-            raise ToolkitError(f"{path} line {line}: {len(row)} cells, the header has {len(header)}")
-        cell = dict(zip(header, (c.strip() for c in row)))
-        if not cell["image"]:
-            raise ToolkitError(f"{path} line {line}, column 'image': empty")
-        img = Path(cell["image"])
-        img = (img if img.is_absolute() else path.parent / img).resolve()
-        if img in out:
-            raise ToolkitError(f"{path} line {line}, column 'image': {cell['image']} is labelled twice")
-        out[img] = np.radians([_number(path, line, "gaze_pitch", cell["gaze_pitch"], 90.0),
-                               _number(path, line, "gaze_yaw", cell["gaze_yaw"], 180.0)])
+        if row and any(c.strip() for c in row):
+            try:
+                img, gaze = _label(path, line, header, row, out)
+            except ToolkitError as e:
+                bad.append((line, str(e)))
+                continue
+            out[img] = gaze
+    if bad:
+        raise bad_rows_error(bad)
     if not out:
         raise ToolkitError(f"--labels {path}: no rows")
     return out
+
+
+def _label(path: Path, line: int, header: list[str], row: list[str], seen: dict) -> tuple[Path, np.ndarray]:
+    """One CSV row -> (resolved image path, (pitch, yaw) radians); ``seen`` the rows read before it."""
+    if len(row) != len(header):
+        raise ToolkitError(f"{path} line {line}: {len(row)} cells, the header has {len(header)}")
+    cell = dict(zip(header, (c.strip() for c in row)))
+    if not cell["image"]:
+        raise ToolkitError(f"{path} line {line}, column 'image': empty")
+    img = Path(cell["image"])
+    img = (img if img.is_absolute() else path.parent / img).resolve()
+    if img in seen:
+        raise ToolkitError(f"{path} line {line}, column 'image': {cell['image']} is labelled twice")
+    return img, np.radians([_number(path, line, "gaze_pitch", cell["gaze_pitch"], 90.0),
+                            _number(path, line, "gaze_yaw", cell["gaze_yaw"], 180.0)])
 
 
 def labels_for(labels: dict[Path, np.ndarray], photos: list[Path], where: str) -> dict[Path, np.ndarray]:

@@ -124,3 +124,16 @@ def test_a_labels_folder_is_named_a_folder(tmp_path):
         read_labels(tmp_path)
     with pytest.raises(ToolkitError, match=r"no such file"):
         read_labels(tmp_path / "labels.csv")
+
+
+def test_every_bad_row_of_a_labels_csv_is_listed(tmp_path):
+    from apps.photo.labels import read_labels
+    from toolkit.errors import ToolkitError
+
+    labels = tmp_path / "labels.csv"
+    labels.write_text("image,gaze_pitch,gaze_yaw\na.jpg,91,0\nb.jpg,10,5\n,1,1\nc.jpg,x,0\nb.jpg,0,0\n")
+    with pytest.raises(ToolkitError, match=rf"^{_q(labels)} line 2, column 'gaze_pitch': .* \(and 3 more line\(s\) "
+                                           r"with problems: 4, 5, 6\)$"):
+        read_labels(labels)
+    labels.write_text("image,gaze_pitch,gaze_yaw\na.jpg,9,0\nb.jpg,10,5\n")
+    assert len(read_labels(labels)) == 2
