@@ -47,7 +47,8 @@ def test_a_sliver_of_a_photo_is_no_face_and_not_a_crash(finder):
         assert finder.faces(np.zeros(shape, np.uint8)) == ([], 0)
 
 
-def test_a_sliver_in_a_folder_is_skipped_and_the_other_photos_prepared(astronaut, tmp_path, capsys):
+def test_a_sliver_in_a_folder_is_skipped_and_the_other_photos_prepared(astronaut, finder, tmp_path, capsys):
+    """(``finder``: skipped without mediapipe, which apps.prepare needs.)"""
     from apps import prepare
 
     folder = tmp_path / "photos"
