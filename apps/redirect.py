@@ -175,9 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "labels.csv; columns in docs/redirect.md), or photos: photo files (JPEG, PNG, WebP, TIFF, "
                          "HEIC, ...) and/or folders of them")
     ap.add_argument("out", help="output HDF5 file; for photo input an output folder")
-    ap.add_argument("--gazes", default="grid:3x3:25", help=f"target gazes: {GRID_EXAMPLE}")
-    ap.add_argument("--rows", type=int, default=0, help="use only the first N input rows (0 = all)")
-    ap.add_argument("--batch", type=int, default=4, help="input rows per chunk")
+    ap.add_argument("--gazes", default="grid:3x3:25", help=f"target gazes: {GRID_EXAMPLE} (default: %(default)s)")
+    ap.add_argument("--rows", type=int, default=0, help="use only the first N input rows (0 = all; default: %(default)s)")
+    ap.add_argument("--batch", type=int, default=4, help="input rows per chunk (default: %(default)s)")
     ap.add_argument("--steps", type=int, default=0, help="DDIM steps (0 = the run's evaluation setting: eval.sampling_steps, else gaussian.sampling_steps)")
     ap.add_argument("--seed", type=int, default=0,
                     help="seed of random: gazes and of the fitting's diffusion noise (drawn per chunk, so a "
@@ -191,7 +191,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--fit-steps", type=int, default=-1,
                     help="test-time fitting steps: of the shape code on CSV rows without a code, and of each row "
                          "with --fit-weights (default: the run's eval.tta_steps, or 50 when that is 0)")
-    ap.add_argument("--fit-lr", type=float, default=1e-2, help="CSV input: learning rate of the code fitting")
+    ap.add_argument("--fit-lr", type=float, default=1e-2, help="CSV input: learning rate of the code fitting (default: %(default)s)")
     ap.add_argument("--fit-weights", action="store_true",
                     help="fit each input row as the run's evaluation does before rendering its gazes: the code and "
                          "eval.tta_weights (by default face features, renderer) for --fit-steps steps on eval.tta_region, with "
