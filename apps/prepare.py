@@ -149,7 +149,7 @@ def prepare_group(name: str, photos: list[Path], finder, target, args, labels, r
 
 def main(argv: Sequence[str] | None = None) -> int:
     from apps.photo.faces import FaceFinder
-    from apps.photo.images import photo_groups, photo_problem
+    from apps.photo.images import naming_photo, photo_groups, photo_problem
 
     args = build_parser().parse_args(argv)
     check_args(args)
@@ -169,7 +169,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     problems: list[str] = []
 
     def report(photo: Path, reason: str) -> None:
-        problems.append(reason if str(photo) in reason else f"{photo}: {reason}")
+        problems.append(naming_photo(photo, reason))
         if len(every) > 1:  # a single photo's problem is the error line itself
             print(f"skipped {photo_problem(photo, reason)}", file=sys.stderr)
 

@@ -167,7 +167,7 @@ def prepare_faces(args: argparse.Namespace, target) -> tuple[list, list[tuple[in
     face that cannot be used is a ``skipped`` line on stderr; no usable face at all is a ToolkitError (a single
     photo's: its reason, naming it)."""
     from apps.photo.faces import FaceFinder
-    from apps.photo.images import load_photo, photo_focal, photo_problem
+    from apps.photo.images import load_photo, naming_photo, photo_focal, photo_problem
     from apps.photo.rows import photo_rows
 
     photos, rows, faces, focals, failed = args.photos, [], [], [], []
@@ -178,7 +178,7 @@ def prepare_faces(args: argparse.Namespace, target) -> tuple[list, list[tuple[in
                 got, problems = photo_rows(photo, finder, target, frame_index=i, largest_face=args.largest_face,
                                            focal=args.focal)
             except ToolkitError as e:
-                failed.append(str(e) if str(path) in str(e) else f"{path}: {e}")
+                failed.append(naming_photo(path, str(e)))
                 focals.append(None)
                 if len(photos) > 1:  # a single photo's reason is the error line itself
                     print(f"skipped {photo_problem(path, str(e))}", file=sys.stderr)

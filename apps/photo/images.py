@@ -115,13 +115,19 @@ def load_photo(path: str | os.PathLike) -> Photo:
     return Photo(path, np.ascontiguousarray(rgb[..., ::-1]), _focal_35mm(exif))
 
 
+def naming_photo(path: Path, text: str) -> str:
+    """``text``, a photo's problem, led by the photo's path unless it names the photo already: a single photo's
+    error line."""
+    return text if str(path) in text else f"{path}: {text}"
+
+
 def photo_problem(path: Path, text: str) -> str:
     """"PATH: reason", the line a photo left out is reported with, whether or not ``text`` names the photo (the
     readers' errors start "photo PATH: ")."""
     for named in (f"photo {path}: ", f"{path}: "):
         if text.startswith(named):
             return f"{path}: {text[len(named):]}"
-    return text if str(path) in text else f"{path}: {text}"
+    return naming_photo(path, text)
 
 
 def photo_focal(photo: Photo, focal: float | None = None, default_factor: float = 1.2) -> tuple[float, str]:
