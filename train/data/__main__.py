@@ -210,15 +210,17 @@ def inspect_release(a, files: list[Path], sheet: Path) -> int:
     starts = np.concatenate([[0], np.cumsum([s["n"] for s in summaries])])
     n = min(a.n, int(starts[-1]))
     _check_sheet(n, a.tile, 6)
+    picks = np.linspace(0, starts[-1] - 1, n).round().astype(int) if n > 0 else np.zeros(0, int)
+    of_file = np.searchsorted(starts, picks, side="right") - 1
     tiles = []
-    for i in (np.linspace(0, starts[-1] - 1, n).round().astype(int) if n > 0 else []):
-        k = int(np.searchsorted(starts, i, side="right")) - 1
-        row, s = int(i - starts[k]), summaries[k]
-        rgb = np.ascontiguousarray(read_patches(files[k], [row])[0][..., ::-1])  # stored BGR
-        img = cv2.resize(rgb, (a.tile, a.tile), interpolation=cv2.INTER_AREA if a.tile < s["size"] else cv2.INTER_LINEAR)
-        if s["gaze"] is not None:
-            gaze_arrow(img, np.array([a.tile / 2, a.tile / 2]), s["gaze"][row], a.tile * 0.3)
-        tiles.append(img)
+    for k in np.unique(of_file):  # each file opened once, its picked rows read in order
+        rows, s = picks[of_file == k] - starts[k], summaries[k]
+        for row, bgr in zip(rows, read_patches(files[k], rows)):
+            img = cv2.resize(np.ascontiguousarray(bgr[..., ::-1]), (a.tile, a.tile),
+                             interpolation=cv2.INTER_AREA if a.tile < s["size"] else cv2.INTER_LINEAR)
+            if s["gaze"] is not None:
+                gaze_arrow(img, np.array([a.tile / 2, a.tile / 2]), s["gaze"][row], a.tile * 0.3)
+            tiles.append(img)
     write_sheet(tiles, sheet, tile=a.tile)
     print(f"contact sheet: {sheet} ({n} face patches: normalized-camera gaze arrows from the centre)")
     return 0
